@@ -1,0 +1,90 @@
+"""SE(2) algebra on arrays of poses (x, y, θ), vectorized over a leading axis.
+
+A pose p = (x, y, θ) is the transform [[R(θ), t], [0, 1]]. `relative(a, b)` is a⁻¹·b, the pose of b
+seen from a, which is what a constraint measures.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def wrap_angle(theta: FloatArray | float) -> FloatArray:
+    """Wrap angles to [-π, π)."""
+    return (np.asarray(theta) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def compose(a: FloatArray, b: FloatArray) -> FloatArray:
+    """a·b for arrays of poses of shape (..., 3); θ of the result is wrapped."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
+    out[..., 0] = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    out[..., 1] = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    out[..., 2] = wrap_angle(a[..., 2] + b[..., 2])
+    return out
+
+
+def inverse(a: FloatArray) -> FloatArray:
+    """a⁻¹ for an array of poses of shape (..., 3)."""
+    a = np.asarray(a, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    out = np.empty_like(a)
+    out[..., 0] = -(c * a[..., 0] + s * a[..., 1])
+    out[..., 1] = -(-s * a[..., 0] + c * a[..., 1])
+    out[..., 2] = wrap_angle(-a[..., 2])
+    return out
+
+
+def relative(a: FloatArray, b: FloatArray) -> FloatArray:
+    """a⁻¹·b: the pose of b in the frame of a."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx = b[..., 0] - a[..., 0]
+    dy = b[..., 1] - a[..., 1]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
+    out[..., 0] = c * dx + s * dy
+    out[..., 1] = -s * dx + c * dy
+    out[..., 2] = wrap_angle(b[..., 2] - a[..., 2])
+    return out
+
+
+def adjoint(a: FloatArray) -> FloatArray:
+    """Adjoint matrices (..., 3, 3) of poses: Ad(a)·ξ expresses a local-frame twist ξ in a's parent frame."""
+    a = np.asarray(a, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    out = np.zeros((*a.shape[:-1], 3, 3), dtype=np.float64)
+    out[..., 0, 0] = c
+    out[..., 0, 1] = -s
+    out[..., 1, 0] = s
+    out[..., 1, 1] = c
+    out[..., 0, 2] = a[..., 1]
+    out[..., 1, 2] = -a[..., 0]
+    out[..., 2, 2] = 1.0
+    return out
+
+
+def compose_chain(steps: FloatArray, start: FloatArray | None = None) -> FloatArray:
+    """Poses reached by composing relative steps one after another from `start` (default: the origin).
+
+    Returns len(steps) + 1 poses, the first being `start`. Sequential by nature (each step turns the next).
+    """
+    steps = np.asarray(steps, dtype=np.float64).reshape(-1, 3)
+    theta = np.empty(len(steps) + 1)
+    theta[0] = 0.0 if start is None else float(start[2])
+    theta[1:] = theta[0] + np.cumsum(steps[:, 2])
+    c, s = np.cos(theta[:-1]), np.sin(theta[:-1])
+    dx = c * steps[:, 0] - s * steps[:, 1]
+    dy = s * steps[:, 0] + c * steps[:, 1]
+    poses = np.empty((len(steps) + 1, 3))
+    x0, y0 = (0.0, 0.0) if start is None else (float(start[0]), float(start[1]))
+    poses[0] = (x0, y0, theta[0])
+    poses[1:, 0] = x0 + np.cumsum(dx)
+    poses[1:, 1] = y0 + np.cumsum(dy)
+    poses[:, 2] = wrap_angle(theta)
+    return poses
