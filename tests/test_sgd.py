@@ -1,0 +1,128 @@
+"""The SGD of Olson et al. (2006): behaviour of the algorithm, and the O(log N) tree against Algorithm 1."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from optimizer import se2
+from optimizer.cost import chi2, edge_errors
+from optimizer.errors import OptimizerError
+from optimizer.graph import PoseGraph
+from optimizer.sgd import recomputes_stiffness, sgd
+from tests.conftest import shared_file
+
+
+def _angle_aware_max_difference(a: np.ndarray, b: np.ndarray) -> float:
+    difference = np.abs(a - b)
+    difference[:, 2] = np.abs(se2.wrap_angle(a[:, 2] - b[:, 2]))
+    return float(difference.max())
+
+
+def _square_loop(noise: float, seed: int = 0, laps: int = 3, side: int = 5) -> tuple[PoseGraph, np.ndarray]:
+    """A robot driving `laps` laps of a square; odometry edges plus loop closures to the first lap."""
+    rng = np.random.default_rng(seed)
+    per_lap = 4 * side
+    steps = np.tile(np.array([1.0, 0.0, 0.0]), (laps * per_lap, 1))
+    steps[side - 1 :: side, 2] = np.pi / 2
+    truth = se2.compose_chain(steps)
+    n = len(truth)
+    edges = [(i, i + 1) for i in range(n - 1)]
+    edges += [(i, i + per_lap * lap) for lap in range(1, laps) for i in range(0, per_lap, 3)
+              if i + per_lap * lap < n]
+    a = np.array([e[0] for e in edges])
+    b = np.array([e[1] for e in edges])
+    z = se2.relative(truth[a], truth[b]) + rng.normal(0.0, noise, (len(edges), 3)) * [1.0, 1.0, 0.2]
+    info = np.tile(np.diag([100.0, 100.0, 400.0]), (len(edges), 1, 1))
+    odometry = se2.compose_chain(z[: n - 1])
+    return PoseGraph.build(np.arange(n), odometry, a, b, z, info), truth
+
+
+def test_stiffness_schedule_is_powers_of_two() -> None:
+    assert [t for t in range(1, 40) if recomputes_stiffness(t)] == [1, 2, 4, 8, 16, 32]
+
+
+def test_consistent_graph_at_its_solution_does_not_move() -> None:
+    graph, truth = _square_loop(noise=0.0)
+    graph = graph.with_poses(truth)
+    for step in sgd(graph, 5):
+        assert _angle_aware_max_difference(step.poses, truth) < 1e-12
+        assert step.chi2 < 1e-20
+
+
+def test_chain_is_rebuilt_from_its_measurements_in_one_iteration() -> None:
+    # With α = 1/γ at t = 1 every step is clamped to the full residual, so visiting the odometry
+    # edges in order rebuilds dead reckoning exactly, whatever the starting estimate (isotropic x/y
+    # information keeps diag(W) = γ in every heading, so every step is clamped).
+    rng = np.random.default_rng(3)
+    z = rng.normal([1.0, 0.1, 0.05], [0.2, 0.2, 0.3], (40, 3))
+    info = np.tile(np.diag([10.0, 10.0, 50.0]), (40, 1, 1))  # isotropic: W does not rotate
+    graph = PoseGraph.build(np.arange(41), rng.normal(size=(41, 3)), np.arange(40), np.arange(1, 41), z, info)
+    first = next(sgd(graph, 1))
+    expected = se2.compose_chain(z, start=graph.poses[0])
+    assert _angle_aware_max_difference(first.poses, expected) < 1e-9
+
+
+def test_last_visited_constraint_is_satisfied_after_the_first_iteration() -> None:
+    graph, _ = _square_loop(noise=0.05)
+    first = next(sgd(graph, 1))
+    assert np.abs(edge_errors(graph, first.poses)[-1]).max() < 1e-9
+
+
+def test_sgd_recovers_the_loop_from_a_poor_initial_estimate() -> None:
+    graph, truth = _square_loop(noise=0.03, seed=1)
+    steps = list(sgd(graph, 100))
+    assert [s.index for s in steps] == list(range(1, 101))
+    assert all(s.stage == "sgd" for s in steps)
+    assert steps[-1].chi2 < 0.05 * chi2(graph)
+    # The shape, not only the cost: relative to pose 0 the result is close to the ground truth.
+    aligned = se2.relative(steps[-1].poses[0], steps[-1].poses)
+    assert np.abs(aligned[:, :2] - truth[:, :2]).max() < 0.5
+    assert np.all(np.abs(steps[-1].poses[:, 2]) <= np.pi)
+
+
+def test_first_pose_is_the_anchor() -> None:
+    graph, _ = _square_loop(noise=0.05, seed=2)
+    for step in sgd(graph, 10):
+        np.testing.assert_array_equal(step.poses[0], graph.poses[0])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_tree_equals_algorithm_1_on_generated_loops(seed: int) -> None:
+    graph, _ = _square_loop(noise=0.1, seed=seed, laps=4)
+    tree = list(sgd(graph, 40))
+    linear = list(sgd(graph, 40, implementation="linear"))
+    for a, b in zip(tree, linear, strict=True):
+        assert _angle_aware_max_difference(a.poses, b.poses) < 1e-9
+
+
+@pytest.mark.parametrize(("relative", "iterations"), [("posegraphs/2d/M3500.g2o", 30),
+                                                       ("posegraphs/2d/INTEL.g2o", 30),
+                                                       ("posegraphs/2d/FR079.g2o", 30)])
+def test_tree_equals_algorithm_1_on_real_graphs(relative: str, iterations: int) -> None:
+    from optimizer.graph_files import read_graph
+
+    graph = read_graph(shared_file(relative)).graph
+    tree = list(sgd(graph, iterations))
+    linear = list(sgd(graph, iterations, implementation="linear"))
+    for a, b in zip(tree, linear, strict=True):
+        assert _angle_aware_max_difference(a.poses, b.poses) < 1e-9
+
+
+def test_continuing_the_schedule_matches_one_long_run() -> None:
+    graph, _ = _square_loop(noise=0.1, seed=5)
+    whole = list(sgd(graph, 6))
+    head = list(sgd(graph, 3))
+    tail = list(sgd(graph, 3, head[-1].poses, first_iteration=4))
+    # Iteration 4 recomputes M from the current poses, as in the single run; 5 and 6 reuse it.
+    assert _angle_aware_max_difference(tail[-1].poses, whole[-1].poses) < 1e-9
+
+
+def test_bad_arguments_raise_our_error() -> None:
+    graph, _ = _square_loop(noise=0.0)
+    with pytest.raises(OptimizerError):
+        list(sgd(graph, -1))
+    with pytest.raises(OptimizerError):
+        list(sgd(graph, 1, implementation="quadratic"))  # type: ignore[arg-type]
+    with pytest.raises(OptimizerError):
+        list(sgd(graph, 1, np.zeros((2, 3))))
