@@ -65,7 +65,6 @@ def sgd(
         prefix_weights = np.empty((n, 3))
         tree_d = np.empty((n + 1, 3))
         tree_dw = np.empty((n + 1, 3))
-        difference = np.empty((n + 1, 3))
     else:
         raise OptimizerError(f"unknown SGD implementation {implementation!r}")
 
@@ -79,7 +78,7 @@ def sgd(
             if offset == 0 or recomputes_stiffness(t):
                 stiffness_tree(state, *edges, graph.information, weights, prefix_weights, gamma)
             sgd_iteration_tree(state, *edges, graph.measurements, graph.information, weights,
-                               prefix_weights, gamma, t, tree_d, tree_dw, difference)
+                               prefix_weights, gamma, t, tree_d, tree_dw)
         if not np.all(np.isfinite(state[-1])):
             raise OptimizerError(f"SGD diverged at iteration {t} (non-finite poses)")
         poses_out = state.copy()

@@ -196,15 +196,14 @@ def _tree_add(k: int, amount: np.ndarray, weight_before: np.ndarray, sign: float
 def sgd_iteration_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray,
                        measurements: np.ndarray, information: np.ndarray, weights: np.ndarray,
                        prefix_weights: np.ndarray, gamma: np.ndarray, t: int, tree_d: np.ndarray,
-                       tree_dw: np.ndarray, difference: np.ndarray) -> None:
+                       tree_dw: np.ndarray) -> None:
     """One pass over all constraints in O(log N) each; `poses` is brought up to date at the end (O(N)).
 
-    `tree_d`, `tree_dw` ((N+1, 3)) and `difference` ((N+1, 3)) are scratch buffers owned by the caller.
+    `tree_d` and `tree_dw` ((N+1, 3)) are scratch buffers owned by the caller.
     """
     n = poses.shape[0]
     tree_d[:] = 0.0
     tree_dw[:] = 0.0
-    difference[:] = 0.0
     pa = np.empty(3)
     pb = np.empty(3)
     r = np.empty(3)
@@ -221,16 +220,28 @@ def sgd_iteration_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.nda
             total_weight = prefix_weights[b, j] - prefix_weights[a, j]
             amount[j] = _clamped_step(b - a, d[j], r[j], gamma[j], t) / total_weight
         _tree_add(a + 1, amount, prefix_weights[a], 1.0, tree_d, tree_dw)
-        for j in range(3):
-            difference[a + 1, j] += amount[j]
         if b + 1 < n:
             _tree_add(b + 1, amount, prefix_weights[b], -1.0, tree_d, tree_dw)
-            for j in range(3):
-                difference[b + 1, j] -= amount[j]
+    _fenwick_to_array(tree_d)
     for j in range(3):
         covering = 0.0
         moved = 0.0
         for i in range(1, n):
-            covering += difference[i, j]
+            covering += tree_d[i + 1, j]
             moved += weights[i, j] * covering
             poses[i, j] += moved
+
+
+@njit(cache=True)
+def _fenwick_to_array(tree: np.ndarray) -> None:
+    """Undo the Fenwick summation in place, O(N): each node loses its children's partial sums.
+
+    Descending order matters: a node's own value must still be its partial sum when it is taken from
+    its parent.
+    """
+    n = tree.shape[0] - 1
+    for i in range(n, 0, -1):
+        parent = i + (i & -i)
+        if parent <= n:
+            for j in range(3):
+                tree[parent, j] -= tree[i, j]
