@@ -1,0 +1,173 @@
+"""The Levenberg–Marquardt polish: Jacobians against finite differences, exact optima, real χ² targets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from optimizer import se2
+from optimizer.cost import chi2, edge_errors
+from optimizer.errors import GraphError, OptimizerError
+from optimizer.graph import PoseGraph
+from optimizer.graph_files import read_graph
+from optimizer.polish import _gradient, edge_jacobians, gauss_newton
+from tests.conftest import shared_file
+
+
+def random_information(rng: np.random.Generator, count: int) -> np.ndarray:
+    factors = rng.normal(size=(count, 3, 3))
+    return factors @ np.swapaxes(factors, 1, 2) + 0.5 * np.eye(3)
+
+
+def square_loop(rng: np.random.Generator, noise: float = 0.0) -> tuple[PoseGraph, np.ndarray]:
+    """Eight poses around a 4 m square, odometry + loop closure + two chords; measurements from the truth
+    (plus `noise`), initial estimate perturbed. Returns the graph and the true poses."""
+    corners = np.array([[0, 0, 0], [2, 0, 0], [4, 0, np.pi / 2], [4, 2, np.pi / 2], [4, 4, np.pi],
+                        [2, 4, np.pi], [0, 4, -np.pi / 2], [0, 2, -np.pi / 2]], dtype=float)
+    truth = corners + np.array([1.5, -0.5, 0.3])  # not at the origin, to exercise the anchoring
+    truth[:, 2] = se2.wrap_angle(truth[:, 2])
+    edge_from = np.array([0, 1, 2, 3, 4, 5, 6, 7, 1, 2])
+    edge_to = np.array([1, 2, 3, 4, 5, 6, 7, 0, 5, 6])
+    measurements = se2.relative(truth[edge_from], truth[edge_to])
+    measurements += noise * rng.normal(size=measurements.shape)
+    initial = truth + rng.normal(scale=[0.3, 0.3, 0.2], size=truth.shape)
+    graph = PoseGraph.build(np.arange(8) * 10, initial, edge_from * 10, edge_to * 10, measurements,
+                            random_information(rng, len(edge_from)))
+    return graph, truth
+
+
+def test_jacobians_match_central_differences() -> None:
+    rng = np.random.default_rng(1)
+    poses = rng.uniform([-5, -5, -np.pi], [5, 5, np.pi], size=(6, 3))
+    edge_from = np.array([0, 0, 1, 2, 3, 4, 1])
+    edge_to = np.array([1, 2, 3, 5, 4, 5, 4])
+    measurements = rng.uniform([-3, -3, -np.pi], [3, 3, np.pi], size=(7, 3))
+    graph = PoseGraph.build(np.arange(6), poses, edge_from, edge_to, measurements, random_information(rng, 7))
+    _, jac_a, jac_b = edge_jacobians(graph)
+
+    step = 1e-6
+    for endpoint, jac in ((graph.edge_from, jac_a), (graph.edge_to, jac_b)):
+        for k in range(3):
+            numeric = np.empty((graph.num_edges, 3))
+            for m in range(graph.num_edges):
+                plus, minus = graph.poses.copy(), graph.poses.copy()
+                plus[endpoint[m], k] += step
+                minus[endpoint[m], k] -= step
+                difference = edge_errors(graph, plus)[m] - edge_errors(graph, minus)[m]
+                difference[2] = se2.wrap_angle(difference[2])
+                numeric[m] = difference / (2 * step)
+            np.testing.assert_allclose(jac[:, :, k], numeric, atol=1e-7)
+
+
+def test_gradient_is_half_the_derivative_of_chi2_over_free_poses() -> None:
+    graph, _ = square_loop(np.random.default_rng(2), noise=0.1)
+    errors, jac_a, jac_b = edge_jacobians(graph)
+    gradient = _gradient(graph, errors, jac_a, jac_b)
+    step = 1e-6
+    numeric = np.empty(3 * (graph.num_poses - 1))
+    for v in range(len(numeric)):
+        plus, minus = graph.poses.copy(), graph.poses.copy()
+        plus[1 + v // 3, v % 3] += step
+        minus[1 + v // 3, v % 3] -= step
+        numeric[v] = (chi2(graph, plus) - chi2(graph, minus)) / (2 * step)
+    np.testing.assert_allclose(2 * gradient, numeric, rtol=1e-6, atol=1e-6)
+
+
+def test_consistent_square_loop_reaches_zero_and_the_truth_relative_to_the_anchor() -> None:
+    graph, truth = square_loop(np.random.default_rng(3))
+    iterations = list(gauss_newton(graph))
+    final = iterations[-1]
+    assert final.chi2 < 1e-12
+    # Pose 0 keeps its (perturbed) estimate; the others sit where the truth puts them relative to pose 0.
+    expected = se2.compose(graph.poses[0], se2.relative(truth[0], truth))
+    np.testing.assert_allclose(final.poses[:, :2], expected[:, :2], atol=1e-7)
+    np.testing.assert_allclose(se2.wrap_angle(final.poses[:, 2] - expected[:, 2]), 0.0, atol=1e-7)
+
+
+def test_yields_accepted_steps_with_decreasing_chi2_and_fixed_anchor() -> None:
+    graph, _ = square_loop(np.random.default_rng(4), noise=0.05)
+    iterations = list(gauss_newton(graph, max_iterations=100))
+    assert [it.index for it in iterations] == list(range(1, len(iterations) + 1))
+    assert all(it.stage == "gauss-newton" for it in iterations)
+    values = np.array([chi2(graph)] + [it.chi2 for it in iterations])
+    assert np.all(np.diff(values) < 0)
+    for it in iterations:
+        assert it.chi2 == pytest.approx(chi2(graph, it.poses), rel=1e-12)
+        np.testing.assert_array_equal(it.poses[0], graph.poses[0])
+        assert np.all((it.poses[:, 2] >= -np.pi) & (it.poses[:, 2] < np.pi))
+    assert values[-1] > 0.0  # noisy measurements: the optimum is not zero
+    # At the optimum the gradient vanishes (relative to its size at the start).
+    errors, jac_a, jac_b = edge_jacobians(graph, iterations[-1].poses)
+    start_errors, start_a, start_b = edge_jacobians(graph)
+    final_gradient = np.abs(_gradient(graph, errors, jac_a, jac_b)).max()
+    assert final_gradient < 1e-5 * np.abs(_gradient(graph, start_errors, start_a, start_b)).max()
+
+
+def test_max_iterations_limits_the_accepted_steps() -> None:
+    graph, _ = square_loop(np.random.default_rng(5), noise=0.05)
+    assert len(list(gauss_newton(graph, max_iterations=2))) == 2
+    assert list(gauss_newton(graph, max_iterations=0)) == []
+
+
+def test_starts_from_given_poses_and_leaves_the_graph_alone() -> None:
+    graph, truth = square_loop(np.random.default_rng(6))
+    before = graph.poses.copy()
+    first = next(gauss_newton(graph, truth + 0.01))
+    assert first.chi2 < chi2(graph, truth + 0.01)
+    np.testing.assert_allclose(first.poses[0], truth[0] + 0.01, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(graph.poses, before)
+
+
+def test_stops_at_once_at_the_optimum() -> None:
+    graph, truth = square_loop(np.random.default_rng(7))
+    # χ² at the truth is zero up to rounding: at most a rounding-sized step is found before λ runs away.
+    iterations = list(gauss_newton(graph, truth))
+    assert len(iterations) <= 2
+    for it in iterations:
+        np.testing.assert_allclose(it.poses, truth, rtol=0, atol=1e-12)
+
+
+def test_unconstrained_direction_stays_finite() -> None:
+    # Pose 1's heading is unconstrained: its only edge has zero θθ information.
+    information = np.array([np.diag([100.0, 100.0, 0.0]), np.diag([100.0, 100.0, 100.0])])
+    graph = PoseGraph.build(np.arange(3), [[0, 0, 0], [1.2, 0.3, 0.4], [0.2, 1.1, 1.0]], [0, 0], [1, 2],
+                            [[1, 0, 0], [0, 1, 1.5]], information)
+    iterations = list(gauss_newton(graph))
+    assert iterations and np.all(np.isfinite(iterations[-1].poses))
+    assert iterations[-1].chi2 < 1e-12
+    assert iterations[-1].poses[1, 2] == pytest.approx(0.4)
+
+
+def test_rejects_bad_arguments() -> None:
+    graph, _ = square_loop(np.random.default_rng(8))
+    with pytest.raises(GraphError):
+        next(gauss_newton(graph, np.zeros((3, 3))))
+    with pytest.raises(GraphError):
+        next(gauss_newton(graph, np.full(graph.poses.shape, np.nan)))
+    with pytest.raises(OptimizerError):
+        next(gauss_newton(graph, max_iterations=-1))
+
+
+def shared_graph(name: str) -> PoseGraph:
+    # CSAIL.g2o has no vertex lines: the reader composes its odometry edges i → i+1.
+    return read_graph(shared_file(f"posegraphs/2d/{name}")).graph
+
+
+@pytest.mark.parametrize(
+    ("name", "optimum"),
+    [("pose2example.txt", 1.0989), ("FR079.g2o", 37.598), ("CSAIL.g2o", 40.555)],
+)
+def test_real_graphs_reach_their_known_optimum_from_the_file_estimate(name: str, optimum: float) -> None:
+    graph = shared_graph(name)
+    final = list(gauss_newton(graph))[-1]
+    assert final.chi2 == pytest.approx(optimum, rel=1e-3)
+
+
+def test_badly_conditioned_intel_stays_finite_and_decreasing() -> None:
+    graph = shared_graph("INTEL.g2o")
+    iterations = list(gauss_newton(graph, max_iterations=40))
+    assert len(iterations) == 40
+    values = np.array([it.chi2 for it in iterations])
+    assert np.all(np.isfinite(values)) and all(np.all(np.isfinite(it.poses)) for it in iterations)
+    assert np.all(np.diff(values) < 0)
+    assert values[-1] < 0.05 * chi2(graph)
