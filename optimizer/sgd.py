@@ -24,6 +24,7 @@ from optimizer.sgd_kernels import (
     sgd_iteration_tree,
     stiffness_linear,
     stiffness_tree,
+    tree_size,
 )
 
 Implementation = Literal["tree", "linear"]
@@ -62,9 +63,7 @@ def sgd(
         stiffness = np.empty((n, 3))
     elif implementation == "tree":
         weights = np.empty((n, 3))
-        prefix_weights = np.empty((n, 3))
-        tree_d = np.empty((n + 1, 3))
-        tree_dw = np.empty((n + 1, 3))
+        tree = np.empty((2 * tree_size(n), 3, 3))
     else:
         raise OptimizerError(f"unknown SGD implementation {implementation!r}")
 
@@ -76,9 +75,9 @@ def sgd(
             sgd_iteration_linear(state, *edges, graph.measurements, graph.information, stiffness, gamma, t)
         else:
             if offset == 0 or recomputes_stiffness(t):
-                stiffness_tree(state, *edges, graph.information, weights, prefix_weights, gamma)
-            sgd_iteration_tree(state, *edges, graph.measurements, graph.information, weights,
-                               prefix_weights, gamma, t, tree_d, tree_dw)
+                stiffness_tree(state, *edges, graph.information, weights, tree, gamma)
+            sgd_iteration_tree(state, *edges, graph.measurements, graph.information, weights, tree,
+                               gamma, t)
         if not np.all(np.isfinite(state[-1])):
             raise OptimizerError(f"SGD diverged at iteration {t} (non-finite poses)")
         poses_out = state.copy()

@@ -8,10 +8,9 @@ Two implementations of one iteration, visiting constraints in their stored order
 - `sgd_iteration_linear`: Algorithm 1 of the paper, O(N) per constraint. Kept as the test oracle.
 - `sgd_iteration_tree`: the same arithmetic in O(log N) per constraint (section III-F). Between two
   recomputations of M the weights w_i = 1/M_i are fixed, so the pose p_k is
-      p_k = p⁰_k + Σ_{i≤k} w_i C_i,   C_i = Σ of the per-loop amounts c added on ranges covering i.
-  With the range adds kept as a difference array D (D_l += c, D_{r+1} −= c) and W(k) = Σ_{i≤k} w_i,
-      Σ_{i≤k} w_i C_i = W(k)·Σ_{m≤k} D_m − Σ_{m≤k} D_m·W(m−1),
-  two prefix sums that two Fenwick trees answer and update in O(log N).
+      p_k = p⁰_k + Σ_{i≤k} w_i C_i,   C_i = Σ of the per-loop amounts c added on ranges covering i,
+  and a segment tree with lazy range adds answers the prefix sum, the loop's total weight Σ w_i and
+  the range add in O(log N) each (the paper's "binary tree whose leaves are the elements of x_incr").
 """
 
 from __future__ import annotations
@@ -121,127 +120,196 @@ def sgd_iteration_linear(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.n
 
 
 # ------------------------------------------------------------------------------------------ O(log N) tree
+# A segment tree over the increments x_1..x_{N-1} (leaf size + i holds increment i). Each node stores, per
+# dimension: LAZY, the amount c added to every increment of its interval by range updates that stopped at
+# this node; ACCUMULATED, Σ w_i·C_i over its interval counting only updates at or below it; WEIGHT, Σ w_i over
+# its interval. Every sum adds genuine contributions, never a difference of large prefix sums: the weights
+# of ill-conditioned graphs (INTEL) span eleven orders of magnitude.
+
+LAZY = 0
+ACCUMULATED = 1
+WEIGHT = 2
+
+
+def tree_size(num_poses: int) -> int:
+    """Number of leaves of the segment tree: the next power of two ≥ N."""
+    return 1 << max(num_poses - 1, 1).bit_length()
+
 
 @njit(cache=True)
 def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, information: np.ndarray,
-                   weights: np.ndarray, prefix_weights: np.ndarray, gamma: np.ndarray) -> None:
-    """Weights w_i = 1/M_i and their prefix sums W(k), in O(N + M) through a difference array."""
+                   weights: np.ndarray, tree: np.ndarray, gamma: np.ndarray) -> None:
+    """Weights w_i = 1/M_i and the tree's interval weights, in O(M log N + N).
+
+    M is summed with positive range adds on the tree's nodes, then pushed down to the leaves: a running
+    sum of a difference array would cancel catastrophically when huge and tiny informations meet.
+    """
     n = poses.shape[0]
-    difference = np.zeros((n + 1, 3))
+    size = tree.shape[0] // 2
+    tree[:] = 0.0
     gamma[:] = np.inf
     w_global = np.empty((3, 3))
     for k in range(edge_from.shape[0]):
-        a = edge_from[k]
-        b = edge_to[k]
-        _rotated_information(poses[a, 2], information[k], w_global)
+        _rotated_information(poses[edge_from[k], 2], information[k], w_global)
+        lo = edge_from[k] + 1 + size
+        hi = edge_to[k] + size + 1
+        while lo < hi:
+            if lo & 1:
+                for j in range(3):
+                    tree[lo, LAZY, j] += w_global[j, j]
+                lo += 1
+            if hi & 1:
+                hi -= 1
+                for j in range(3):
+                    tree[hi, LAZY, j] += w_global[j, j]
+            lo >>= 1
+            hi >>= 1
         for j in range(3):
-            difference[a + 1, j] += w_global[j, j]
-            difference[b + 1, j] -= w_global[j, j]
             gamma[j] = min(gamma[j], w_global[j, j])
+    for node in range(1, size):
+        for j in range(3):
+            tree[2 * node, LAZY, j] += tree[node, LAZY, j]
+            tree[2 * node + 1, LAZY, j] += tree[node, LAZY, j]
     for j in range(3):
-        running = 0.0
-        prefix = 0.0
         weights[0, j] = 0.0  # pose 0 is the anchor: no loop covers it
-        prefix_weights[0, j] = 0.0
         for i in range(1, n):
-            running += difference[i, j]
-            weights[i, j] = 1.0 / running
-            prefix += weights[i, j]
-            prefix_weights[i, j] = prefix
+            weights[i, j] = 1.0 / tree[size + i, LAZY, j]
+    tree[:] = 0.0
+    for i in range(1, n):
+        for j in range(3):
+            tree[size + i, WEIGHT, j] = weights[i, j]
+    for node in range(size - 1, 0, -1):
+        for j in range(3):
+            tree[node, WEIGHT, j] = tree[2 * node, WEIGHT, j] + tree[2 * node + 1, WEIGHT, j]
 
 
 @njit(cache=True, inline="always")
-def _tree_pose(k: int, base: np.ndarray, prefix_weights: np.ndarray, tree_d: np.ndarray,
-               tree_dw: np.ndarray, out: np.ndarray) -> None:
-    """p_k = p⁰_k + W(k)·Σ_{m≤k} D_m − Σ_{m≤k} D_m W(m−1), from the two Fenwick trees."""
+def _tree_pose(k: int, base: np.ndarray, tree: np.ndarray, out: np.ndarray) -> None:
+    """p_k = p⁰_k + Σ_{i≤k} w_i C_i, walking from the root to leaf k."""
+    size = tree.shape[0] // 2
+    node = 1
+    lo = 0
+    hi = size
+    l0 = l1 = l2 = 0.0  # Σ LAZY of the ancestors of the current node, current node included
     s0 = s1 = s2 = 0.0
-    q0 = q1 = q2 = 0.0
-    i = k + 1
-    while i > 0:
-        s0 += tree_d[i, 0]
-        s1 += tree_d[i, 1]
-        s2 += tree_d[i, 2]
-        q0 += tree_dw[i, 0]
-        q1 += tree_dw[i, 1]
-        q2 += tree_dw[i, 2]
-        i -= i & -i
-    out[0] = base[k, 0] + prefix_weights[k, 0] * s0 - q0
-    out[1] = base[k, 1] + prefix_weights[k, 1] * s1 - q1
-    out[2] = base[k, 2] + prefix_weights[k, 2] * s2 - q2
+    while node < size:
+        l0 += tree[node, LAZY, 0]
+        l1 += tree[node, LAZY, 1]
+        l2 += tree[node, LAZY, 2]
+        mid = (lo + hi) >> 1
+        left = 2 * node
+        if k >= mid:  # the whole left child lies in the prefix
+            s0 += tree[left, ACCUMULATED, 0] + l0 * tree[left, WEIGHT, 0]
+            s1 += tree[left, ACCUMULATED, 1] + l1 * tree[left, WEIGHT, 1]
+            s2 += tree[left, ACCUMULATED, 2] + l2 * tree[left, WEIGHT, 2]
+            node = left + 1
+            lo = mid
+        else:
+            node = left
+            hi = mid
+    out[0] = base[k, 0] + s0 + tree[node, ACCUMULATED, 0] + l0 * tree[node, WEIGHT, 0]
+    out[1] = base[k, 1] + s1 + tree[node, ACCUMULATED, 1] + l1 * tree[node, WEIGHT, 1]
+    out[2] = base[k, 2] + s2 + tree[node, ACCUMULATED, 2] + l2 * tree[node, WEIGHT, 2]
 
 
 @njit(cache=True, inline="always")
-def _tree_add(k: int, amount: np.ndarray, weight_before: np.ndarray, sign: float, tree_d: np.ndarray,
-              tree_dw: np.ndarray) -> None:
-    """D_k += sign·amount in both trees (the second weighted by W(k−1))."""
-    n = tree_d.shape[0] - 1
-    v0 = sign * amount[0]
-    v1 = sign * amount[1]
-    v2 = sign * amount[2]
-    u0 = v0 * weight_before[0]
-    u1 = v1 * weight_before[1]
-    u2 = v2 * weight_before[2]
-    i = k + 1
-    while i <= n:
-        tree_d[i, 0] += v0
-        tree_d[i, 1] += v1
-        tree_d[i, 2] += v2
-        tree_dw[i, 0] += u0
-        tree_dw[i, 1] += u1
-        tree_dw[i, 2] += u2
-        i += i & -i
+def _tree_weight(first: int, last: int, tree: np.ndarray, out: np.ndarray) -> None:
+    """Σ w_i over first..last, from the O(log N) nodes that tile the interval."""
+    size = tree.shape[0] // 2
+    out[:] = 0.0
+    lo = first + size
+    hi = last + size + 1
+    while lo < hi:
+        if lo & 1:
+            for j in range(3):
+                out[j] += tree[lo, WEIGHT, j]
+            lo += 1
+        if hi & 1:
+            hi -= 1
+            for j in range(3):
+                out[j] += tree[hi, WEIGHT, j]
+        lo >>= 1
+        hi >>= 1
+
+
+@njit(cache=True, inline="always")
+def _apply(node: int, amount: np.ndarray, tree: np.ndarray) -> None:
+    for j in range(3):
+        tree[node, LAZY, j] += amount[j]
+        tree[node, ACCUMULATED, j] += amount[j] * tree[node, WEIGHT, j]
+
+
+@njit(cache=True, inline="always")
+def _resum(node: int, tree: np.ndarray) -> None:
+    for j in range(3):
+        tree[node, ACCUMULATED, j] = (tree[2 * node, ACCUMULATED, j] + tree[2 * node + 1, ACCUMULATED, j]
+                                      + tree[node, LAZY, j] * tree[node, WEIGHT, j])
+
+
+@njit(cache=True, inline="always")
+def _tree_add(first: int, last: int, amount: np.ndarray, tree: np.ndarray) -> None:
+    """C_i += amount for i in first..last: O(log N) nodes take it, then their ancestors are re-summed."""
+    size = tree.shape[0] // 2
+    lo = first + size
+    hi = last + size + 1
+    while lo < hi:
+        if lo & 1:
+            _apply(lo, amount, tree)
+            lo += 1
+        if hi & 1:
+            hi -= 1
+            _apply(hi, amount, tree)
+        lo >>= 1
+        hi >>= 1
+    # Re-sum the ancestors of both ends, level by level; once the two paths meet, only one remains.
+    left = (first + size) >> 1
+    right = (last + size) >> 1
+    while left != right:
+        _resum(left, tree)
+        _resum(right, tree)
+        left >>= 1
+        right >>= 1
+    while left >= 1:
+        _resum(left, tree)
+        left >>= 1
 
 
 @njit(cache=True)
 def sgd_iteration_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray,
                        measurements: np.ndarray, information: np.ndarray, weights: np.ndarray,
-                       prefix_weights: np.ndarray, gamma: np.ndarray, t: int, tree_d: np.ndarray,
-                       tree_dw: np.ndarray) -> None:
+                       tree: np.ndarray, gamma: np.ndarray, t: int) -> None:
     """One pass over all constraints in O(log N) each; `poses` is brought up to date at the end (O(N)).
 
-    `tree_d` and `tree_dw` ((N+1, 3)) are scratch buffers owned by the caller.
+    `tree` ((2·size, 3, 3), see `tree_size`) must hold the WEIGHT sums of `stiffness_tree`.
     """
     n = poses.shape[0]
-    tree_d[:] = 0.0
-    tree_dw[:] = 0.0
+    size = tree.shape[0] // 2
+    tree[:, LAZY, :] = 0.0
+    tree[:, ACCUMULATED, :] = 0.0
     pa = np.empty(3)
     pb = np.empty(3)
     r = np.empty(3)
     d = np.empty(3)
+    total_weight = np.empty(3)
     amount = np.empty(3)
     w_global = np.empty((3, 3))
     for k in range(edge_from.shape[0]):
         a = edge_from[k]
         b = edge_to[k]
-        _tree_pose(a, poses, prefix_weights, tree_d, tree_dw, pa)
-        _tree_pose(b, poses, prefix_weights, tree_d, tree_dw, pb)
+        _tree_pose(a, poses, tree, pa)
+        _tree_pose(b, poses, tree, pb)
         _weighted_residual(pa, pb, measurements[k], information[k], w_global, r, d)
+        _tree_weight(a + 1, b, tree, total_weight)
         for j in range(3):
-            total_weight = prefix_weights[b, j] - prefix_weights[a, j]
-            amount[j] = _clamped_step(b - a, d[j], r[j], gamma[j], t) / total_weight
-        _tree_add(a + 1, amount, prefix_weights[a], 1.0, tree_d, tree_dw)
-        if b + 1 < n:
-            _tree_add(b + 1, amount, prefix_weights[b], -1.0, tree_d, tree_dw)
-    _fenwick_to_array(tree_d)
+            amount[j] = _clamped_step(b - a, d[j], r[j], gamma[j], t) / total_weight[j]
+        _tree_add(a + 1, b, amount, tree)
+    # Push every LAZY down to the leaves: C_i, then p_i += Σ_{m≤i} w_m C_m.
+    for node in range(1, size):
+        for j in range(3):
+            tree[2 * node, LAZY, j] += tree[node, LAZY, j]
+            tree[2 * node + 1, LAZY, j] += tree[node, LAZY, j]
     for j in range(3):
-        covering = 0.0
         moved = 0.0
         for i in range(1, n):
-            covering += tree_d[i + 1, j]
-            moved += weights[i, j] * covering
+            moved += weights[i, j] * tree[size + i, LAZY, j]
             poses[i, j] += moved
-
-
-@njit(cache=True)
-def _fenwick_to_array(tree: np.ndarray) -> None:
-    """Undo the Fenwick summation in place, O(N): each node loses its children's partial sums.
-
-    Descending order matters: a node's own value must still be its partial sum when it is taken from
-    its parent.
-    """
-    n = tree.shape[0] - 1
-    for i in range(n, 0, -1):
-        parent = i + (i & -i)
-        if parent <= n:
-            for j in range(3):
-                tree[parent, j] -= tree[i, j]
