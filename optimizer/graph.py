@@ -94,14 +94,14 @@ class PoseGraph:
             raise GraphError("constraint arrays differ in length")
         if len(vertex_ids) == 0:
             raise GraphError("the graph has no poses")
-        if len(np.unique(vertex_ids)) != len(vertex_ids):
-            raise GraphError("duplicate vertex ids")
         for name, values in (("poses", poses), ("measurements", measurements), ("information", information)):
             if not np.all(np.isfinite(values)):
                 raise GraphError(f"non-finite values in {name}")
 
         order = np.argsort(vertex_ids, kind="stable")
         sorted_ids = vertex_ids[order]
+        if np.any(sorted_ids[1:] == sorted_ids[:-1]):
+            raise GraphError("duplicate vertex ids")
         poses = poses[order].copy()
         poses[:, 2] = se2.wrap_angle(poses[:, 2])
         edge_from = _index_of(sorted_ids, edge_from_ids)
