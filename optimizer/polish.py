@@ -6,8 +6,9 @@ its three columns are dropped from the system, so the normal equations are (3N�
 The information of real graphs (INTEL.g2o) is badly scaled — 3×3 edge informations with condition numbers
 up to 2e11 — so the damped system is solved in Jacobi-scaled form: with S = diag(H)^(-1/2),
 (S H S + λ·I) y = −S g, Δ = S y. This is exactly Marquardt's λ·diag(H) damping, but the matrix handed to
-the factorisation has a unit diagonal. The sparsity pattern of H and its fill-reducing order are computed
-once per call; every iteration only refills the values.
+the factorisation has a unit diagonal. The sparsity pattern of H is computed once per call and every
+iteration only refills the values; the factorisation is qdldl's LDLᵀ (OSQP's), whose fill-reducing order
+and symbolic analysis are likewise done once and only the numeric factorisation repeats.
 """
 
 from __future__ import annotations
@@ -16,9 +17,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
+import qdldl
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.sparse.linalg import splu
 
 from optimizer import se2
 from optimizer.cost import chi2, edge_errors
@@ -70,16 +71,13 @@ def edge_jacobians(
 
 @dataclass(frozen=True)
 class _NormalEquationsPattern:
-    """The fixed sparsity of H = JᵀΩJ over the free poses and its fill-reducing order, computed once.
+    """The fixed sparsity of H = JᵀΩJ over the free poses, computed once.
 
-    Variables are stored in the fill-reducing order (position `rank[v]` for variable v; `order[i]` is the
-    variable at position i), so each factorisation can skip the ordering step. Every edge contributes four
-    3×3 blocks (aa, ab, ba, bb) = 36 values; `slot` sends each value that survives the anchoring to its
-    position in the CSC data array, so refilling H is one `bincount`.
+    Every edge contributes four 3×3 blocks (aa, ab, ba, bb) = 36 values; `slot` sends each value that
+    survives the anchoring to its position in the CSC data array, so refilling H is one `bincount`.
     """
 
     size: int
-    order: IntArray
     kept: NDArray[np.bool_]
     """(M·36,) values not touching the anchored pose."""
     slot: IntArray
@@ -89,7 +87,10 @@ class _NormalEquationsPattern:
     column_of_entry: IntArray
     """Column of each CSC data entry (the CSC `indices` give the row)."""
     diagonal: IntArray
-    """Position in the CSC data of each diagonal entry, in (reordered) variable order."""
+    """Position in the CSC data of each diagonal entry, in variable order."""
+    upper: IntArray
+    """Positions in the CSC data of the upper triangle (row ≤ column), what the factorisation reads."""
+    upper_indptr: IntArray
 
     @classmethod
     def of(cls, graph: PoseGraph) -> _NormalEquationsPattern:
@@ -108,8 +109,7 @@ class _NormalEquationsPattern:
         rows = rows.reshape(-1)[kept].astype(np.int64)
         cols = cols.reshape(-1)[kept].astype(np.int64)
 
-        rank = _fill_reducing_rank(size, rows, cols)
-        keys, slot = _csc_keys(size, rank[rows], rank[cols])
+        keys, slot = _csc_keys(size, rows, cols)
         entry_rows = keys % size
         entry_cols = keys // size
         indptr = np.zeros(size + 1, dtype=np.int64)
@@ -117,7 +117,10 @@ class _NormalEquationsPattern:
         diagonal_entries = np.flatnonzero(entry_rows == entry_cols)
         diagonal = np.empty(size, dtype=np.int64)
         diagonal[entry_rows[diagonal_entries]] = diagonal_entries
-        return cls(size, np.argsort(rank), kept.copy(), slot, entry_rows, indptr, entry_cols, diagonal)
+        upper = np.flatnonzero(entry_rows <= entry_cols)
+        upper_indptr = np.zeros(size + 1, dtype=np.int64)
+        upper_indptr[1:] = np.cumsum(np.bincount(entry_cols[upper], minlength=size))
+        return cls(size, kept.copy(), slot, entry_rows, indptr, entry_cols, diagonal, upper, upper_indptr)
 
     def hessian_values(self, information: FloatArray, jac_a: FloatArray, jac_b: FloatArray) -> FloatArray:
         """CSC data of H = Σ JᵀΩJ."""
@@ -137,21 +140,6 @@ def _csc_keys(size: int, rows: IntArray, cols: IntArray) -> tuple[IntArray, IntA
     return keys.astype(np.int64), slot.reshape(-1).astype(np.int64)
 
 
-def _fill_reducing_rank(size: int, rows: IntArray, cols: IntArray) -> IntArray:
-    """Position of every variable in SuperLU's minimum-degree order of H's sparsity.
-
-    The order depends on the structure only, so it is taken once from the factorisation of a diagonally
-    dominant matrix with H's pattern (which cannot fail) and reused by every later factorisation.
-    """
-    keys, _ = _csc_keys(size, rows, cols)
-    entry_rows, entry_cols = keys % size, keys // size
-    values = np.where(entry_rows == entry_cols, float(size), -1e-3)
-    structure = sp.csc_matrix((values, (entry_rows, entry_cols)), shape=(size, size))
-    factor = splu(structure, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
-    return np.asarray(factor.perm_c, dtype=np.int64)
-
-
 def _gradient(graph: PoseGraph, errors: FloatArray, jac_a: FloatArray, jac_b: FloatArray) -> FloatArray:
     """g = Σ JᵀΩe over the free variables (the anchor's three entries dropped)."""
     weighted = np.einsum("mij,mj->mi", graph.information, errors)
@@ -168,20 +156,21 @@ def _gradient(graph: PoseGraph, errors: FloatArray, jac_a: FloatArray, jac_b: Fl
 class _DampedSolver:
     """Solves (H + λ·diag(H)) Δ = −g for one linearisation, for as many λ as the step search needs.
 
-    Takes and returns vectors in variable order; internally everything is in the pattern's fill-reducing
-    order, which is why the factorisation is asked for the natural order.
+    `factorisation` carries qdldl's ordering and symbolic analysis from one linearisation to the next.
     """
 
-    def __init__(self, pattern: _NormalEquationsPattern, hessian: FloatArray, gradient: FloatArray) -> None:
+    def __init__(self, pattern: _NormalEquationsPattern, hessian: FloatArray, gradient: FloatArray,
+                 factorisation: qdldl.Solver | None) -> None:
         self._pattern = pattern
         size = pattern.size
         self._hessian = sp.csc_matrix((hessian, pattern.indices, pattern.indptr), shape=(size, size))
-        self._gradient = gradient[pattern.order]
+        self._gradient = gradient
         diagonal = hessian[pattern.diagonal]
         floor = _DIAGONAL_FLOOR * max(float(diagonal.max(initial=0.0)), 1.0)
         self._scale = 1.0 / np.sqrt(np.maximum(diagonal, floor))
         self._scaled = hessian * self._scale[pattern.indices] * self._scale[pattern.column_of_entry]
         self._scaled_gradient = self._scale * self._gradient
+        self.factorisation = factorisation
 
     def step(self, damping: float) -> FloatArray | None:
         """The damped step, or None when the factorisation fails or gives non-finite values."""
@@ -190,23 +179,24 @@ class _DampedSolver:
         # λ·floor, which keeps the damped matrix nonsingular.
         data[self._pattern.diagonal] += damping
         size = self._pattern.size
-        matrix = sp.csc_matrix((data, self._pattern.indices, self._pattern.indptr), shape=(size, size))
+        upper = sp.csc_matrix((data[self._pattern.upper], self._pattern.indices[self._pattern.upper],
+                               self._pattern.upper_indptr), shape=(size, size))
         try:
-            # The damped matrix is symmetric positive definite in exact arithmetic: no pivoting needed.
-            factor = splu(matrix, permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                          options={"SymmetricMode": True})
-            scaled_step = factor.solve(-self._scaled_gradient)
-        except RuntimeError:  # SuperLU reports an exactly singular factor this way
+            # The damped matrix is symmetric positive definite in exact arithmetic: LDLᵀ needs no pivoting.
+            if self.factorisation is None:
+                self.factorisation = qdldl.Solver(upper, upper=True)
+            else:
+                self.factorisation.update(upper, upper=True)
+            scaled_step = self.factorisation.solve(-self._scaled_gradient)
+        except (ValueError, RuntimeError):  # qdldl reports a zero pivot this way
+            self.factorisation = None
             return None
         if not np.all(np.isfinite(scaled_step)):
             return None
-        step = np.empty(size)
-        step[self._pattern.order] = self._scale * scaled_step
-        return step
+        return self._scale * scaled_step
 
     def predicted_decrease(self, step: FloatArray) -> float:
         """χ² decrease the linearisation predicts for `step`: −(2gᵀΔ + ΔᵀHΔ)."""
-        step = step[self._pattern.order]
         return float(-(2.0 * self._gradient @ step + step @ (self._hessian @ step)))
 
 
@@ -235,11 +225,12 @@ def gauss_newton(
     pattern = _NormalEquationsPattern.of(graph)
     damping = _INITIAL_LAMBDA
     growth = 2.0
+    factorisation = None
 
     for index in range(1, max_iterations + 1):
         errors, jac_a, jac_b = edge_jacobians(graph, current)
         solver = _DampedSolver(pattern, pattern.hessian_values(graph.information, jac_a, jac_b),
-                               _gradient(graph, errors, jac_a, jac_b))
+                               _gradient(graph, errors, jac_a, jac_b), factorisation)
         while True:
             step = solver.step(damping)
             if step is not None:
@@ -254,6 +245,7 @@ def gauss_newton(
             growth *= 2.0
             if damping > _MAX_LAMBDA:
                 return
+        factorisation = solver.factorisation
 
         # Nielsen's update: shrink λ the more the linear model predicted the actual decrease.
         predicted = solver.predicted_decrease(step)
