@@ -1,0 +1,192 @@
+"""The `replay` command line.
+
+`replay [GRAPH] [options]` runs the default command; a first argument naming a subcommand runs that one
+instead. Today there is only the default command (pose-graph files); the pipeline issue adds `replay LOG`,
+`replay info`, `replay evaluate`, `--json` and `--jobs` here, as subcommands of `ReplayGroup` and options
+of `run`, without changing how `replay GRAPH` is called.
+
+Errors the program raises on purpose (`OptimizerError`, `PipelineError`) end in one line on stderr,
+`replay: error: <message>`, and exit code 2; anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import enum
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, nullcontext
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, NoReturn
+
+import typer
+from typer.core import TyperCommand, TyperGroup
+
+from optimizer.errors import OptimizerError
+from optimizer.iteration import Iteration
+from optimizer.solve import DEFAULT_METHOD, METHODS
+from pipeline.errors import PipelineError
+
+if TYPE_CHECKING:
+    from pipeline.replay_graph import GraphReplayResult
+
+PROGRAM = "replay"
+DEFAULT_COMMAND = "run"
+DEFAULT_OUT_DIR = Path("recordings")
+EXIT_ERROR = 2
+"""Exit code of a run that failed on bad input or unwritable outputs (the same as usage errors)."""
+
+_IMPLICIT_DEFAULT = "pipeline.cli.implicit_default"
+
+Method = enum.StrEnum("Method", [(name, name) for name in METHODS])  # type: ignore[misc]
+"""The optimizer's methods as a choice (the names come from `optimizer.solve.METHODS`)."""
+_DEFAULT_METHOD_CHOICE = Method(DEFAULT_METHOD)
+
+
+class ReplayGroup(TyperGroup):
+    """Runs the default command unless the first argument names a subcommand.
+
+    This keeps `replay`, `replay GRAPH` and `replay --help` working the way a single command would, while
+    leaving room for subcommands (`replay info`, …): a group's own positional argument would swallow them.
+    """
+
+    def parse_args(self, ctx: typer.Context, args: list[str]) -> list[str]:
+        if not args or args[0] not in self.commands:
+            ctx.meta[_IMPLICIT_DEFAULT] = True
+            args = [DEFAULT_COMMAND, *args]
+        return super().parse_args(ctx, args)
+
+
+class _DefaultCommandContext(typer.Context):
+    """Shows `replay [OPTIONS] …` rather than `replay run [OPTIONS] …` when `run` was implied."""
+
+    @property
+    def command_path(self) -> str:
+        if self.parent is not None and self.meta.get(_IMPLICIT_DEFAULT):
+            return self.parent.command_path
+        return super().command_path
+
+
+class _DefaultCommand(TyperCommand):
+    context_class = _DefaultCommandContext
+
+
+app = typer.Typer(
+    name=PROGRAM,
+    cls=ReplayGroup,
+    add_completion=False,
+    rich_markup_mode=None,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+
+@app.callback()
+def _root() -> None:
+    """Replay a pose graph through the SGD backend into a Rerun recording."""
+
+
+_EPILOG = f"""\b
+Examples:
+  replay                                 # the bundled M3500 sample -> recordings/M3500.{{g2o,json,rrd}}
+  replay graph.g2o                       # SGD then Gauss-Newton (the default method)
+  replay graph.graph --method sgd --iterations 30 --out results
+  replay graph.g2o --method gauss-seidel --quiet
+
+\b
+Outputs, in DIR: <stem>.g2o (optimised poses, the input's edges), <stem>.json (method, iterations,
+chi2 per iteration, wall time per stage) and <stem>.rrd (every iteration on the timeline `iteration`).
+Open the recording with the Rerun viewer of rerun-sdk 0.41: rerun recordings/M3500.rrd
+Exit code {EXIT_ERROR} on bad input: one line naming the file and line, nothing written."""
+
+
+@app.command(DEFAULT_COMMAND, cls=_DefaultCommand, epilog=_EPILOG)
+def run(
+    graph: Annotated[Path | None, typer.Argument(
+        metavar="GRAPH", show_default=False,
+        help="A 2D pose graph: g2o (VERTEX_SE2/EDGE_SE2) or TORO (VERTEX2/EDGE2). "
+             "Default: the bundled M3500 sample (Olson 2006).")] = None,
+    out: Annotated[Path, typer.Option(
+        "--out", "-o", metavar="DIR", help="Folder for the outputs (created if missing).")] = DEFAULT_OUT_DIR,
+    method: Annotated[Method, typer.Option(
+        "--method", "-m", help="sgd+gn: the paper's SGD, then Gauss-Newton to the exact minimum; "
+                               "sgd: SGD only; gn: Gauss-Newton only; gauss-seidel: the paper's baseline."),
+    ] = _DEFAULT_METHOD_CHOICE,
+    iterations: Annotated[int | None, typer.Option(
+        "--iterations", "-n", min=0, show_default=False,
+        help="SGD (or Gauss-Seidel) iterations; default 100. With gn: the Gauss-Newton cap.")] = None,
+    repair_information: Annotated[bool, typer.Option(
+        "--repair-information", help="Clamp the eigenvalues of information matrices that are not positive "
+                                     "definite, instead of rejecting the file.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress and no summary.")] = False,
+) -> None:
+    """Optimise a pose graph, recording every iteration, and write the results to DIR."""
+    # Imported here so that `replay --help` does not pay for importing rerun.
+    from pipeline.bundled import sample_graph
+    from pipeline.replay_graph import replay_graph
+
+    source = nullcontext(graph) if graph is not None else sample_graph()
+    try:
+        with source as path, _progress(enabled=not quiet) as progress:
+            result = replay_graph(path, out_dir=out, method=str(method.value), iterations=iterations,
+                                  repair_information=repair_information, progress=progress)
+    except (OptimizerError, PipelineError) as error:
+        _fail(error)
+    if not quiet:
+        _print_summary(result)
+
+
+def _fail(error: Exception) -> NoReturn:
+    message = " ".join(str(error).split())  # always one line
+    typer.echo(f"{PROGRAM}: error: {message}", err=True)
+    raise typer.Exit(EXIT_ERROR)
+
+
+@contextmanager
+def _progress(*, enabled: bool) -> Iterator[Callable[[Iteration], None] | None]:
+    """A live status line on stderr while optimizing, only when stderr is a terminal."""
+    if not enabled or not sys.stderr.isatty():
+        yield None
+        return
+    from rich.console import Console
+
+    with Console(stderr=True).status("reading") as status:
+
+        def show(iteration: Iteration) -> None:
+            status.update(f"{iteration.stage} {iteration.index}  chi2 {iteration.chi2:.6g}")
+
+        yield show
+
+
+def _print_summary(result: GraphReplayResult) -> None:
+    graph = result.graph
+    per_stage = ", ".join(f"{stage} {count}" for stage, count in result.iterations_per_stage.items())
+    times = result.wall_time
+    lines = [
+        f"{result.input_path.name}: {graph.num_poses} poses, {graph.num_edges} constraints "
+        f"({result.num_loop_closures} loop closures), method {result.method}",
+        f"  chi2 {result.initial_chi2:.6g} -> {result.final_chi2:.6g}"
+        + (f" after {per_stage} iterations" if per_stage else ""),
+        f"  time {times['total']:.2f} s (load {times['load']:.2f}, optimize {times['optimize']:.2f}, "
+        f"record {times['record']:.2f}, write {times['write']:.2f})",
+        f"  wrote {result.outputs.g2o}, {result.outputs.json}, {result.outputs.rrd}",
+    ]
+    if result.repaired_lines:
+        lines.insert(1, f"  repaired the information of {len(result.repaired_lines)} constraints")
+    if result.skipped:
+        skipped = ", ".join(f"{count} {tag}" for tag, count in sorted(result.skipped.items()))
+        lines.insert(1, f"  skipped lines: {skipped}")
+    typer.echo("\n".join(lines), err=True)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    from threadpoolctl import threadpool_limits
+
+    # Our linear algebra is many small vectors and 3×3 blocks: BLAS threads only add hand-off latency,
+    # and on a busy machine their spinning made one 10k-element dot product take 8 ms instead of 5 µs.
+    with threadpool_limits(limits=1, user_api="blas"):
+        app(prog_name=PROGRAM)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,259 @@
+"""Replay a pose-graph file: optimise it, record every iteration, write the results.
+
+Library code: it raises `OptimizerError` (bad input) or `PipelineError` (outputs), never prints or exits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from optimizer.graph import PoseGraph
+from optimizer.graph_files import GraphFile, read_graph, write_g2o
+from optimizer.iteration import Iteration
+from optimizer.solve import DEFAULT_METHOD, METHODS, optimize
+from pipeline import recording
+from pipeline.errors import PipelineError
+from pipeline.outputs import json_text, prepare_output_dir, staged_outputs, write_text
+
+ProgressCallback = Callable[[Iteration], None]
+"""Called with every iteration as the optimizer yields it (the initial estimate first)."""
+
+SUMMARY_SCHEMA = "sgdslam.replay-graph/1"
+"""Names the layout of `<stem>.json`; bumped when a key changes meaning or disappears."""
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    """χ² after one iteration; `step` is its position on the recording's `iteration` timeline."""
+
+    step: int
+    stage: str
+    index: int
+    chi2: float
+
+
+@dataclass(frozen=True)
+class ReplayOutputs:
+    """The files a replay wrote."""
+
+    g2o: Path
+    json: Path
+    rrd: Path
+
+    @classmethod
+    def for_input(cls, out_dir: Path, input_path: Path) -> ReplayOutputs:
+        stem = input_path.stem
+        return cls(out_dir / f"{stem}.g2o", out_dir / f"{stem}.json", out_dir / f"{stem}.rrd")
+
+    def as_tuple(self) -> tuple[Path, Path, Path]:
+        return self.g2o, self.json, self.rrd
+
+
+@dataclass(frozen=True, eq=False)
+class GraphReplayResult:
+    """What `replay_graph` did: the optimised poses, the χ² trace, timings and the files written."""
+
+    input_path: Path
+    input_format: str
+    """"g2o" or "toro"."""
+    initialised_from_odometry: bool
+    skipped: Mapping[str, int]
+    """Tags of the input's lines that were skipped, with their counts."""
+    repaired_lines: tuple[int, ...]
+    """Input lines whose information matrix was repaired (`repair_information=True`)."""
+    method: str
+    graph: PoseGraph
+    """The graph as read (its `poses` are the initial estimate)."""
+    poses: NDArray[np.float64]
+    """(N, 3) final optimised poses, in the graph's index order."""
+    iterations: tuple[IterationRecord, ...]
+    """Every iteration the optimizer yielded, the initial estimate first."""
+    wall_time: Mapping[str, float]
+    """Seconds per pipeline stage: load, optimize, record (everything between the optimizer's iterations),
+    write (the optimised graph) and total."""
+    optimize_time: Mapping[str, float]
+    """Seconds inside the optimizer per optimizer stage (initial, sgd, gauss-newton, gauss-seidel)."""
+    outputs: ReplayOutputs
+
+    @property
+    def initial_chi2(self) -> float:
+        return self.iterations[0].chi2
+
+    @property
+    def final_chi2(self) -> float:
+        return self.iterations[-1].chi2
+
+    @property
+    def iterations_per_stage(self) -> dict[str, int]:
+        """Number of iterations of each optimizer stage, in the order they ran (without "initial")."""
+        counts: dict[str, int] = {}
+        for record in self.iterations[1:]:
+            counts[record.stage] = counts.get(record.stage, 0) + 1
+        return counts
+
+    @property
+    def num_loop_closures(self) -> int:
+        return int(np.count_nonzero(~self.graph.is_odometry))
+
+
+def replay_graph(
+    path: str | Path,
+    *,
+    out_dir: str | Path,
+    method: str = DEFAULT_METHOD,
+    iterations: int | None = None,
+    repair_information: bool = False,
+    progress: ProgressCallback | None = None,
+) -> GraphReplayResult:
+    """Optimise the pose graph in `path` and write `<stem>.g2o`, `<stem>.json` and `<stem>.rrd` to `out_dir`.
+
+    `method` is one of `optimizer.solve.METHODS`; `iterations` the number of SGD (or Gauss–Seidel)
+    iterations (None: the optimizer's default). `repair_information` clamps the eigenvalues of information
+    matrices that are not positive definite instead of rejecting the file.
+
+    The input is read before anything is created; outputs are written under temporary names and renamed
+    only when all are complete, so a failure leaves `out_dir` as it was (a folder created by this call is
+    removed again).
+    """
+    started = time.perf_counter()
+    path = Path(path)
+    out_dir = Path(out_dir)
+    if method not in METHODS:
+        raise PipelineError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    if iterations is not None and iterations < 0:
+        raise PipelineError(f"iterations must be >= 0, got {iterations}")
+
+    graph_file = read_graph(path, repair_information=repair_information)
+    loaded = time.perf_counter()
+    outputs = ReplayOutputs.for_input(out_dir, path)
+    created_dir = prepare_output_dir(out_dir)
+    try:
+        with staged_outputs(*outputs.as_tuple()) as (g2o_temporary, json_temporary, rrd_temporary):
+            run = _optimize_and_record(graph_file, rrd_temporary, method, iterations, progress)
+            optimized = time.perf_counter()
+            write_g2o(g2o_temporary, graph_file.graph, run.final_poses)
+            finished = time.perf_counter()
+            result = GraphReplayResult(
+                input_path=path,
+                input_format=graph_file.format,
+                initialised_from_odometry=graph_file.initialised_from_odometry,
+                skipped=dict(graph_file.skipped),
+                repaired_lines=tuple(int(line) for line in graph_file.repaired_lines),
+                method=method,
+                graph=graph_file.graph,
+                poses=run.final_poses,
+                iterations=run.trace,
+                # "write" is the optimised graph; the JSON, written last, cannot time itself.
+                wall_time={
+                    "load": loaded - started,
+                    "optimize": sum(run.optimize_time.values()),
+                    "record": run.record_seconds,
+                    "write": finished - optimized,
+                    "total": finished - started,
+                },
+                optimize_time=run.optimize_time,
+                outputs=outputs,
+            )
+            write_text(json_temporary, json_text(summary(result)))
+    except BaseException:
+        if created_dir:
+            _remove_if_empty(out_dir)
+        raise
+    return result
+
+
+@dataclass(frozen=True, eq=False)
+class _RecordedRun:
+    trace: tuple[IterationRecord, ...]
+    final_poses: NDArray[np.float64]
+    optimize_time: dict[str, float]
+    """Seconds spent inside the optimizer, per optimizer stage."""
+    record_seconds: float
+    """Seconds of the run outside the optimizer: logging to the recording (including closing it) and the
+    progress callback."""
+
+
+def _optimize_and_record(
+    graph_file: GraphFile,
+    rrd_path: Path,
+    method: str,
+    iterations: int | None,
+    progress: ProgressCallback | None,
+) -> _RecordedRun:
+    """Run the optimizer and log every iteration to a recording saved at `rrd_path`."""
+    graph = graph_file.graph
+    trace: list[IterationRecord] = []
+    optimize_time: dict[str, float] = {}
+    final_poses = graph.poses
+    started = time.perf_counter()
+    stream = recording.create_recording(rrd_path, name=graph_file.path.stem)
+    try:
+        recording.log_run_properties(stream, {
+            "input": str(graph_file.path),
+            "format": graph_file.format,
+            "method": method,
+            "poses": graph.num_poses,
+            "constraints": graph.num_edges,
+        })
+        recording.log_styles(stream)
+        recording.log_initial_trajectory(stream, graph.poses)
+        loops = ~graph.is_odometry
+        recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops])
+        iterator = optimize(graph, method=method, iterations=iterations)
+        while True:
+            step_started = time.perf_counter()
+            iteration = next(iterator, None)
+            if iteration is None:
+                break
+            stage_seconds = time.perf_counter() - step_started
+            optimize_time[iteration.stage] = optimize_time.get(iteration.stage, 0.0) + stage_seconds
+            step = recorder.add(iteration)
+            trace.append(IterationRecord(step, iteration.stage, iteration.index, float(iteration.chi2)))
+            final_poses = iteration.poses
+            if progress is not None:
+                progress(iteration)
+        recorder.flush()
+    finally:
+        recording.close_recording(stream)
+    record_seconds = time.perf_counter() - started - sum(optimize_time.values())
+    return _RecordedRun(tuple(trace), np.array(final_poses, dtype=np.float64), optimize_time, record_seconds)
+
+
+def summary(result: GraphReplayResult) -> dict[str, Any]:
+    """The machine-readable summary written to `<stem>.json`."""
+    graph = result.graph
+    return {
+        "schema": SUMMARY_SCHEMA,
+        "input": str(result.input_path),
+        "input_format": result.input_format,
+        "method": result.method,
+        "poses": graph.num_poses,
+        "constraints": graph.num_edges,
+        "loop_closures": result.num_loop_closures,
+        "skipped_lines": dict(result.skipped),
+        "repaired_information_lines": list(result.repaired_lines),
+        "initialised_from_odometry": result.initialised_from_odometry,
+        "iterations": result.iterations_per_stage,
+        "chi2_initial": result.initial_chi2,
+        "chi2_final": result.final_chi2,
+        "chi2_per_iteration": [
+            {"step": record.step, "stage": record.stage, "index": record.index, "chi2": record.chi2}
+            for record in result.iterations
+        ],
+        "wall_time_s": dict(result.wall_time),
+        "optimize_time_s": dict(result.optimize_time),
+        "outputs": {kind: str(getattr(result.outputs, kind)) for kind in ("g2o", "json", "rrd")},
+    }
+
+
+def _remove_if_empty(directory: Path) -> None:
+    with contextlib.suppress(OSError):  # not empty (someone else wrote there) or already gone: leave it
+        directory.rmdir()

@@ -1,0 +1,66 @@
+"""Staged outputs: written under temporary names, renamed only when all are complete."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from pipeline.errors import OutputError
+from pipeline.outputs import atomic_write_text, json_text, prepare_output_dir, staged_outputs
+
+
+def test_staged_outputs_rename_all_on_success(tmp_path: Path) -> None:
+    targets = (tmp_path / "a.g2o", tmp_path / "a.json")
+    targets[0].write_text("old")
+    with staged_outputs(*targets) as temporaries:
+        for temporary, target, text in zip(temporaries, targets, ("new graph", "new summary"), strict=True):
+            assert temporary.parent == target.parent and temporary.suffix == target.suffix
+            assert temporary.name.startswith(".")  # hidden while incomplete
+            temporary.write_text(text)
+        assert targets[0].read_text() == "old"  # nothing replaced before the block ends
+        assert not targets[1].exists()
+    assert [target.read_text() for target in targets] == ["new graph", "new summary"]
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["a.g2o", "a.json"]
+
+
+@pytest.mark.parametrize("failure", [ValueError, KeyboardInterrupt])
+def test_staged_outputs_keep_old_files_and_remove_temporaries_on_failure(tmp_path: Path,
+                                                                        failure: type[BaseException]) -> None:
+    target = tmp_path / "a.rrd"
+    target.write_text("good")
+    with pytest.raises(failure), staged_outputs(target, tmp_path / "b.json") as (first, second):
+        first.write_text("partial")
+        second.write_text("partial")
+        raise failure("interrupted")
+    assert target.read_text() == "good"
+    assert [path.name for path in tmp_path.iterdir()] == ["a.rrd"]
+
+
+def test_staged_outputs_require_every_file(tmp_path: Path) -> None:
+    with pytest.raises(OutputError, match="was not written"), \
+            staged_outputs(tmp_path / "a.txt", tmp_path / "b.txt") as (first, _):
+        first.write_text("only one")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_write_text_replaces_whole_file(tmp_path: Path) -> None:
+    path = tmp_path / "summary.json"
+    path.write_text("old")
+    atomic_write_text(path, "χ² new\n")
+    assert path.read_text(encoding="utf-8") == "χ² new\n"
+    assert [entry.name for entry in tmp_path.iterdir()] == ["summary.json"]
+
+
+def test_prepare_output_dir(tmp_path: Path) -> None:
+    assert prepare_output_dir(tmp_path / "x" / "y") is True
+    assert prepare_output_dir(tmp_path / "x" / "y") is False
+    (tmp_path / "file").write_text("")
+    with pytest.raises(OutputError, match="not a folder"):
+        prepare_output_dir(tmp_path / "file")
+
+
+def test_json_text_writes_non_finite_numbers_as_null() -> None:
+    data = json.loads(json_text({"chi2": [1.5, float("nan"), float("inf")], "n": 3}))
+    assert data == {"chi2": [1.5, None, None], "n": 3}

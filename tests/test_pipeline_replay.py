@@ -1,0 +1,424 @@
+"""End-to-end tests of `replay` on pose-graph files: every method, the outputs, the recording, bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+import typer
+from numpy.typing import NDArray
+from rerun.chunk import RrdReader
+from typer.testing import CliRunner
+
+from optimizer import se2
+from optimizer.cost import chi2
+from optimizer.errors import GraphError
+from optimizer.graph_files import read_graph
+from optimizer.solve import METHODS, optimize
+from pipeline import recording
+from pipeline.cli import DEFAULT_COMMAND, ReplayGroup, app
+from pipeline.replay_graph import replay_graph
+
+REPO = Path(__file__).resolve().parents[1]
+
+# ----------------------------------------------------------------------------------------------- helpers
+
+LOOP_POSES = 30
+LOOP_INFORMATION = (50.0, 0.0, 0.0, 50.0, 0.0, 200.0)  # g2o upper triangle: xx xy xθ yy yθ θθ
+
+
+def loop_graph_text(poses: int = LOOP_POSES, seed: int = 3) -> str:
+    """g2o text of a robot driving once around a circle: noisy odometry, two loop closures, and an initial
+    estimate that drifts (a steady heading bias), so χ² starts high and the optimum is near zero."""
+    rng = np.random.default_rng(seed)
+    angles = 2.0 * np.pi * np.arange(poses) / poses
+    truth = np.stack([5.0 * np.cos(angles), 5.0 * np.sin(angles), se2.wrap_angle(angles + np.pi / 2)], axis=1)
+    odometry = [(i, i + 1) for i in range(poses - 1)]
+    closures = [(poses - 1, 0), (poses // 3, 2 * poses // 3)]
+    lines = []
+    steps = se2.relative(truth[:-1], truth[1:]) + rng.normal(scale=[0.01, 0.01, 0.005], size=(poses - 1, 3))
+    drifting = steps + np.array([0.0, 0.0, 0.03])
+    initial = se2.compose_chain(drifting, start=truth[0])
+    for index, (x, y, theta) in enumerate(initial):
+        lines.append(f"VERTEX_SE2 {index} {x:.9f} {y:.9f} {theta:.9f}")
+    information = " ".join(f"{value:g}" for value in LOOP_INFORMATION)
+    for (a, b), z in zip(odometry, steps, strict=True):
+        lines.append(f"EDGE_SE2 {a} {b} {z[0]:.9f} {z[1]:.9f} {z[2]:.9f} {information}")
+    for a, b in closures:
+        z = se2.relative(truth[a], truth[b])
+        lines.append(f"EDGE_SE2 {a} {b} {z[0]:.9f} {z[1]:.9f} {z[2]:.9f} {information}")
+    return "\n".join(lines) + "\n"
+
+
+def write_loop_graph(path: Path) -> Path:
+    path.write_text(loop_graph_text())
+    return path
+
+
+@dataclass
+class EntityData:
+    """What a recording holds for one entity: static rows, and per timeline the logged index values."""
+
+    static_rows: int = 0
+    timelines: set[str] = field(default_factory=set)
+    steps: list[int] = field(default_factory=list)
+    columns: dict[str, list[object]] = field(default_factory=lambda: defaultdict(list))
+    static_columns: dict[str, list[object]] = field(default_factory=lambda: defaultdict(list))
+
+
+def read_recording(path: Path, timeline: str = "iteration") -> dict[str, EntityData]:
+    """Every entity of the (first) recording in an .rrd, with its data as Python values, rows sorted by
+    `timeline`."""
+    entities: dict[str, EntityData] = defaultdict(EntityData)
+    for chunk in RrdReader(path).stream():
+        entity = entities[chunk.entity_path]
+        batch = chunk.to_record_batch()
+        data_columns = [name for name in batch.schema.names if ":" in name]
+        if chunk.is_static:
+            entity.static_rows += chunk.num_rows
+            for name in data_columns:
+                entity.static_columns[name].extend(batch.column(name).to_pylist())
+            continue
+        entity.timelines.update(chunk.timeline_names)
+        if timeline not in batch.schema.names:
+            continue
+        steps = batch.column(timeline).to_pylist()
+        entity.steps.extend(steps)
+        for name in data_columns:
+            entity.columns[name].extend(batch.column(name).to_pylist())
+    for entity in entities.values():  # chunks need not come in timeline order
+        order = np.argsort(entity.steps, kind="stable")
+        entity.steps = [entity.steps[i] for i in order]
+        for name, values in entity.columns.items():
+            entity.columns[name] = [values[i] for i in order]
+    return dict(entities)
+
+
+def strip_points(value: object) -> NDArray[np.float64]:
+    """The points of the single line strip in one LineStrips2D row, as an (n, 2) array."""
+    strips = list(value)  # type: ignore[call-overload]
+    assert len(strips) == 1
+    return np.asarray(strips[0], dtype=np.float64)
+
+
+def run_replay(*args: str) -> object:
+    return CliRunner().invoke(app, [str(arg) for arg in args])
+
+
+def output_names(directory: Path) -> set[str]:
+    return {path.name for path in directory.iterdir()} if directory.exists() else set()
+
+
+EXPECTED_STAGES = {
+    "sgd": ["sgd"],
+    "sgd+gn": ["sgd", "gauss-newton"],
+    "gn": ["gauss-newton"],
+    "gauss-seidel": ["gauss-seidel"],
+}
+
+# ------------------------------------------------------------------------------------------------- tests
+
+
+def test_every_method_is_covered() -> None:
+    assert set(EXPECTED_STAGES) == set(METHODS)
+
+
+@pytest.mark.parametrize("method", sorted(EXPECTED_STAGES))
+def test_replay_writes_graph_summary_and_recording(tmp_path: Path, method: str) -> None:
+    graph_path = write_loop_graph(tmp_path / "loop.g2o")
+    out = tmp_path / "out"
+    sweeps = 15
+    result = run_replay(graph_path, "--out", out, "--method", method, "--iterations", sweeps, "--quiet")
+    assert result.exit_code == 0, result.output
+    assert result.output == ""  # --quiet
+    assert output_names(out) == {"loop.g2o", "loop.json", "loop.rrd"}
+
+    # The .g2o: the input's constraints around new poses, which the summary's final χ² describes.
+    original = read_graph(graph_path).graph
+    written = read_graph(out / "loop.g2o").graph
+    np.testing.assert_array_equal(written.vertex_ids, original.vertex_ids)
+    np.testing.assert_array_equal(written.edge_from, original.edge_from)
+    np.testing.assert_array_equal(written.edge_to, original.edge_to)
+    np.testing.assert_array_equal(written.measurements, original.measurements)
+    np.testing.assert_array_equal(written.information, original.information)
+    assert not np.allclose(written.poses, original.poses)
+
+    summary = json.loads((out / "loop.json").read_text())
+    trace = summary["chi2_per_iteration"]
+    assert summary["method"] == method
+    counts = (summary["poses"], summary["constraints"], summary["loop_closures"])
+    assert counts == (LOOP_POSES, LOOP_POSES + 1, 2)
+    assert trace[0] == {"step": 0, "stage": "initial", "index": 0, "chi2": pytest.approx(chi2(original))}
+    assert [row["step"] for row in trace] == list(range(len(trace)))
+    stages = [row["stage"] for row in trace[1:]]
+    assert list(dict.fromkeys(stages)) == EXPECTED_STAGES[method]
+    assert summary["iterations"] == {stage: stages.count(stage) for stage in EXPECTED_STAGES[method]}
+    for stage in EXPECTED_STAGES[method]:
+        indices = [row["index"] for row in trace if row["stage"] == stage]
+        assert indices == list(range(1, len(indices) + 1))
+    if method in ("sgd", "sgd+gn", "gauss-seidel"):
+        assert summary["iterations"][EXPECTED_STAGES[method][0]] == sweeps
+    assert summary["chi2_final"] == trace[-1]["chi2"]
+    assert summary["chi2_final"] == pytest.approx(chi2(written), rel=1e-9)
+    assert summary["chi2_final"] < 0.1 * summary["chi2_initial"]
+    assert set(summary["wall_time_s"]) == {"load", "optimize", "record", "write", "total"}
+    assert all(seconds >= 0 for seconds in summary["wall_time_s"].values())
+    assert set(summary["optimize_time_s"]) == {"initial", *EXPECTED_STAGES[method]}
+    assert summary["outputs"] == {kind: str(out / f"loop.{kind}") for kind in ("g2o", "json", "rrd")}
+
+    # The recording: one row per iteration the optimizer yields (counted here by running it again).
+    yielded = list(optimize(original, method=method, iterations=sweeps))
+    assert len(yielded) == len(trace)
+    entities = read_recording(out / "loop.rrd")
+    per_iteration = ["/" + path for path in (recording.TRAJECTORY_ENTITY, recording.LOOP_CLOSURES_ENTITY,
+                                              recording.CHI2_ENTITY, recording.STAGE_ENTITY)]
+    for path in per_iteration:
+        assert entities[path].timelines == {"iteration"}, path
+        assert entities[path].steps == list(range(len(yielded))), path
+
+    trajectories = entities["/world/trajectory"].columns["LineStrips2D:strips"]
+    for step in (0, len(yielded) - 1):
+        np.testing.assert_allclose(strip_points(trajectories[step]), yielded[step].poses[:, :2], atol=1e-5)
+    np.testing.assert_allclose(strip_points(trajectories[-1]), written.poses[:, :2], atol=1e-5)
+    initial = entities["/world/initial_trajectory"]
+    assert initial.static_rows == 1
+    np.testing.assert_allclose(strip_points(initial.static_columns["LineStrips2D:strips"][0]),
+                               original.poses[:, :2], atol=1e-5)
+
+    closures = entities["/world/loop_closures"].columns["LineStrips2D:strips"][-1]
+    final = written.poses[:, :2]
+    expected_segments = {(0, LOOP_POSES - 1), (LOOP_POSES // 3, 2 * LOOP_POSES // 3)}
+    assert len(closures) == len(expected_segments)
+    for a, b in expected_segments:
+        assert any(np.allclose(segment, [final[a], final[b]], atol=1e-5) for segment in closures)
+
+    scalars = [value[0] for value in entities["/optimizer/chi2"].columns["Scalars:scalars"]]
+    np.testing.assert_allclose(scalars, [row["chi2"] for row in trace], rtol=1e-12)
+    texts = entities["/optimizer/stage"].columns["TextLog:text"]
+    assert [text[0].split(":")[0] for text in texts] == [f"{row['stage']} {row['index']}" for row in trace]
+
+    rerun_cli = shutil.which("rerun")
+    if rerun_cli is not None:  # installed with rerun-sdk
+        check = subprocess.run([rerun_cli, "rrd", "verify", str(out / "loop.rrd")], capture_output=True,
+                               text=True, timeout=60, stdin=subprocess.DEVNULL)
+        assert check.returncode == 0, check.stdout + check.stderr
+
+
+def test_toro_input_writes_g2o_named_after_the_input(tmp_path: Path) -> None:
+    # The same loop as TORO: information order xx xy yy θθ xθ yθ; the output is g2o all the same.
+    toro_lines = []
+    for line in loop_graph_text().splitlines():
+        tag, *values = line.split()
+        if tag == "VERTEX_SE2":
+            toro_lines.append(" ".join(["VERTEX2", *values]))
+        else:
+            xx, xy, xt, yy, yt, tt = values[5:]
+            toro_lines.append(" ".join(["EDGE2", *values[:5], xx, xy, yy, tt, xt, yt]))
+    graph_path = tmp_path / "loop.graph"
+    graph_path.write_text("\n".join(toro_lines) + "\n")
+    result = run_replay(graph_path, "--out", tmp_path / "out", "--method", "gn", "--quiet")
+    assert result.exit_code == 0, result.output
+    assert output_names(tmp_path / "out") == {"loop.g2o", "loop.json", "loop.rrd"}
+    assert read_graph(tmp_path / "out" / "loop.g2o").format == "g2o"
+    summary = json.loads((tmp_path / "out" / "loop.json").read_text())
+    assert summary["input_format"] == "toro"
+
+
+def test_replay_without_graph_uses_the_bundled_m3500(tmp_path: Path) -> None:
+    out = tmp_path / "recordings"
+    result = run_replay("--out", out, "--method", "sgd", "--iterations", 1)
+    assert result.exit_code == 0, result.output
+    assert output_names(out) == {"M3500.g2o", "M3500.json", "M3500.rrd"}
+    summary = json.loads((out / "M3500.json").read_text())
+    assert (summary["poses"], summary["constraints"]) == (3500, 5453)
+    assert Path(summary["input"]).name == "M3500.g2o"
+    # the summary at the end (not --quiet) names the χ² change and every output
+    assert "chi2" in result.stderr
+    for name in ("M3500.g2o", "M3500.json", "M3500.rrd"):
+        assert str(out / name) in result.stderr
+
+
+def test_help_shows_usage_methods_and_examples() -> None:
+    result = run_replay("--help")
+    assert result.exit_code == 0
+    assert "Usage: replay [OPTIONS] [GRAPH]" in result.output
+    for method in METHODS:
+        assert method in result.output
+    assert "Examples:" in result.output
+    assert "rerun-sdk 0.41" in result.output
+
+
+BAD_INPUTS = {
+    "malformed line": ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0\n", ":3: "),
+    "not a number": ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 x 0 0\n", ":2: "),
+    "empty file": ("", ": "),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input_exits_2_with_one_line_and_writes_nothing(tmp_path: Path, case: str) -> None:
+    text, where = BAD_INPUTS[case]
+    graph_path = tmp_path / "bad.g2o"
+    graph_path.write_text(text)
+    out = tmp_path / "out"
+    result = run_replay(graph_path, "--out", out)
+    assert result.exit_code == 2
+    assert result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith(f"replay: error: {graph_path}{where}")
+    assert not out.exists()
+
+
+def test_missing_file_exits_2(tmp_path: Path) -> None:
+    result = run_replay(tmp_path / "nowhere.g2o", "--out", tmp_path / "out")
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [f"replay: error: {tmp_path / 'nowhere.g2o'}: no such file"]
+    assert not (tmp_path / "out").exists()
+
+
+def test_failed_run_does_not_clobber_previous_outputs(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    good = write_loop_graph(tmp_path / "loop.g2o")
+    assert run_replay(good, "--out", out, "--quiet").exit_code == 0
+    before = {name: (out / name).read_bytes() for name in output_names(out)}
+
+    (tmp_path / "bad").mkdir()
+    bad = tmp_path / "bad" / "loop.g2o"  # same stem, so the same output names
+    bad.write_text(loop_graph_text().replace("EDGE_SE2 3 4", "EDGE_SE2 3 4 oops", 1))
+    result = run_replay(bad, "--out", out)
+    assert result.exit_code == 2
+    assert f"{bad}:" in result.stderr
+    assert {name: (out / name).read_bytes() for name in output_names(out)} == before
+
+
+class _StoppedError(GraphError):
+    pass
+
+
+@pytest.mark.parametrize("failure", [_StoppedError, KeyboardInterrupt])
+def test_failure_during_optimization_leaves_no_partial_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                             failure: type[BaseException]) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "loop.json").write_text("previous run\n")
+    graph_path = write_loop_graph(tmp_path / "loop.g2o")
+
+    def failing_optimize(graph, method, iterations):  # type: ignore[no-untyped-def]
+        yielded = optimize(graph, method=method, iterations=iterations)
+        for _ in range(3):
+            yield next(yielded)
+        raise failure("stopped")
+
+    monkeypatch.setattr("pipeline.replay_graph.optimize", failing_optimize)
+    with pytest.raises(failure):
+        replay_graph(graph_path, out_dir=out, method="sgd")
+    assert output_names(out) == {"loop.json"}
+    assert (out / "loop.json").read_text() == "previous run\n"
+
+
+def test_failure_removes_an_output_folder_it_created(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def failing_optimize(graph, method, iterations):  # type: ignore[no-untyped-def]
+        raise GraphError("stopped")
+        yield  # a generator, like the real one
+
+    monkeypatch.setattr("pipeline.replay_graph.optimize", failing_optimize)
+    with pytest.raises(GraphError):
+        replay_graph(write_loop_graph(tmp_path / "loop.g2o"), out_dir=tmp_path / "new" / "out", method="sgd")
+    assert not (tmp_path / "new" / "out").exists()
+
+
+def test_library_result_and_progress(tmp_path: Path) -> None:
+    seen: list[tuple[str, int]] = []
+    result = replay_graph(write_loop_graph(tmp_path / "loop.g2o"), out_dir=tmp_path, method="sgd+gn",
+                          iterations=5, progress=lambda it: seen.append((it.stage, it.index)))
+    assert seen == [(record.stage, record.index) for record in result.iterations]
+    assert seen[:2] == [("initial", 0), ("sgd", 1)]
+    assert result.iterations_per_stage["sgd"] == 5
+    assert result.final_chi2 == pytest.approx(chi2(result.graph, result.poses), rel=1e-9)
+    assert result.final_chi2 < result.initial_chi2
+    assert result.outputs.rrd == tmp_path / "loop.rrd"
+
+
+def test_iteration_recorder_sends_batches_on_one_timeline(tmp_path: Path) -> None:
+    # A tiny batch size forces a column batch every two iterations; the timeline must stay continuous.
+    graph = read_graph(write_loop_graph(tmp_path / "loop.g2o")).graph
+    iterations = list(optimize(graph, method="sgd", iterations=6))
+    path = tmp_path / "batched.rrd"
+    stream = recording.create_recording(path, name="batched")
+    loops = ~graph.is_odometry
+    recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops],
+                                           batch_bytes=2 * LOOP_POSES * 8)
+    steps = [recorder.add(iteration) for iteration in iterations]
+    recorder.flush()
+    recording.close_recording(stream)
+    assert steps == list(range(len(iterations)))
+    trajectory = read_recording(path)["/world/trajectory"]
+    assert trajectory.steps == steps
+    for iteration, row in zip(iterations, trajectory.columns["LineStrips2D:strips"], strict=True):
+        np.testing.assert_allclose(strip_points(row), iteration.poses[:, :2], atol=1e-5)
+
+
+def test_module_entry_point_reports_errors_without_traceback(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1\n")
+    command = [sys.executable, "-m", "pipeline.cli", str(bad), "--out", str(tmp_path / "out")]
+    completed = subprocess.run(command, capture_output=True, text=True, cwd=REPO, timeout=120,
+                               stdin=subprocess.DEVNULL)
+    assert completed.returncode == 2
+    assert completed.stdout == ""
+    assert completed.stderr.splitlines() == [completed.stderr.strip()]
+    assert completed.stderr.startswith(f"replay: error: {bad}:2: ")
+    assert "Traceback" not in completed.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_singular_information_is_rejected_unless_repair_is_asked(tmp_path: Path) -> None:
+    lines = loop_graph_text().splitlines()
+    # the first edge (file line LOOP_POSES + 1) loses its θθ information: singular, not positive definite
+    fields = lines[LOOP_POSES].split()
+    lines[LOOP_POSES] = " ".join([*fields[:-1], "0"])
+    graph_path = tmp_path / "singular.g2o"
+    graph_path.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+
+    rejected = run_replay(graph_path, "--out", out, "--quiet")
+    assert rejected.exit_code == 2
+    assert rejected.stderr.startswith(f"replay: error: {graph_path}:{LOOP_POSES + 1}: ")
+    assert not out.exists()
+
+    repaired = run_replay(graph_path, "--out", out, "--quiet", "--repair-information", "--method", "gn")
+    assert repaired.exit_code == 0, repaired.output
+    summary = json.loads((out / "singular.json").read_text())
+    assert summary["repaired_information_lines"] == [LOOP_POSES + 1]
+
+
+def test_replay_group_routes_to_subcommands_and_defaults_to_run() -> None:
+    # How the pipeline issue will grow the command: subcommands beside the default `run`.
+    calls: list[tuple[str, object]] = []
+    grown = typer.Typer(cls=ReplayGroup)
+
+    @grown.callback()
+    def _root() -> None:
+        pass
+
+    @grown.command(DEFAULT_COMMAND)
+    def _run(graph: str | None = typer.Argument(None), quiet: bool = False) -> None:
+        calls.append(("run", (graph, quiet)))
+
+    @grown.command("info")
+    def _info(log: str) -> None:
+        calls.append(("info", log))
+
+    runner = CliRunner()
+    for args in (["a.g2o", "--quiet"], [], ["info", "b.mcap"], ["run", "c.g2o"]):
+        assert runner.invoke(grown, args).exit_code == 0, args
+    assert calls == [("run", ("a.g2o", True)), ("run", (None, False)), ("info", "b.mcap"),
+                     ("run", ("c.g2o", False))]
