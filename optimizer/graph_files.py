@@ -301,7 +301,7 @@ def _check_information(path: Path, information: FloatArray, lines: IntArray,
             path,
             "the edge's information matrix is not positive definite (eigenvalues "
             f"{', '.join(f'{value:.6g}' for value in eigenvalues[first])}); "
-            "pass repair_information to clamp its eigenvalues",
+            "ask for it to be repaired (replay --repair-information) to clamp its eigenvalues",
             line=int(lines[first]),
         )
     values, vectors = np.linalg.eigh(information[bad])
