@@ -1,0 +1,101 @@
+"""Settings of the 2D laser SLAM frontend, with defaults meant to hold on logs never seen before."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    resolution: float = 0.05
+    """Cell size of the likelihood grids (m)."""
+    likelihood_sigma: float = 0.06
+    """Spread of a return's likelihood around a reference point (m)."""
+    point_sigma: float = 0.03
+    """Noise of one laser point for point-to-line ICP (m)."""
+    icp_max_distance: float = 0.3
+    """Pairs farther apart than this are not paired (m)."""
+    max_range: float = 30.0
+    """Returns beyond this are dropped before matching: sparse and noisy far away (m)."""
+    min_points: int = 20
+    """A scan with fewer valid points is not matched (its pose follows the prior)."""
+    information_scale: float = 0.05
+    """The ICP Hessian treats point errors as independent; they are not (one wall, one bias). The edge
+    information is the Hessian scaled by this, which the loop-closure χ² tests rely on."""
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    window_linear: float = 0.2
+    """± search around the prediction when wheel odometry predicts the motion (m)."""
+    window_angular: float = math.radians(6.0)
+    window_linear_without_odometry: float = 0.5
+    window_angular_without_odometry: float = math.radians(25.0)
+    angular_step: float = math.radians(0.5)
+    odometry_sigma_linear: float = 0.05
+    """Wheel-odometry prior: σ = this + `odometry_sigma_per_metre` × distance moved (m)."""
+    odometry_sigma_per_metre: float = 0.1
+    odometry_sigma_angular: float = math.radians(2.0)
+    odometry_sigma_per_radian: float = 0.1
+    constant_velocity_sigma_linear: float = 0.5
+    """Without odometry the prior is constant velocity, weak: it only steers featureless stretches."""
+    constant_velocity_sigma_angular: float = math.radians(20.0)
+    min_inlier_fraction: float = 0.25
+    """A match pairing fewer scan points than this is not trusted: the pose follows the prior."""
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    distance: float = 0.3
+    angle: float = math.radians(12.0)
+    local_map_keyframes: int = 25
+    """The local map the odometry matches against: this many recent keyframes."""
+
+
+@dataclass(frozen=True)
+class LoopClosureConfig:
+    enabled: bool = True
+    search_radius: float = 3.0
+    """Candidates are keyframes within this distance of the current estimate (m) …"""
+    search_radius_per_metre: float = 0.05
+    """… plus this much per metre of the shortest path joining the two in the graph (the drift grows)."""
+    max_search_radius: float = 10.0
+    min_separation_keyframes: int = 40
+    """Candidates must be at least this many keyframes older than the current one (not the local map)."""
+    submap_keyframes: int = 12
+    """The candidate's submap: this many keyframes on each side of it."""
+    angular_window: float = math.radians(25.0)
+    angular_step: float = math.radians(0.75)
+    min_score: float = 0.55
+    """Branch-and-bound acceptance: mean likelihood of the scan's points on the submap."""
+    min_inlier_fraction: float = 0.6
+    max_rms: float = 0.08
+    """ICP verification: the refined match must pair most points closely (m)."""
+    query_keyframes: int = 8
+    """The query is the current keyframe with this many previous ones, seen from it: one 180° scan of a
+    corridor matches the wrong stretch of many corridors; a few metres of context rarely do."""
+    query_thinning: float = 0.1
+    """Query points are thinned to one per cell of this size (m)."""
+    small_correction_linear: float = 0.3
+    small_correction_angular: float = math.radians(3.0)
+    """A loop closure moving the current estimate less than this agrees with the map: accepted at once.
+    A larger correction is a hypothesis until another loop closure agrees with it (within the same
+    bounds), which a false match seldom finds."""
+    hypothesis_keyframes: int = 12
+    """A hypothesis not confirmed within this many keyframes is dropped."""
+    candidates_per_keyframe: int = 2
+    every_keyframes: int = 2
+    """Search at every n-th keyframe (neighbouring keyframes see the same place)."""
+    chi2_threshold: float = 30.0
+    """After optimizing, a loop closure whose error exceeds this χ² (3 dof) is rejected as inconsistent."""
+    optimize_every_loop_closures: int = 3
+    """Re-optimize the graph after this many new loop closures (and at the end)."""
+
+
+@dataclass(frozen=True)
+class Slam2DConfig:
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)

@@ -1,0 +1,199 @@
+"""Correlative scan matching on a likelihood grid (Olson 2009), exhaustive or branch-and-bound.
+
+A candidate pose (x, y, θ) scores the mean grid likelihood of the scan's points placed by it.
+Translations are searched in whole cells of the grid, rotations in `angular_step` steps; the result is a
+starting point for a sub-cell refinement (ICP), not the final estimate.
+
+- `match_exhaustive`: every candidate of a small window (scan-to-local-map odometry).
+- `match_branch_and_bound`: wide windows (loop closures): candidates on coarse levels of the max pyramid
+  bound the scores of all finer translations they contain, so whole blocks are pruned at once
+  (Hess et al. 2016, "Real-time loop closure in 2D LIDAR SLAM"); the result is the exhaustive optimum.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from frontends.slam2d.grid import LikelihoodGrid, max_pyramid
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SearchWindow:
+    """± `linear` metres in x and y, ± `angular` radians, rotations every `angular_step` radians."""
+
+    linear: float
+    angular: float
+    angular_step: float
+
+
+@dataclass(frozen=True)
+class Match:
+    pose: FloatArray
+    """(x, y, θ) of the scan in the grid's frame."""
+    score: float
+    """Mean likelihood of the scan's points, in [0, 1]."""
+
+
+def _angles(center: float, window: SearchWindow) -> FloatArray:
+    count = max(int(math.floor(window.angular / window.angular_step)), 0)
+    return center + window.angular_step * np.arange(-count, count + 1, dtype=np.float64)
+
+
+@njit(cache=True)
+def _base_cells(points: FloatArray, x: float, y: float, angles: FloatArray, origin: FloatArray,
+                resolution: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Cell of every point, for every rotation, with the translation (x, y): (A, N) arrays."""
+    count = points.shape[0]
+    cells_x = np.empty((angles.shape[0], count), dtype=np.int64)
+    cells_y = np.empty((angles.shape[0], count), dtype=np.int64)
+    for a in range(angles.shape[0]):
+        c = math.cos(angles[a])
+        s = math.sin(angles[a])
+        for i in range(count):
+            wx = x + c * points[i, 0] - s * points[i, 1]
+            wy = y + s * points[i, 0] + c * points[i, 1]
+            cells_x[a, i] = int(math.floor((wx - origin[0]) / resolution))
+            cells_y[a, i] = int(math.floor((wy - origin[1]) / resolution))
+    return cells_x, cells_y
+
+
+@njit(cache=True, inline="always")
+def _score(values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y: NDArray[np.int64],
+           tx: int, ty: int, span: int) -> float:
+    """Σ of the level's values at the points' cells shifted by (tx, ty), divided by the point count.
+
+    A point whose block [c, c + span) only partly overlaps the grid reads the edge cell, whose block
+    covers the overlapping part: the level stays an upper bound of the finer ones.
+    """
+    height, width = values.shape
+    total = 0.0
+    for i in range(cells_x.shape[0]):
+        cx = cells_x[i] + tx
+        cy = cells_y[i] + ty
+        if cx < 0:
+            if cx + span <= 0:
+                continue
+            cx = 0
+        if cy < 0:
+            if cy + span <= 0:
+                continue
+            cy = 0
+        if cx < width and cy < height:
+            total += values[cy, cx]
+    return total / max(cells_x.shape[0], 1)
+
+
+@njit(cache=True)
+def _exhaustive(values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y: NDArray[np.int64],
+                reach: int) -> tuple[int, int, int, float]:
+    best = (0, 0, 0, -1.0)
+    for a in range(cells_x.shape[0]):
+        for ty in range(-reach, reach + 1):
+            for tx in range(-reach, reach + 1):
+                score = _score(values, cells_x[a], cells_y[a], tx, ty, 1)
+                if score > best[3]:
+                    best = (a, tx, ty, score)
+    return best
+
+
+def match_exhaustive(points: FloatArray, grid: LikelihoodGrid, center: FloatArray,
+                     window: SearchWindow) -> Match:
+    """The best pose of `points` (robot frame) within `window` around `center` on `grid`."""
+    angles = _angles(float(center[2]), window)
+    cells_x, cells_y = _base_cells(points, float(center[0]), float(center[1]), angles, grid.origin,
+                                   grid.resolution)
+    reach = int(math.ceil(window.linear / grid.resolution))
+    a, tx, ty, score = _exhaustive(grid.values, cells_x, cells_y, reach)
+    pose = np.array([center[0] + tx * grid.resolution, center[1] + ty * grid.resolution, angles[a]])
+    return Match(pose, float(score))
+
+
+@njit(cache=True)
+def _branch_and_bound(levels: tuple[NDArray[np.float32], ...], cells_x: NDArray[np.int64],
+                      cells_y: NDArray[np.int64], reach: int, min_score: float) -> tuple[int, int, int, float]:
+    top = len(levels) - 1
+    span = 1 << top
+    # Stack of candidates (angle, tx, ty, level, score); the best-scoring child is pushed last so it is
+    # explored first, and a candidate no better than the best leaf found so far is pruned whole.
+    stack_a = []
+    stack_x = []
+    stack_y = []
+    stack_level = []
+    stack_score = []
+    starts = np.arange(-reach, reach + 1, span)
+    count = cells_x.shape[0] * starts.shape[0] * starts.shape[0]
+    scores = np.empty(count)
+    keys = np.empty((count, 3), dtype=np.int64)
+    k = 0
+    for a in range(cells_x.shape[0]):
+        for ty in starts:
+            for tx in starts:
+                scores[k] = _score(levels[top], cells_x[a], cells_y[a], tx, ty, span)
+                keys[k, 0] = a
+                keys[k, 1] = tx
+                keys[k, 2] = ty
+                k += 1
+    for k in np.argsort(scores):
+        stack_a.append(keys[k, 0])
+        stack_x.append(keys[k, 1])
+        stack_y.append(keys[k, 2])
+        stack_level.append(top)
+        stack_score.append(scores[k])
+    best = (0, 0, 0, min_score)
+    found = False
+    child_scores = np.empty(4)
+    while len(stack_a) > 0:
+        a = stack_a.pop()
+        tx = stack_x.pop()
+        ty = stack_y.pop()
+        level = stack_level.pop()
+        score = stack_score.pop()
+        if score <= best[3]:
+            continue
+        if level == 0:
+            best = (a, tx, ty, score)
+            found = True
+            continue
+        half = 1 << (level - 1)
+        for c in range(4):
+            cx = tx + half * (c & 1)
+            cy = ty + half * (c >> 1)
+            if cx > reach or cy > reach:
+                child_scores[c] = -1.0
+            else:
+                child_scores[c] = _score(levels[level - 1], cells_x[a], cells_y[a], cx, cy, half)
+        for c in np.argsort(child_scores):
+            if child_scores[c] > best[3]:
+                stack_a.append(a)
+                stack_x.append(tx + half * (c & 1))
+                stack_y.append(ty + half * (c >> 1))
+                stack_level.append(level - 1)
+                stack_score.append(child_scores[c])
+    if not found:
+        return (0, 0, 0, -1.0)
+    return best
+
+
+def match_branch_and_bound(points: FloatArray, grid: LikelihoodGrid, center: FloatArray,
+                           window: SearchWindow, min_score: float, levels: int = 4) -> Match | None:
+    """The best pose within a wide `window`, or None when no candidate scores above `min_score`.
+
+    Equal to `match_exhaustive` on the same window (same optimum), in a fraction of the evaluations.
+    """
+    angles = _angles(float(center[2]), window)
+    cells_x, cells_y = _base_cells(points, float(center[0]), float(center[1]), angles, grid.origin,
+                                   grid.resolution)
+    reach = int(math.ceil(window.linear / grid.resolution))
+    pyramid = tuple(max_pyramid(grid.values, levels))
+    a, tx, ty, score = _branch_and_bound(pyramid, cells_x, cells_y, reach, min_score)
+    if score < 0.0:
+        return None
+    pose = np.array([center[0] + tx * grid.resolution, center[1] + ty * grid.resolution, angles[a]])
+    return Match(pose, float(score))

@@ -1,0 +1,383 @@
+"""2D laser SLAM: scans (and wheel odometry) in, a keyframe pose graph with verified loop closures out.
+
+1. Each scan is matched against a local map of recent keyframes: correlative search around the
+   prediction (wheel odometry, or constant velocity without it), then point-to-line ICP with the
+   prediction as a prior.
+2. A scan that moved far enough from the last keyframe becomes a keyframe, tied to the previous one by
+   its match; every scan is tied to its keyframe by its own match.
+3. At keyframes, older keyframes near the current estimate (a radius growing with the distance since the
+   last loop closure) are loop-closure candidates: branch-and-bound over a wide window on the candidate's
+   submap, then ICP; accepted on score, inliers and residual.
+4. Every few loop closures the graph is re-optimized; a loop closure whose error stays large at the
+   optimum is inconsistent with the rest and is removed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
+from frontends.slam2d.icp import refine_point_to_line, scan_normals
+from frontends.slam2d.local_map import Keyframe, Submap, place
+from optimizer import se2
+from optimizer.cost import edge_chi2
+from optimizer.graph import PoseGraph
+from optimizer.polish import gauss_newton
+
+FloatArray = NDArray[np.float64]
+
+REOPTIMIZE_ITERATIONS = 15
+BRANCH_AND_BOUND_LEVELS = 6
+"""Coarsest candidates span 2⁶ cells (3.2 m at 5 cm): few enough for windows of several metres."""
+
+
+@dataclass(frozen=True, eq=False)
+class ScanEstimate:
+    """What the frontend concluded about one scan when it processed it."""
+
+    index: int
+    stamp_ns: int
+    pose: FloatArray
+    """(x, y, θ) in the map frame at processing time."""
+    matched: bool
+    """False when the scan could not be matched and its pose is the prediction."""
+    keyframe: int
+    new_loop_closures: tuple[tuple[int, int], ...]
+    """Loop closures (older keyframe, this keyframe) accepted while processing this scan."""
+
+
+@dataclass(frozen=True, eq=False)
+class Slam2DGraph:
+    """The frontend's result: the keyframe graph and how every scan hangs off its keyframe."""
+
+    graph: PoseGraph
+    """Keyframe poses as estimated online (loop closures applied); constraints odometry then loops."""
+    scan_stamps_ns: NDArray[np.int64]
+    scan_keyframes: NDArray[np.int64]
+    scan_offsets: FloatArray
+    """(S, 3) pose of each scan in the frame of its keyframe."""
+    keyframe_scans: tuple[FloatArray, ...]
+    """Each keyframe's points in its own frame (for maps)."""
+    odometry_chain: FloatArray
+    """(K, 3) keyframe poses from the odometry constraints alone (no loop closures): a poor start."""
+    loop_closures_accepted: int
+    loop_closures_rejected: int
+    scans_unmatched: int
+
+    def scan_poses(self, keyframe_poses: FloatArray) -> FloatArray:
+        """Every scan's pose given (optimized) keyframe poses."""
+        return se2.compose(keyframe_poses[self.scan_keyframes], self.scan_offsets)
+
+
+@dataclass(frozen=True, eq=False)
+class _LoopHypothesis:
+    candidate: int
+    current: int
+    measurement: FloatArray
+    information: FloatArray
+    correction: FloatArray
+    """Matched pose ∘ estimated pose⁻¹ of the current keyframe: how far the match moves the map."""
+
+
+@dataclass
+class _Edges:
+    first: list[int] = field(default_factory=list)
+    second: list[int] = field(default_factory=list)
+    measurement: list[FloatArray] = field(default_factory=list)
+    information: list[FloatArray] = field(default_factory=list)
+    is_loop: list[bool] = field(default_factory=list)
+
+    def add(self, a: int, b: int, z: FloatArray, information: FloatArray, is_loop: bool) -> None:
+        self.first.append(a)
+        self.second.append(b)
+        self.measurement.append(np.asarray(z, dtype=np.float64))
+        self.information.append(0.5 * (information + information.T))
+        self.is_loop.append(is_loop)
+
+    def remove(self, index: int) -> None:
+        for column in (self.first, self.second, self.measurement, self.information, self.is_loop):
+            del column[index]
+
+
+class LaserSlam2D:
+    """Feed scans in time order with `add_scan`; `finish` returns the keyframe graph."""
+
+    def __init__(self, config: Slam2DConfig | None = None) -> None:
+        self.config = config or Slam2DConfig()
+        self._keyframe_poses: list[FloatArray] = []
+        self._keyframes: list[Keyframe] = []
+        self._edges = _Edges()
+        self._scan_stamps: list[int] = []
+        self._scan_keyframes: list[int] = []
+        self._scan_offsets: list[FloatArray] = []
+        self._last_pose = np.zeros(3)
+        self._last_odometry: FloatArray | None = None
+        self._last_motion = np.zeros(3)
+        self._local_map: Submap | None = None
+        self._pending_loops = 0
+        self._hypotheses: list[_LoopHypothesis] = []
+        self._rejected = 0
+        self._unmatched = 0
+
+    # ------------------------------------------------------------------------------------------ scans
+
+    def add_scan(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None = None) -> ScanEstimate:
+        """Process one scan: `points` (N, 2) in the robot base frame, `odometry` its wheel-odometry pose."""
+        matching = self.config.matching
+        points = np.asarray(points, dtype=np.float64)
+        points = points[np.einsum("ij,ij->i", points, points) <= matching.max_range**2]
+        index = len(self._scan_stamps)
+        new_loops: tuple[tuple[int, int], ...] = ()
+        if not self._keyframe_poses:
+            pose, matched, information = np.zeros(3), True, np.eye(3)
+            self._add_keyframe(pose, points, None, information)
+        else:
+            prior, prior_information = self._predict(odometry)
+            pose, matched, information = self._match(points, prior, prior_information)
+            last_keyframe = self._keyframe_poses[-1]
+            step = se2.relative(last_keyframe, pose)
+            keyframes = self.config.keyframes
+            if np.hypot(step[0], step[1]) >= keyframes.distance or abs(step[2]) >= keyframes.angle:
+                self._add_keyframe(pose, points, step, information)
+                new_loops = self._close_loops()
+                pose = self._last_pose  # the loop closures may have moved it
+        self._last_odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
+        keyframe = len(self._keyframe_poses) - 1
+        self._scan_stamps.append(int(stamp_ns))
+        self._scan_keyframes.append(keyframe)
+        self._scan_offsets.append(se2.relative(self._keyframe_poses[keyframe], pose))
+        self._unmatched += not matched
+        return ScanEstimate(index, int(stamp_ns), pose.copy(), matched, keyframe, new_loops)
+
+    def _predict(self, odometry: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+        settings = self.config.odometry
+        if odometry is not None and self._last_odometry is not None:
+            motion = se2.relative(self._last_odometry, np.asarray(odometry, dtype=np.float64))
+            distance = float(np.hypot(motion[0], motion[1]))
+            sigma_linear = settings.odometry_sigma_linear + settings.odometry_sigma_per_metre * distance
+            sigma_angular = settings.odometry_sigma_angular + settings.odometry_sigma_per_radian * abs(motion[2])
+        else:
+            motion = self._last_motion
+            sigma_linear = settings.constant_velocity_sigma_linear
+            sigma_angular = settings.constant_velocity_sigma_angular
+        information = np.diag([sigma_linear**-2, sigma_linear**-2, sigma_angular**-2])
+        return se2.compose(self._last_pose, motion), information
+
+    def _match(self, points: FloatArray, prior: FloatArray,
+               prior_information: FloatArray) -> tuple[FloatArray, bool, FloatArray]:
+        matching = self.config.matching
+        settings = self.config.odometry
+        has_odometry = self._last_odometry is not None
+        matched = False
+        pose, information = prior, prior_information
+        if len(points) >= matching.min_points and self._local_map is not None:
+            window = SearchWindow(
+                settings.window_linear if has_odometry else settings.window_linear_without_odometry,
+                settings.window_angular if has_odometry else settings.window_angular_without_odometry,
+                settings.angular_step,
+            )
+            coarse = match_exhaustive(points, self._local_map.grid, prior, window)
+            local = self._local_map
+            refined = refine_point_to_line(
+                points, local.grid, local.points, local.normals, coarse.pose,
+                max_distance=matching.icp_max_distance, sigma=matching.point_sigma, prior=prior,
+                prior_information=prior_information,
+            )
+            if refined.inlier_fraction >= settings.min_inlier_fraction:
+                pose, matched = refined.pose, True
+                information = matching.information_scale * refined.information
+        self._last_motion = se2.relative(self._last_pose, pose)
+        self._last_pose = pose
+        return pose, matched, information
+
+    # -------------------------------------------------------------------------------------- keyframes
+
+    def _add_keyframe(self, pose: FloatArray, points: FloatArray, step: FloatArray | None,
+                      information: FloatArray) -> None:
+        self._keyframe_poses.append(np.array(pose, dtype=np.float64))
+        self._keyframes.append(Keyframe(points, scan_normals(points)))
+        self._last_pose = np.array(pose, dtype=np.float64)
+        count = len(self._keyframe_poses)
+        if step is not None:
+            self._edges.add(count - 2, count - 1, step, information, is_loop=False)
+        self._rebuild_local_map()
+
+    def _rebuild_local_map(self) -> None:
+        recent = slice(max(0, len(self._keyframe_poses) - self.config.keyframes.local_map_keyframes), None)
+        matching = self.config.matching
+        keyframes = self._keyframes[recent]
+        if sum(len(k.points) for k in keyframes) < matching.min_points:
+            self._local_map = None
+            return
+        self._local_map = Submap.of(keyframes, self._keyframe_poses[recent], resolution=matching.resolution,
+                                    likelihood_sigma=matching.likelihood_sigma,
+                                    margin=self.config.odometry.window_linear_without_odometry + 1.0,
+                                    pairing_distance=matching.icp_max_distance)
+
+    # ---------------------------------------------------------------------------------- loop closures
+
+    def _close_loops(self) -> tuple[tuple[int, int], ...]:
+        settings = self.config.loop_closure
+        current = len(self._keyframe_poses) - 1
+        if not settings.enabled or current % settings.every_keyframes:
+            return ()
+        scan = self._keyframes[current].points
+        if len(scan) < self.config.matching.min_points:
+            return ()
+        older = current - settings.min_separation_keyframes
+        if older < 0:
+            return ()
+        positions = np.array(self._keyframe_poses[: older + 1])[:, :2]
+        here = self._keyframe_poses[current]
+        # The drift between two keyframes grows with the path joining them in the graph (through the
+        # loop closures already made), not with the time since the last loop closure anywhere.
+        radius = np.minimum(settings.search_radius
+                            + settings.search_radius_per_metre * self._path_lengths_to(current)[: older + 1],
+                            settings.max_search_radius)
+        distance = np.hypot(*(positions - here[:2]).T)
+        candidates: list[int] = []
+        for candidate in np.argsort(distance / radius):
+            if distance[candidate] > radius[candidate] or len(candidates) >= settings.candidates_per_keyframe:
+                break
+            if all(abs(int(candidate) - c) > settings.submap_keyframes for c in candidates):
+                candidates.append(int(candidate))
+        found = []
+        self._hypotheses = [h for h in self._hypotheses if current - h.current <= settings.hypothesis_keyframes]
+        for candidate in candidates:
+            hypothesis = self._verify_loop(candidate, current, float(radius[candidate]))
+            if hypothesis is None:
+                continue
+            if _is_small(hypothesis.correction, settings.small_correction_linear, settings.small_correction_angular):
+                confirmed = [hypothesis]
+            else:
+                agreeing = [h for h in self._hypotheses if _is_small(
+                    se2.relative(h.correction, hypothesis.correction),
+                    settings.small_correction_linear, settings.small_correction_angular)]
+                self._hypotheses.append(hypothesis)
+                confirmed = [*agreeing, hypothesis] if agreeing else []
+            for accepted in confirmed:
+                if accepted in self._hypotheses:
+                    self._hypotheses.remove(accepted)
+                self._edges.add(accepted.candidate, accepted.current, accepted.measurement,
+                                accepted.information, is_loop=True)
+                found.append((accepted.candidate, accepted.current))
+        if found:
+            self._pending_loops += len(found)
+            if self._pending_loops >= settings.optimize_every_loop_closures:
+                self.optimize_online()
+        return tuple(found)
+
+    def _path_lengths_to(self, keyframe: int) -> FloatArray:
+        """Length of the shortest path (m) through the graph's constraints from `keyframe` to every keyframe."""
+        count = len(self._keyframe_poses)
+        first = np.array(self._edges.first, dtype=np.int64)
+        second = np.array(self._edges.second, dtype=np.int64)
+        steps = np.array(self._edges.measurement).reshape(-1, 3)
+        length = np.maximum(np.hypot(steps[:, 0], steps[:, 1]), 1e-6)  # 0 would mean "no edge"
+        adjacency = coo_matrix((length, (first, second)), shape=(count, count)).tocsr()
+        return dijkstra(adjacency, directed=False, indices=keyframe)
+
+    def _verify_loop(self, candidate: int, current: int, radius: float) -> _LoopHypothesis | None:
+        settings = self.config.loop_closure
+        matching = self.config.matching
+        around = range(max(0, candidate - settings.submap_keyframes),
+                       min(current - settings.min_separation_keyframes, candidate + settings.submap_keyframes) + 1)
+        submap = Submap.of([self._keyframes[k] for k in around], [self._keyframe_poses[k] for k in around],
+                           resolution=matching.resolution, likelihood_sigma=matching.likelihood_sigma,
+                           margin=radius + 1.0, pairing_distance=matching.icp_max_distance)
+        here = self._keyframe_poses[current]
+        query = self._query_points(current)
+        window = SearchWindow(radius, settings.angular_window, settings.angular_step)
+        coarse = match_branch_and_bound(query, submap.grid, here, window, settings.min_score,
+                                        levels=BRANCH_AND_BOUND_LEVELS)
+        if coarse is None:
+            return None
+        refined = refine_point_to_line(query, submap.grid, submap.points, submap.normals, coarse.pose,
+                                       max_distance=matching.icp_max_distance, sigma=matching.point_sigma)
+        if refined.inlier_fraction < settings.min_inlier_fraction or refined.rms > settings.max_rms:
+            return None
+        z = se2.relative(self._keyframe_poses[candidate], refined.pose)
+        correction = se2.compose(refined.pose, se2.inverse(here))
+        return _LoopHypothesis(candidate, current, z, matching.information_scale * refined.information,
+                               correction)
+
+    def _query_points(self, current: int) -> FloatArray:
+        """The current keyframe's scan with the previous few, in its frame, thinned."""
+        settings = self.config.loop_closure
+        here = self._keyframe_poses[current]
+        recent = range(max(0, current - settings.query_keyframes), current + 1)
+        points = np.concatenate([place(self._keyframes[k].points,
+                                       se2.relative(here, self._keyframe_poses[k])) for k in recent])
+        cells = np.floor(points / settings.query_thinning).astype(np.int64)
+        _, first = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_index=True)
+        return np.ascontiguousarray(points[np.sort(first)])
+
+    # ------------------------------------------------------------------------------------ optimization
+
+    def _graph(self, poses: FloatArray | None = None) -> PoseGraph:
+        count = len(self._keyframe_poses)
+        return PoseGraph.build(
+            np.arange(count), np.array(self._keyframe_poses) if poses is None else poses,
+            np.array(self._edges.first, dtype=np.int64), np.array(self._edges.second, dtype=np.int64),
+            np.array(self._edges.measurement).reshape(-1, 3), np.array(self._edges.information).reshape(-1, 3, 3),
+        )
+
+    def optimize_online(self) -> None:
+        """Re-optimize the keyframe graph from the current estimate, dropping inconsistent loop closures."""
+        self._pending_loops = 0
+        self._hypotheses: list[_LoopHypothesis] = []
+        if len(self._keyframe_poses) < 2 or not any(self._edges.is_loop):
+            return
+        threshold = self.config.loop_closure.chi2_threshold
+        poses = np.array(self._keyframe_poses)
+        while True:
+            graph = self._graph(poses)
+            for step in gauss_newton(graph, poses, max_iterations=REOPTIMIZE_ITERATIONS):
+                poses = step.poses
+            loops = np.flatnonzero(self._edges.is_loop)
+            if len(loops) == 0:
+                break
+            errors = edge_chi2(graph, poses)[loops]
+            worst = int(np.argmax(errors))
+            if errors[worst] <= threshold:
+                break
+            self._edges.remove(int(loops[worst]))
+            self._rejected += 1
+        self._move_keyframes(poses)
+
+    def _move_keyframes(self, poses: FloatArray) -> None:
+        offset = se2.relative(self._keyframe_poses[-1], self._last_pose)
+        self._keyframe_poses = [np.array(p) for p in poses]
+        self._last_pose = se2.compose(self._keyframe_poses[-1], offset)
+        self._rebuild_local_map()
+
+    # ------------------------------------------------------------------------------------------ result
+
+    def finish(self) -> Slam2DGraph:
+        """Final online optimization, and the keyframe graph with every scan's offset from its keyframe."""
+        if self._pending_loops:
+            self.optimize_online()
+        graph = self._graph()
+        odometry = ~np.array(self._edges.is_loop, dtype=bool)
+        chain = se2.compose_chain(np.array(self._edges.measurement).reshape(-1, 3)[odometry])
+        return Slam2DGraph(
+            graph=graph,
+            scan_stamps_ns=np.array(self._scan_stamps, dtype=np.int64),
+            scan_keyframes=np.array(self._scan_keyframes, dtype=np.int64),
+            scan_offsets=np.array(self._scan_offsets).reshape(-1, 3),
+            keyframe_scans=tuple(k.points for k in self._keyframes),
+            odometry_chain=chain,
+            loop_closures_accepted=int(sum(self._edges.is_loop)),
+            loop_closures_rejected=self._rejected,
+            scans_unmatched=self._unmatched,
+        )
+
+
+def _is_small(transform: FloatArray, linear: float, angular: float) -> bool:
+    return bool(np.hypot(transform[0], transform[1]) <= linear and abs(transform[2]) <= angular)
