@@ -31,7 +31,7 @@ class OdometryConfig:
     """± search around the prediction when wheel odometry predicts the motion (m)."""
     window_angular: float = math.radians(6.0)
     window_linear_without_odometry: float = 0.5
-    window_angular_without_odometry: float = math.radians(25.0)
+    window_angular_without_odometry: float = math.radians(35.0)
     angular_step: float = math.radians(0.5)
     odometry_sigma_linear: float = 0.05
     """Wheel-odometry prior: σ = this + `odometry_sigma_per_metre` × distance moved (m)."""
@@ -49,6 +49,9 @@ class OdometryConfig:
 class KeyframeConfig:
     distance: float = 0.3
     angle: float = math.radians(12.0)
+    max_turn_rate: float = math.radians(60.0)
+    """A scan taken while the robot turns faster than this (rad/s) is not made a keyframe: a laser
+    sweeping for 0.1–0.2 s smears it by several degrees, and a smeared scan must not enter the map."""
     local_map_keyframes: int = 25
     """The local map the odometry matches against: this many recent keyframes."""
 

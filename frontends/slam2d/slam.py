@@ -33,6 +33,7 @@ from optimizer.polish import gauss_newton
 FloatArray = NDArray[np.float64]
 
 REOPTIMIZE_ITERATIONS = 15
+ODOMETRY_BRANCH_AND_BOUND_LEVELS = 3
 BRANCH_AND_BOUND_LEVELS = 6
 """Coarsest candidates span 2⁶ cells (3.2 m at 5 cm): few enough for windows of several metres."""
 
@@ -143,7 +144,10 @@ class LaserSlam2D:
             last_keyframe = self._keyframe_poses[-1]
             step = se2.relative(last_keyframe, pose)
             keyframes = self.config.keyframes
-            if np.hypot(step[0], step[1]) >= keyframes.distance or abs(step[2]) >= keyframes.angle:
+            elapsed = (int(stamp_ns) - self._scan_stamps[-1]) * 1e-9
+            turning_fast = abs(self._last_motion[2]) > keyframes.max_turn_rate * max(elapsed, 1e-3)
+            moved = np.hypot(step[0], step[1]) >= keyframes.distance or abs(step[2]) >= keyframes.angle
+            if moved and not turning_fast:
                 self._add_keyframe(pose, points, step, information)
                 new_loops = self._close_loops()
                 pose = self._last_pose  # the loop closures may have moved it
@@ -182,14 +186,19 @@ class LaserSlam2D:
                 settings.window_angular if has_odometry else settings.window_angular_without_odometry,
                 settings.angular_step,
             )
-            coarse = match_exhaustive(points, self._local_map.grid, prior, window)
+            if has_odometry:
+                coarse = match_exhaustive(points, self._local_map.grid, prior, window)
+            else:  # a wide window: branch and bound finds the same optimum for a fraction of the work
+                coarse = match_branch_and_bound(points, self._local_map.grid, prior, window, 0.0,
+                                                levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS)
             local = self._local_map
+            start = prior if coarse is None else coarse.pose
             refined = refine_point_to_line(
-                points, local.grid, local.points, local.normals, coarse.pose,
+                points, local.grid, local.points, local.normals, start,
                 max_distance=matching.icp_max_distance, sigma=matching.point_sigma, prior=prior,
                 prior_information=prior_information,
             )
-            if refined.inlier_fraction >= settings.min_inlier_fraction:
+            if coarse is not None and refined.inlier_fraction >= settings.min_inlier_fraction:
                 pose, matched = refined.pose, True
                 information = matching.information_scale * refined.information
         self._last_motion = se2.relative(self._last_pose, pose)
