@@ -1,0 +1,210 @@
+"""`open_log(path)`: any supported log as one typed stream in sensor-time order.
+
+    with open_log("run.mcap") as log:
+        print(log.info())                  # from the summary / index, instant
+        for scan in log.scans():           # the LaserScan topic, found by type
+            ...
+        tree = log.transform_tree()        # /tf and /tf_static
+
+Each iterator is one streaming pass over the file (memory does not grow with the log). Topics are picked
+by message type: when a log has several candidates the error lists them and names the CLI option that
+chooses one.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from types import TracebackType
+
+from frontends.containers.base import Channel, Container
+from frontends.containers.detect import open_container
+from frontends.converters import RangeLimits
+from frontends.dispatch import DecodeOptions, Item, Kind, build_decoders, decode, message_kind
+from frontends.errors import TopicSelectionError
+from frontends.ordering import DEFAULT_MAX_ITEMS, DEFAULT_WINDOW_NS, by_stamp
+from frontends.transforms import TransformTree
+from frontends.types import Cloud3D, LogInfo, OdometryPose, Scan2D, Transform
+
+SCAN_TOPIC_OPTION = "--scan-topic"
+ODOMETRY_TOPIC_OPTION = "--odom-topic"
+_KIND_NAMES = {
+    "scan": "LaserScan",
+    "cloud": "PointCloud",
+    "odometry": "odometry",
+    "transform": "transform",
+}
+
+
+def open_log(path: str | Path) -> LogReader:
+    """Open a log: an MCAP file, a ROS 1 bag (a split set by any of its files or their directory), or a
+    ROS 2 bag directory (or its metadata.yaml / .db3). Raises `LogFileError` for anything else."""
+    return LogReader(open_container(path))
+
+
+class LogReader:
+    """One opened log. Iterators are independent streaming passes; `close()` frees temporary files."""
+
+    def __init__(self, container: Container) -> None:
+        self._container = container
+        self.path: Path = container.path
+        self.channels: tuple[Channel, ...] = container.channels()
+        self._info: LogInfo | None = None
+
+    def __enter__(self) -> LogReader:
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._container.close()
+
+    # --- what the log holds -------------------------------------------------------------------------
+
+    def info(self) -> LogInfo:
+        """Path, container, time span and topics, from the summary / index (not from the messages)."""
+        if self._info is None:
+            self._info = self._container.info()
+        return self._info
+
+    def topics_of_kind(self, kind: Kind) -> tuple[str, ...]:
+        """Topics whose messages we read as `kind` ("scan", "cloud", "odometry", "transform"), sorted."""
+        return tuple(sorted({c.topic for c in self.channels if message_kind(c) == kind}))
+
+    @property
+    def transform_topics(self) -> tuple[str, ...]:
+        """The tf topics (tf2_msgs/TFMessage, foxglove.FrameTransform(s))."""
+        return self.topics_of_kind("transform")
+
+    def select_topic(
+        self, kinds: Iterable[Kind], topic: str | None = None, option: str = SCAN_TOPIC_OPTION
+    ) -> str:
+        """The one topic of these kinds (or check `topic` is one of them); `TopicSelectionError` listing
+        the candidates when there are none or several."""
+        kinds = tuple(kinds)
+        wanted = " or ".join(_KIND_NAMES[k] for k in kinds)
+        candidates = sorted({c.topic for c in self.channels if message_kind(c) in kinds})
+        if topic is not None:
+            if topic in candidates:
+                return topic
+            types = sorted({c.type for c in self.channels if c.topic == topic})
+            if types:
+                raise TopicSelectionError(
+                    self.path,
+                    f"topic {topic} carries {', '.join(types)}, not a {wanted} type we can read",
+                    candidates,
+                    option,
+                )
+            raise TopicSelectionError(self.path, f"no topic {topic}; {wanted} topics", candidates, option)
+        if len(candidates) == 1:
+            return candidates[0]
+        if not candidates:
+            present = [f"{c.topic} ({c.type})" for c in sorted(self.channels, key=lambda c: c.topic)]
+            raise TopicSelectionError(self.path, f"no {wanted} topic; the log has", present or ["no topics"])
+        described = [
+            f"{t} ({', '.join(sorted({c.type for c in self.channels if c.topic == t}))})" for t in candidates
+        ]
+        raise TopicSelectionError(self.path, f"several {wanted} topics", described, option)
+
+    def sensor_topic(self, topic: str | None = None) -> tuple[str, Kind]:
+        """The scan or cloud topic (the one the pipeline matches), and which of the two it is."""
+        chosen = self.select_topic(("scan", "cloud"), topic)
+        kind = next(
+            message_kind(c) for c in self.channels if c.topic == chosen and message_kind(c) is not None
+        )
+        return chosen, kind  # type: ignore[return-value]
+
+    def odometry_topic(self, topic: str | None = None) -> str | None:
+        """The odometry topic (nav_msgs/Odometry, foxglove.PoseInFrame(s)), None when the log has none."""
+        if topic is None and not self.topics_of_kind("odometry"):
+            return None
+        return self.select_topic(("odometry",), topic, ODOMETRY_TOPIC_OPTION)
+
+    # --- streams --------------------------------------------------------------------------------------
+
+    def messages(
+        self,
+        topics: Iterable[str],
+        *,
+        range_limits: tuple[float, float] = (0.0, math.inf),
+        window_ns: int = DEFAULT_WINDOW_NS,
+        max_items: int = DEFAULT_MAX_ITEMS,
+    ) -> Iterator[Item]:
+        """Everything on these topics as Scan2D / Cloud3D / OdometryPose / Transform, merged in one pass,
+        sorted by sensor stamp (static transforms first come when read). `range_limits` narrows every
+        scan's valid ranges (Foxglove scans have none of their own)."""
+        topics = set(topics)
+        channels = [c for c in self.channels if c.topic in topics and message_kind(c) is not None]
+        decoders = build_decoders(self.path, channels, DecodeOptions(RangeLimits(*range_limits)))
+        raw = self._container.messages({c.id for c in channels})
+        return by_stamp(decode(self.path, raw, decoders), self.path, window_ns, max_items)
+
+    def scans(
+        self,
+        topic: str | None = None,
+        *,
+        range_limits: tuple[float, float] = (0.0, math.inf),
+        window_ns: int = DEFAULT_WINDOW_NS,
+        max_items: int = DEFAULT_MAX_ITEMS,
+    ) -> Iterator[Scan2D]:
+        """The scans of the LaserScan topic (found by type unless given); options as for `messages`."""
+        chosen = self.select_topic(("scan",), topic)
+        return self.messages([chosen], range_limits=range_limits, window_ns=window_ns, max_items=max_items)  # type: ignore[return-value]
+
+    def clouds(
+        self,
+        topic: str | None = None,
+        *,
+        window_ns: int = DEFAULT_WINDOW_NS,
+        max_items: int = DEFAULT_MAX_ITEMS,
+    ) -> Iterator[Cloud3D]:
+        """The clouds of the PointCloud topic (found by type unless given)."""
+        chosen = self.select_topic(("cloud",), topic)
+        return self.messages([chosen], window_ns=window_ns, max_items=max_items)  # type: ignore[return-value]
+
+    def transforms(
+        self, *, window_ns: int = DEFAULT_WINDOW_NS, max_items: int = DEFAULT_MAX_ITEMS
+    ) -> Iterator[Transform]:
+        """Every transform of every tf topic, static ones included."""
+        return self.messages(self.transform_topics, window_ns=window_ns, max_items=max_items)  # type: ignore[return-value]
+
+    def transform_tree(self, cache_ns: int | None = None) -> TransformTree:
+        """A transform tree of the whole log's tf (small: tf messages are a few dozen bytes each)."""
+        return TransformTree(cache_ns).extend(self.transforms())
+
+    def odometry(
+        self,
+        topic: str | None = None,
+        *,
+        odom_frame: str = "odom",
+        window_ns: int = DEFAULT_WINDOW_NS,
+        max_items: int = DEFAULT_MAX_ITEMS,
+    ) -> Iterator[OdometryPose]:
+        """Odometry poses: from the odometry topic when the log has one; otherwise from the dynamic tf
+        edge out of `odom_frame` (the first child frame seen: REP 105's odom → base). Empty when neither."""
+        chosen = self.odometry_topic(topic)
+        if chosen is not None:
+            return self.messages([chosen], window_ns=window_ns, max_items=max_items)  # type: ignore[return-value]
+        return _odometry_from_tf(self.transforms(window_ns=window_ns, max_items=max_items), odom_frame)
+
+
+def _odometry_from_tf(transforms: Iterator[Transform], odom_frame: str) -> Iterator[OdometryPose]:
+    child: str | None = None
+    for transform in transforms:
+        if transform.is_static or transform.parent_frame != odom_frame:
+            continue
+        if child is None:
+            child = transform.child_frame
+        if transform.child_frame == child:
+            yield OdometryPose(
+                transform.stamp_ns,
+                transform.log_time_ns,
+                transform.parent_frame,
+                transform.child_frame,
+                transform.translation,
+                transform.rotation,
+            )

@@ -1,0 +1,93 @@
+"""Sensor-time order from log-time order, with bounded memory.
+
+Logs are written in the order messages arrived; each source's stamps lag (a scan is stamped when its
+sweep began) or lead (AMCL post-dates its map → odom transform) its log time by its own amount. So each
+source (a sensor frame, or a tf edge) keeps its own newest stamp, and an item is released once it is
+`window_ns` older than the newest stamp of the slowest source still active (one that produced something
+within `idle_ns` of log time: a topic that ended must not hold everything back). At most `max_items`
+are held. An item whose stamp is earlier than one already released cannot be placed any more: it is
+dropped, counted, and a `LogWarning` says how many at the end. Static transforms hold at all times and
+pass straight through.
+"""
+
+from __future__ import annotations
+
+import heapq
+import warnings
+from collections.abc import Hashable, Iterable, Iterator
+from pathlib import Path
+from typing import Protocol, TypeVar
+
+from frontends.errors import LogWarning
+from frontends.types import Transform
+
+DEFAULT_WINDOW_NS = 2_000_000_000
+DEFAULT_IDLE_NS = 5_000_000_000
+DEFAULT_MAX_ITEMS = 10_000
+
+
+class Stamped(Protocol):
+    @property
+    def stamp_ns(self) -> int: ...
+
+    @property
+    def log_time_ns(self) -> int: ...
+
+
+T = TypeVar("T", bound=Stamped)
+
+
+def by_stamp(
+    items: Iterable[T],
+    path: Path,
+    window_ns: int = DEFAULT_WINDOW_NS,
+    max_items: int = DEFAULT_MAX_ITEMS,
+    idle_ns: int = DEFAULT_IDLE_NS,
+) -> Iterator[T]:
+    """The items sorted by `stamp_ns` (ties keep arrival order), as long as none is more than `window_ns`
+    of sensor time late within its own source."""
+    heap: list[tuple[int, int, T]] = []
+    newest: dict[Hashable, int] = {}  # per source: newest stamp
+    last_seen: dict[Hashable, int] = {}  # per source: log time of its latest item
+    released = -(2**63)
+    now = -(2**63)
+    late = 0
+    arrival = 0
+    push, pop = heapq.heappush, heapq.heappop
+    for item in items:
+        # The source: one tf edge, or one sensor / odometry frame of one type.
+        if type(item) is Transform:
+            if item.is_static:
+                yield item
+                continue
+            source: Hashable = (Transform, item.child_frame)
+        else:
+            source = (type(item), getattr(item, "frame_id", None))
+        stamp = item.stamp_ns
+        if stamp < released:
+            late += 1
+            continue
+        push(heap, (stamp, arrival, item))
+        arrival += 1
+        if stamp > newest.get(source, -(2**63)):
+            newest[source] = stamp
+        last_seen[source] = item.log_time_ns
+        if item.log_time_ns > now:
+            now = item.log_time_ns
+        if len(newest) == 1:  # one source (a single topic): no need to look for the slowest
+            threshold = newest[source] - window_ns
+        else:
+            active = [newest[s] for s, seen in last_seen.items() if seen >= now - idle_ns]
+            threshold = (min(active) if active else stamp) - window_ns
+        while heap and (heap[0][0] < threshold or len(heap) > max_items):
+            released, _, ready = pop(heap)
+            yield ready
+    while heap:
+        yield pop(heap)[2]
+    if late:
+        warnings.warn(
+            f"{path}: {late} messages dropped: their stamps were more than {window_ns / 1e9:g} s older than "
+            "messages already read (raise the reorder window to keep them)",
+            LogWarning,
+            stacklevel=2,
+        )
