@@ -12,6 +12,8 @@ Errors the program raises on purpose (`OptimizerError`, `PipelineError`) end in 
 from __future__ import annotations
 
 import enum
+import json
+import math
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, nullcontext
@@ -25,6 +27,7 @@ from optimizer.errors import OptimizerError
 from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS
 from pipeline.errors import PipelineError
+from pipeline.evaluation import DEFAULT_TOLERANCE_NS, RelationsResult, evaluate_files
 
 if TYPE_CHECKING:
     from pipeline.replay_graph import GraphReplayResult
@@ -176,6 +179,60 @@ def _print_summary(result: GraphReplayResult) -> None:
         skipped = ", ".join(f"{count} {tag}" for tag, count in sorted(result.skipped.items()))
         lines.insert(1, f"  skipped lines: {skipped}")
     typer.echo("\n".join(lines), err=True)
+
+
+_EVALUATE_EPILOG = f"""\b
+Examples:
+  replay evaluate recordings/aces.tum ../shared/data/logs/aces/aces.relations
+  replay evaluate run.tum run.relations --json --tolerance-ms 5
+
+\b
+Each relation (t1 t2 x y z roll pitch yaw: the true motion from the pose at t1 to the pose at t2, in the
+frame of t1) pairs with the trajectory's poses by stamp: the same stamp, else the nearest within the
+tolerance; relations that pair with no pose are counted as unmatched. The error of a relation is
+e = true⁻¹·estimated; reported are the mean ± std of |translation| (m), |rotation| (deg) and their squares.
+Exit code {EXIT_ERROR} on bad input: one line naming the file and line."""
+
+
+@app.command("evaluate", epilog=_EVALUATE_EPILOG)
+def evaluate(
+    trajectory: Annotated[Path, typer.Argument(
+        metavar="TRAJECTORY.tum", show_default=False,
+        help="The trajectory, TUM format (timestamp tx ty tz qx qy qz qw); its poses are taken as planar.")],
+    relations: Annotated[Path, typer.Argument(
+        metavar="RELATIONS", show_default=False,
+        help="Ground-truth relations, Freiburg format (t1 t2 x y z roll pitch yaw).")],
+    as_json: Annotated[bool, typer.Option(
+        "--json", help="Print one JSON object on stdout instead of the table.")] = False,
+    tolerance_ms: Annotated[float, typer.Option(
+        "--tolerance-ms", min=0.0, help="How far a relation stamp may be from a trajectory stamp.")
+    ] = DEFAULT_TOLERANCE_NS / 1e6,
+) -> None:
+    """Score a trajectory with the relations metric of Kümmerle et al. 2009."""
+    if not math.isfinite(tolerance_ms):
+        raise typer.BadParameter("must be finite", param_hint="--tolerance-ms")
+    tolerance_ns = round(tolerance_ms * 1e6)
+    try:
+        result = evaluate_files(trajectory, relations, tolerance_ns=tolerance_ns)
+    except PipelineError as error:
+        _fail(error)
+    if as_json:
+        typer.echo(json.dumps({"trajectory": str(trajectory), "relations": str(relations),
+                               "tolerance_ns": tolerance_ns, **result.summary()}))
+    else:
+        typer.echo(_relations_table(result, f"{trajectory.name} against {relations.name} "
+                                            f"(tolerance {tolerance_ms:g} ms)"))
+
+
+def _relations_table(result: RelationsResult, title: str) -> str:
+    return "\n".join([
+        title,
+        f"  relations     {result.count} scored, {result.unmatched} unmatched",
+        f"  translation   {result.translation_mean:.4f} ± {result.translation_std:.4f} m",
+        f"  rotation      {result.rotation_mean_deg:.3f} ± {result.rotation_std_deg:.3f} deg",
+        f"  translation²  {result.translation_squared_mean:.4g} ± {result.translation_squared_std:.4g} m²",
+        f"  rotation²     {result.rotation_squared_mean:.4g} ± {result.rotation_squared_std:.4g} deg²",
+    ])
 
 
 def main() -> None:
