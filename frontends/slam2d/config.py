@@ -41,6 +41,10 @@ class OdometryConfig:
     constant_velocity_sigma_linear: float = 0.5
     """Without odometry the prior is constant velocity, weak: it only steers featureless stretches."""
     constant_velocity_sigma_angular: float = math.radians(20.0)
+    reliable_interval: float = 0.5
+    """Odometry interpolated over a longer interval between messages (s) predicts less well: the search
+    window and the prior's σ are then scaled by `unreliable_scale`."""
+    unreliable_scale: float = 2.5
     min_inlier_fraction: float = 0.25
     """A match pairing fewer scan points than this is not trusted: the pose follows the prior."""
 
@@ -59,7 +63,7 @@ class KeyframeConfig:
 @dataclass(frozen=True)
 class LoopClosureConfig:
     enabled: bool = True
-    search_radius: float = 3.0
+    search_radius: float = 2.0
     """Candidates are keyframes within this distance of the current estimate (m) …"""
     search_radius_per_metre: float = 0.05
     """… plus this much per metre of the shortest path joining the two in the graph (the drift grows)."""
@@ -71,6 +75,10 @@ class LoopClosureConfig:
     angular_window: float = math.radians(25.0)
     angular_step: float = math.radians(0.75)
     min_score: float = 0.55
+    ambiguity_ratio: float = 0.9
+    ambiguity_distance: float = 1.0
+    """A match is ambiguous, and rejected, when a pose at least `ambiguity_distance` (m) away scores at least
+    `ambiguity_ratio` of it: two look-alike rooms, a stretch of uniform corridor."""
     """Branch-and-bound acceptance: mean likelihood of the scan's points on the submap."""
     min_inlier_fraction: float = 0.6
     max_rms: float = 0.08

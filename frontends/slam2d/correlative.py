@@ -41,14 +41,20 @@ class Match:
     """Mean likelihood of the scan's points, in [0, 1]."""
 
 
+def _reach(window: SearchWindow, grid: LikelihoodGrid) -> int:
+    """The window's half-width in cells (0.05000000000000001 m at 5 cm is one cell, not two)."""
+    return math.ceil(window.linear / grid.resolution - 1e-9)
+
+
 def _angles(center: float, window: SearchWindow) -> FloatArray:
     count = max(int(math.floor(window.angular / window.angular_step)), 0)
     return center + window.angular_step * np.arange(-count, count + 1, dtype=np.float64)
 
 
 @njit(cache=True)
-def _base_cells(points: FloatArray, x: float, y: float, angles: FloatArray, origin: FloatArray,
-                resolution: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+def _base_cells(
+    points: FloatArray, x: float, y: float, angles: FloatArray, origin: FloatArray, resolution: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Cell of every point, for every rotation, with the translation (x, y): (A, N) arrays."""
     count = points.shape[0]
     cells_x = np.empty((angles.shape[0], count), dtype=np.int64)
@@ -65,8 +71,14 @@ def _base_cells(points: FloatArray, x: float, y: float, angles: FloatArray, orig
 
 
 @njit(cache=True, inline="always")
-def _score(values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y: NDArray[np.int64],
-           tx: int, ty: int, span: int) -> float:
+def _score(
+    values: NDArray[np.float32],
+    cells_x: NDArray[np.int64],
+    cells_y: NDArray[np.int64],
+    tx: int,
+    ty: int,
+    span: int,
+) -> float:
     """Σ of the level's values at the points' cells shifted by (tx, ty), divided by the point count.
 
     A point whose block [c, c + span) only partly overlaps the grid reads the edge cell, whose block
@@ -91,8 +103,9 @@ def _score(values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y: NDA
 
 
 @njit(cache=True)
-def _exhaustive(values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y: NDArray[np.int64],
-                reach: int) -> tuple[int, int, int, float]:
+def _exhaustive(
+    values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y: NDArray[np.int64], reach: int
+) -> tuple[int, int, int, float]:
     best = (0, 0, 0, -1.0)
     for a in range(cells_x.shape[0]):
         for ty in range(-reach, reach + 1):
@@ -103,21 +116,43 @@ def _exhaustive(values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y
     return best
 
 
-def match_exhaustive(points: FloatArray, grid: LikelihoodGrid, center: FloatArray,
-                     window: SearchWindow) -> Match:
+def match_exhaustive(
+    points: FloatArray, grid: LikelihoodGrid, center: FloatArray, window: SearchWindow
+) -> Match:
     """The best pose of `points` (robot frame) within `window` around `center` on `grid`."""
     angles = _angles(float(center[2]), window)
-    cells_x, cells_y = _base_cells(points, float(center[0]), float(center[1]), angles, grid.origin,
-                                   grid.resolution)
-    reach = int(math.ceil(window.linear / grid.resolution))
+    cells_x, cells_y = _base_cells(
+        points, float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
+    )
+    reach = _reach(window, grid)
     a, tx, ty, score = _exhaustive(grid.values, cells_x, cells_y, reach)
     pose = np.array([center[0] + tx * grid.resolution, center[1] + ty * grid.resolution, angles[a]])
     return Match(pose, float(score))
 
 
+@njit(cache=True, inline="always")
+def _excluded(tx: int, ty: int, span: int, exclude_x: int, exclude_y: int, radius: int) -> bool:
+    """Whether the whole block of translations [tx, tx + span) × [ty, ty + span) lies in the disc."""
+    if radius < 0:
+        return False
+    dx = max(abs(tx - exclude_x), abs(tx + span - 1 - exclude_x))
+    dy = max(abs(ty - exclude_y), abs(ty + span - 1 - exclude_y))
+    return dx * dx + dy * dy <= radius * radius
+
+
 @njit(cache=True)
-def _branch_and_bound(levels: tuple[NDArray[np.float32], ...], cells_x: NDArray[np.int64],
-                      cells_y: NDArray[np.int64], reach: int, min_score: float) -> tuple[int, int, int, float]:
+def _branch_and_bound(
+    levels: tuple[NDArray[np.float32], ...],
+    cells_x: NDArray[np.int64],
+    cells_y: NDArray[np.int64],
+    reach: int,
+    min_score: float,
+    exclude_x: int,
+    exclude_y: int,
+    exclude_radius: int,
+) -> tuple[int, int, int, float]:
+    """The best leaf above `min_score`, skipping translations within `exclude_radius` cells of
+    (exclude_x, exclude_y) (a negative radius excludes nothing)."""
     top = len(levels) - 1
     span = 1 << top
     # Stack of candidates (angle, tx, ty, level, score); the best-scoring child is pushed last so it is
@@ -135,7 +170,10 @@ def _branch_and_bound(levels: tuple[NDArray[np.float32], ...], cells_x: NDArray[
     for a in range(cells_x.shape[0]):
         for ty in starts:
             for tx in starts:
-                scores[k] = _score(levels[top], cells_x[a], cells_y[a], tx, ty, span)
+                if _excluded(tx, ty, span, exclude_x, exclude_y, exclude_radius):
+                    scores[k] = -1.0
+                else:
+                    scores[k] = _score(levels[top], cells_x[a], cells_y[a], tx, ty, span)
                 keys[k, 0] = a
                 keys[k, 1] = tx
                 keys[k, 2] = ty
@@ -165,7 +203,7 @@ def _branch_and_bound(levels: tuple[NDArray[np.float32], ...], cells_x: NDArray[
         for c in range(4):
             cx = tx + half * (c & 1)
             cy = ty + half * (c >> 1)
-            if cx > reach or cy > reach:
+            if cx > reach or cy > reach or _excluded(cx, cy, half, exclude_x, exclude_y, exclude_radius):
                 child_scores[c] = -1.0
             else:
                 child_scores[c] = _score(levels[level - 1], cells_x[a], cells_y[a], cx, cy, half)
@@ -181,18 +219,37 @@ def _branch_and_bound(levels: tuple[NDArray[np.float32], ...], cells_x: NDArray[
     return best
 
 
-def match_branch_and_bound(points: FloatArray, grid: LikelihoodGrid, center: FloatArray,
-                           window: SearchWindow, min_score: float, levels: int = 4) -> Match | None:
+def match_branch_and_bound(
+    points: FloatArray,
+    grid: LikelihoodGrid,
+    center: FloatArray,
+    window: SearchWindow,
+    min_score: float,
+    levels: int = 4,
+    exclude: tuple[FloatArray, float] | None = None,
+) -> Match | None:
     """The best pose within a wide `window`, or None when no candidate scores above `min_score`.
 
     Equal to `match_exhaustive` on the same window (same optimum), in a fraction of the evaluations.
+    `exclude` = (x, y, radius): translations within the radius of (x, y) are not candidates, which is how
+    a second, distinct solution is found (an ambiguity test).
     """
     angles = _angles(float(center[2]), window)
-    cells_x, cells_y = _base_cells(points, float(center[0]), float(center[1]), angles, grid.origin,
-                                   grid.resolution)
-    reach = int(math.ceil(window.linear / grid.resolution))
+    cells_x, cells_y = _base_cells(
+        points, float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
+    )
+    reach = _reach(window, grid)
     pyramid = tuple(max_pyramid(grid.values, levels))
-    a, tx, ty, score = _branch_and_bound(pyramid, cells_x, cells_y, reach, min_score)
+    exclude_x = exclude_y = 0
+    exclude_radius = -1
+    if exclude is not None:
+        (x, y), radius = exclude
+        exclude_x = round((x - center[0]) / grid.resolution)
+        exclude_y = round((y - center[1]) / grid.resolution)
+        exclude_radius = round(radius / grid.resolution)
+    a, tx, ty, score = _branch_and_bound(
+        pyramid, cells_x, cells_y, reach, min_score, exclude_x, exclude_y, exclude_radius
+    )
     if score < 0.0:
         return None
     pose = np.array([center[0] + tx * grid.resolution, center[1] + ty * grid.resolution, angles[a]])

@@ -37,8 +37,9 @@ class LikelihoodGrid:
         return np.floor((np.asarray(xy) - self.origin) / self.resolution).astype(np.int64)
 
 
-def build_likelihood_grid(points: FloatArray, resolution: float, sigma: float, margin: float,
-                          pairing_distance: float = 0.0) -> LikelihoodGrid:
+def build_likelihood_grid(
+    points: FloatArray, resolution: float, sigma: float, margin: float, pairing_distance: float = 0.0
+) -> LikelihoodGrid:
     """A grid covering `points` plus `margin` on every side, each point stamped with a Gaussian of σ and
     its index within max(3σ, `pairing_distance`)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -53,8 +54,15 @@ def build_likelihood_grid(points: FloatArray, resolution: float, sigma: float, m
 
 
 @njit(cache=True)
-def _stamp(points: FloatArray, origin: FloatArray, resolution: float, sigma: float, radius: int,
-           values: NDArray[np.float32], nearest: NDArray[np.int32]) -> None:
+def _stamp(
+    points: FloatArray,
+    origin: FloatArray,
+    resolution: float,
+    sigma: float,
+    radius: int,
+    values: NDArray[np.float32],
+    nearest: NDArray[np.int32],
+) -> None:
     height, width = values.shape
     inverse_two_sigma2 = 1.0 / (2.0 * sigma * sigma)
     best = np.full(values.shape, np.inf, dtype=np.float32)
@@ -75,7 +83,7 @@ def _stamp(points: FloatArray, origin: FloatArray, resolution: float, sigma: flo
 
 
 def max_pyramid(values: NDArray[np.float32], levels: int) -> list[NDArray[np.float32]]:
-    """[values, M1, M2, …]: M_h[y, x] = max of values[y : y + 2^h, x : x + 2^h] (cells past the edge are 0)."""
+    """[values, M1, M2, …]: M_h[y, x] = max of values[y : y + 2^h, x : x + 2^h] (0 past the edge)."""
     pyramid = [values]
     for level in range(1, levels + 1):
         pyramid.append(_doubled_max(pyramid[-1], 1 << (level - 1)))

@@ -21,10 +21,14 @@ from frontends.slam2d.grid import LikelihoodGrid
 
 FloatArray = NDArray[np.float64]
 
-NORMAL_NEIGHBOURS = 3
-"""Beams on each side of a point that may join its normal's neighbourhood."""
-NORMAL_RADIUS = 0.25
-"""… if they lie within this distance of it (m)."""
+NORMAL_NEIGHBOURS = 7
+"""Beams on each side of a point that may join its normal's neighbourhood …"""
+NORMAL_RADIUS = 0.3
+"""… if they lie within this distance of it (m), or within `NORMAL_SPACINGS` times the local beam spacing
+when that is larger: a wall seen at a grazing angle far away has beams tens of centimetres apart."""
+NORMAL_SPACINGS = 3.5
+MAX_NORMAL_RADIUS = 1.0
+POINT_TO_POINT = True
 FLATNESS = 0.3
 """A neighbourhood whose small/large spread ratio is below this is a line: walls seen with 1–2 cm noise
 over 10–20 cm are near 0.1–0.2."""
@@ -32,18 +36,30 @@ over 10–20 cm are near 0.1–0.2."""
 
 @njit(cache=True)
 def scan_normals(points: FloatArray) -> FloatArray:
-    """Unit normals (N, 2) of a bearing-ordered scan from neighbouring beams; NaN where no line is seen."""
+    """Normals (N, 2) of a bearing-ordered scan from neighbouring beams.
+
+    A unit vector where the neighbourhood is a line; NaN where it is clutter (neighbours, but no line:
+    ICP pairs such points point-to-point); (0, 0) where the point has too few neighbours to say (ICP does
+    not pair with it: sparse samples of a wall seen at a grazing angle would pin the scan along the wall).
+    """
     count = points.shape[0]
     normals = np.full((count, 2), np.nan)
     for i in range(count):
+        spacing = np.inf
+        for j in (i - 1, i + 1):
+            if 0 <= j < count:
+                spacing = min(spacing, math.hypot(points[j, 0] - points[i, 0], points[j, 1] - points[i, 1]))
+        radius = min(max(NORMAL_RADIUS, NORMAL_SPACINGS * spacing), MAX_NORMAL_RADIUS)
         sx = sy = 0.0
         members = 0
         for j in range(max(0, i - NORMAL_NEIGHBOURS), min(count, i + NORMAL_NEIGHBOURS + 1)):
-            if (points[j, 0] - points[i, 0]) ** 2 + (points[j, 1] - points[i, 1]) ** 2 <= NORMAL_RADIUS**2:
+            if (points[j, 0] - points[i, 0]) ** 2 + (points[j, 1] - points[i, 1]) ** 2 <= radius**2:
                 sx += points[j, 0]
                 sy += points[j, 1]
                 members += 1
-        if members < 3:
+        if members < 4:  # three scattered points can look like a line by chance
+            normals[i, 0] = 0.0
+            normals[i, 1] = 0.0
             continue
         mx = sx / members
         my = sy / members
@@ -51,7 +67,7 @@ def scan_normals(points: FloatArray) -> FloatArray:
         for j in range(max(0, i - NORMAL_NEIGHBOURS), min(count, i + NORMAL_NEIGHBOURS + 1)):
             dx = points[j, 0] - mx
             dy = points[j, 1] - my
-            if (points[j, 0] - points[i, 0]) ** 2 + (points[j, 1] - points[i, 1]) ** 2 <= NORMAL_RADIUS**2:
+            if (points[j, 0] - points[i, 0]) ** 2 + (points[j, 1] - points[i, 1]) ** 2 <= radius**2:
                 cxx += dx * dx
                 cxy += dx * dy
                 cyy += dy * dy
@@ -104,21 +120,42 @@ def refine_point_to_line(
     """
     has_prior = prior is not None and prior_information is not None
     pose, hessian, paired, rms = _icp(
-        np.ascontiguousarray(scan, dtype=np.float64), grid.nearest, grid.origin, grid.resolution,
-        reference_points, reference_normals, np.asarray(initial, dtype=np.float64),
+        np.ascontiguousarray(scan, dtype=np.float64),
+        grid.nearest,
+        grid.origin,
+        grid.resolution,
+        reference_points,
+        reference_normals,
+        np.asarray(initial, dtype=np.float64),
         np.asarray(prior if has_prior else initial, dtype=np.float64),
         np.asarray(prior_information if has_prior else np.zeros((3, 3)), dtype=np.float64),
-        max_distance, sigma, iterations, tolerance,
+        max_distance,
+        sigma,
+        iterations,
+        tolerance,
+        POINT_TO_POINT,
     )
     fraction = paired / len(scan) if len(scan) else 0.0
     return IcpResult(pose, hessian, float(fraction), float(rms))
 
 
 @njit(cache=True)
-def _icp(scan: FloatArray, nearest: NDArray[np.int32], origin: FloatArray, resolution: float,
-         reference_points: FloatArray, reference_normals: FloatArray, initial: FloatArray, prior: FloatArray,
-         prior_information: FloatArray, max_distance: float, sigma: float, iterations: int,
-         tolerance: float) -> tuple[FloatArray, FloatArray, int, float]:
+def _icp(
+    scan: FloatArray,
+    nearest: NDArray[np.int32],
+    origin: FloatArray,
+    resolution: float,
+    reference_points: FloatArray,
+    reference_normals: FloatArray,
+    initial: FloatArray,
+    prior: FloatArray,
+    prior_information: FloatArray,
+    max_distance: float,
+    sigma: float,
+    iterations: int,
+    tolerance: float,
+    point_to_point: bool,
+) -> tuple[FloatArray, FloatArray, int, float]:
     height, width = nearest.shape
     pose = initial.copy()
     hessian = np.zeros((3, 3))
@@ -135,9 +172,11 @@ def _icp(scan: FloatArray, nearest: NDArray[np.int32], origin: FloatArray, resol
         hessian[:] = prior_information
         offset_theta = (pose[2] - prior[2] + math.pi) % (2.0 * math.pi) - math.pi
         for a in range(3):
-            gradient[a] = (prior_information[a, 0] * (pose[0] - prior[0])
-                           + prior_information[a, 1] * (pose[1] - prior[1])
-                           + prior_information[a, 2] * offset_theta)
+            gradient[a] = (
+                prior_information[a, 0] * (pose[0] - prior[0])
+                + prior_information[a, 1] * (pose[1] - prior[1])
+                + prior_information[a, 2] * offset_theta
+            )
         paired = 0
         squared_sum = 0.0
         residual_count = 0
@@ -162,10 +201,11 @@ def _icp(scan: FloatArray, nearest: NDArray[np.int32], origin: FloatArray, resol
             dty = c * px - s * py
             nx = reference_normals[k, 0]
             ny = reference_normals[k, 1]
-            if nx == nx:  # a line: one point-to-line row
-                count = 1
-            else:  # no line: two point-to-point rows
-                count = 2
+            if nx == 0.0 and ny == 0.0:  # too sparse to pair (see `scan_normals`)
+                continue
+            if nx != nx and not point_to_point:
+                continue
+            count = 1 if nx == nx else 2  # a line: one point-to-line row; none (NaN): two point-to-point
             for r in range(count):
                 if count == 1:
                     row[0], row[1], row[2] = nx, ny, nx * dtx + ny * dty

@@ -39,8 +39,16 @@ class Submap:
     normals: FloatArray
 
     @classmethod
-    def of(cls, keyframes: Sequence[Keyframe], poses: Sequence[FloatArray], *, resolution: float,
-           likelihood_sigma: float, margin: float, pairing_distance: float) -> Submap:
+    def of(
+        cls,
+        keyframes: Sequence[Keyframe],
+        poses: Sequence[FloatArray],
+        *,
+        resolution: float,
+        likelihood_sigma: float,
+        margin: float,
+        pairing_distance: float,
+    ) -> Submap:
         points = np.concatenate([place(k.points, p) for k, p in zip(keyframes, poses, strict=True)])
         normals = np.concatenate([k.normals @ rotation(p[2]) for k, p in zip(keyframes, poses, strict=True)])
         # Several keyframes see the same wall: keep one point per half cell, the latest keyframe's

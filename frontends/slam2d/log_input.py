@@ -20,9 +20,10 @@ from optimizer import se2
 
 FloatArray = NDArray[np.float64]
 
-MAX_ODOMETRY_GAP_NS = 500_000_000
+MAX_ODOMETRY_GAP_NS = 5_000_000_000
 """Odometry is interpolated between two messages at most this far apart; across a longer gap a scan gets
-no wheel-odometry prediction."""
+no wheel-odometry prediction. Shorter gaps still predict well (the poses at both ends are known), but the
+SLAM is told how long the interval was and widens its search (see `LaserSlam2D.add_scan`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,12 +37,19 @@ class OdometryTrack:
 
     def at(self, stamps_ns: NDArray[np.int64]) -> FloatArray:
         """(S, 3) poses interpolated at `stamps_ns`; NaN rows outside the track or across a gap."""
+        return self.interpolate(stamps_ns)[0]
+
+    def interpolate(self, stamps_ns: NDArray[np.int64]) -> tuple[FloatArray, NDArray[np.int64]]:
+        """Poses as `at`, and the length (ns) of the odometry interval each was interpolated in (0 when a
+        message has the exact stamp)."""
         stamps = np.asarray(stamps_ns, dtype=np.int64)
         out = np.full((len(stamps), 3), np.nan)
         if len(self.stamps_ns) < 2:
-            return out
+            return out, np.zeros(len(stamps), dtype=np.int64)
         after = np.searchsorted(self.stamps_ns, stamps, side="left")
-        exact = (after < len(self.stamps_ns)) & (self.stamps_ns[np.minimum(after, len(self.stamps_ns) - 1)] == stamps)
+        exact = (after < len(self.stamps_ns)) & (
+            self.stamps_ns[np.minimum(after, len(self.stamps_ns) - 1)] == stamps
+        )
         inside = (after > 0) & (after < len(self.stamps_ns))
         before = np.maximum(after - 1, 0)
         after = np.minimum(after, len(self.stamps_ns) - 1)
@@ -53,11 +61,12 @@ class OdometryTrack:
         motion = se2.relative(start, self.poses[after])
         out[usable] = se2.compose(start[usable], motion[usable] * fraction[usable, None])
         out[exact] = self.poses[after[exact]]
-        return out
+        interval = np.where(exact, 0, gap)
+        return out, interval
 
 
 def read_odometry(log: LogReader, topic: str | None = None) -> OdometryTrack | None:
-    """The log's wheel odometry (its odometry topic, else the tf edge out of `odom`), None when it has none."""
+    """The log's wheel odometry (its odometry topic, else the tf edge out of `odom`), None without any."""
     stamps: list[int] = []
     poses: list[FloatArray] = []
     frames: tuple[str, str] = ("odom", "base_link")
@@ -87,8 +96,9 @@ def laser_mount(tree: TransformTree, base_frame: str, laser_frame: str, stamp_ns
         return None
 
 
-def scans_in_base_frame(log: LogReader, topic: str, tree: TransformTree,
-                        base_frame: str) -> Iterator[tuple[Scan2D, bool]]:
+def scans_in_base_frame(
+    log: LogReader, topic: str, tree: TransformTree, base_frame: str
+) -> Iterator[tuple[Scan2D, bool]]:
     """Every scan of `topic` with its points moved into `base_frame`, and whether tf gave the mount."""
     mount: Transform | None = None
     looked_up_for: str | None = None

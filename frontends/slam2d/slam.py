@@ -128,8 +128,15 @@ class LaserSlam2D:
 
     # ------------------------------------------------------------------------------------------ scans
 
-    def add_scan(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None = None) -> ScanEstimate:
-        """Process one scan: `points` (N, 2) in the robot base frame, `odometry` its wheel-odometry pose."""
+    def add_scan(
+        self,
+        stamp_ns: int,
+        points: FloatArray,
+        odometry: FloatArray | None = None,
+        odometry_interval: float = 0.0,
+    ) -> ScanEstimate:
+        """Process one scan: `points` (N, 2) in the robot base frame, `odometry` its wheel-odometry pose,
+        interpolated between messages `odometry_interval` seconds apart (0: a message at the scan's stamp)."""
         matching = self.config.matching
         points = np.asarray(points, dtype=np.float64)
         points = points[np.einsum("ij,ij->i", points, points) <= matching.max_range**2]
@@ -139,15 +146,21 @@ class LaserSlam2D:
             pose, matched, information = np.zeros(3), True, np.eye(3)
             self._add_keyframe(pose, points, None, information)
         else:
-            prior, prior_information = self._predict(odometry)
-            pose, matched, information = self._match(points, prior, prior_information)
+            reliable = odometry_interval <= self.config.odometry.reliable_interval
+            prior, prior_information = self._predict(odometry, reliable)
+            pose, matched, information = self._match(
+                points, prior, prior_information, 1.0 if reliable else self.config.odometry.unreliable_scale
+            )
             last_keyframe = self._keyframe_poses[-1]
             step = se2.relative(last_keyframe, pose)
             keyframes = self.config.keyframes
             elapsed = (int(stamp_ns) - self._scan_stamps[-1]) * 1e-9
             turning_fast = abs(self._last_motion[2]) > keyframes.max_turn_rate * max(elapsed, 1e-3)
             moved = np.hypot(step[0], step[1]) >= keyframes.distance or abs(step[2]) >= keyframes.angle
-            if moved and not turning_fast:
+            # Without a usable local map (the first scans were empty) any scan with points starts one.
+            if (moved and not turning_fast) or (
+                self._local_map is None and len(points) >= matching.min_points
+            ):
                 self._add_keyframe(pose, points, step, information)
                 new_loops = self._close_loops()
                 pose = self._last_pose  # the loop closures may have moved it
@@ -159,13 +172,18 @@ class LaserSlam2D:
         self._unmatched += not matched
         return ScanEstimate(index, int(stamp_ns), pose.copy(), matched, keyframe, new_loops)
 
-    def _predict(self, odometry: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+    def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
         settings = self.config.odometry
         if odometry is not None and self._last_odometry is not None:
             motion = se2.relative(self._last_odometry, np.asarray(odometry, dtype=np.float64))
             distance = float(np.hypot(motion[0], motion[1]))
             sigma_linear = settings.odometry_sigma_linear + settings.odometry_sigma_per_metre * distance
-            sigma_angular = settings.odometry_sigma_angular + settings.odometry_sigma_per_radian * abs(motion[2])
+            sigma_angular = settings.odometry_sigma_angular + settings.odometry_sigma_per_radian * abs(
+                motion[2]
+            )
+            if not reliable:
+                sigma_linear *= settings.unreliable_scale
+                sigma_angular *= settings.unreliable_scale
         else:
             motion = self._last_motion
             sigma_linear = settings.constant_velocity_sigma_linear
@@ -173,8 +191,9 @@ class LaserSlam2D:
         information = np.diag([sigma_linear**-2, sigma_linear**-2, sigma_angular**-2])
         return se2.compose(self._last_pose, motion), information
 
-    def _match(self, points: FloatArray, prior: FloatArray,
-               prior_information: FloatArray) -> tuple[FloatArray, bool, FloatArray]:
+    def _match(
+        self, points: FloatArray, prior: FloatArray, prior_information: FloatArray, window_scale: float
+    ) -> tuple[FloatArray, bool, FloatArray]:
         matching = self.config.matching
         settings = self.config.odometry
         has_odometry = self._last_odometry is not None
@@ -182,20 +201,31 @@ class LaserSlam2D:
         pose, information = prior, prior_information
         if len(points) >= matching.min_points and self._local_map is not None:
             window = SearchWindow(
-                settings.window_linear if has_odometry else settings.window_linear_without_odometry,
-                settings.window_angular if has_odometry else settings.window_angular_without_odometry,
+                settings.window_linear * window_scale
+                if has_odometry
+                else settings.window_linear_without_odometry,
+                settings.window_angular * window_scale
+                if has_odometry
+                else settings.window_angular_without_odometry,
                 settings.angular_step,
             )
             if has_odometry:
                 coarse = match_exhaustive(points, self._local_map.grid, prior, window)
             else:  # a wide window: branch and bound finds the same optimum for a fraction of the work
-                coarse = match_branch_and_bound(points, self._local_map.grid, prior, window, 0.0,
-                                                levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS)
+                coarse = match_branch_and_bound(
+                    points, self._local_map.grid, prior, window, 0.0, levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS
+                )
             local = self._local_map
             start = prior if coarse is None else coarse.pose
             refined = refine_point_to_line(
-                points, local.grid, local.points, local.normals, start,
-                max_distance=matching.icp_max_distance, sigma=matching.point_sigma, prior=prior,
+                points,
+                local.grid,
+                local.points,
+                local.normals,
+                start,
+                max_distance=matching.icp_max_distance,
+                sigma=matching.point_sigma,
+                prior=prior,
                 prior_information=prior_information,
             )
             if coarse is not None and refined.inlier_fraction >= settings.min_inlier_fraction:
@@ -207,8 +237,9 @@ class LaserSlam2D:
 
     # -------------------------------------------------------------------------------------- keyframes
 
-    def _add_keyframe(self, pose: FloatArray, points: FloatArray, step: FloatArray | None,
-                      information: FloatArray) -> None:
+    def _add_keyframe(
+        self, pose: FloatArray, points: FloatArray, step: FloatArray | None, information: FloatArray
+    ) -> None:
         self._keyframe_poses.append(np.array(pose, dtype=np.float64))
         self._keyframes.append(Keyframe(points, scan_normals(points)))
         self._last_pose = np.array(pose, dtype=np.float64)
@@ -224,10 +255,14 @@ class LaserSlam2D:
         if sum(len(k.points) for k in keyframes) < matching.min_points:
             self._local_map = None
             return
-        self._local_map = Submap.of(keyframes, self._keyframe_poses[recent], resolution=matching.resolution,
-                                    likelihood_sigma=matching.likelihood_sigma,
-                                    margin=self.config.odometry.window_linear_without_odometry + 1.0,
-                                    pairing_distance=matching.icp_max_distance)
+        self._local_map = Submap.of(
+            keyframes,
+            self._keyframe_poses[recent],
+            resolution=matching.resolution,
+            likelihood_sigma=matching.likelihood_sigma,
+            margin=self.config.odometry.window_linear_without_odometry + 1.0,
+            pairing_distance=matching.icp_max_distance,
+        )
 
     # ---------------------------------------------------------------------------------- loop closures
 
@@ -246,9 +281,11 @@ class LaserSlam2D:
         here = self._keyframe_poses[current]
         # The drift between two keyframes grows with the path joining them in the graph (through the
         # loop closures already made), not with the time since the last loop closure anywhere.
-        radius = np.minimum(settings.search_radius
-                            + settings.search_radius_per_metre * self._path_lengths_to(current)[: older + 1],
-                            settings.max_search_radius)
+        radius = np.minimum(
+            settings.search_radius
+            + settings.search_radius_per_metre * self._path_lengths_to(current)[: older + 1],
+            settings.max_search_radius,
+        )
         distance = np.hypot(*(positions - here[:2]).T)
         candidates: list[int] = []
         for candidate in np.argsort(distance / radius):
@@ -257,24 +294,39 @@ class LaserSlam2D:
             if all(abs(int(candidate) - c) > settings.submap_keyframes for c in candidates):
                 candidates.append(int(candidate))
         found = []
-        self._hypotheses = [h for h in self._hypotheses if current - h.current <= settings.hypothesis_keyframes]
+        self._hypotheses = [
+            h for h in self._hypotheses if current - h.current <= settings.hypothesis_keyframes
+        ]
         for candidate in candidates:
             hypothesis = self._verify_loop(candidate, current, float(radius[candidate]))
             if hypothesis is None:
                 continue
-            if _is_small(hypothesis.correction, settings.small_correction_linear, settings.small_correction_angular):
+            if _is_small(
+                hypothesis.correction, settings.small_correction_linear, settings.small_correction_angular
+            ):
                 confirmed = [hypothesis]
             else:
-                agreeing = [h for h in self._hypotheses if _is_small(
-                    se2.relative(h.correction, hypothesis.correction),
-                    settings.small_correction_linear, settings.small_correction_angular)]
+                agreeing = [
+                    h
+                    for h in self._hypotheses
+                    if _is_small(
+                        se2.relative(h.correction, hypothesis.correction),
+                        settings.small_correction_linear,
+                        settings.small_correction_angular,
+                    )
+                ]
                 self._hypotheses.append(hypothesis)
                 confirmed = [*agreeing, hypothesis] if agreeing else []
             for accepted in confirmed:
                 if accepted in self._hypotheses:
                     self._hypotheses.remove(accepted)
-                self._edges.add(accepted.candidate, accepted.current, accepted.measurement,
-                                accepted.information, is_loop=True)
+                self._edges.add(
+                    accepted.candidate,
+                    accepted.current,
+                    accepted.measurement,
+                    accepted.information,
+                    is_loop=True,
+                )
                 found.append((accepted.candidate, accepted.current))
         if found:
             self._pending_loops += len(found)
@@ -283,7 +335,7 @@ class LaserSlam2D:
         return tuple(found)
 
     def _path_lengths_to(self, keyframe: int) -> FloatArray:
-        """Length of the shortest path (m) through the graph's constraints from `keyframe` to every keyframe."""
+        """Shortest path length (m) through the graph's constraints from `keyframe` to every keyframe."""
         count = len(self._keyframe_poses)
         first = np.array(self._edges.first, dtype=np.int64)
         second = np.array(self._edges.second, dtype=np.int64)
@@ -295,34 +347,62 @@ class LaserSlam2D:
     def _verify_loop(self, candidate: int, current: int, radius: float) -> _LoopHypothesis | None:
         settings = self.config.loop_closure
         matching = self.config.matching
-        around = range(max(0, candidate - settings.submap_keyframes),
-                       min(current - settings.min_separation_keyframes, candidate + settings.submap_keyframes) + 1)
-        submap = Submap.of([self._keyframes[k] for k in around], [self._keyframe_poses[k] for k in around],
-                           resolution=matching.resolution, likelihood_sigma=matching.likelihood_sigma,
-                           margin=radius + 1.0, pairing_distance=matching.icp_max_distance)
+        around = range(
+            max(0, candidate - settings.submap_keyframes),
+            min(current - settings.min_separation_keyframes, candidate + settings.submap_keyframes) + 1,
+        )
+        submap = Submap.of(
+            [self._keyframes[k] for k in around],
+            [self._keyframe_poses[k] for k in around],
+            resolution=matching.resolution,
+            likelihood_sigma=matching.likelihood_sigma,
+            margin=radius + 1.0,
+            pairing_distance=matching.icp_max_distance,
+        )
         here = self._keyframe_poses[current]
         query = self._query_points(current)
         window = SearchWindow(radius, settings.angular_window, settings.angular_step)
-        coarse = match_branch_and_bound(query, submap.grid, here, window, settings.min_score,
-                                        levels=BRANCH_AND_BOUND_LEVELS)
+        coarse = match_branch_and_bound(
+            query, submap.grid, here, window, settings.min_score, levels=BRANCH_AND_BOUND_LEVELS
+        )
         if coarse is None:
             return None
-        refined = refine_point_to_line(query, submap.grid, submap.points, submap.normals, coarse.pose,
-                                       max_distance=matching.icp_max_distance, sigma=matching.point_sigma)
+        rival = match_branch_and_bound(
+            query,
+            submap.grid,
+            here,
+            window,
+            settings.ambiguity_ratio * coarse.score,
+            levels=BRANCH_AND_BOUND_LEVELS,
+            exclude=(coarse.pose[:2], settings.ambiguity_distance),
+        )
+        if rival is not None:
+            return None
+        refined = refine_point_to_line(
+            query,
+            submap.grid,
+            submap.points,
+            submap.normals,
+            coarse.pose,
+            max_distance=matching.icp_max_distance,
+            sigma=matching.point_sigma,
+        )
         if refined.inlier_fraction < settings.min_inlier_fraction or refined.rms > settings.max_rms:
             return None
         z = se2.relative(self._keyframe_poses[candidate], refined.pose)
         correction = se2.compose(refined.pose, se2.inverse(here))
-        return _LoopHypothesis(candidate, current, z, matching.information_scale * refined.information,
-                               correction)
+        return _LoopHypothesis(
+            candidate, current, z, matching.information_scale * refined.information, correction
+        )
 
     def _query_points(self, current: int) -> FloatArray:
         """The current keyframe's scan with the previous few, in its frame, thinned."""
         settings = self.config.loop_closure
         here = self._keyframe_poses[current]
         recent = range(max(0, current - settings.query_keyframes), current + 1)
-        points = np.concatenate([place(self._keyframes[k].points,
-                                       se2.relative(here, self._keyframe_poses[k])) for k in recent])
+        points = np.concatenate(
+            [place(self._keyframes[k].points, se2.relative(here, self._keyframe_poses[k])) for k in recent]
+        )
         cells = np.floor(points / settings.query_thinning).astype(np.int64)
         _, first = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_index=True)
         return np.ascontiguousarray(points[np.sort(first)])
@@ -332,9 +412,12 @@ class LaserSlam2D:
     def _graph(self, poses: FloatArray | None = None) -> PoseGraph:
         count = len(self._keyframe_poses)
         return PoseGraph.build(
-            np.arange(count), np.array(self._keyframe_poses) if poses is None else poses,
-            np.array(self._edges.first, dtype=np.int64), np.array(self._edges.second, dtype=np.int64),
-            np.array(self._edges.measurement).reshape(-1, 3), np.array(self._edges.information).reshape(-1, 3, 3),
+            np.arange(count),
+            np.array(self._keyframe_poses) if poses is None else poses,
+            np.array(self._edges.first, dtype=np.int64),
+            np.array(self._edges.second, dtype=np.int64),
+            np.array(self._edges.measurement).reshape(-1, 3),
+            np.array(self._edges.information).reshape(-1, 3, 3),
         )
 
     def optimize_online(self) -> None:
