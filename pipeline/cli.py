@@ -1,12 +1,11 @@
 """The `replay` command line.
 
-`replay [GRAPH] [options]` runs the default command; a first argument naming a subcommand runs that one
-instead. Today there is only the default command (pose-graph files); the pipeline issue adds `replay LOG`,
-`replay info`, `replay evaluate`, `--json` and `--jobs` here, as subcommands of `ReplayGroup` and options
-of `run`, without changing how `replay GRAPH` is called.
+`replay [INPUT] [options]` runs the default command on a log (MCAP, ROS 1 bag, ROS 2 bag directory) or a
+2D pose graph (g2o, TORO), told apart by the path and its content; a first argument naming a subcommand
+(`evaluate`) runs that one instead.
 
-Errors the program raises on purpose (`OptimizerError`, `PipelineError`) end in one line on stderr,
-`replay: error: <message>`, and exit code 2; anything else is a bug and keeps its traceback.
+Errors the program raises on purpose (`OptimizerError`, `FrontendError`, `PipelineError`) end in one line
+on stderr, `replay: error: <message>`, and exit code 2; anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -23,6 +22,7 @@ from typing import TYPE_CHECKING, Annotated, NoReturn
 import typer
 from typer.core import TyperCommand, TyperGroup
 
+from frontends.errors import FrontendError
 from optimizer.errors import OptimizerError
 from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS
@@ -31,6 +31,12 @@ from pipeline.evaluation import DEFAULT_TOLERANCE_NS, RelationsResult, evaluate_
 
 if TYPE_CHECKING:
     from pipeline.replay_graph import GraphReplayResult
+    from pipeline.replay_log import LogReplayResult
+
+KNOWN_ERRORS = (OptimizerError, FrontendError, PipelineError)
+GRAPH_SUFFIXES = frozenset({".g2o", ".graph"})
+GRAPH_TAGS = frozenset({"VERTEX_SE2", "EDGE_SE2", "VERTEX2", "EDGE2", "VERTEX_SE3:QUAT", "EDGE_SE3:QUAT",
+                        "VERTEX3", "EDGE3"})
 
 PROGRAM = "replay"
 DEFAULT_COMMAND = "run"
@@ -85,29 +91,34 @@ app = typer.Typer(
 
 @app.callback()
 def _root() -> None:
-    """Replay a pose graph through the SGD backend into a Rerun recording."""
+    """Replay a robot log (2D laser) or a pose graph through the SGD backend into a Rerun recording."""
 
 
 _EPILOG = f"""\b
 Examples:
   replay                                 # the bundled M3500 sample -> recordings/M3500.{{g2o,json,rrd}}
+  replay run.mcap                        # 2D laser SLAM -> recordings/run.{{tum,g2o,json,rrd}}
+  replay run.bag --scan-topic /front/scan --odom-topic /wheel_odom
+  replay rosbag2_dir/                    # a ROS 2 bag (sqlite3 or MCAP storage)
   replay graph.g2o                       # SGD then Gauss-Newton (the default method)
   replay graph.graph --method sgd --iterations 30 --out results
   replay graph.g2o --method gauss-seidel --quiet
 
 \b
-Outputs, in DIR: <stem>.g2o (optimised poses, the input's edges), <stem>.json (method, iterations,
-chi2 per iteration, wall time per stage) and <stem>.rrd (every iteration on the timeline `iteration`).
-Open the recording with the Rerun viewer of rerun-sdk 0.41: rerun recordings/M3500.rrd
-Exit code {EXIT_ERROR} on bad input: one line naming the file and line, nothing written."""
+Outputs, in DIR: <stem>.g2o (optimised poses), <stem>.json (counts, chi2 per iteration, wall time per
+stage), <stem>.rrd (every iteration on the timeline `iteration`) and, for logs, <stem>.tum (one pose per
+scan at its sensor stamp). Open the recording with the Rerun viewer of rerun-sdk 0.41:
+rerun recordings/M3500.rrd. Other commands: replay evaluate TRAJECTORY.tum RELATIONS.
+Exit code {EXIT_ERROR} on bad input: one line naming the file (and line or message), nothing written."""
 
 
 @app.command(DEFAULT_COMMAND, cls=_DefaultCommand, epilog=_EPILOG)
 def run(
-    graph: Annotated[Path | None, typer.Argument(
-        metavar="GRAPH", show_default=False,
-        help="A 2D pose graph: g2o (VERTEX_SE2/EDGE_SE2) or TORO (VERTEX2/EDGE2). "
-             "Default: the bundled M3500 sample (Olson 2006).")] = None,
+    source: Annotated[Path | None, typer.Argument(
+        metavar="INPUT", show_default=False,
+        help="A log with 2D laser scans (MCAP, ROS 1 .bag, ROS 2 bag directory) or a 2D pose graph (g2o "
+             "VERTEX_SE2/EDGE_SE2, TORO VERTEX2/EDGE2). Default: the bundled M3500 sample (Olson 2006)."),
+    ] = None,
     out: Annotated[Path, typer.Option(
         "--out", "-o", metavar="DIR", help="Folder for the outputs (created if missing).")] = DEFAULT_OUT_DIR,
     method: Annotated[Method, typer.Option(
@@ -120,22 +131,56 @@ def run(
     repair_information: Annotated[bool, typer.Option(
         "--repair-information", help="Clamp the eigenvalues of information matrices that are not positive "
                                      "definite, instead of rejecting the file.")] = False,
+    scan_topic: Annotated[str | None, typer.Option(
+        "--scan-topic", metavar="TOPIC", help="The LaserScan topic, when the log has several.")] = None,
+    odom_topic: Annotated[str | None, typer.Option(
+        "--odom-topic", metavar="TOPIC", help="The odometry topic, when the log has several.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress and no summary.")] = False,
 ) -> None:
-    """Optimise a pose graph, recording every iteration, and write the results to DIR."""
+    """Replay a log (or optimise a pose graph), recording every iteration, and write the results to DIR."""
     # Imported here so that `replay --help` does not pay for importing rerun.
     from pipeline.bundled import sample_graph
     from pipeline.replay_graph import replay_graph
+    from pipeline.replay_log import replay_log
 
-    source = nullcontext(graph) if graph is not None else sample_graph()
+    if source is not None and not is_graph_file(source):
+        try:
+            with _progress(enabled=not quiet) as progress:
+                log_result = replay_log(source, out_dir=out, scan_topic=scan_topic, odometry_topic=odom_topic,
+                                        method=str(method.value), iterations=iterations,
+                                        on_iteration=progress)
+        except KNOWN_ERRORS as error:
+            _fail(error)
+        if not quiet:
+            _print_log_summary(log_result)
+        return
+    graph_source = nullcontext(source) if source is not None else sample_graph()
     try:
-        with source as path, _progress(enabled=not quiet) as progress:
+        with graph_source as path, _progress(enabled=not quiet) as progress:
             result = replay_graph(path, out_dir=out, method=str(method.value), iterations=iterations,
                                   repair_information=repair_information, progress=progress)
-    except (OptimizerError, PipelineError) as error:
+    except KNOWN_ERRORS as error:
         _fail(error)
     if not quiet:
         _print_summary(result)
+
+
+def is_graph_file(path: Path) -> bool:
+    """A pose-graph file by its suffix, or a text file whose first data line starts with a graph tag."""
+    if path.suffix.lower() in GRAPH_SUFFIXES:
+        return True
+    if not path.is_file() or path.suffix.lower() in {".mcap", ".bag", ".db3", ".yaml"}:
+        return False
+    try:
+        with path.open("rb") as file:
+            head = file.read(4096).decode("utf-8", errors="replace")
+    except OSError:
+        return False
+    for line in head.splitlines():
+        fields = line.split()
+        if fields and not fields[0].startswith("#"):
+            return fields[0] in GRAPH_TAGS
+    return False
 
 
 def _fail(error: Exception) -> NoReturn:
@@ -158,6 +203,22 @@ def _progress(*, enabled: bool) -> Iterator[Callable[[Iteration], None] | None]:
             status.update(f"{iteration.stage} {iteration.index}  chi2 {iteration.chi2:.6g}")
 
         yield show
+
+
+def _print_log_summary(result: LogReplayResult) -> None:
+    frontend = result.frontend
+    times = result.wall_time
+    chi2 = result.chi2_per_iteration
+    lines = [
+        f"{result.input_path.name}: {result.counts['scans']} scans on {result.scan_topic}, odometry "
+        f"{result.odometry_topic or 'none'}; {frontend.graph.num_poses} keyframes, "
+        f"{frontend.loop_closures_accepted} loop closures ({frontend.loop_closures_rejected} rejected)",
+        f"  chi2 {chi2[0][2]:.6g} -> {chi2[-1][2]:.6g} after {len(chi2) - 1} iterations",
+        f"  time {times['total']:.2f} s (frontend {times['frontend']:.2f}, optimize+record "
+        f"{times['optimize_and_record']:.2f}, write {times['write']:.2f})",
+        f"  wrote {result.outputs.tum}, {result.outputs.g2o}, {result.outputs.json}, {result.outputs.rrd}",
+    ]
+    typer.echo("\n".join(lines), err=True)
 
 
 def _print_summary(result: GraphReplayResult) -> None:

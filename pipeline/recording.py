@@ -43,12 +43,17 @@ LOOP_CLOSURES_ENTITY = "world/loop_closures"
 CHI2_ENTITY = "optimizer/chi2"
 LOG10_CHI2_ENTITY = "optimizer/log10_chi2"
 STAGE_ENTITY = "optimizer/stage"
+MAP_ENTITY = "world/map"
 RUN_PROPERTY = "replay"
 
 TRAJECTORY_COLOR = (31, 119, 180, 255)
 INITIAL_TRAJECTORY_COLOR = (150, 150, 150, 110)
 LOOP_CLOSURE_COLOR = (230, 85, 13, 140)
+MAP_COLOR = (20, 20, 20, 255)
 LINE_WIDTH = rr.Radius.ui_points(0.75)
+MAP_POINT_RADIUS = rr.Radius.ui_points(1.0)
+MAP_CELL = 0.05
+"""The final map keeps one point per cell of this size (m): what the viewer draws smoothly."""
 
 DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
 """How much per-iteration geometry `IterationRecorder` buffers before sending it as one column batch."""
@@ -98,10 +103,16 @@ def log_run_properties(recording: rr.RecordingStream, properties: Mapping[str, s
 
 def log_styles(recording: rr.RecordingStream) -> None:
     """Static colours, widths and series names; the per-iteration columns then carry geometry only."""
-    recording.log(TRAJECTORY_ENTITY,
-                  rr.LineStrips2D.from_fields(colors=[TRAJECTORY_COLOR], radii=[LINE_WIDTH]), static=True)
-    recording.log(LOOP_CLOSURES_ENTITY,
-                  rr.LineStrips2D.from_fields(colors=[LOOP_CLOSURE_COLOR], radii=[LINE_WIDTH]), static=True)
+    recording.log(
+        TRAJECTORY_ENTITY,
+        rr.LineStrips2D.from_fields(colors=[TRAJECTORY_COLOR], radii=[LINE_WIDTH]),
+        static=True,
+    )
+    recording.log(
+        LOOP_CLOSURES_ENTITY,
+        rr.LineStrips2D.from_fields(colors=[LOOP_CLOSURE_COLOR], radii=[LINE_WIDTH]),
+        static=True,
+    )
     recording.log(CHI2_ENTITY, rr.SeriesLines(names="χ²"), static=True)
     recording.log(LOG10_CHI2_ENTITY, rr.SeriesLines(names="log10 χ²"), static=True)
 
@@ -110,10 +121,38 @@ def log_initial_trajectory(recording: rr.RecordingStream, poses: FloatArray) -> 
     """The starting estimate, static, drawn faintly under the optimised one."""
     recording.log(
         INITIAL_TRAJECTORY_ENTITY,
-        rr.LineStrips2D([np.asarray(poses[:, :2], dtype=np.float32)], colors=[INITIAL_TRAJECTORY_COLOR],
-                        radii=[LINE_WIDTH]),
+        rr.LineStrips2D(
+            [np.asarray(poses[:, :2], dtype=np.float32)],
+            colors=[INITIAL_TRAJECTORY_COLOR],
+            radii=[LINE_WIDTH],
+        ),
         static=True,
     )
+
+
+def log_final_map(
+    recording: rr.RecordingStream, keyframe_scans: Sequence[FloatArray], keyframe_poses: FloatArray
+) -> None:
+    """All keyframe scans at their optimized poses, static, thinned to one point per `MAP_CELL`."""
+    placed = [
+        scan @ _rotation(pose[2]) + pose[:2]
+        for scan, pose in zip(keyframe_scans, keyframe_poses, strict=True)
+    ]
+    if not placed:
+        return
+    points = np.concatenate(placed)
+    cells = np.floor(points / MAP_CELL).astype(np.int64)
+    _, first = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_index=True)
+    recording.log(
+        MAP_ENTITY,
+        rr.Points2D(points[np.sort(first)].astype(np.float32), colors=[MAP_COLOR], radii=[MAP_POINT_RADIUS]),
+        static=True,
+    )
+
+
+def _rotation(theta: float) -> FloatArray:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, s], [-s, c]])
 
 
 def send_trajectories(recording: rr.RecordingStream, steps: IntArray, positions: NDArray[np.float32]) -> None:
@@ -125,8 +164,13 @@ def send_trajectories(recording: rr.RecordingStream, steps: IntArray, positions:
     )
 
 
-def send_loop_closures(recording: rr.RecordingStream, steps: IntArray, positions: NDArray[np.float32],
-                       loop_from: IntArray, loop_to: IntArray) -> None:
+def send_loop_closures(
+    recording: rr.RecordingStream,
+    steps: IntArray,
+    positions: NDArray[np.float32],
+    loop_from: IntArray,
+    loop_to: IntArray,
+) -> None:
     """The L loop-closure constraints as L two-point segments per iteration (nothing when L = 0)."""
     count = len(loop_from)
     if count == 0:
@@ -136,7 +180,8 @@ def send_loop_closures(recording: rr.RecordingStream, steps: IntArray, positions
         LOOP_CLOSURES_ENTITY,
         indexes=[_iteration_column(steps)],
         columns=rr.LineStrips2D.columns(strips=_equal_length_strips(segments.reshape(-1, 2, 2))).partition(
-            np.full(len(steps), count)),
+            np.full(len(steps), count)
+        ),
     )
 
 
@@ -146,15 +191,21 @@ def send_chi2(recording: rr.RecordingStream, steps: IntArray, chi2: FloatArray) 
     recording.send_columns(CHI2_ENTITY, indexes=index, columns=rr.Scalars.columns(scalars=chi2))
     positive = chi2 > 0
     if positive.any():
-        recording.send_columns(LOG10_CHI2_ENTITY, indexes=[_iteration_column(steps[positive])],
-                               columns=rr.Scalars.columns(scalars=np.log10(chi2[positive])))
+        recording.send_columns(
+            LOG10_CHI2_ENTITY,
+            indexes=[_iteration_column(steps[positive])],
+            columns=rr.Scalars.columns(scalars=np.log10(chi2[positive])),
+        )
 
 
-def send_stages(recording: rr.RecordingStream, steps: IntArray, stages: Sequence[str], indices: IntArray,
-                chi2: FloatArray) -> None:
+def send_stages(
+    recording: rr.RecordingStream, steps: IntArray, stages: Sequence[str], indices: IntArray, chi2: FloatArray
+) -> None:
     """A text line per iteration naming its stage and its number within the stage."""
-    text = [f"{stage} {index}: χ² = {value:.6g}" for stage, index, value in zip(stages, indices.tolist(),
-                                                                              chi2.tolist(), strict=True)]
+    text = [
+        f"{stage} {index}: χ² = {value:.6g}"
+        for stage, index, value in zip(stages, indices.tolist(), chi2.tolist(), strict=True)
+    ]
     recording.send_columns(
         STAGE_ENTITY,
         indexes=[_iteration_column(steps)],
@@ -188,8 +239,14 @@ class IterationRecorder:
     of about `batch_bytes`, so memory stays bounded on large graphs and the file stays compact.
     """
 
-    def __init__(self, recording: rr.RecordingStream, loop_from: IntArray, loop_to: IntArray, *,
-                 batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
+    def __init__(
+        self,
+        recording: rr.RecordingStream,
+        loop_from: IntArray,
+        loop_to: IntArray,
+        *,
+        batch_bytes: int = DEFAULT_BATCH_BYTES,
+    ) -> None:
         self._recording = recording
         self._loop_from = np.asarray(loop_from, dtype=np.int64)
         self._loop_to = np.asarray(loop_to, dtype=np.int64)

@@ -248,7 +248,7 @@ def test_replay_without_graph_uses_the_bundled_m3500(tmp_path: Path) -> None:
 def test_help_shows_usage_methods_and_examples() -> None:
     result = run_replay("--help")
     assert result.exit_code == 0
-    assert "Usage: replay [OPTIONS] [GRAPH]" in result.output
+    assert "Usage: replay [OPTIONS] [INPUT]" in result.output
     for method in METHODS:
         assert method in result.output
     assert "Examples:" in result.output

@@ -1,0 +1,234 @@
+"""Replay a 2D laser log: SLAM frontend, the SGD backend, a recording of every iteration, trajectory files.
+
+1. Read the log's wheel odometry and transform tree (small), then stream the scans in sensor-time order.
+2. The frontend matches each scan, makes keyframes and loop closures (`frontends.slam2d`).
+3. The keyframe graph is optimized from its odometry-only estimate (what the robot believed before any
+   loop closure), so the recording shows the map straightening out; the online estimate is polished as
+   well and the lower χ² wins.
+4. Outputs: `<stem>.tum` (one pose per scan at its sensor stamp), `<stem>.g2o` (keyframe graph with
+   optimized poses), `<stem>.json` (counts, timings, χ² per iteration) and `<stem>.rrd`, written under
+   temporary names and renamed on success.
+
+Library code: raises `FrontendError`, `OptimizerError` or `PipelineError`, never prints or exits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from frontends.log import open_log
+from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d.log_input import read_odometry, scans_in_base_frame
+from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
+from optimizer.graph_files import write_g2o
+from optimizer.iteration import Iteration
+from optimizer.polish import gauss_newton
+from optimizer.solve import DEFAULT_METHOD, METHODS, optimize
+from pipeline import recording
+from pipeline.errors import PipelineError
+from pipeline.outputs import json_text, prepare_output_dir, staged_outputs, write_text
+from pipeline.trajectory_io import write_tum
+
+FloatArray = NDArray[np.float64]
+ScanCallback = Callable[[ScanEstimate], None]
+IterationCallback = Callable[[Iteration], None]
+
+SUMMARY_SCHEMA = "sgdslam.replay-log/1"
+
+
+@dataclass(frozen=True)
+class LogReplayOutputs:
+    tum: Path
+    g2o: Path
+    json: Path
+    rrd: Path
+
+    @classmethod
+    def for_input(cls, out_dir: Path, input_path: Path) -> LogReplayOutputs:
+        stem = input_path.stem if input_path.is_file() else input_path.name
+        return cls(*(out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd")))
+
+    def as_tuple(self) -> tuple[Path, Path, Path, Path]:
+        return self.tum, self.g2o, self.json, self.rrd
+
+
+@dataclass(frozen=True, eq=False)
+class LogReplayResult:
+    input_path: Path
+    scan_topic: str
+    odometry_topic: str | None
+    frontend: Slam2DGraph
+    stamps_ns: NDArray[np.int64]
+    poses: FloatArray
+    """(S, 3) final pose of every scan."""
+    keyframe_poses: FloatArray
+    chi2_per_iteration: tuple[tuple[str, int, float], ...]
+    final_start: str
+    """"odometry" when the recorded optimization from the odometry-only estimate won, else "online"."""
+    wall_time: dict[str, float]
+    outputs: LogReplayOutputs
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+def replay_log(
+    path: str | Path,
+    *,
+    out_dir: str | Path,
+    scan_topic: str | None = None,
+    odometry_topic: str | None = None,
+    method: str = DEFAULT_METHOD,
+    iterations: int | None = None,
+    config: Slam2DConfig | None = None,
+    on_scan: ScanCallback | None = None,
+    on_iteration: IterationCallback | None = None,
+) -> LogReplayResult:
+    """Run the 2D SLAM on the log at `path` and write its outputs to `out_dir`."""
+    started = time.perf_counter()
+    path = Path(path)
+    out_dir = Path(out_dir)
+    if method not in METHODS:
+        raise PipelineError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    outputs = LogReplayOutputs.for_input(out_dir, path)
+    timings: dict[str, float] = {}
+    with open_log(path) as log:
+        topic, kind = log.sensor_topic(scan_topic)
+        if kind != "scan":
+            raise PipelineError(
+                f"{path}: topic {topic} holds 3D point clouds; 3D LiDAR replay is not "
+                "supported yet (2D LaserScan logs are)"
+            )
+        chosen_odometry = log.odometry_topic(odometry_topic)
+        odometry = read_odometry(log, odometry_topic)
+        tree = log.transform_tree()
+        timings["read_odometry_tf"] = time.perf_counter() - started
+        base_frame = odometry.child_frame if odometry is not None else "base_link"
+        slam = LaserSlam2D(config)
+        estimates: list[ScanEstimate] = []
+        mounted = 0
+        predicted = 0
+        frontend_started = time.perf_counter()
+        for scan, has_mount in scans_in_base_frame(log, topic, tree, base_frame):
+            prediction, interval = None, 0.0
+            if odometry is not None:
+                at, intervals = odometry.interpolate(np.array([scan.stamp_ns]))
+                prediction = None if np.isnan(at[0, 0]) else at[0]
+                interval = float(intervals[0]) * 1e-9
+                predicted += prediction is not None
+            estimate = slam.add_scan(scan.stamp_ns, scan.points, prediction, interval)
+            estimates.append(estimate)
+            mounted += has_mount
+            if on_scan is not None:
+                on_scan(estimate)
+        if not estimates:
+            raise PipelineError(f"{path}: topic {topic} has no scans")
+        frontend = slam.finish()
+        timings["frontend"] = time.perf_counter() - frontend_started
+
+    created_dir = prepare_output_dir(out_dir)
+    try:
+        with staged_outputs(*outputs.as_tuple()) as (tum_tmp, g2o_tmp, json_tmp, rrd_tmp):
+            optimize_started = time.perf_counter()
+            stream = recording.create_recording(rrd_tmp, name=path.name)
+            try:
+                trace, keyframe_poses, final_start = _optimize_and_record(
+                    stream, frontend, method, iterations, on_iteration
+                )
+                timings["optimize_and_record"] = time.perf_counter() - optimize_started
+                poses = frontend.scan_poses(keyframe_poses)
+                recording.log_final_map(stream, frontend.keyframe_scans, keyframe_poses)
+            finally:
+                recording.close_recording(stream)
+            write_started = time.perf_counter()
+            write_tum(tum_tmp, frontend.scan_stamps_ns, poses)
+            write_g2o(g2o_tmp, frontend.graph, keyframe_poses)
+            timings["write"] = time.perf_counter() - write_started
+            timings["total"] = time.perf_counter() - started
+            result = LogReplayResult(
+                input_path=path,
+                scan_topic=topic,
+                odometry_topic=chosen_odometry,
+                frontend=frontend,
+                stamps_ns=frontend.scan_stamps_ns,
+                poses=poses,
+                keyframe_poses=keyframe_poses,
+                chi2_per_iteration=tuple(trace),
+                final_start=final_start,
+                wall_time=timings,
+                outputs=outputs,
+                counts={
+                    "scans": len(estimates),
+                    "scans_with_tf_mount": mounted,
+                    "scans_with_odometry": predicted,
+                },
+            )
+            write_text(json_tmp, json_text(summary(result)))
+    except BaseException:
+        if created_dir:
+            with contextlib.suppress(OSError):
+                out_dir.rmdir()
+        raise
+    return result
+
+
+def _optimize_and_record(
+    stream: Any,
+    frontend: Slam2DGraph,
+    method: str,
+    iterations: int | None,
+    on_iteration: IterationCallback | None,
+) -> tuple[list[tuple[str, int, float]], FloatArray, str]:
+    graph = frontend.graph.with_poses(frontend.odometry_chain)
+    loops = ~graph.is_odometry
+    recording.log_styles(stream)
+    recording.log_initial_trajectory(stream, graph.poses)
+    recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops])
+    trace: list[tuple[str, int, float]] = []
+    final = graph.poses
+    final_chi2 = np.inf
+    for iteration in optimize(graph, method=method, iterations=iterations):
+        recorder.add(iteration)
+        trace.append((iteration.stage, iteration.index, float(iteration.chi2)))
+        final, final_chi2 = iteration.poses, float(iteration.chi2)
+        if on_iteration is not None:
+            on_iteration(iteration)
+    recorder.flush()
+    # The online estimate had the loop closures applied as they came: polish it too and keep the better.
+    online = frontend.graph.poses
+    online_chi2 = float(np.inf)
+    for iteration in gauss_newton(frontend.graph, online):
+        online, online_chi2 = iteration.poses, float(iteration.chi2)
+    if online_chi2 < final_chi2 * (1.0 - 1e-9):
+        return trace, np.array(online), "online"
+    return trace, np.array(final), "odometry"
+
+
+def summary(result: LogReplayResult) -> dict[str, Any]:
+    frontend = result.frontend
+    return {
+        "schema": SUMMARY_SCHEMA,
+        "input": str(result.input_path),
+        "scan_topic": result.scan_topic,
+        "odometry_topic": result.odometry_topic,
+        "counts": {
+            **result.counts,
+            "keyframes": frontend.graph.num_poses,
+            "constraints": frontend.graph.num_edges,
+            "scans_unmatched": frontend.scans_unmatched,
+        },
+        "loop_closures": {
+            "accepted": frontend.loop_closures_accepted,
+            "rejected": frontend.loop_closures_rejected,
+        },
+        "final_start": result.final_start,
+        "chi2_per_iteration": [{"stage": s, "index": i, "chi2": c} for s, i, c in result.chi2_per_iteration],
+        "wall_time_s": result.wall_time,
+        "outputs": {kind: str(getattr(result.outputs, kind)) for kind in ("tum", "g2o", "json", "rrd")},
+    }
