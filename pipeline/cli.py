@@ -242,6 +242,51 @@ def _print_summary(result: GraphReplayResult) -> None:
     typer.echo("\n".join(lines), err=True)
 
 
+_INFO_EPILOG = f"""\b
+Examples:
+  replay info run.mcap
+  replay info rosbag2_dir/ --json
+
+\b
+Read from the log's summary or index, not its messages: instant even on gigabyte logs.
+--json prints one object:
+{{"path", "container", "start_ns", "end_ns", "topics": [{{"name", "type", "count"}}, ...]}}.
+Exit code {EXIT_ERROR} on bad input: one line naming the file."""
+
+
+@app.command("info", epilog=_INFO_EPILOG)
+def info(
+    log: Annotated[Path, typer.Argument(
+        metavar="LOG", show_default=False, help="An MCAP file, a ROS 1 bag or a ROS 2 bag directory.")],
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object on stdout.")] = False,
+) -> None:
+    """Show a log's topics, message types, counts, rates and time span."""
+    from frontends.log import open_log
+
+    try:
+        with open_log(log) as reader:
+            summary = reader.info()
+    except KNOWN_ERRORS as error:
+        _fail(error)
+    if as_json:
+        typer.echo(json.dumps(summary.to_json_dict()))
+        return
+    duration = summary.duration_s
+    lines = [
+        f"{summary.path}: {summary.container}, {summary.message_count} messages over {duration:.2f} s "
+        f"({summary.start_ns * 1e-9:.3f} to {summary.end_ns * 1e-9:.3f})",
+    ]
+    width = max((len(topic.name) for topic in summary.topics), default=5)
+    type_width = max((len(topic.type) for topic in summary.topics), default=4)
+    for topic in summary.topics:
+        # n messages span n − 1 intervals; the log's span stands in for the topic's own (the summary has no
+        # per-topic span), exact for the topics that run the whole log.
+        has_rate = duration > 0 and topic.count > 1
+        rate = f"{(topic.count - 1) / duration:8.2f} Hz" if has_rate else "       - Hz"
+        lines.append(f"  {topic.name:<{width}}  {topic.type:<{type_width}}  {topic.count:>9}  {rate}")
+    typer.echo("\n".join(lines))
+
+
 _EVALUATE_EPILOG = f"""\b
 Examples:
   replay evaluate recordings/aces.tum ../shared/data/logs/aces/aces.relations

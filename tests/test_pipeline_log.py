@@ -244,3 +244,33 @@ def test_a_log_without_scans_is_a_one_line_error_and_writes_nothing(tmp_path: Pa
     assert len(lines) == 1 and lines[0].startswith("replay: error: ") and str(path) in lines[0]
     assert "Traceback" not in result.output
     assert not out.exists()
+
+
+def test_info_lists_topics_from_the_summary(tmp_path: Path) -> None:
+    path = tmp_path / "short.mcap"
+    write_drive(path, scans=5)
+    result = CliRunner().invoke(app, ["info", str(path), "--json"])
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.stdout)
+    assert info["path"] == str(path) and info["container"] == "mcap"
+    assert info["start_ns"] == START_NS and info["end_ns"] == START_NS + 4 * SCAN_PERIOD_NS
+    counts = {topic["name"]: (topic["type"], topic["count"]) for topic in info["topics"]}
+    assert counts == {
+        "/scan": ("sensor_msgs/msg/LaserScan", 5),
+        "/odom": ("nav_msgs/msg/Odometry", 5),
+        "/tf": ("tf2_msgs/msg/TFMessage", 5),
+        "/tf_static": ("tf2_msgs/msg/TFMessage", 1),
+    }
+    table = CliRunner().invoke(app, ["info", str(path)])
+    assert table.exit_code == 0
+    assert (
+        "/scan" in table.stdout and "sensor_msgs/msg/LaserScan" in table.stdout and "2.50 Hz" in table.stdout
+    )
+
+
+def test_info_on_a_file_that_is_not_a_log_is_a_one_line_error(tmp_path: Path) -> None:
+    path = tmp_path / "notes.mcap"
+    path.write_text("not a log")
+    result = CliRunner().invoke(app, ["info", str(path)])
+    assert result.exit_code == 2
+    assert result.output.strip().count("\n") == 0 and str(path) in result.output
