@@ -78,6 +78,16 @@ def write_text(path: Path, text: str) -> None:
         raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
 
 
+def write_png(path: Path, image: Any) -> None:
+    """Write a uint8 grey or RGB image (rows top to bottom) as PNG."""
+    from PIL import Image
+
+    try:
+        Image.fromarray(image).save(path, format="PNG", optimize=False)
+    except OSError as error:
+        raise OutputError(f"{path}: cannot write the image: {error.strerror or error}") from error
+
+
 def json_text(data: Any) -> str:
     """Pretty JSON with non-finite floats as null (JSON has no NaN or infinity)."""
     return json.dumps(_finite_or_none(data), indent=2, ensure_ascii=False, allow_nan=False) + "\n"

@@ -24,17 +24,22 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.log import open_log
+from frontends.log import LogReader, open_log
 from frontends.slam2d.config import Slam2DConfig
-from frontends.slam2d.log_input import read_odometry, scans_in_base_frame
+from frontends.slam2d.local_map import place
+from frontends.slam2d.log_input import OdometryTrack, read_odometry, scans_in_base_frame
+from frontends.slam2d.occupancy import occupancy_grid
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
+from frontends.transforms import TransformTree
+from optimizer import se2
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
 from optimizer.polish import gauss_newton
 from optimizer.solve import DEFAULT_METHOD, METHODS, optimize
 from pipeline import recording
 from pipeline.errors import PipelineError
-from pipeline.outputs import json_text, prepare_output_dir, staged_outputs, write_text
+from pipeline.outputs import json_text, prepare_output_dir, staged_outputs, write_png, write_text
+from pipeline.recording import scans as scan_recording
 from pipeline.trajectory_io import write_tum
 
 FloatArray = NDArray[np.float64]
@@ -50,14 +55,16 @@ class LogReplayOutputs:
     g2o: Path
     json: Path
     rrd: Path
+    map_png: Path
 
     @classmethod
     def for_input(cls, out_dir: Path, input_path: Path) -> LogReplayOutputs:
         stem = input_path.stem if input_path.is_file() else input_path.name
-        return cls(*(out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd")))
+        files = [out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd")]
+        return cls(*files, out_dir / f"{stem}_map.png")
 
-    def as_tuple(self) -> tuple[Path, Path, Path, Path]:
-        return self.tum, self.g2o, self.json, self.rrd
+    def as_tuple(self) -> tuple[Path, Path, Path, Path, Path]:
+        return self.tum, self.g2o, self.json, self.rrd, self.map_png
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,73 +116,126 @@ def replay_log(
         odometry = read_odometry(log, odometry_topic)
         tree = log.transform_tree()
         timings["read_odometry_tf"] = time.perf_counter() - started
-        base_frame = odometry.child_frame if odometry is not None else "base_link"
-        slam = LaserSlam2D(config)
-        estimates: list[ScanEstimate] = []
-        mounted = 0
-        predicted = 0
-        frontend_started = time.perf_counter()
-        for scan, has_mount in scans_in_base_frame(log, topic, tree, base_frame):
-            prediction, interval = None, 0.0
-            if odometry is not None:
-                at, intervals = odometry.interpolate(np.array([scan.stamp_ns]))
-                prediction = None if np.isnan(at[0, 0]) else at[0]
-                interval = float(intervals[0]) * 1e-9
-                predicted += prediction is not None
-            estimate = slam.add_scan(scan.stamp_ns, scan.points, prediction, interval)
-            estimates.append(estimate)
-            mounted += has_mount
-            if on_scan is not None:
-                on_scan(estimate)
-        if not estimates:
-            raise PipelineError(f"{path}: topic {topic} has no scans")
-        frontend = slam.finish()
-        timings["frontend"] = time.perf_counter() - frontend_started
-
-    created_dir = prepare_output_dir(out_dir)
-    try:
-        with staged_outputs(*outputs.as_tuple()) as (tum_tmp, g2o_tmp, json_tmp, rrd_tmp):
-            optimize_started = time.perf_counter()
-            stream = recording.create_recording(rrd_tmp, name=path.name)
-            try:
-                trace, keyframe_poses, final_start = _optimize_and_record(
-                    stream, frontend, method, iterations, on_iteration
+        created_dir = prepare_output_dir(out_dir)
+        try:
+            with staged_outputs(*outputs.as_tuple()) as (tum_tmp, g2o_tmp, json_tmp, rrd_tmp, png_tmp):
+                stream = recording.create_recording(rrd_tmp, name=path.name, with_map=True)
+                run: _FrontendRun | None = None
+                try:
+                    run = _run_frontend(log, topic, odometry, tree, config, stream, on_scan)
+                    timings["frontend"] = run.seconds - run.record_seconds
+                    frontend = run.frontend
+                    optimize_started = time.perf_counter()
+                    trace, keyframe_poses, final_start = _optimize_and_record(
+                        stream, frontend, method, iterations, on_iteration
+                    )
+                    timings["optimize_and_record"] = time.perf_counter() - optimize_started
+                    poses = frontend.scan_poses(keyframe_poses)
+                    map_started = time.perf_counter()
+                    grid = occupancy_grid(frontend.keyframe_scans, keyframe_poses)
+                    picture = grid.image()
+                    recording.log_final_map(stream, frontend.keyframe_scans, keyframe_poses)
+                    scan_recording.log_final_trajectory(stream, poses)
+                    scan_recording.log_occupancy(stream, picture)
+                    timings["map"] = time.perf_counter() - map_started
+                finally:
+                    close_started = time.perf_counter()
+                    recording.close_recording(stream)
+                    timings["record_scans"] = run.record_seconds if run is not None else 0.0
+                    timings["record_close"] = time.perf_counter() - close_started
+                write_started = time.perf_counter()
+                write_tum(tum_tmp, frontend.scan_stamps_ns, poses)
+                write_g2o(g2o_tmp, frontend.graph, keyframe_poses)
+                write_png(png_tmp, picture)
+                timings["write"] = time.perf_counter() - write_started
+                timings["total"] = time.perf_counter() - started
+                result = LogReplayResult(
+                    input_path=path,
+                    scan_topic=topic,
+                    odometry_topic=chosen_odometry,
+                    frontend=frontend,
+                    stamps_ns=frontend.scan_stamps_ns,
+                    poses=poses,
+                    keyframe_poses=keyframe_poses,
+                    chi2_per_iteration=tuple(trace),
+                    final_start=final_start,
+                    wall_time=timings,
+                    outputs=outputs,
+                    counts=run.counts,
                 )
-                timings["optimize_and_record"] = time.perf_counter() - optimize_started
-                poses = frontend.scan_poses(keyframe_poses)
-                recording.log_final_map(stream, frontend.keyframe_scans, keyframe_poses)
-            finally:
-                recording.close_recording(stream)
-            write_started = time.perf_counter()
-            write_tum(tum_tmp, frontend.scan_stamps_ns, poses)
-            write_g2o(g2o_tmp, frontend.graph, keyframe_poses)
-            timings["write"] = time.perf_counter() - write_started
-            timings["total"] = time.perf_counter() - started
-            result = LogReplayResult(
-                input_path=path,
-                scan_topic=topic,
-                odometry_topic=chosen_odometry,
-                frontend=frontend,
-                stamps_ns=frontend.scan_stamps_ns,
-                poses=poses,
-                keyframe_poses=keyframe_poses,
-                chi2_per_iteration=tuple(trace),
-                final_start=final_start,
-                wall_time=timings,
-                outputs=outputs,
-                counts={
-                    "scans": len(estimates),
-                    "scans_with_tf_mount": mounted,
-                    "scans_with_odometry": predicted,
-                },
-            )
-            write_text(json_tmp, json_text(summary(result)))
-    except BaseException:
-        if created_dir:
-            with contextlib.suppress(OSError):
-                out_dir.rmdir()
-        raise
+                write_text(json_tmp, json_text(summary(result)))
+        except BaseException:
+            if created_dir:
+                with contextlib.suppress(OSError):
+                    out_dir.rmdir()
+            raise
     return result
+
+
+@dataclass(frozen=True, eq=False)
+class _FrontendRun:
+    frontend: Slam2DGraph
+    counts: dict[str, int]
+    seconds: float
+    record_seconds: float
+    """Of `seconds`, the time spent logging scans to the recording."""
+
+
+def _run_frontend(
+    log: LogReader,
+    topic: str,
+    odometry: OdometryTrack | None,
+    tree: TransformTree,
+    config: Slam2DConfig | None,
+    stream: Any,
+    on_scan: ScanCallback | None,
+) -> _FrontendRun:
+    """Stream the scans through the SLAM frontend, recording each one as it is processed."""
+    started = time.perf_counter()
+    base_frame = odometry.child_frame if odometry is not None else "base_link"
+    slam = LaserSlam2D(config)
+    scans_recorder = scan_recording.ScanRecorder(stream)
+    scan_recording.log_scan_styles(stream)
+    record_seconds = 0.0
+    counts = {"scans": 0, "scans_with_tf_mount": 0, "scans_with_odometry": 0}
+    odometry_poses: list[FloatArray] = []
+    for scan, has_mount in scans_in_base_frame(log, topic, tree, base_frame):
+        prediction, interval = None, 0.0
+        if odometry is not None:
+            at, intervals = odometry.interpolate(np.array([scan.stamp_ns]))
+            prediction = None if np.isnan(at[0, 0]) else at[0]
+            interval = float(intervals[0]) * 1e-9
+        estimate = slam.add_scan(scan.stamp_ns, scan.points, prediction, interval)
+        counts["scans"] += 1
+        counts["scans_with_tf_mount"] += has_mount
+        if prediction is not None:
+            counts["scans_with_odometry"] += 1
+            odometry_poses.append(prediction)
+        record_started = time.perf_counter()
+        scans_recorder.add(
+            estimate.index, estimate.stamp_ns, place(scan.points, estimate.pose), estimate.pose
+        )
+        if estimate.new_loop_closures:
+            segments = np.array(
+                [
+                    [slam.keyframe_position(a), slam.keyframe_position(b)]
+                    for a, b in estimate.new_loop_closures
+                ]
+            )
+            scan_recording.log_loop_closures_found(stream, estimate.index, estimate.stamp_ns, segments)
+        record_seconds += time.perf_counter() - record_started
+        if on_scan is not None:
+            on_scan(estimate)
+    if counts["scans"] == 0:
+        raise PipelineError(f"{log.path}: topic {topic} has no scans")
+    record_started = time.perf_counter()
+    scans_recorder.flush()
+    if odometry_poses:
+        # In the map frame, which starts at the first scan: the odometry seen from its own first pose.
+        track = np.array(odometry_poses)
+        scan_recording.log_odometry_trajectory(stream, se2.relative(track[0], track))
+    record_seconds += time.perf_counter() - record_started
+    return _FrontendRun(slam.finish(), counts, time.perf_counter() - started, record_seconds)
 
 
 def _optimize_and_record(
@@ -230,5 +290,7 @@ def summary(result: LogReplayResult) -> dict[str, Any]:
         "final_start": result.final_start,
         "chi2_per_iteration": [{"stage": s, "index": i, "chi2": c} for s, i, c in result.chi2_per_iteration],
         "wall_time_s": result.wall_time,
-        "outputs": {kind: str(getattr(result.outputs, kind)) for kind in ("tum", "g2o", "json", "rrd")},
+        "outputs": {
+            kind: str(getattr(result.outputs, kind)) for kind in ("tum", "g2o", "json", "rrd", "map_png")
+        },
     }

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
+from PIL import Image
 from typer.testing import CliRunner
 
 from optimizer import se2
@@ -151,7 +152,13 @@ def test_replay_of_a_log_writes_a_trajectory_per_scan_that_follows_the_truth(
     out = tmp_path / "out"
     result = CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet"])
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in out.iterdir()) == ["drive.g2o", "drive.json", "drive.rrd", "drive.tum"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "drive.g2o",
+        "drive.json",
+        "drive.rrd",
+        "drive.tum",
+        "drive_map.png",
+    ]
 
     trajectory = read_tum(out / "drive.tum")
     np.testing.assert_array_equal(trajectory.stamps_ns, START_NS + np.arange(len(truth)) * SCAN_PERIOD_NS)
@@ -172,6 +179,17 @@ def test_replay_of_a_log_writes_a_trajectory_per_scan_that_follows_the_truth(
     assert "iteration" in trajectory_entity.timelines
     assert trajectory_entity.steps == list(range(len(summary["chi2_per_iteration"])))
     assert entities["/world/map"].static_rows == 1
+    for static in ("/world/final_trajectory", "/world/odometry_trajectory", "/occupancy/grid"):
+        assert entities[static].static_rows == 1, static
+    scans_entity = read_recording(out / "drive.rrd", timeline="scan")["/world/scan"]
+    assert {"scan", "time"} <= scans_entity.timelines
+    assert scans_entity.steps == list(range(len(truth)))
+
+    # The map image: walls (black) around free space (white) seen by the laser, unknown (grey) elsewhere.
+    picture = np.asarray(Image.open(out / "drive_map.png"))
+    assert picture.dtype == np.uint8 and picture.ndim == 2
+    assert set(np.unique(picture)) == {0, 205, 255}
+    assert (picture == 255).mean() > 5 * (picture == 0).mean() > 0
     rerun_cli = shutil.which("rerun")
     if rerun_cli is not None:  # installed with rerun-sdk
         check = subprocess.run(

@@ -449,6 +449,10 @@ class LaserSlam2D:
         self._last_pose = se2.compose(self._keyframe_poses[-1], offset)
         self._rebuild_local_map()
 
+    def keyframe_position(self, keyframe: int) -> FloatArray:
+        """The current estimate of a keyframe's position (x, y) in the map frame."""
+        return self._keyframe_poses[keyframe][:2].copy()
+
     # ------------------------------------------------------------------------------------------ result
 
     def finish(self) -> Slam2DGraph:

@@ -62,11 +62,12 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
-def create_recording(path: Path, *, name: str) -> rr.RecordingStream:
-    """A new recording stream that saves to `path` (with the default blueprint)."""
+def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.RecordingStream:
+    """A new recording stream that saves to `path` (with the default blueprint; `with_map` adds the views
+    of a log replay: the occupancy grid, the time panel on the scans)."""
     recording = rr.RecordingStream(APPLICATION_ID)
     try:
-        recording.save(path, default_blueprint=default_blueprint())
+        recording.save(path, default_blueprint=default_blueprint(with_map=with_map))
     except (OSError, RuntimeError) as error:
         raise OutputError(f"{path}: cannot write the recording: {error}") from error
     recording.send_recording_name(name)
@@ -79,11 +80,18 @@ def close_recording(recording: rr.RecordingStream) -> None:
     recording.disconnect()
 
 
-def default_blueprint() -> rrb.Blueprint:
-    """The graph in 2D beside the χ² plots and the stage log, the time panel on `iteration`."""
+def default_blueprint(*, with_map: bool = False) -> rrb.Blueprint:
+    """The map and graph in 2D beside the χ² plots and the stage log, the time panel on `iteration`; with
+    `with_map`, the occupancy grid as a second tab beside the map."""
+    graph_view = rrb.Spatial2DView(origin=WORLD_ENTITY, name="map and pose graph")
+    main = (
+        rrb.Tabs(graph_view, rrb.Spatial2DView(origin="occupancy", name="occupancy grid"))
+        if with_map
+        else graph_view
+    )
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial2DView(origin=WORLD_ENTITY, name="pose graph"),
+            main,
             rrb.Vertical(
                 rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="log10 χ²"),
                 rrb.TimeSeriesView(origin=CHI2_ENTITY, name="χ²"),
