@@ -28,7 +28,6 @@ NORMAL_RADIUS = 0.3
 when that is larger: a wall seen at a grazing angle far away has beams tens of centimetres apart."""
 NORMAL_SPACINGS = 3.5
 MAX_NORMAL_RADIUS = 1.0
-POINT_TO_POINT = True
 FLATNESS = 0.3
 """A neighbourhood whose small/large spread ratio is below this is a line: walls seen with 1–2 cm noise
 over 10–20 cm are near 0.1–0.2."""
@@ -133,7 +132,6 @@ def refine_point_to_line(
         sigma,
         iterations,
         tolerance,
-        POINT_TO_POINT,
     )
     fraction = paired / len(scan) if len(scan) else 0.0
     return IcpResult(pose, hessian, float(fraction), float(rms))
@@ -154,7 +152,6 @@ def _icp(
     sigma: float,
     iterations: int,
     tolerance: float,
-    point_to_point: bool,
 ) -> tuple[FloatArray, FloatArray, int, float]:
     height, width = nearest.shape
     pose = initial.copy()
@@ -202,8 +199,6 @@ def _icp(
             nx = reference_normals[k, 0]
             ny = reference_normals[k, 1]
             if nx == 0.0 and ny == 0.0:  # too sparse to pair (see `scan_normals`)
-                continue
-            if nx != nx and not point_to_point:
                 continue
             count = 1 if nx == nx else 2  # a line: one point-to-line row; none (NaN): two point-to-point
             for r in range(count):
