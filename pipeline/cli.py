@@ -1,8 +1,9 @@
 """The `replay` command line.
 
-`replay [INPUT] [options]` runs the default command on a log (MCAP, ROS 1 bag, ROS 2 bag directory) or a
-2D pose graph (g2o, TORO), told apart by the path and its content; a first argument naming a subcommand
-(`evaluate`) runs that one instead.
+`replay [INPUT ...] [options]` runs the default command on logs (MCAP, ROS 1 bag, ROS 2 bag directory) or
+2D pose graphs (g2o, TORO), told apart by the path and its content; a first argument naming a subcommand
+(`info`, `evaluate`) runs that one instead. Several inputs run `--jobs` at a time in worker processes;
+one failing does not stop the others.
 
 Errors the program raises on purpose (`OptimizerError`, `FrontendError`, `PipelineError`) end in one line
 on stderr, `replay: error: <message>`, and exit code 2; anything else is a bug and keeps its traceback.
@@ -14,41 +15,38 @@ import enum
 import json
 import math
 import sys
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager, nullcontext
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, NoReturn
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import typer
 from typer.core import TyperCommand, TyperGroup
 
-from frontends.errors import FrontendError
-from optimizer.errors import OptimizerError
-from optimizer.iteration import Iteration
-from optimizer.solve import DEFAULT_METHOD, METHODS
+from optimizer.solve import METHODS
+from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, SAMPLE_DESCRIPTION, input_kind, sample_input
 from pipeline.errors import PipelineError
 from pipeline.evaluation import DEFAULT_TOLERANCE_NS, RelationsResult, evaluate_files
 
 if TYPE_CHECKING:
-    from pipeline.replay_graph import GraphReplayResult
-    from pipeline.replay_log import LogReplayResult
+    from rich.console import Console
+    from rich.progress import Progress, TaskID
 
-KNOWN_ERRORS = (OptimizerError, FrontendError, PipelineError)
-GRAPH_SUFFIXES = frozenset({".g2o", ".graph"})
-GRAPH_TAGS = frozenset({"VERTEX_SE2", "EDGE_SE2", "VERTEX2", "EDGE2", "VERTEX_SE3:QUAT", "EDGE_SE3:QUAT",
-                        "VERTEX3", "EDGE3"})
+    from frontends.slam2d.slam import ScanEstimate
+    from optimizer.iteration import Iteration
+    from pipeline.batch import BatchOutcome
+    from pipeline.config import ReplayConfig
 
 PROGRAM = "replay"
 DEFAULT_COMMAND = "run"
-DEFAULT_OUT_DIR = Path("recordings")
 EXIT_ERROR = 2
-"""Exit code of a run that failed on bad input or unwritable outputs (the same as usage errors)."""
+"""Exit code of a run that failed on bad input or unwritable outputs (the same as usage errors), and of a
+batch in which any input failed."""
 
 _IMPLICIT_DEFAULT = "pipeline.cli.implicit_default"
 
 Method = enum.StrEnum("Method", [(name, name) for name in METHODS])  # type: ignore[misc]
 """The optimizer's methods as a choice (the names come from `optimizer.solve.METHODS`)."""
-_DEFAULT_METHOD_CHOICE = Method(DEFAULT_METHOD)
 
 
 class ReplayGroup(TyperGroup):
@@ -96,35 +94,42 @@ def _root() -> None:
 
 _EPILOG = f"""\b
 Examples:
-  replay                                 # the bundled M3500 sample -> recordings/M3500.{{g2o,json,rrd}}
+  replay                                 # {SAMPLE_DESCRIPTION} -> recordings/
   replay run.mcap                        # 2D laser SLAM -> recordings/run.{{tum,g2o,json,rrd}}
   replay run.bag --scan-topic /front/scan --odom-topic /wheel_odom
   replay rosbag2_dir/                    # a ROS 2 bag (sqlite3 or MCAP storage)
   replay graph.g2o                       # SGD then Gauss-Newton (the default method)
   replay graph.graph --method sgd --iterations 30 --out results
-  replay graph.g2o --method gauss-seidel --quiet
+  replay a.mcap b.bag c/ --jobs 3 --json > summary.json
+  replay --dump-config > replay.toml     # then: replay run.mcap --config replay.toml
 
 \b
 Outputs, in DIR: <stem>.g2o (optimised poses), <stem>.json (counts, chi2 per iteration, wall time per
 stage), <stem>.rrd (every iteration on the timeline `iteration`) and, for logs, <stem>.tum (one pose per
-scan at its sensor stamp). Open the recording with the Rerun viewer of rerun-sdk 0.41:
-rerun recordings/M3500.rrd. Other commands: replay evaluate TRAJECTORY.tum RELATIONS.
-Exit code {EXIT_ERROR} on bad input: one line naming the file (and line or message), nothing written."""
+scan at its sensor stamp) and <stem>_map.png. Open the recording with the Rerun viewer of rerun-sdk 0.41:
+rerun recordings/csail_sample.rrd. Settings: a TOML file (--config; --dump-config writes the defaults), which
+the options override. Other commands: replay info LOG, replay evaluate TRAJECTORY.tum RELATIONS.
+Exit code {EXIT_ERROR} on bad input (one line naming the file, nothing written for it) or when any of
+several inputs failed."""
 
 
 @app.command(DEFAULT_COMMAND, cls=_DefaultCommand, epilog=_EPILOG)
 def run(
-    source: Annotated[Path | None, typer.Argument(
+    sources: Annotated[list[Path] | None, typer.Argument(
         metavar="INPUT", show_default=False,
-        help="A log with 2D laser scans (MCAP, ROS 1 .bag, ROS 2 bag directory) or a 2D pose graph (g2o "
-             "VERTEX_SE2/EDGE_SE2, TORO VERTEX2/EDGE2). Default: the bundled M3500 sample (Olson 2006)."),
+        help="Logs with 2D laser scans (MCAP, ROS 1 .bag, ROS 2 bag directory) or 2D pose graphs (g2o "
+             f"VERTEX_SE2/EDGE_SE2, TORO VERTEX2/EDGE2). Default: {SAMPLE_DESCRIPTION}."),
     ] = None,
     out: Annotated[Path, typer.Option(
         "--out", "-o", metavar="DIR", help="Folder for the outputs (created if missing).")] = DEFAULT_OUT_DIR,
-    method: Annotated[Method, typer.Option(
-        "--method", "-m", help="sgd+gn: the paper's SGD, then Gauss-Newton to the exact minimum; "
-                               "sgd: SGD only; gn: Gauss-Newton only; gauss-seidel: the paper's baseline."),
-    ] = _DEFAULT_METHOD_CHOICE,
+    config_file: Annotated[Path | None, typer.Option(
+        "--config", "-c", metavar="FILE", show_default=False,
+        help="Settings (TOML; see --dump-config). The options below override it.")] = None,
+    method: Annotated[Method | None, typer.Option(
+        "--method", "-m", show_default=False,
+        help="sgd+gn (default): the paper's SGD, then Gauss-Newton to the exact minimum; "
+             "sgd: SGD only; gn: Gauss-Newton only; gauss-seidel: the paper's baseline."),
+    ] = None,
     iterations: Annotated[int | None, typer.Option(
         "--iterations", "-n", min=0, show_default=False,
         help="SGD (or Gauss-Seidel) iterations; default 100. With gn: the Gauss-Newton cap.")] = None,
@@ -135,111 +140,268 @@ def run(
         "--scan-topic", metavar="TOPIC", help="The LaserScan topic, when the log has several.")] = None,
     odom_topic: Annotated[str | None, typer.Option(
         "--odom-topic", metavar="TOPIC", help="The odometry topic, when the log has several.")] = None,
+    jobs: Annotated[int, typer.Option(
+        "--jobs", "-j", min=1, metavar="N", help="Inputs replayed at the same time (worker processes).")] = 1,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress and no summary.")] = False,
+    as_json: Annotated[bool, typer.Option(
+        "--json", help="Print the summary on stdout as JSON: one object, or a list for several inputs.")
+    ] = False,
+    dump_config: Annotated[bool, typer.Option(
+        "--dump-config", help="Print the settings as TOML (the defaults, with --config and the options "
+                              "applied) and exit.")] = False,
 ) -> None:
-    """Replay a log (or optimise a pose graph), recording every iteration, and write the results to DIR."""
-    # Imported here so that `replay --help` does not pay for importing rerun.
-    from pipeline.bundled import sample_graph
-    from pipeline.replay_graph import replay_graph
-    from pipeline.replay_log import replay_log
-
-    if source is not None and not is_graph_file(source):
-        try:
-            with _progress(enabled=not quiet) as progress:
-                log_result = replay_log(source, out_dir=out, scan_topic=scan_topic, odometry_topic=odom_topic,
-                                        method=str(method.value), iterations=iterations,
-                                        on_iteration=progress)
-        except KNOWN_ERRORS as error:
-            _fail(error)
-        if not quiet:
-            _print_log_summary(log_result)
-        return
-    graph_source = nullcontext(source) if source is not None else sample_graph()
+    """Replay logs (or optimise pose graphs), recording every iteration, and write the results to DIR."""
+    overrides: dict[str, dict[str, Any]] = {"optimizer": {}, "input": {}}
+    if method is not None:
+        overrides["optimizer"]["method"] = str(method.value)
+    if iterations is not None:
+        overrides["optimizer"]["iterations"] = iterations
+    if scan_topic is not None:
+        overrides["input"]["scan_topic"] = scan_topic
+    if odom_topic is not None:
+        overrides["input"]["odom_topic"] = odom_topic
+    if repair_information:
+        overrides["input"]["repair_information"] = True
     try:
-        with graph_source as path, _progress(enabled=not quiet) as progress:
-            result = replay_graph(path, out_dir=out, method=str(method.value), iterations=iterations,
-                                  repair_information=repair_information, progress=progress)
+        config = _load_config(config_file, overrides)
     except KNOWN_ERRORS as error:
         _fail(error)
-    if not quiet:
-        _print_summary(result)
+    if dump_config:
+        typer.echo(config.to_toml(), nl=False)
+        return
+
+    show_progress = not quiet and sys.stderr.isatty()
+    if not sources:
+        with sample_input() as sample:
+            outcomes = _run_in_process([sample], config, out, show_progress, several=False)
+    else:
+        from pipeline.batch import duplicate_outputs
+
+        clashes = duplicate_outputs(sources)
+        if clashes:
+            first, second = clashes[0]
+            _fail(PipelineError(f"{first} and {second} would write the same outputs in {out}; "
+                                "replay them separately with different --out folders"))
+        if jobs > 1 and len(sources) > 1:
+            outcomes = _run_in_pool(sources, config, out, jobs, show_progress)
+        else:
+            outcomes = _run_in_process(sources, config, out, show_progress, several=len(sources) > 1)
+    _report(outcomes, quiet=quiet, as_json=as_json)
+    if not all(outcome.ok for outcome in outcomes):
+        raise typer.Exit(EXIT_ERROR)
 
 
-def is_graph_file(path: Path) -> bool:
-    """A pose-graph file by its suffix, or a text file whose first data line starts with a graph tag."""
-    if path.suffix.lower() in GRAPH_SUFFIXES:
-        return True
-    if not path.is_file() or path.suffix.lower() in {".mcap", ".bag", ".db3", ".yaml"}:
-        return False
-    try:
-        with path.open("rb") as file:
-            head = file.read(4096).decode("utf-8", errors="replace")
-    except OSError:
-        return False
-    for line in head.splitlines():
-        fields = line.split()
-        if fields and not fields[0].startswith("#"):
-            return fields[0] in GRAPH_TAGS
-    return False
+def _load_config(path: Path | None, overrides: dict[str, dict[str, Any]]) -> ReplayConfig:
+    from pipeline.config import config_from_mapping, load_config
+
+    overrides = {section: values for section, values in overrides.items() if values}
+    if path is not None:
+        return load_config(path, overrides)
+    return config_from_mapping(overrides)
 
 
-def _fail(error: Exception) -> NoReturn:
+def _fail(error: BaseException) -> NoReturn:
     message = " ".join(str(error).split())  # always one line
     typer.echo(f"{PROGRAM}: error: {message}", err=True)
     raise typer.Exit(EXIT_ERROR)
 
 
+# ------------------------------------------------------------------------------------------ running inputs
+
+
+def _run_in_process(sources: Sequence[Path], config: ReplayConfig, out: Path, show_progress: bool, *,
+                    several: bool) -> list[BatchOutcome]:
+    """One input after another, with live progress. A single input's bug keeps its traceback; among
+    several, it becomes that input's failure so the others still run."""
+    from pipeline.batch import run_one
+
+    outcomes = []
+    with _progress_display(show_progress, len(sources) if several else 0) as display:
+        for path in sources:
+            with display.watch(path, config) as (on_scan, on_iteration):
+                outcomes.append(run_one(path, config, out_dir=out, on_scan=on_scan, on_iteration=on_iteration,
+                                        catch_unexpected=several))
+            display.finished(outcomes[-1])
+    return outcomes
+
+
+def _run_in_pool(sources: Sequence[Path], config: ReplayConfig, out: Path, jobs: int,
+                 show_progress: bool) -> list[BatchOutcome]:
+    from pipeline.batch import run_batch
+
+    with _progress_display(show_progress, len(sources)) as display:
+        try:
+            return run_batch(sources, config, out_dir=out, jobs=jobs, on_done=display.finished)
+        except KNOWN_ERRORS as error:
+            _fail(error)
+
+
 @contextmanager
-def _progress(*, enabled: bool) -> Iterator[Callable[[Iteration], None] | None]:
-    """A live status line on stderr while optimizing, only when stderr is a terminal."""
-    if not enabled or not sys.stderr.isatty():
-        yield None
+def _progress_display(enabled: bool, inputs: int) -> Iterator[_ProgressDisplay]:
+    """Rich progress bars on stderr (only when enabled: not --quiet and stderr a terminal), transient: the
+    summary replaces them. `inputs` > 0 adds a bar counting finished inputs."""
+    if not enabled:
+        yield _ProgressDisplay(None, inputs)
         return
     from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        SpinnerColumn,
+        TextColumn,
+        TimeElapsedColumn,
+    )
 
-    with Console(stderr=True).status("reading") as status:
-
-        def show(iteration: Iteration) -> None:
-            status.update(f"{iteration.stage} {iteration.index}  chi2 {iteration.chi2:.6g}")
-
-        yield show
-
-
-def _print_log_summary(result: LogReplayResult) -> None:
-    frontend = result.frontend
-    times = result.wall_time
-    chi2 = result.chi2_per_iteration
-    lines = [
-        f"{result.input_path.name}: {result.counts['scans']} scans on {result.scan_topic}, odometry "
-        f"{result.odometry_topic or 'none'}; {frontend.graph.num_poses} keyframes, "
-        f"{frontend.loop_closures_accepted} loop closures ({frontend.loop_closures_rejected} rejected)",
-        f"  chi2 {chi2[0][2]:.6g} -> {chi2[-1][2]:.6g} after {len(chi2) - 1} iterations",
-        f"  time {times['total']:.2f} s (frontend {times['frontend']:.2f}, optimize+record "
-        f"{times['optimize_and_record']:.2f}, write {times['write']:.2f})",
-        f"  wrote {result.outputs.tum}, {result.outputs.g2o}, {result.outputs.json}, {result.outputs.rrd}",
-    ]
-    typer.echo("\n".join(lines), err=True)
+    columns = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TimeElapsedColumn(), TextColumn("{task.fields[info]}"))
+    with Progress(*columns, console=Console(stderr=True), transient=True) as progress:
+        yield _ProgressDisplay(progress, inputs)
 
 
-def _print_summary(result: GraphReplayResult) -> None:
-    graph = result.graph
-    per_stage = ", ".join(f"{stage} {count}" for stage, count in result.iterations_per_stage.items())
-    times = result.wall_time
-    lines = [
-        f"{result.input_path.name}: {graph.num_poses} poses, {graph.num_edges} constraints "
-        f"({result.num_loop_closures} loop closures), method {result.method}",
-        f"  chi2 {result.initial_chi2:.6g} -> {result.final_chi2:.6g}"
-        + (f" after {per_stage} iterations" if per_stage else ""),
-        f"  time {times['total']:.2f} s (load {times['load']:.2f}, optimize {times['optimize']:.2f}, "
-        f"record {times['record']:.2f}, write {times['write']:.2f})",
-        f"  wrote {result.outputs.g2o}, {result.outputs.json}, {result.outputs.rrd}",
-    ]
-    if result.repaired_lines:
-        lines.insert(1, f"  repaired the information of {len(result.repaired_lines)} constraints")
-    if result.skipped:
-        skipped = ", ".join(f"{count} {tag}" for tag, count in sorted(result.skipped.items()))
-        lines.insert(1, f"  skipped lines: {skipped}")
-    typer.echo("\n".join(lines), err=True)
+_STAGES_WITH_KNOWN_LENGTH = frozenset({"sgd", "gauss-seidel"})
+"""Stages that run exactly the configured iterations (the polish stops when it converges)."""
+
+
+class _ProgressDisplay:
+    """Bars for one input at a time (scans read and matched; optimizer iterations) and for the inputs."""
+
+    def __init__(self, progress: Progress | None, inputs: int) -> None:
+        self._progress = progress
+        self._inputs_task: TaskID | None = None
+        if progress is not None and inputs > 0:
+            self._inputs_task = progress.add_task("inputs", total=inputs, info="")
+
+    @contextmanager
+    def watch(self, path: Path, config: ReplayConfig) -> Iterator[tuple[Callable[[ScanEstimate], None] | None,
+                                                                         Callable[[Iteration], None] | None]]:
+        """The callbacks to pass to the replay of `path` (None when progress is off)."""
+        progress = self._progress
+        if progress is None:
+            yield None, None
+            return
+        from pipeline.api import expected_scans
+
+        name = path.name
+        log = input_kind(path) == "log"
+        first_task = progress.add_task(
+            f"{name}: {'scans' if log else 'reading'}",
+            total=expected_scans(path, config.input.scan_topic) if log else None, info="")
+        loops = 0
+        stage_tasks: dict[str, TaskID] = {}
+
+        def on_scan(estimate: ScanEstimate) -> None:
+            nonlocal loops
+            loops += len(estimate.new_loop_closures)
+            progress.update(first_task, completed=estimate.index + 1,
+                            info=f"{estimate.keyframe + 1} keyframes, {loops} loop closures")
+
+        def on_iteration(iteration: Iteration) -> None:
+            if iteration.stage == "initial":  # the input is read: a graph's "reading" spinner is done
+                progress.update(first_task, visible=log)
+                return
+            task = stage_tasks.get(iteration.stage)
+            if task is None:
+                known = iteration.stage in _STAGES_WITH_KNOWN_LENGTH
+                task = progress.add_task(f"{name}: {iteration.stage}", info="",
+                                         total=config.optimizer.iterations if known else None)
+                stage_tasks[iteration.stage] = task
+            progress.update(task, completed=iteration.index, info=f"chi2 {iteration.chi2:.6g}")
+
+        try:
+            yield (on_scan if log else None), on_iteration
+        finally:
+            for task in (first_task, *stage_tasks.values()):
+                progress.remove_task(task)
+
+    def finished(self, outcome: BatchOutcome) -> None:
+        if self._progress is not None and self._inputs_task is not None:
+            status = "done" if outcome.ok else "FAILED"
+            self._progress.update(self._inputs_task, advance=1, info=f"{outcome.input_path.name} {status}")
+
+
+# ------------------------------------------------------------------------------------------------ reports
+
+
+def _report(outcomes: Sequence[BatchOutcome], *, quiet: bool, as_json: bool) -> None:
+    """Errors (always), the summary on stderr (unless --quiet), JSON on stdout (--json)."""
+    if as_json:
+        from pipeline.outputs import json_text
+
+        data = [outcome.to_json() for outcome in outcomes]
+        typer.echo(json_text(data[0] if len(data) == 1 else data), nl=False)
+    if len(outcomes) == 1:
+        outcome = outcomes[0]
+        if not outcome.ok:
+            typer.echo(f"{PROGRAM}: error: {outcome.error}", err=True)
+        elif not quiet:
+            typer.echo(_one_input_summary(outcome), err=True)
+        return
+    for outcome in outcomes:
+        if outcome.traceback is not None:
+            typer.echo(outcome.traceback.rstrip(), err=True)
+    if not quiet:
+        _print_table(outcomes)
+    for outcome in outcomes:
+        if not outcome.ok:
+            typer.echo(f"{PROGRAM}: error: {outcome.error}", err=True)
+
+
+def _one_input_summary(outcome: BatchOutcome) -> str:
+    stats, summary = outcome.stats, outcome.summary
+    assert stats is not None and summary is not None
+    name = outcome.input_path.name
+    if stats.scans is not None:
+        lines = [f"{name}: {stats.scans} scans on {summary['scan_topic']}, odometry "
+                 f"{summary['odometry_topic'] or 'none'}; {stats.poses} keyframes, {stats.loop_closures} "
+                 f"loop closures ({stats.loop_closures_rejected} rejected)"]
+    else:
+        lines = [f"{name}: {stats.poses} poses, {stats.constraints} constraints ({stats.loop_closures} loop "
+                 f"closures), method {summary['method']}"]
+        skipped = summary.get("skipped_lines") or {}
+        if skipped:
+            counts = ", ".join(f"{count} {tag}" for tag, count in sorted(skipped.items()))
+            lines.append(f"  skipped lines: {counts}")
+        repaired = summary.get("repaired_information_lines") or []
+        if repaired:
+            lines.append(f"  repaired the information of {len(repaired)} constraints")
+    per_stage = ", ".join(f"{stage} {count}" for stage, count in stats.iterations.items())
+    lines.append(f"  chi2 {stats.chi2_initial:.6g} -> {stats.chi2_final:.6g}"
+                 + (f" after {per_stage} iterations" if per_stage else ""))
+    times = dict(stats.wall_time_s)
+    total = times.pop("total", math.nan)
+    lines.append(f"  time {total:.2f} s (" + ", ".join(f"{stage} {seconds:.2f}" for stage, seconds in
+                                                        times.items()) + ")")
+    lines.append("  wrote " + ", ".join(str(path) for path in outcome.outputs.values()))
+    return "\n".join(lines)
+
+
+def _print_table(outcomes: Sequence[BatchOutcome]) -> None:
+    from rich.table import Table
+
+    failed = sum(not outcome.ok for outcome in outcomes)
+    table = Table(title=f"{len(outcomes)} inputs, {len(outcomes) - failed} done, {failed} failed",
+                  title_justify="left")
+    for column, justify in (("input", "left"), ("result", "left"), ("poses", "right"), ("loops", "right"),
+                            ("chi2 initial -> final", "right"), ("time s", "right")):
+        table.add_column(column, justify=justify)  # type: ignore[arg-type]
+    for outcome in outcomes:
+        stats = outcome.stats
+        if stats is None:
+            table.add_row(str(outcome.input_path), f"FAILED: {outcome.error}", "", "", "", "")
+            continue
+        table.add_row(str(outcome.input_path), f"{outcome.kind} -> {outcome.outputs['rrd'].parent}",
+                      str(stats.poses), str(stats.loop_closures),
+                      f"{stats.chi2_initial:.4g} -> {stats.chi2_final:.4g}",
+                      f"{stats.wall_time_s.get('total', math.nan):.2f}")
+    _stderr_console().print(table)
+
+
+def _stderr_console() -> Console:
+    from rich.console import Console
+
+    # Not a terminal (a pipe, a file, a test): wide enough that paths and messages stay on their lines.
+    return Console(stderr=True, width=None if sys.stderr.isatty() else 200)
 
 
 _INFO_EPILOG = f"""\b

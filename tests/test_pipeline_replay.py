@@ -231,17 +231,20 @@ def test_toro_input_writes_g2o_named_after_the_input(tmp_path: Path) -> None:
     assert summary["input_format"] == "toro"
 
 
-def test_replay_without_graph_uses_the_bundled_m3500(tmp_path: Path) -> None:
+def test_replay_without_input_uses_the_bundled_sample_log(tmp_path: Path) -> None:
     out = tmp_path / "recordings"
-    result = run_replay("--out", out, "--method", "sgd", "--iterations", 1)
+    result = run_replay("--out", out)
     assert result.exit_code == 0, result.output
-    assert output_names(out) == {"M3500.g2o", "M3500.json", "M3500.rrd"}
-    summary = json.loads((out / "M3500.json").read_text())
-    assert (summary["poses"], summary["constraints"]) == (3500, 5453)
-    assert Path(summary["input"]).name == "M3500.g2o"
+    names = {"csail_sample.tum", "csail_sample.g2o", "csail_sample.json", "csail_sample.rrd",
+             "csail_sample_map.png"}
+    assert output_names(out) == names
+    summary = json.loads((out / "csail_sample.json").read_text())
+    assert Path(summary["input"]).name == "csail_sample.mcap"
+    assert summary["counts"]["scans"] == 1000
+    assert summary["loop_closures"]["accepted"] > 0
     # the summary at the end (not --quiet) names the χ² change and every output
     assert "chi2" in result.stderr
-    for name in ("M3500.g2o", "M3500.json", "M3500.rrd"):
+    for name in names:
         assert str(out / name) in result.stderr
 
 

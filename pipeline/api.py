@@ -1,0 +1,228 @@
+"""The Python API of `replay`: one call that does what the command does, for scripts.
+
+    from pipeline import replay
+    result = replay("run.mcap", ReplayConfig(optimizer={"method": "sgd"}), out_dir="results")
+    result.poses, result.graph, result.stats.chi2_final, result.outputs["rrd"]
+
+`replay` picks the replay from the input (a pose-graph file or a log, `input_kind`) the way the command
+does, and raises `OptimizerError`, `FrontendError` or `PipelineError` (`KNOWN_ERRORS`) on bad input;
+it never prints or exits. The heavy modules (rerun, numba) are imported on the first call only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from frontends.errors import FrontendError
+from optimizer.errors import OptimizerError
+from pipeline.config import ReplayConfig, load_config
+from pipeline.errors import PipelineError
+
+if TYPE_CHECKING:
+    from frontends.slam2d.slam import ScanEstimate
+    from optimizer.graph import PoseGraph
+    from optimizer.iteration import Iteration
+    from pipeline.replay_graph import GraphReplayResult
+    from pipeline.replay_log import LogReplayResult
+
+KNOWN_ERRORS: tuple[type[Exception], ...] = (OptimizerError, FrontendError, PipelineError)
+"""What a replay raises on purpose (bad input, unwritable outputs); anything else is a bug."""
+
+DEFAULT_OUT_DIR = Path("recordings")
+
+GRAPH_SUFFIXES = frozenset({".g2o", ".graph"})
+GRAPH_TAGS = frozenset({"VERTEX_SE2", "EDGE_SE2", "VERTEX2", "EDGE2", "VERTEX_SE3:QUAT", "EDGE_SE3:QUAT",
+                        "VERTEX3", "EDGE3"})
+_LOG_SUFFIXES = frozenset({".mcap", ".bag", ".db3", ".yaml"})
+
+InputKind = Literal["log", "graph"]
+
+SAMPLE_DESCRIPTION = "the bundled sample log (the first 1000 scans of the real MIT CSAIL laser log)"
+"""What `replay` without an input runs, in words (for help texts); changes together with `sample_input`."""
+
+
+def sample_input() -> AbstractContextManager[Path]:
+    """The input of `replay` without arguments: a context manager giving its file-system path."""
+    from pipeline.bundled import sample_log
+
+    return sample_log()
+
+
+def is_graph_file(path: Path) -> bool:
+    """A pose-graph file by its suffix, or a text file whose first data line starts with a graph tag."""
+    if path.suffix.lower() in GRAPH_SUFFIXES:
+        return True
+    if not path.is_file() or path.suffix.lower() in _LOG_SUFFIXES:
+        return False
+    try:
+        with path.open("rb") as file:
+            head = file.read(4096).decode("utf-8", errors="replace")
+    except OSError:
+        return False
+    for line in head.splitlines():
+        fields = line.split()
+        if fields and not fields[0].startswith("#"):
+            return fields[0] in GRAPH_TAGS
+    return False
+
+
+def input_kind(path: str | Path) -> InputKind:
+    """"graph" for a pose-graph file, "log" for anything else (a log, or a folder holding a ROS 2 bag)."""
+    return "graph" if is_graph_file(Path(path)) else "log"
+
+
+def output_stem(path: str | Path) -> str:
+    """The name a replay of `path` gives its outputs (`<stem>.rrd`, …): the file's stem, a folder's name."""
+    path = Path(path)
+    return path.stem if path.is_file() or input_kind(path) == "graph" else path.name
+
+
+@dataclass(frozen=True)
+class ReplayStats:
+    """The numbers of a replay (all of them, and more, are in `ReplayResult.summary`)."""
+
+    poses: int
+    """Poses of the optimized graph (a log's keyframes)."""
+    constraints: int
+    loop_closures: int
+    """Loop-closure constraints in the graph (a log's accepted loop closures)."""
+    loop_closures_rejected: int | None
+    """Loop closures the frontend rejected (None for a pose-graph file)."""
+    scans: int | None
+    """Scans read from a log (None for a pose-graph file)."""
+    iterations: Mapping[str, int]
+    """Iterations per optimizer stage, in the order they ran."""
+    chi2_initial: float
+    chi2_final: float
+    """χ² of the final poses (for a log, the better of the recorded optimization and the polished online
+    estimate)."""
+    wall_time_s: Mapping[str, float]
+    """Seconds per pipeline stage, and "total"."""
+
+
+@dataclass(frozen=True, eq=False)
+class ReplayResult:
+    """What `replay` did and wrote."""
+
+    input_path: Path
+    kind: InputKind
+    graph: PoseGraph
+    """The pose graph with its optimized poses (for a log: the frontend's keyframe graph)."""
+    poses: NDArray[np.float64]
+    """(N, 3) final poses (x, y, θ): one per scan for a log (at `stamps_ns`), one per graph pose otherwise."""
+    stamps_ns: NDArray[np.int64] | None
+    """Sensor stamp of each scan of a log; None for a pose-graph file."""
+    stats: ReplayStats
+    outputs: Mapping[str, Path]
+    """The files written, by kind: "g2o", "json", "rrd", and for a log also "tum" and "map_png"."""
+    summary: Mapping[str, Any]
+    """The machine-readable summary, as written to `<stem>.json`."""
+    detail: LogReplayResult | GraphReplayResult
+    """The replay's own result, with everything else it knows."""
+
+
+ScanCallback = Callable[["ScanEstimate"], None]
+IterationCallback = Callable[["Iteration"], None]
+
+
+def replay(
+    path: str | Path,
+    config: ReplayConfig | str | Path | None = None,
+    *,
+    out_dir: str | Path = DEFAULT_OUT_DIR,
+    on_scan: ScanCallback | None = None,
+    on_iteration: IterationCallback | None = None,
+) -> ReplayResult:
+    """Replay a log (2D laser SLAM, then the optimizer) or optimize a pose-graph file, recording every
+    iteration, and write `<stem>.{tum,g2o,json,rrd}` to `out_dir`.
+
+    `config` is a `ReplayConfig`, the path of a TOML configuration file, or None for the defaults.
+    `on_scan` is called with every scan's `ScanEstimate` as the frontend processes it (logs only);
+    `on_iteration` with every optimizer `Iteration`, the initial estimate first.
+    """
+    path = Path(path)
+    if config is None:
+        config = ReplayConfig()
+    elif not isinstance(config, ReplayConfig):
+        config = load_config(config)
+    if input_kind(path) == "graph":
+        return _replay_graph_file(path, config, Path(out_dir), on_iteration)
+    return _replay_log_file(path, config, Path(out_dir), on_scan, on_iteration)
+
+
+def _replay_graph_file(path: Path, config: ReplayConfig, out_dir: Path,
+                       on_iteration: IterationCallback | None) -> ReplayResult:
+    from pipeline import replay_graph as module
+
+    detail = module.replay_graph(path, out_dir=out_dir, method=config.optimizer.method,
+                                 iterations=config.optimizer.iterations,
+                                 repair_information=config.input.repair_information, progress=on_iteration)
+    graph = detail.graph
+    stats = ReplayStats(
+        poses=graph.num_poses,
+        constraints=graph.num_edges,
+        loop_closures=detail.num_loop_closures,
+        loop_closures_rejected=None,
+        scans=None,
+        iterations=detail.iterations_per_stage,
+        chi2_initial=detail.initial_chi2,
+        chi2_final=detail.final_chi2,
+        wall_time_s=dict(detail.wall_time),
+    )
+    return ReplayResult(path, "graph", graph.with_poses(detail.poses), detail.poses, None, stats,
+                        _outputs(detail.outputs),
+                        module.summary(detail), detail)
+
+
+def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: ScanCallback | None,
+                     on_iteration: IterationCallback | None) -> ReplayResult:
+    from optimizer.cost import chi2
+    from pipeline import replay_log as module
+
+    detail = module.replay_log(path, out_dir=out_dir, scan_topic=config.input.scan_topic,
+                               odometry_topic=config.input.odom_topic, method=config.optimizer.method,
+                               iterations=config.optimizer.iterations, config=config.to_slam2d(),
+                               on_scan=on_scan, on_iteration=on_iteration)
+    frontend = detail.frontend
+    iterations: dict[str, int] = {}
+    for stage, _, _ in detail.chi2_per_iteration[1:]:
+        iterations[stage] = iterations.get(stage, 0) + 1
+    stats = ReplayStats(
+        poses=frontend.graph.num_poses,
+        constraints=frontend.graph.num_edges,
+        loop_closures=frontend.loop_closures_accepted,
+        loop_closures_rejected=frontend.loop_closures_rejected,
+        scans=detail.counts["scans"],
+        iterations=iterations,
+        chi2_initial=detail.chi2_per_iteration[0][2],
+        chi2_final=float(chi2(frontend.graph, detail.keyframe_poses)),
+        wall_time_s=dict(detail.wall_time),
+    )
+    return ReplayResult(path, "log", frontend.graph.with_poses(detail.keyframe_poses), detail.poses,
+                        detail.stamps_ns, stats, _outputs(detail.outputs), module.summary(detail), detail)
+
+
+def _outputs(outputs: Any) -> dict[str, Path]:
+    """The output paths of a replay's outputs dataclass, by field name ("rrd", "map_png", …)."""
+    return {item.name: getattr(outputs, item.name) for item in dataclasses.fields(outputs)}
+
+
+def expected_scans(path: str | Path, scan_topic: str | None = None) -> int | None:
+    """How many scans a replay of the log at `path` will read, from the log's summary (for a progress
+    bar); None when that cannot be told (the replay itself then reports why)."""
+    from frontends.log import open_log
+
+    try:
+        with open_log(path) as log:
+            topic, _ = log.sensor_topic(scan_topic)
+            return sum(info.count for info in log.info().topics if info.name == topic) or None
+    except (*KNOWN_ERRORS, OSError):
+        return None

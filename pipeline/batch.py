@@ -1,0 +1,189 @@
+"""Replays of several inputs: one after another in this process, or in parallel in a pool of processes.
+
+A failing input never stops the others: every input ends as a `BatchOutcome`, its summary or its error.
+Library code: nothing is printed; callers report the outcomes.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import traceback
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from multiprocessing.context import BaseContext
+from pathlib import Path
+from typing import Any
+
+from pipeline.api import (
+    DEFAULT_OUT_DIR,
+    KNOWN_ERRORS,
+    IterationCallback,
+    ReplayResult,
+    ReplayStats,
+    ScanCallback,
+    input_kind,
+    output_stem,
+    replay,
+)
+from pipeline.config import ReplayConfig
+from pipeline.errors import PipelineError
+
+OutcomeCallback = Callable[["BatchOutcome"], None]
+
+
+@dataclass(frozen=True)
+class BatchOutcome:
+    """How the replay of one input ended: `stats`, `summary` and `outputs` when it succeeded, `error` (one
+    line) when it failed, and `traceback` too when the failure was a bug rather than bad input."""
+
+    input_path: Path
+    kind: str
+    """"log" or "graph" (see `pipeline.api.input_kind`)."""
+    stats: ReplayStats | None = None
+    summary: Mapping[str, Any] | None = None
+    outputs: Mapping[str, Path] = field(default_factory=dict)
+    error: str | None = None
+    traceback: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+    @classmethod
+    def from_result(cls, result: ReplayResult) -> BatchOutcome:
+        return cls(result.input_path, result.kind, result.stats, dict(result.summary), dict(result.outputs))
+
+    @classmethod
+    def failure(cls, path: Path, error: BaseException, *, unexpected: bool = False) -> BatchOutcome:
+        message = one_line(error)
+        if unexpected:
+            message = f"internal error: {type(error).__name__}: {message}"
+        trace = "".join(traceback.format_exception(error)) if unexpected else None
+        return cls(path, input_kind(path), error=message, traceback=trace)
+
+    def to_json(self) -> dict[str, Any]:
+        """The machine-readable form: the summary written to `<stem>.json` with `"ok": true`, or the
+        input, `"ok": false` and the error."""
+        if self.summary is None:
+            return {"input": str(self.input_path), "ok": False, "error": self.error}
+        return {"input": str(self.input_path), "ok": True, "kind": self.kind, **self.summary}
+
+
+def one_line(error: BaseException) -> str:
+    """An exception's message on one line (some name a file and quote a multi-line reason)."""
+    return " ".join(str(error).split()) or type(error).__name__
+
+
+def duplicate_outputs(paths: Sequence[Path]) -> list[tuple[Path, Path]]:
+    """Pairs of inputs whose outputs would have the same names (same stem): one would overwrite the other."""
+    first_with_stem: dict[str, Path] = {}
+    clashes = []
+    for path in paths:
+        stem = output_stem(path)
+        if stem in first_with_stem:
+            clashes.append((first_with_stem[stem], path))
+        else:
+            first_with_stem[stem] = path
+    return clashes
+
+
+def run_one(
+    path: str | Path,
+    config: ReplayConfig | None = None,
+    *,
+    out_dir: str | Path = DEFAULT_OUT_DIR,
+    on_scan: ScanCallback | None = None,
+    on_iteration: IterationCallback | None = None,
+    catch_unexpected: bool = True,
+) -> BatchOutcome:
+    """Replay one input, turning its failure into the outcome; with `catch_unexpected=False` only our own
+    errors are (anything else, a bug, propagates with its traceback)."""
+    path = Path(path)
+    try:
+        result = replay(path, config, out_dir=out_dir, on_scan=on_scan, on_iteration=on_iteration)
+    except KNOWN_ERRORS as error:
+        return BatchOutcome.failure(path, error)
+    except Exception as error:
+        if not catch_unexpected:
+            raise
+        return BatchOutcome.failure(path, error, unexpected=True)
+    return BatchOutcome.from_result(result)
+
+
+def run_batch(
+    paths: Sequence[str | Path],
+    config: ReplayConfig | None = None,
+    *,
+    out_dir: str | Path = DEFAULT_OUT_DIR,
+    jobs: int = 1,
+    on_done: OutcomeCallback | None = None,
+) -> list[BatchOutcome]:
+    """Replay every input (outputs side by side in `out_dir`), `jobs` at a time; the outcomes in input order.
+
+    With `jobs` > 1 the inputs run in worker processes (forkserver where available, else spawn: never a
+    fork of a process that may hold rerun's or numba's threads). `on_done` is called in this process as
+    each input finishes. Raises `PipelineError` before starting when two inputs would write the same
+    output names.
+    """
+    if jobs < 1:
+        raise PipelineError(f"jobs must be >= 1, got {jobs}")
+    inputs = [Path(path) for path in paths]
+    clashes = duplicate_outputs(inputs)
+    if clashes:
+        first, second = clashes[0]
+        raise PipelineError(f"{first} and {second} would write the same outputs ({output_stem(first)}.*) "
+                            "in one folder; replay them into different folders (--out)")
+    config = config if config is not None else ReplayConfig()
+    if jobs == 1 or len(inputs) <= 1:
+        outcomes = []
+        for path in inputs:
+            outcome = run_one(path, config, out_dir=out_dir)
+            outcomes.append(outcome)
+            if on_done is not None:
+                on_done(outcome)
+        return outcomes
+    return _run_in_pool(inputs, config, Path(out_dir), min(jobs, len(inputs)), on_done)
+
+
+def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, workers: int,
+                 on_done: OutcomeCallback | None) -> list[BatchOutcome]:
+    outcomes: list[BatchOutcome | None] = [None] * len(inputs)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=pool_context(), initializer=_init_worker)
+    try:
+        futures: dict[Future[BatchOutcome], int] = {
+            pool.submit(run_one, path, config, out_dir=out_dir): index for index, path in enumerate(inputs)
+        }
+        for future in as_completed(futures):
+            index = futures[future]
+            try:
+                outcome = future.result()
+            except Exception as error:  # the worker died (killed, out of memory) or the result did not pickle
+                outcome = BatchOutcome(inputs[index], input_kind(inputs[index]),
+                                       error=f"worker process failed: {one_line(error)}")
+            outcomes[index] = outcome
+            if on_done is not None:
+                on_done(outcome)
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)  # Ctrl-C: do not start the inputs still queued
+        raise
+    pool.shutdown(wait=True)
+    return [outcome for outcome in outcomes if outcome is not None]
+
+
+def pool_context() -> BaseContext:
+    """forkserver where the platform has it (Linux), else spawn."""
+    method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+    return multiprocessing.get_context(method)
+
+
+_worker_limits: object | None = None
+
+
+def _init_worker() -> None:
+    # As in the command's main(): BLAS threads only add hand-off latency to our small linear algebra, and
+    # several workers each spinning a thread per core would fight over the cores.
+    global _worker_limits
+    from threadpoolctl import threadpool_limits
+
+    _worker_limits = threadpool_limits(limits=1, user_api="blas")

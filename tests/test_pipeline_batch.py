@@ -1,0 +1,142 @@
+"""Several inputs: a process pool, one failing input not stopping the others, the summary table, --json."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from pipeline import api
+from pipeline.batch import run_batch, run_one
+from pipeline.cli import app
+from pipeline.config import ReplayConfig
+from pipeline.errors import PipelineError
+from tests.test_pipeline_log import write_drive
+from tests.test_pipeline_replay import LOOP_POSES, write_loop_graph
+
+DRIVE_SCANS = 10
+BROKEN_GRAPH = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0\n"  # the edge lacks values
+
+
+def run_replay(*args: object) -> object:
+    return CliRunner().invoke(app, [str(arg) for arg in args])
+
+
+@pytest.fixture
+def three_inputs(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """A log, a pose graph and a broken pose graph (line 3)."""
+    log = tmp_path / "drive.mcap"
+    write_drive(log, scans=DRIVE_SCANS)
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    broken = tmp_path / "broken.g2o"
+    broken.write_text(BROKEN_GRAPH)
+    return log, broken, graph
+
+
+def test_parallel_jobs_keep_going_past_a_failure(
+    tmp_path: Path, three_inputs: tuple[Path, Path, Path]
+) -> None:
+    log, broken, graph = three_inputs
+    out = tmp_path / "out"
+    result = run_replay(log, broken, graph, "--jobs", 2, "--out", out, "--json", "--method", "sgd",
+                        "--iterations", 3)
+    assert result.exit_code == 2, result.output
+
+    # the other two wrote their outputs, the broken one nothing
+    names = {path.name for path in out.iterdir()}
+    assert {"drive.tum", "drive.g2o", "drive.json", "drive.rrd", "loop.g2o", "loop.json", "loop.rrd"} <= names
+    assert not any(name.startswith("broken") for name in names)
+
+    # --json: a list in input order with the counts, and the failure with its one-line reason
+    entries = json.loads(result.stdout)
+    assert [(Path(entry["input"]), entry["ok"]) for entry in entries] == [(log, True), (broken, False),
+                                                                          (graph, True)]
+    assert entries[0]["counts"]["scans"] == DRIVE_SCANS
+    assert entries[0]["counts"]["keyframes"] >= 2
+    graph_entry = entries[2]
+    counts = (graph_entry["poses"], graph_entry["constraints"], graph_entry["loop_closures"])
+    assert counts == (LOOP_POSES, LOOP_POSES + 1, 2)
+    assert graph_entry["iterations"] == {"sgd": 3}
+    assert entries[1]["error"].startswith(f"{broken}:3: ")
+    assert json.loads((out / "loop.json").read_text())["poses"] == LOOP_POSES
+
+    # the summary table on stderr lists every input and the failure, then the error line
+    assert "3 inputs, 2 done, 1 failed" in result.stderr
+    for path in (log, broken, graph):
+        assert str(path) in result.stderr
+    assert "FAILED" in result.stderr
+    assert result.stderr.rstrip().splitlines()[-1] == f"replay: error: {entries[1]['error']}"
+
+
+def test_sequential_inputs_keep_going_and_quiet_keeps_only_the_error(
+    tmp_path: Path, three_inputs: tuple[Path, Path, Path]
+) -> None:
+    _, broken, graph = three_inputs
+    out = tmp_path / "out"
+    result = run_replay(broken, graph, "--out", out, "--quiet", "--method", "gn")
+    assert result.exit_code == 2
+    assert result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"replay: error: {broken}:3: ")
+    assert (out / "loop.rrd").is_file()
+
+
+def test_all_good_inputs_exit_0(tmp_path: Path) -> None:
+    first = write_loop_graph(tmp_path / "a.g2o")
+    second = write_loop_graph(tmp_path / "b.g2o")
+    result = run_replay(first, second, "--out", tmp_path / "out", "--method", "sgd", "--iterations", 1)
+    assert result.exit_code == 0, result.output
+    assert "2 inputs, 2 done, 0 failed" in result.stderr
+
+
+def test_inputs_with_the_same_stem_are_refused_before_running(tmp_path: Path) -> None:
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    first = write_loop_graph(tmp_path / "a" / "loop.g2o")
+    second = write_loop_graph(tmp_path / "b" / "loop.g2o")
+    result = run_replay(first, second, "--out", tmp_path / "out")
+    assert result.exit_code == 2
+    assert len(result.stderr.splitlines()) == 1
+    assert str(first) in result.stderr and str(second) in result.stderr
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(PipelineError, match="same outputs"):
+        run_batch([first, second], out_dir=tmp_path / "out")
+
+
+def test_a_bug_in_one_input_is_reported_with_its_traceback(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    good = write_loop_graph(tmp_path / "good.g2o")
+    buggy = write_loop_graph(tmp_path / "buggy.g2o")
+    real_replay = api.replay
+
+    def replay_with_a_bug(path, *args, **kwargs):  # type: ignore[no-untyped-def]
+        if Path(path).name == "buggy.g2o":
+            raise ZeroDivisionError("a bug")
+        return real_replay(path, *args, **kwargs)
+
+    monkeypatch.setattr("pipeline.batch.replay", replay_with_a_bug)
+    outcomes = run_batch([buggy, good], ReplayConfig(optimizer={"method": "gn"}), out_dir=tmp_path / "out")
+    assert [outcome.ok for outcome in outcomes] == [False, True]
+    assert outcomes[0].error == "internal error: ZeroDivisionError: a bug"
+    assert outcomes[0].traceback is not None and "ZeroDivisionError" in outcomes[0].traceback
+
+    # alone on the command line, a bug keeps its traceback (it is not turned into an input error)
+    with pytest.raises(ZeroDivisionError):
+        run_one(buggy, out_dir=tmp_path / "out", catch_unexpected=False)
+    result = run_replay(buggy, good, "--out", tmp_path / "cli", "--quiet", "--method", "gn")
+    assert result.exit_code == 2
+    assert "Traceback" in result.stderr
+    assert "replay: error: internal error: ZeroDivisionError" in result.stderr
+
+
+def test_json_for_one_input_is_one_object(tmp_path: Path) -> None:
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    result = run_replay(graph, "--out", tmp_path / "out", "--json", "--quiet", "--method", "gn")
+    assert result.exit_code == 0, result.output
+    assert result.stderr == ""
+    entry = json.loads(result.stdout)
+    assert (entry["ok"], entry["kind"], entry["poses"], entry["method"]) == (True, "graph", LOOP_POSES, "gn")
+    assert entry == {"ok": True, "kind": "graph", **json.loads((tmp_path / "out" / "loop.json").read_text())}

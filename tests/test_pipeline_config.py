@@ -1,0 +1,213 @@
+"""The replay configuration: TOML round trip, units, validation errors naming file, line and key, and the
+precedence of command-line options over the file."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pickle
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from frontends.slam2d.config import KeyframeConfig, LoopClosureConfig, OdometryConfig, Slam2DConfig
+from pipeline.cli import app
+from pipeline.config import (
+    _AT_LEAST,
+    _AT_MOST,
+    _BOUNDS,
+    SLAM2D_SECTIONS,
+    ConfigError,
+    ReplayConfig,
+    default_config_toml,
+    is_angle_field,
+    load_config,
+)
+from tests.test_pipeline_replay import write_loop_graph
+
+
+def write_config(tmp_path: Path, text: str, name: str = "replay.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_defaults_round_trip_through_toml(tmp_path: Path) -> None:
+    path = write_config(tmp_path, default_config_toml())
+    loaded = load_config(path)
+    assert loaded == ReplayConfig()
+    # The frontend gets exactly its own defaults back (degrees in the file, radians inside).
+    assert loaded.to_slam2d() == Slam2DConfig()
+    assert (loaded.optimizer.method, loaded.optimizer.iterations) == ("sgd+gn", 100)
+    assert loaded.input.scan_topic is None and loaded.input.odom_topic is None
+
+
+def test_an_empty_file_is_the_defaults(tmp_path: Path) -> None:
+    assert load_config(write_config(tmp_path, "")) == ReplayConfig()
+
+
+def test_sections_mirror_the_dataclasses() -> None:
+    assert list(SLAM2D_SECTIONS) == ["matching", "odometry", "keyframes", "loop_closure"]
+    for name, model in SLAM2D_SECTIONS.items():
+        dataclass_type = type(getattr(Slam2DConfig(), name))
+        assert list(model.model_fields) == [item.name for item in dataclasses.fields(dataclass_type)]
+    rule_keys = [*_BOUNDS, *_AT_LEAST, *_AT_MOST]
+    rule_keys += [(section, other) for (section, _), other in [*_AT_LEAST.items(), *_AT_MOST.items()]]
+    for section, key in rule_keys:  # a misspelt rule would silently never apply
+        assert key in SLAM2D_SECTIONS[section].model_fields, (section, key)
+
+
+def test_angles_are_degrees_in_the_file() -> None:
+    angle_fields = {(name, key) for name, model in SLAM2D_SECTIONS.items() for key in model.model_fields
+                    if is_angle_field(key)}
+    assert angle_fields == {
+        ("odometry", "window_angular"), ("odometry", "window_angular_without_odometry"),
+        ("odometry", "angular_step"), ("odometry", "odometry_sigma_angular"),
+        ("odometry", "constant_velocity_sigma_angular"),
+        ("keyframes", "angle"), ("keyframes", "max_turn_rate"),
+        ("loop_closure", "angular_window"), ("loop_closure", "angular_step"),
+        ("loop_closure", "small_correction_angular"),
+    }
+    config = ReplayConfig(keyframes={"angle": 30, "max_turn_rate": 90.0, "distance": 0.5},
+                          odometry={"odometry_sigma_per_radian": 0.2})
+    assert config.keyframes.angle == 30.0
+    frontend = config.to_slam2d()
+    assert frontend.keyframes == KeyframeConfig(distance=0.5, angle=math.pi / 6, max_turn_rate=math.pi / 2)
+    assert frontend.odometry == OdometryConfig(odometry_sigma_per_radian=0.2)  # a ratio, not an angle
+
+
+def test_values_from_a_file(tmp_path: Path) -> None:
+    path = write_config(tmp_path, """
+[input]
+scan_topic = "/front/scan"
+
+[optimizer]
+method = "sgd"
+iterations = 7
+
+[loop_closure]
+enabled = false
+angular_window = 40
+""")
+    config = load_config(path)
+    assert config.input.scan_topic == "/front/scan"
+    assert (config.optimizer.method, config.optimizer.iterations) == ("sgd", 7)
+    expected = LoopClosureConfig(enabled=False, angular_window=math.radians(40))
+    assert config.to_slam2d().loop_closure == expected
+
+
+def test_derived_defaults_follow_the_values_they_depend_on() -> None:
+    # Raising the search radius alone raises the cap with it rather than failing ...
+    assert ReplayConfig(loop_closure={"search_radius": 12.0}).loop_closure.max_search_radius == 12.0
+    assert ReplayConfig(loop_closure={"search_radius": 3.0}).loop_closure.max_search_radius == 10.0
+    # ... and Gauss-Newton alone gets the polish cap unless iterations are given.
+    assert ReplayConfig(optimizer={"method": "gn"}).optimizer.iterations == 300
+    assert ReplayConfig(optimizer={"method": "gn", "iterations": 4}).optimizer.iterations == 4
+    assert ReplayConfig(optimizer={"method": "gauss-seidel"}).optimizer.iterations == 100
+
+
+def test_a_configuration_pickles() -> None:  # it travels to the worker processes of a batch
+    config = ReplayConfig(optimizer={"method": "sgd"}, matching={"resolution": 0.1})
+    assert pickle.loads(pickle.dumps(config)) == config
+
+
+BAD_FILES = {
+    "typo in a key": ("[optimizer]\nmethod = \"sgd\"\n\n[loop_closure]\nserach_radius = 3.0\n", 5,
+                      "loop_closure.serach_radius: ", "did you mean search_radius"),
+    "typo in a section": ("[matchin]\nresolution = 0.1\n", 1, "matchin: ", "did you mean matching"),
+    "negative length": ("[matching]\nresolution = 0.1\nmax_range = -5\n", 3, "matching.max_range: ",
+                        "greater than 0"),
+    "text for a number": ("[keyframes]\ndistance = \"far\"\n", 2, "keyframes.distance: ", "valid number"),
+    "boolean for a count": ("[matching]\nmin_points = true\n", 2, "matching.min_points: ", "valid integer"),
+    "fraction above one": ("[loop_closure]\nmin_score = 1.5\n", 2, "loop_closure.min_score: ",
+                           "less than or equal to 1"),
+    "unknown method": ("[optimizer]\nmethod = \"lm\"\n", 2, "optimizer.method: ", "sgd+gn"),
+    "cap below radius": ("[loop_closure]\nsearch_radius = 8.0\nmax_search_radius = 5.0\n", 3,
+                         "loop_closure.max_search_radius: ", "at least search_radius"),
+    "step wider than window": ("[odometry]\nangular_step = 10\n", 2, "odometry.angular_step: ",
+                               "at most window_angular"),
+    "not infinite": ("[matching]\nmax_range = inf\n", 2, "matching.max_range: ", "finite"),
+    "dotted key": ("matching.resolutoin = 0.1\n", 1, "matching.resolutoin: ", "did you mean resolution"),
+    "syntax error": ("[matching]\nresolution = \n", 2, "not valid TOML: ", "Invalid value"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FILES))
+def test_bad_files_give_one_line_naming_file_line_and_key(tmp_path: Path, case: str) -> None:
+    text, line, key, reason = BAD_FILES[case]
+    path = write_config(tmp_path, text)
+    with pytest.raises(ConfigError) as raised:
+        load_config(path)
+    message = str(raised.value)
+    assert message.startswith(f"{path}:{line}: {key}"), message
+    assert reason in message
+    assert "\n" not in message
+    assert raised.value.line == line
+
+
+def test_a_missing_file_is_named(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"nowhere\.toml: no such file"):
+        load_config(tmp_path / "nowhere.toml")
+
+
+def test_overrides_replace_file_values_before_derivation(tmp_path: Path) -> None:
+    path = write_config(tmp_path, "[optimizer]\nmethod = \"gn\"\n\n[input]\nodom_topic = \"/odom\"\n")
+    assert load_config(path).optimizer.iterations == 300
+    config = load_config(path, {"optimizer": {"method": "sgd"}, "input": {"scan_topic": "/scan"}})
+    assert (config.optimizer.method, config.optimizer.iterations) == ("sgd", 100)
+    assert (config.input.scan_topic, config.input.odom_topic) == ("/scan", "/odom")
+
+
+# --------------------------------------------------------------------------------------------- the CLI
+
+
+def run_replay(*args: object) -> object:
+    return CliRunner().invoke(app, [str(arg) for arg in args])
+
+
+def test_dump_config_prints_defaults_that_load_back(tmp_path: Path) -> None:
+    result = run_replay("--dump-config")
+    assert result.exit_code == 0, result.output
+    assert result.stderr == ""
+    assert "[loop_closure]" in result.stdout and "degrees" in result.stdout
+    assert load_config(write_config(tmp_path, result.stdout)) == ReplayConfig()
+
+
+def test_options_override_the_config_file_in_dump_config(tmp_path: Path) -> None:
+    path = write_config(tmp_path, "[optimizer]\nmethod = \"gn\"\niterations = 7\n\n"
+                                  "[input]\nscan_topic = \"/a\"\n\n[keyframes]\ndistance = 0.5\n")
+    result = run_replay("--config", path, "--method", "sgd", "--scan-topic", "/b", "--dump-config")
+    assert result.exit_code == 0, result.output
+    dumped = load_config(write_config(tmp_path, result.stdout, "dumped.toml"))
+    assert (dumped.optimizer.method, dumped.optimizer.iterations) == ("sgd", 7)
+    assert dumped.input.scan_topic == "/b"
+    assert dumped.keyframes.distance == 0.5
+
+
+def test_options_override_the_config_file_in_a_run(tmp_path: Path) -> None:
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    path = write_config(tmp_path, "[optimizer]\nmethod = \"sgd\"\niterations = 2\n")
+    out = tmp_path / "out"
+
+    from_file = run_replay(graph, "--config", path, "--out", out, "--quiet")
+    assert from_file.exit_code == 0, from_file.output
+    assert json.loads((out / "loop.json").read_text())["iterations"] == {"sgd": 2}
+
+    overridden = run_replay(graph, "--config", path, "--out", out, "--quiet", "--method", "gauss-seidel",
+                            "--iterations", 3)
+    assert overridden.exit_code == 0, overridden.output
+    summary = json.loads((out / "loop.json").read_text())
+    assert (summary["method"], summary["iterations"]) == ("gauss-seidel", {"gauss-seidel": 3})
+
+
+def test_a_bad_config_file_is_a_one_line_error_before_anything_runs(tmp_path: Path) -> None:
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    path = write_config(tmp_path, "[optimizer]\niteratons = 5\n")
+    result = run_replay(graph, "--config", path, "--out", tmp_path / "out")
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [
+        f"replay: error: {path}:2: optimizer.iteratons: unknown key in [optimizer]; did you mean iterations?"
+    ]
+    assert not (tmp_path / "out").exists()
