@@ -3,32 +3,37 @@
 `open_log(path)` picks the container from the path and its contents and returns a `LogReader`; its
 `info()` reads the summary / index, and its iterators (`scans`, `clouds`, `odometry`, `transforms`,
 `messages`) stream `Scan2D`, `Cloud3D`, `OdometryPose` and `Transform` in sensor-time order.
+
+The names below are imported on first use: `import frontends.errors` (what the CLI needs to report
+errors) must not pay for the container readers and their decoders.
 """
 
-from frontends.errors import (
-    FrontendError,
-    LogFileError,
-    LogWarning,
-    TopicSelectionError,
-    TransformLookupError,
-)
-from frontends.log import LogReader, open_log
-from frontends.transforms import TransformTree
-from frontends.types import Cloud3D, LogInfo, OdometryPose, Scan2D, TopicInfo, Transform
+from __future__ import annotations
 
-__all__ = [
-    "Cloud3D",
-    "FrontendError",
-    "LogFileError",
-    "LogInfo",
-    "LogReader",
-    "LogWarning",
-    "OdometryPose",
-    "Scan2D",
-    "TopicInfo",
-    "TopicSelectionError",
-    "Transform",
-    "TransformLookupError",
-    "TransformTree",
-    "open_log",
-]
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "FrontendError": "frontends.errors",
+    "LogFileError": "frontends.errors",
+    "LogWarning": "frontends.errors",
+    "TopicSelectionError": "frontends.errors",
+    "TransformLookupError": "frontends.errors",
+    "LogReader": "frontends.log",
+    "open_log": "frontends.log",
+    "TransformTree": "frontends.transforms",
+    "Cloud3D": "frontends.types",
+    "LogInfo": "frontends.types",
+    "OdometryPose": "frontends.types",
+    "Scan2D": "frontends.types",
+    "TopicInfo": "frontends.types",
+    "Transform": "frontends.types",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'frontends' has no attribute {name!r}")
+    return getattr(importlib.import_module(_EXPORTS[name]), name)
