@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from frontends.slam2d.slam import ScanEstimate
     from optimizer.graph import PoseGraph
     from optimizer.iteration import Iteration
+    from pipeline.replay_cloud import CloudReplayResult
     from pipeline.replay_graph import GraphReplayResult
     from pipeline.replay_log import LogReplayResult
 
@@ -125,7 +126,7 @@ class ReplayResult:
     """The files written, by kind: "g2o", "json", "rrd", and for a log also "tum" and "map_png"."""
     summary: Mapping[str, Any]
     """The machine-readable summary, as written to `<stem>.json`."""
-    detail: LogReplayResult | GraphReplayResult
+    detail: LogReplayResult | GraphReplayResult | CloudReplayResult
     """The replay's own result, with everything else it knows."""
 
 
@@ -155,7 +156,46 @@ def replay(
         config = load_config(config)
     if input_kind(path) == "graph":
         return _replay_graph_file(path, config, Path(out_dir), on_iteration)
+    if _sensor_kind(path, config.input.scan_topic) == "cloud":
+        return _replay_cloud_file(path, config, Path(out_dir), on_iteration)
     return _replay_log_file(path, config, Path(out_dir), on_scan, on_iteration)
+
+
+def _sensor_kind(path: Path, topic: str | None) -> str:
+    """ "scan" or "cloud": what the log's sensor topic carries (from its channels, not its messages)."""
+    from frontends.log import open_log
+
+    with open_log(path) as log:
+        return log.sensor_topic(topic)[1]
+
+
+def _replay_cloud_file(path: Path, config: ReplayConfig, out_dir: Path,
+                       on_iteration: IterationCallback | None) -> ReplayResult:
+    from frontends.slam3d import planar
+    from optimizer.cost import chi2
+    from pipeline import replay_cloud as module
+
+    detail = module.replay_cloud(path, out_dir=out_dir, cloud_topic=config.input.scan_topic,
+                                 method=config.optimizer.method, iterations=config.optimizer.iterations,
+                                 on_iteration=on_iteration)
+    frontend = detail.frontend
+    graph = frontend.planar_graph(detail.planar_keyframe_poses)
+    iterations: dict[str, int] = {}
+    for stage, _, _ in detail.chi2_per_iteration[1:]:
+        iterations[stage] = iterations.get(stage, 0) + 1
+    stats = ReplayStats(
+        poses=frontend.num_keyframes,
+        constraints=graph.num_edges,
+        loop_closures=frontend.loop_closures_accepted,
+        loop_closures_rejected=frontend.loop_closures_rejected,
+        scans=detail.counts.get("clouds"),
+        iterations=iterations,
+        chi2_initial=detail.chi2_per_iteration[0][2],
+        chi2_final=float(chi2(graph)),
+        wall_time_s=dict(detail.wall_time),
+    )
+    return ReplayResult(path, "log", graph, planar.planar(detail.poses), detail.stamps_ns, stats,
+                        _outputs(detail.outputs), module.summary(detail), detail)
 
 
 def _replay_graph_file(path: Path, config: ReplayConfig, out_dir: Path,

@@ -351,7 +351,11 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     stats, summary = outcome.stats, outcome.summary
     assert stats is not None and summary is not None
     name = outcome.input_path.name
-    if stats.scans is not None:
+    if "cloud_topic" in summary:
+        lines = [f"{name}: {stats.scans} point clouds on {summary['cloud_topic']} (KISS-ICP odometry); "
+                 f"{stats.poses} keyframes, {stats.loop_closures} loop closures "
+                 f"({stats.loop_closures_rejected} rejected)"]
+    elif stats.scans is not None:
         lines = [f"{name}: {stats.scans} scans on {summary['scan_topic']}, odometry "
                  f"{summary['odometry_topic'] or 'none'}; {stats.poses} keyframes, {stats.loop_closures} "
                  f"loop closures ({stats.loop_closures_rejected} rejected)"]

@@ -108,10 +108,8 @@ def replay_log(
     with open_log(path) as log:
         topic, kind = log.sensor_topic(scan_topic)
         if kind != "scan":
-            raise PipelineError(
-                f"{path}: topic {topic} holds 3D point clouds; 3D LiDAR replay is not "
-                "supported yet (2D LaserScan logs are)"
-            )
+            raise PipelineError(f"{path}: topic {topic} holds 3D point clouds: replay it with "
+                                "pipeline.replay_cloud (the replay command chooses it by itself)")
         chosen_odometry = log.odometry_topic(odometry_topic)
         odometry = read_odometry(log, odometry_topic)
         tree = log.transform_tree()

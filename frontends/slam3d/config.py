@@ -1,0 +1,136 @@
+"""Settings of the 3D LiDAR SLAM frontend (KISS-ICP odometry, keyframes, loop closures).
+
+The odometry settings are KISS-ICP's own, each mapped onto one field of its `KISSConfig` in
+`frontends.slam3d.odometry.kiss_config`; the defaults are KISS-ICP's, so an unconfigured run is the same
+odometry its own pipeline computes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    max_range: float = 100.0
+    """Points farther from the sensor are dropped (m). KISSConfig.data.max_range."""
+    min_range: float = 0.0
+    """Points nearer the sensor are dropped: the vehicle itself (m). KISSConfig.data.min_range."""
+    deskew: bool = True
+    """Motion-compensate clouds that carry per-point times. KISSConfig.data.deskew."""
+    voxel_size: float | None = None
+    """Voxel of the local map (m); None: max_range / 100, KISS-ICP's rule. KISSConfig.mapping.voxel_size."""
+    max_points_per_voxel: int = 20
+    """KISSConfig.mapping.max_points_per_voxel."""
+    initial_threshold: float = 2.0
+    """Correspondence threshold before the motion statistics exist (m).
+    KISSConfig.adaptive_threshold.initial_threshold."""
+    min_motion_threshold: float = 0.1
+    """Motions smaller than this do not update the adaptive threshold (m).
+    KISSConfig.adaptive_threshold.min_motion_th."""
+    fixed_threshold: float | None = None
+    """A fixed correspondence threshold instead of the adaptive one (m); None: adaptive.
+    KISSConfig.adaptive_threshold.fixed_threshold."""
+    max_iterations: int = 500
+    """ICP iterations per cloud. KISSConfig.registration.max_num_iterations."""
+    convergence_criterion: float = 1e-4
+    """KISSConfig.registration.convergence_criterion."""
+    max_threads: int = 0
+    """Threads of the registration; 0: all cores. KISSConfig.registration.max_num_threads."""
+    min_points: int = 100
+    """(Ours) a cloud with fewer points is not registered: its pose stays the previous one and the motion
+    model is left alone (an empty cloud would feed KISS-ICP's threshold a zero motion)."""
+
+    @property
+    def map_voxel_size(self) -> float:
+        """The voxel size KISS-ICP runs with."""
+        return self.voxel_size if self.voxel_size is not None else self.max_range / 100.0
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    distance: float = 1.0
+    """A cloud this far (m) from the last keyframe becomes a keyframe …"""
+    angle: float = math.radians(10.0)
+    """… or one turned this much (rad)."""
+    cloud_voxel: float = 0.3
+    """Keyframe clouds (maps, loop closures) keep one point per voxel of this size (m)."""
+    odometry_sigma_linear: float = 0.02
+    """KISS-ICP reports no uncertainty: a keyframe step's σ is this + `odometry_sigma_per_metre` × its
+    length (m) …"""
+    odometry_sigma_per_metre: float = 0.01
+    odometry_sigma_angular: float = math.radians(0.1)
+    """… and this + `odometry_sigma_per_radian` × its rotation (rad)."""
+    odometry_sigma_per_radian: float = 0.01
+    odometry_sigma_per_metre_angular: float = math.radians(0.05)
+    """Heading drift per metre driven (rad/m): LiDAR odometry's yaw drifts with distance, not only turns."""
+
+
+@dataclass(frozen=True)
+class LoopClosureConfig:
+    enabled: bool = True
+    every_keyframes: int = 2
+    """Search at every n-th keyframe (neighbouring keyframes see the same place)."""
+    min_travel: float = 25.0
+    """Candidates are keyframes at least this far back along the driven path (m): not the local map."""
+    search_radius: float = 5.0
+    """Candidates are keyframes within this distance of the current estimate (m) …"""
+    search_radius_per_metre: float = 0.05
+    """… plus this much per metre of the shortest path joining the two in the graph (the drift grows)."""
+    max_search_radius: float = 30.0
+    candidates_per_keyframe: int = 2
+    descriptor_rings: int = 20
+    """Scan Context descriptor: rings × sectors polar bins holding the highest point above the ground."""
+    descriptor_sectors: int = 60
+    descriptor_radius: float = 50.0
+    """The descriptor covers points up to this distance (m)."""
+    descriptor_max_distance: float = 0.45
+    """Candidates whose descriptor distance (1 − mean column cosine, best over rotations) exceeds this are
+    not verified: the place does not look the same."""
+    submap_keyframes: int = 8
+    """The candidate's submap (registration target): this many keyframes on each side of it."""
+    registration_voxel: float = 0.5
+    """GICP downsamples source and target to this voxel (m)."""
+    max_correspondence_distance: float = 1.5
+    registration_iterations: int = 30
+    threads: int = 2
+    inlier_distance: float = 0.4
+    """After registration, source points within this distance of the target are inliers (m)."""
+    min_inlier_fraction: float = 0.55
+    max_rms: float = 0.1
+    """RMS distance of the inliers to the target's surface (point to plane, m)."""
+    ambiguity_offset: float = 3.0
+    """The registration is repeated from starts this far (m) from the match, ahead, behind, left and right,
+    and from ± `ambiguity_angle` …"""
+    ambiguity_angle: float = math.radians(30.0)
+    ambiguity_distance: float = 1.0
+    ambiguity_ratio: float = 0.9
+    """… a start converging to a pose at least `ambiguity_distance` (m) away (or turned by half
+    `ambiguity_angle`) with an inlier fraction of at
+    least `ambiguity_ratio` × the match's makes the match ambiguous (a uniform street, a row of
+    look-alike buildings): it is rejected."""
+    information_scale: float = 1e-3
+    """The GICP Hessian treats point errors as independent; they are not. The fit's information is scaled
+    by this …"""
+    min_sigma_linear: float = 0.05
+    min_sigma_angular: float = math.radians(0.3)
+    """… and its covariance gets these floors (m, rad) added: what the fit does not see (map blur)."""
+    small_correction_linear: float = 0.5
+    small_correction_angular: float = math.radians(2.0)
+    """A loop closure moving the current estimate less than this agrees with the map: accepted at once.
+    A larger correction is a hypothesis until another loop closure agrees with it (within the same
+    bounds), which a false match seldom finds."""
+    hypothesis_keyframes: int = 10
+    """A hypothesis not confirmed within this many keyframes is dropped."""
+    chi2_threshold: float = 30.0
+    """After optimizing, a loop closure whose planar error exceeds this χ² (3 dof) is rejected."""
+    optimize_every_loop_closures: int = 3
+    """Re-optimize the graph after this many new loop closures (and at the end)."""
+
+
+@dataclass(frozen=True)
+class Slam3DConfig:
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)

@@ -1,0 +1,219 @@
+"""Loop closures for 3D LiDAR: place recognition by a Scan Context descriptor, verification by GICP.
+
+1. Place recognition (Kim & Kim 2018, "Scan Context"): a keyframe's cloud, levelled, becomes a polar grid
+   of rings × sectors holding the highest point above the ground in each bin. Two places compare column
+   by column (cosine), at every rotation of one against the other: the best rotation gives the distance
+   and a heading guess that does not depend on the drifted estimate.
+2. Verification (`verify_loop`): GICP (small_gicp, Koide 2024) of the current keyframe's cloud onto the
+   candidate's submap, from the estimate's guess and the descriptor's; accepted when most points land
+   close to the map. The information is the fit's Hessian, scaled, with floors on the covariance.
+3. Ambiguity: the registration is repeated from starts a few metres and tens of degrees away; if one
+   converges elsewhere with nearly as good a fit, the place is self-similar (a uniform street) and the
+   match is rejected — the 3D counterpart of the 2D frontend's rival search.
+
+Hypothesis confirmation and the χ² test after optimization live in `frontends.slam3d.slam`, as in 2D.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import small_gicp
+from numpy.typing import NDArray
+
+from frontends.slam3d import se3
+from frontends.slam3d.config import LoopClosureConfig
+
+FloatArray = NDArray[np.float64]
+
+GROUND_PERCENTILE = 5.0
+"""Descriptor heights are measured from this percentile of the cloud's z: the ground, seen all around."""
+COVARIANCE_NEIGHBOURS = 10
+_ROTATION_FIRST_TO_TRANSLATION_FIRST = np.array([3, 4, 5, 0, 1, 2])
+"""small_gicp orders its Hessian (rx, ry, rz, tx, ty, tz); ours is translation first."""
+
+
+# ------------------------------------------------------------------------------------------ descriptor
+
+
+def scan_context(points: NDArray[np.floating], rings: int, sectors: int, radius: float) -> FloatArray:
+    """(rings, sectors) descriptor of a levelled cloud (z up, in its own frame): the highest point above
+    the ground in each polar bin, 0 for empty bins. Sector 0 starts at bearing −π."""
+    points = np.asarray(points, dtype=np.float64)
+    descriptor = np.zeros(rings * sectors)
+    if len(points) == 0:
+        return descriptor.reshape(rings, sectors)
+    distance = np.hypot(points[:, 0], points[:, 1])
+    height = points[:, 2] - np.percentile(points[:, 2], GROUND_PERCENTILE)
+    keep = (distance < radius) & (distance > 0.0)
+    ring = (distance[keep] * (rings / radius)).astype(np.int64)
+    bearing = np.arctan2(points[keep, 1], points[keep, 0])
+    sector = np.floor((bearing + np.pi) * (sectors / (2.0 * np.pi))).astype(np.int64) % sectors
+    np.maximum.at(descriptor, ring * sectors + sector, np.maximum(height[keep], 0.0))
+    return descriptor.reshape(rings, sectors)
+
+
+def descriptor_distances(query: FloatArray, candidates: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Scan Context distance of `query` (R, S) to each of `candidates` (K, R, S) at the best rotation,
+    and that rotation as the heading of the query's frame in the candidate's (rad).
+
+    Distance = 1 − mean cosine similarity of the columns (sectors) occupied in both; 1 when none are.
+    """
+    candidates = np.asarray(candidates, dtype=np.float64).reshape(-1, *query.shape)
+    sectors = query.shape[1]
+    # rolled[h][:, c] = query[:, c − h]: the query turned by h sectors
+    rolled = np.stack([np.roll(query, shift, axis=1) for shift in range(sectors)])
+    dots = np.einsum("hrc,krc->khc", rolled, candidates)
+    query_norms = np.linalg.norm(rolled, axis=1)  # (H, C)
+    candidate_norms = np.linalg.norm(candidates, axis=1)  # (K, C)
+    norms = query_norms[None, :, :] * candidate_norms[:, None, :]
+    valid = norms > 0.0
+    similarity = np.where(valid, dots / np.where(valid, norms, 1.0), 0.0).sum(axis=2)
+    counts = valid.sum(axis=2)
+    mean = np.where(counts > 0, similarity / np.maximum(counts, 1), 0.0)
+    best = np.argmax(mean, axis=1)
+    distance = 1.0 - mean[np.arange(len(candidates)), best]
+    heading = np.angle(np.exp(1j * best * (2.0 * np.pi / sectors)))
+    return distance, heading
+
+
+# ---------------------------------------------------------------------------------------- registration
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationFit:
+    transform: FloatArray
+    """4×4 pose of the source's frame in the target's (T_target_source)."""
+    inlier_fraction: float
+    rms: float
+    """RMS distance (m) of the inliers to the surface (tangent plane) at their nearest target point."""
+    hessian: FloatArray
+    """6×6 GICP Hessian at the solution, (tx, ty, tz, rx, ry, rz), perturbation in the source frame."""
+
+
+@dataclass(frozen=True, eq=False)
+class LoopMatch:
+    relative: FloatArray
+    """4×4 pose of the current keyframe in the candidate's frame."""
+    information: FloatArray
+    """6×6 information of `relative`, (tx, ty, tz, rx, ry, rz), error in the current keyframe's frame."""
+    inlier_fraction: float
+    rms: float
+
+
+@dataclass(frozen=True, eq=False)
+class LoopVerdict:
+    match: LoopMatch | None
+    reason: str
+    """"accepted", "poor fit" or "ambiguous"."""
+
+
+class RegistrationTarget:
+    """A target cloud prepared once (downsampled, covariances, k-d tree) for several registrations."""
+
+    def __init__(self, points: NDArray[np.floating], config: LoopClosureConfig) -> None:
+        self.config = config
+        self.cloud, self.tree = small_gicp.preprocess_points(
+            np.ascontiguousarray(points, dtype=np.float64),
+            downsampling_resolution=config.registration_voxel,
+            num_neighbors=COVARIANCE_NEIGHBOURS,
+            num_threads=config.threads,
+        )
+        self._points = self.cloud.points()[:, :3]
+        self._normals = self.cloud.normals()[:, :3]
+
+    def register(self, source: small_gicp.PointCloud, guess: FloatArray) -> RegistrationFit:
+        config = self.config
+        result = small_gicp.align(
+            self.cloud,
+            source,
+            self.tree,
+            init_T_target_source=np.asarray(guess, dtype=np.float64),
+            registration_type="GICP",
+            max_correspondence_distance=config.max_correspondence_distance,
+            num_threads=config.threads,
+            max_iterations=config.registration_iterations,
+        )
+        transform = np.array(result.T_target_source, dtype=np.float64)
+        placed = se3.transform_points(transform, source.points()[:, :3])
+        nearest, squared = self.tree.batch_nearest_neighbor_search(placed, num_threads=config.threads)
+        nearest = np.asarray(nearest, dtype=np.int64)
+        inliers = (np.asarray(squared, dtype=np.float64) <= config.inlier_distance**2) & (nearest >= 0)
+        count = int(inliers.sum())
+        # Point-to-plane distances: the distance to the nearest target *point* mostly measures how
+        # sparsely the sensor sampled a surface, not how well the two clouds agree.
+        offsets = placed[inliers] - self._points[nearest[inliers]]
+        residuals = np.einsum("ij,ij->i", offsets, self._normals[nearest[inliers]])
+        order = _ROTATION_FIRST_TO_TRANSLATION_FIRST
+        return RegistrationFit(
+            transform,
+            count / max(len(placed), 1),
+            float(np.sqrt(np.mean(residuals**2))) if count else np.inf,
+            np.array(result.H, dtype=np.float64)[np.ix_(order, order)],
+        )
+
+
+def prepare_source(points: NDArray[np.floating], config: LoopClosureConfig) -> small_gicp.PointCloud:
+    cloud, _ = small_gicp.preprocess_points(
+        np.ascontiguousarray(points, dtype=np.float64),
+        downsampling_resolution=config.registration_voxel,
+        num_neighbors=COVARIANCE_NEIGHBOURS,
+        num_threads=config.threads,
+    )
+    return cloud
+
+
+def fit_information(hessian: FloatArray, config: LoopClosureConfig) -> FloatArray:
+    """6×6 information of a fit: the inverse of (the scaled Hessian's inverse + floor variances). Directions
+    the fit does not constrain (a straight tunnel along its axis) keep the Hessian's low information."""
+    scaled = config.information_scale * 0.5 * (hessian + hessian.T)
+    covariance = np.linalg.inv(scaled + 1e-9 * np.eye(6))
+    floors = np.array([config.min_sigma_linear] * 3 + [config.min_sigma_angular] * 3) ** 2
+    information = np.linalg.inv(covariance + np.diag(floors))
+    return 0.5 * (information + information.T)
+
+
+def rival_starts(transform: FloatArray, config: LoopClosureConfig) -> list[FloatArray]:
+    """Starts away from a match: shifted ahead, behind, left and right (in the target frame) and turned
+    either way about the source's origin."""
+    starts = []
+    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        start = transform.copy()
+        start[:2, 3] += config.ambiguity_offset * np.array([dx, dy])
+        starts.append(start)
+    for sign in (1.0, -1.0):
+        turn = np.eye(4)
+        c, s = np.cos(sign * config.ambiguity_angle), np.sin(sign * config.ambiguity_angle)
+        turn[:2, :2] = [[c, -s], [s, c]]
+        starts.append(transform @ turn)
+    return starts
+
+
+def verify_loop(
+    target: RegistrationTarget,
+    source_points: NDArray[np.floating],
+    guesses: Sequence[FloatArray],
+    config: LoopClosureConfig,
+) -> LoopVerdict:
+    """Register the source (current keyframe, its own frame) onto the target (candidate submap, in the
+    candidate's frame) from each guess of T_target_source; accept the best fit if it is good and
+    unambiguous."""
+    source = prepare_source(source_points, config)
+    if source.size() == 0:
+        return LoopVerdict(None, "poor fit")
+    best = max((target.register(source, guess) for guess in guesses), key=lambda fit: fit.inlier_fraction)
+    if best.inlier_fraction < config.min_inlier_fraction or best.rms > config.max_rms:
+        return LoopVerdict(None, "poor fit")
+    for start in rival_starts(best.transform, config):
+        rival = target.register(source, start)
+        away = float(np.linalg.norm(rival.transform[:3, 3] - best.transform[:3, 3]))
+        turned = float(se3.rotation_angle(se3.relative(best.transform, rival.transform)))
+        elsewhere = away >= config.ambiguity_distance or turned >= 0.5 * config.ambiguity_angle
+        if elsewhere and rival.inlier_fraction >= config.ambiguity_ratio * best.inlier_fraction:
+            return LoopVerdict(None, "ambiguous")
+    return LoopVerdict(
+        LoopMatch(best.transform, fit_information(best.hessian, config), best.inlier_fraction, best.rms),
+        "accepted",
+    )

@@ -1,0 +1,125 @@
+"""LiDAR odometry with KISS-ICP (Vizzo et al. 2023), through its Python API.
+
+KISS-ICP deskews a cloud with per-point times in [0, 1] over the sweep (it rescales whatever it gets by
+min and max, and a sweep whose times are all equal makes it divide by zero and abort the process), under
+a constant-velocity model: the point at normalised time τ is moved by exp((τ − 1)·ω), ω the log of the
+previous frame-to-frame motion, so the deskewed cloud and the registered pose are those of the sensor at
+the *last* point's time. Our clouds carry times in seconds relative to their stamp (or none): the wrapper
+normalises them, skips deskewing when they are missing or span no time, and reports the pose at the
+cloud's stamp (moved back along the same motion model), so that every pose has the time of its message.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from kiss_icp.config import KISSConfig
+from kiss_icp.config.config import AdaptiveThresholdConfig, DataConfig, MappingConfig, RegistrationConfig
+from kiss_icp.kiss_icp import KissICP
+from kiss_icp.voxelization import voxel_down_sample
+from numpy.typing import NDArray
+
+from frontends.slam3d import se3
+from frontends.slam3d.config import OdometryConfig
+
+FloatArray = NDArray[np.float64]
+
+NO_TIMES = np.empty(0, dtype=np.float64)
+
+
+def kiss_config(config: OdometryConfig) -> KISSConfig:
+    """Our odometry settings as KISS-ICP's configuration, every field set explicitly."""
+    return KISSConfig(
+        data=DataConfig(max_range=config.max_range, min_range=config.min_range, deskew=config.deskew),
+        mapping=MappingConfig(
+            voxel_size=config.map_voxel_size, max_points_per_voxel=config.max_points_per_voxel
+        ),
+        registration=RegistrationConfig(
+            max_num_iterations=config.max_iterations,
+            convergence_criterion=config.convergence_criterion,
+            max_num_threads=config.max_threads,
+        ),
+        adaptive_threshold=AdaptiveThresholdConfig(
+            fixed_threshold=config.fixed_threshold,
+            initial_threshold=config.initial_threshold,
+            min_motion_th=config.min_motion_threshold,
+        ),
+    )
+
+
+def normalized_point_times(point_times: NDArray[np.float64] | None) -> tuple[FloatArray, float | None]:
+    """KISS-ICP's per-point times (0 at the first point, 1 at the last), and where the cloud's stamp
+    (relative time 0) falls on that scale; (empty, None) when the cloud cannot be deskewed: no times, a
+    non-finite one, or a sweep spanning no time."""
+    if point_times is None or len(point_times) == 0:
+        return NO_TIMES, None
+    first = float(np.min(point_times))
+    span = float(np.max(point_times)) - first
+    if not (np.isfinite(first) and np.isfinite(span)) or span <= 0.0:
+        return NO_TIMES, None
+    return (np.asarray(point_times, dtype=np.float64) - first) / span, -first / span
+
+
+@dataclass(frozen=True, eq=False)
+class OdometryStep:
+    """One registered cloud."""
+
+    pose: FloatArray
+    """4×4 pose of the sensor at the cloud's stamp, in the odometry frame (the first cloud's sensor frame)."""
+    points: FloatArray
+    """(N, 3) the cloud as registered: range-limited and deskewed, in the frame `points_pose`."""
+    points_pose: FloatArray
+    """4×4 pose of the frame `points` are in: the sensor at the last point's time when deskewed."""
+    deskewed: bool
+
+
+class Odometry(Protocol):
+    """What the SLAM needs of an odometry: register a cloud, or decline one with too few points."""
+
+    def register(
+        self, points: NDArray[np.floating], point_times: NDArray[np.float64] | None = None
+    ) -> OdometryStep | None: ...
+
+
+class KissOdometry:
+    """Feed clouds in time order with `register`."""
+
+    def __init__(self, config: OdometryConfig | None = None) -> None:
+        self.config = config or OdometryConfig()
+        self._kiss = KissICP(kiss_config(self.config))
+        self._pose = np.eye(4)
+
+    @property
+    def pose(self) -> FloatArray:
+        """The latest registered pose (at its cloud's stamp)."""
+        return self._pose.copy()
+
+    def register(
+        self, points: NDArray[np.floating], point_times: NDArray[np.float64] | None = None
+    ) -> OdometryStep | None:
+        """Register one cloud, (N, 3) points in the sensor frame with optional times (s, relative to the
+        stamp); None (and nothing changes) when it has fewer than `min_points` points."""
+        if len(points) < self.config.min_points:
+            return None
+        times, stamp_fraction = (
+            normalized_point_times(point_times) if self.config.deskew else (NO_TIMES, None)
+        )
+        # The motion the deskewing assumes: read before registering replaces it.
+        motion = np.array(self._kiss.last_delta, dtype=np.float64)
+        frame = np.ascontiguousarray(points, dtype=np.float64)
+        deskewed, _ = self._kiss.register_frame(frame, times)
+        end_pose = np.array(self._kiss.last_pose, dtype=np.float64)
+        pose = end_pose
+        if stamp_fraction is not None and stamp_fraction != 1.0:
+            pose = end_pose @ se3.exp((stamp_fraction - 1.0) * se3.log(motion))
+        self._pose = pose
+        return OdometryStep(pose, np.asarray(deskewed), end_pose, stamp_fraction is not None)
+
+
+def downsample(points: NDArray[np.floating], voxel: float) -> FloatArray:
+    """One point per voxel of this size (KISS-ICP's voxel filter: the first point seen in each voxel)."""
+    if len(points) == 0:
+        return np.empty((0, 3))
+    return np.asarray(voxel_down_sample(np.ascontiguousarray(points, dtype=np.float64), voxel))

@@ -1,0 +1,493 @@
+"""3D LiDAR SLAM: point clouds in, a keyframe pose graph with verified loop closures out.
+
+1. Each cloud is registered by KISS-ICP (`frontends.slam3d.odometry`), deskewed when it carries per-point
+   times. Poses are those of the vehicle's base (the sensor's mount from tf, identity without one) in the
+   odometry frame (the base at the first cloud).
+2. A cloud that moved far enough from the last keyframe becomes a keyframe: its cloud, downsampled, is kept
+   in the keyframe's frame with a Scan Context descriptor, and the KISS-ICP motion since the previous
+   keyframe is a constraint between the two. Every cloud is tied to its keyframe by a fixed offset.
+3. At keyframes, older keyframes near the current estimate (a radius growing with the path joining them in
+   the graph) whose descriptor looks alike are verified by GICP with an ambiguity test
+   (`frontends.slam3d.loop_closure`). A loop closure that moves the current estimate more than a little is
+   a hypothesis until a second one agrees with it, as in 2D.
+4. Every few loop closures the planar graph is re-optimized (Gauss–Newton) and loop closures whose χ²
+   stays large at the optimum are removed; the map ← odometry correction follows the last keyframe.
+
+Ground-vehicle assumption. The graph is kept in 3D (4×4 keyframe poses, relative 4×4 constraints with
+6×6 information) but optimized in SE(2): x, y and yaw, through `frontends.slam3d.planar`. Height, roll
+and pitch of every keyframe stay those of the odometry, which sees the ground in every cloud and drifts
+little in them; planar loop closures cannot correct height drift (ramps, several storeys). A full SE(3)
+backend can replace the projection later (`Slam3DGraph` already holds everything it needs) without
+touching this frontend.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from frontends.errors import FrontendError
+from frontends.slam3d import planar, se3
+from frontends.slam3d.config import Slam3DConfig
+from frontends.slam3d.loop_closure import (
+    LoopMatch,
+    RegistrationTarget,
+    descriptor_distances,
+    scan_context,
+    verify_loop,
+)
+from frontends.slam3d.odometry import KissOdometry, Odometry, downsample
+from frontends.types import Cloud3D
+from optimizer import se2
+from optimizer.cost import edge_chi2
+from optimizer.graph import PoseGraph
+from optimizer.polish import gauss_newton
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+REOPTIMIZE_ITERATIONS = 15
+DESCRIPTOR_GUESS_MIN_ANGLE = np.radians(5.0)
+"""The descriptor's heading is tried as a second registration start when it differs this much from the
+estimate's (otherwise the two starts are the same)."""
+
+
+@dataclass(frozen=True, eq=False)
+class CloudEstimate:
+    """What the frontend concluded about one cloud when it processed it."""
+
+    index: int
+    stamp_ns: int
+    pose: FloatArray
+    """4×4 pose of the base in the map frame at processing time (identity before the first keyframe)."""
+    tracked: bool
+    """False when the cloud had too few points to register: its pose is the previous one."""
+    keyframe: int
+    """Its keyframe; −1 for a cloud before the first keyframe (not part of the trajectory)."""
+    new_loop_closures: tuple[tuple[int, int], ...]
+    """Loop closures (older keyframe, this keyframe) accepted while processing this cloud."""
+
+
+@dataclass(frozen=True, eq=False)
+class Slam3DGraph:
+    """The frontend's result: the 3D keyframe graph and how every cloud hangs off its keyframe."""
+
+    keyframe_poses: FloatArray
+    """(K, 4, 4) keyframe poses as estimated online (loop closures applied)."""
+    keyframe_odometry: FloatArray
+    """(K, 4, 4) keyframe poses from KISS-ICP alone: a poorer start, and the source of height, roll, pitch."""
+    keyframe_stamps_ns: IntArray
+    edge_from: IntArray
+    edge_to: IntArray
+    """(M,) constraints, odometry then loop closures in the order they were made; from < to."""
+    relative: FloatArray
+    """(M, 4, 4) measured pose of `edge_to` in the frame of `edge_from`."""
+    information: FloatArray
+    """(M, 6, 6) in (tx, ty, tz, rx, ry, rz) order."""
+    is_loop: NDArray[np.bool_]
+    cloud_stamps_ns: IntArray
+    cloud_keyframes: IntArray
+    cloud_offsets: FloatArray
+    """(S, 4, 4) pose of each cloud's base in the frame of its keyframe."""
+    keyframe_clouds: tuple[NDArray[np.float32], ...]
+    """Each keyframe's cloud, downsampled and deskewed, in the keyframe's base frame (for maps)."""
+    loop_closures_accepted: int
+    loop_closures_rejected: int
+    """Accepted online, then removed by the χ² test after an optimization."""
+    loop_candidates: dict[str, int]
+    """How candidate verifications ended: "accepted", "poor fit", "ambiguous", "unconfirmed"."""
+    clouds_untracked: int
+    clouds_dropped: int
+    """Clouds before the first keyframe that had too few points: not in the trajectory."""
+
+    @property
+    def num_keyframes(self) -> int:
+        return len(self.keyframe_poses)
+
+    @property
+    def odometry_chain(self) -> FloatArray:
+        """(K, 3) planar keyframe poses from the odometry alone: where the recorded optimization starts."""
+        return planar.planar(self.keyframe_odometry)
+
+    def planar_graph(self, planar_poses: ArrayLike | None = None) -> PoseGraph:
+        """The SE(2) graph the backend optimizes, at the online estimate unless `planar_poses` (K, 3)."""
+        return planar.project_graph(
+            self.keyframe_poses, self.edge_from, self.edge_to, self.relative, self.information, planar_poses
+        )
+
+    def lift(self, planar_poses: ArrayLike) -> FloatArray:
+        """(K, 4, 4) keyframe poses from optimized planar ones, height, roll and pitch from odometry."""
+        return planar.lift(planar_poses, self.keyframe_odometry)
+
+    def cloud_poses(self, keyframe_poses: ArrayLike) -> FloatArray:
+        """(S, 4, 4) every cloud's pose given (optimized) 4×4 keyframe poses."""
+        return np.asarray(keyframe_poses, dtype=np.float64)[self.cloud_keyframes] @ self.cloud_offsets
+
+    def map_points(self, keyframe_poses: ArrayLike, voxel: float) -> NDArray[np.float32]:
+        """(P, 3) the keyframe clouds placed at 4×4 `keyframe_poses`, one point per voxel of this size."""
+        placed = [
+            se3.transform_points(pose, cloud)
+            for pose, cloud in zip(np.asarray(keyframe_poses), self.keyframe_clouds, strict=True)
+        ]
+        return downsample(np.concatenate(placed), voxel).astype(np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class _LoopHypothesis:
+    candidate: int
+    current: int
+    match: LoopMatch
+    correction: FloatArray
+    """Planar: matched pose ∘ estimated pose⁻¹ of the current keyframe (how far the match moves the map)."""
+
+
+@dataclass
+class _Edges:
+    first: list[int] = field(default_factory=list)
+    second: list[int] = field(default_factory=list)
+    relative: list[FloatArray] = field(default_factory=list)
+    information: list[FloatArray] = field(default_factory=list)
+    is_loop: list[bool] = field(default_factory=list)
+
+    def add(self, a: int, b: int, relative: FloatArray, information: FloatArray, is_loop: bool) -> None:
+        self.first.append(a)
+        self.second.append(b)
+        self.relative.append(np.asarray(relative, dtype=np.float64))
+        self.information.append(0.5 * (information + information.T))
+        self.is_loop.append(is_loop)
+
+    def remove(self, index: int) -> None:
+        for column in (self.first, self.second, self.relative, self.information, self.is_loop):
+            del column[index]
+
+    def arrays(self) -> tuple[IntArray, IntArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+        return (
+            np.array(self.first, dtype=np.int64),
+            np.array(self.second, dtype=np.int64),
+            np.array(self.relative).reshape(-1, 4, 4),
+            np.array(self.information).reshape(-1, 6, 6),
+            np.array(self.is_loop, dtype=bool),
+        )
+
+
+class LidarSlam3D:
+    """Feed clouds in time order with `add_cloud`; `finish` returns the keyframe graph.
+
+    `sensor_to_base` is the 4×4 pose of the sensor in the vehicle's base frame (its mount); poses and
+    keyframe clouds are the base's. Identity: the sensor frame is the base frame. `odometry` replaces
+    KISS-ICP (built from `config.odometry` by default) by another source of registered clouds.
+    """
+
+    def __init__(
+        self,
+        config: Slam3DConfig | None = None,
+        *,
+        sensor_to_base: ArrayLike | None = None,
+        odometry: Odometry | None = None,
+    ) -> None:
+        self.config = config or Slam3DConfig()
+        self._mount = np.eye(4) if sensor_to_base is None else np.array(sensor_to_base, dtype=np.float64)
+        if self._mount.shape != (4, 4):
+            raise ValueError(f"sensor_to_base must be 4×4, got {self._mount.shape}")
+        self._mount_inverse = se3.inverse(self._mount)
+        self._odometry = odometry or KissOdometry(self.config.odometry)
+        self._map_from_odometry = np.eye(4)
+        self._keyframe_odometry: list[FloatArray] = []
+        self._keyframe_poses: list[FloatArray] = []
+        self._keyframe_stamps: list[int] = []
+        self._keyframe_clouds: list[NDArray[np.float32]] = []
+        self._keyframe_descriptors: list[FloatArray] = []
+        self._keyframe_travel: list[float] = []
+        self._edges = _Edges()
+        self._cloud_stamps: list[int] = []
+        self._cloud_keyframes: list[int] = []
+        self._cloud_offsets: list[FloatArray] = []
+        self._last_base = np.eye(4)
+        self._clouds_seen = 0
+        self._untracked = 0
+        self._dropped = 0
+        self._pending_loops = 0
+        self._hypotheses: list[_LoopHypothesis] = []
+        self._rejected = 0
+        self._candidates = {"accepted": 0, "poor fit": 0, "ambiguous": 0, "unconfirmed": 0}
+
+    # ------------------------------------------------------------------------------------------ clouds
+
+    def add_cloud(self, cloud: Cloud3D) -> CloudEstimate:
+        """Process one cloud (points in the sensor frame)."""
+        index = self._clouds_seen
+        self._clouds_seen += 1
+        step = self._odometry.register(cloud.points, cloud.point_times)
+        if step is None:
+            self._untracked += 1
+            if not self._keyframe_poses:
+                self._dropped += 1
+                return CloudEstimate(index, cloud.stamp_ns, np.eye(4), False, -1, ())
+            base = self._last_base
+        else:
+            base = self._mount @ step.pose @ self._mount_inverse
+        new_loops: tuple[tuple[int, int], ...] = ()
+        if step is not None and self._is_new_keyframe(base):
+            points = downsample(step.points, self.config.keyframes.cloud_voxel)
+            # deskewed points are in the sensor frame at the sweep's end: bring them to the base at the stamp
+            to_base = self._mount @ se3.relative(step.pose, step.points_pose)
+            self._add_keyframe(base, cloud.stamp_ns, se3.transform_points(to_base, points))
+            new_loops = self._close_loops()
+        self._last_base = base
+        keyframe = len(self._keyframe_poses) - 1
+        offset = se3.relative(self._keyframe_odometry[keyframe], base)
+        self._cloud_stamps.append(int(cloud.stamp_ns))
+        self._cloud_keyframes.append(keyframe)
+        self._cloud_offsets.append(offset)
+        pose = self._keyframe_poses[keyframe] @ offset
+        return CloudEstimate(index, cloud.stamp_ns, pose, step is not None, keyframe, new_loops)
+
+    def _is_new_keyframe(self, base: FloatArray) -> bool:
+        if not self._keyframe_odometry:
+            return True
+        settings = self.config.keyframes
+        step = se3.relative(self._keyframe_odometry[-1], base)
+        return bool(
+            np.linalg.norm(step[:3, 3]) >= settings.distance or se3.rotation_angle(step) >= settings.angle
+        )
+
+    # -------------------------------------------------------------------------------------- keyframes
+
+    def _add_keyframe(self, base: FloatArray, stamp_ns: int, points: FloatArray) -> None:
+        settings = self.config.loop_closure
+        count = len(self._keyframe_odometry)
+        travel = 0.0
+        if count:
+            step = se3.relative(self._keyframe_odometry[-1], base)
+            length = float(np.linalg.norm(step[:3, 3]))
+            self._edges.add(count - 1, count, step, self._odometry_information(step), is_loop=False)
+            travel = self._keyframe_travel[-1] + length
+        self._keyframe_odometry.append(base.copy())
+        self._keyframe_poses.append(self._map_from_odometry @ base)
+        self._keyframe_stamps.append(int(stamp_ns))
+        self._keyframe_clouds.append(points.astype(np.float32))
+        self._keyframe_travel.append(travel)
+        levelled = se3.transform_points(se3.relative(planar.level(base), base), points)
+        self._keyframe_descriptors.append(
+            scan_context(
+                levelled, settings.descriptor_rings, settings.descriptor_sectors, settings.descriptor_radius
+            )
+        )
+
+    def _odometry_information(self, step: FloatArray) -> FloatArray:
+        settings = self.config.keyframes
+        length = float(np.linalg.norm(step[:3, 3]))
+        sigma_linear = settings.odometry_sigma_linear + settings.odometry_sigma_per_metre * length
+        sigma_angular = (
+            settings.odometry_sigma_angular
+            + settings.odometry_sigma_per_radian * float(se3.rotation_angle(step))
+            + settings.odometry_sigma_per_metre_angular * length
+        )
+        return np.diag([sigma_linear**-2] * 3 + [sigma_angular**-2] * 3)
+
+    # ---------------------------------------------------------------------------------- loop closures
+
+    def _close_loops(self) -> tuple[tuple[int, int], ...]:
+        settings = self.config.loop_closure
+        current = len(self._keyframe_poses) - 1
+        if not settings.enabled or current % settings.every_keyframes:
+            return ()
+        travel = np.array(self._keyframe_travel)
+        older = int(np.searchsorted(travel, travel[current] - settings.min_travel, side="right"))
+        if older == 0:
+            return ()
+        self._drop_hypotheses(
+            [h for h in self._hypotheses if current - h.current > settings.hypothesis_keyframes]
+        )
+        poses = planar.planar(np.array(self._keyframe_poses[:older]))
+        here = planar.planar(self._keyframe_poses[current])
+        distance = np.hypot(*(poses[:, :2] - here[:2]).T)
+        if not np.any(distance <= settings.max_search_radius):  # nothing near: skip the graph search
+            return ()
+        radius = np.minimum(
+            settings.search_radius
+            + settings.search_radius_per_metre * self._path_lengths_to(current)[:older],
+            settings.max_search_radius,
+        )
+        near = np.flatnonzero(distance <= radius)
+        if len(near) == 0:
+            return ()
+        distances, headings = descriptor_distances(
+            self._keyframe_descriptors[current], np.array([self._keyframe_descriptors[k] for k in near])
+        )
+        candidates: list[tuple[int, float]] = []
+        for i in np.argsort(distances):
+            if distances[i] > settings.descriptor_max_distance:
+                break
+            if len(candidates) >= settings.candidates_per_keyframe:
+                break
+            if all(abs(int(near[i]) - c) > settings.submap_keyframes for c, _ in candidates):
+                candidates.append((int(near[i]), float(headings[i])))
+        found: list[tuple[int, int]] = []
+        for candidate, heading in candidates:
+            hypothesis = self._verify_loop(candidate, current, heading, older - 1)
+            if hypothesis is None:
+                continue
+            for accepted in self._confirmed(hypothesis):
+                self._edges.add(
+                    accepted.candidate,
+                    accepted.current,
+                    accepted.match.relative,
+                    accepted.match.information,
+                    is_loop=True,
+                )
+                found.append((accepted.candidate, accepted.current))
+        if found:
+            self._candidates["accepted"] += len(found)
+            self._pending_loops += len(found)
+            if self._pending_loops >= settings.optimize_every_loop_closures:
+                self.optimize_online()
+        return tuple(found)
+
+    def _confirmed(self, hypothesis: _LoopHypothesis) -> list[_LoopHypothesis]:
+        """The loop closures this one makes acceptable: itself when it barely moves the map; otherwise it
+        and the earlier hypotheses it agrees with, or none (it waits for a second one)."""
+        settings = self.config.loop_closure
+        if _is_small(
+            hypothesis.correction, settings.small_correction_linear, settings.small_correction_angular
+        ):
+            return [hypothesis]
+        agreeing = [
+            h
+            for h in self._hypotheses
+            if _is_small(
+                se2.relative(h.correction, hypothesis.correction),
+                settings.small_correction_linear,
+                settings.small_correction_angular,
+            )
+        ]
+        if not agreeing:
+            self._hypotheses.append(hypothesis)
+            return []
+        self._hypotheses = [h for h in self._hypotheses if h not in agreeing]
+        return [*agreeing, hypothesis]
+
+    def _drop_hypotheses(self, dropped: list[_LoopHypothesis]) -> None:
+        """Forget hypotheses that found no second loop closure agreeing with them."""
+        self._candidates["unconfirmed"] += len(dropped)
+        self._hypotheses = [h for h in self._hypotheses if h not in dropped]
+
+    def _path_lengths_to(self, keyframe: int) -> FloatArray:
+        """Shortest path length (m) through the graph's constraints from `keyframe` to every keyframe."""
+        count = len(self._keyframe_poses)
+        first, second, relative, _, _ = self._edges.arrays()
+        length = np.maximum(np.linalg.norm(relative[:, :3, 3], axis=1), 1e-6)  # 0 would mean "no edge"
+        adjacency = coo_matrix((length, (first, second)), shape=(count, count)).tocsr()
+        return dijkstra(adjacency, directed=False, indices=keyframe)
+
+    def _verify_loop(
+        self, candidate: int, current: int, heading: float, last_old: int
+    ) -> _LoopHypothesis | None:
+        settings = self.config.loop_closure
+        anchor = self._keyframe_poses[candidate]
+        around = range(
+            max(0, candidate - settings.submap_keyframes),
+            min(last_old, candidate + settings.submap_keyframes) + 1,
+        )
+        target_points = np.concatenate(
+            [
+                se3.transform_points(se3.relative(anchor, self._keyframe_poses[k]), self._keyframe_clouds[k])
+                for k in around
+            ]
+        )
+        here = self._keyframe_poses[current]
+        estimate = se3.relative(anchor, here)
+        guesses = [estimate]
+        # The descriptor's heading is between the levelled frames: keep the estimate's position and tilts.
+        levelled = se3.relative(planar.level(anchor), planar.level(here))
+        if abs(se2.wrap_angle(heading - planar.yaw(levelled))) > DESCRIPTOR_GUESS_MIN_ANGLE:
+            turned = planar.lift(np.array([*levelled[:2, 3], heading]), levelled)
+            tilt_anchor = se3.relative(planar.level(anchor), anchor)
+            tilt_here = se3.relative(planar.level(here), here)
+            guesses.append(se3.inverse(tilt_anchor) @ turned @ tilt_here)
+        verdict = verify_loop(
+            RegistrationTarget(target_points, settings), self._keyframe_clouds[current], guesses, settings
+        )
+        if verdict.match is None:
+            self._candidates[verdict.reason] += 1
+            return None
+        matched = planar.planar(anchor @ verdict.match.relative)
+        correction = se2.compose(matched, se2.inverse(planar.planar(here)))
+        return _LoopHypothesis(candidate, current, verdict.match, correction)
+
+    # ------------------------------------------------------------------------------------ optimization
+
+    def _planar_graph(self, planar_poses: FloatArray) -> PoseGraph:
+        first, second, relative, information, _ = self._edges.arrays()
+        return planar.project_graph(
+            np.array(self._keyframe_poses), first, second, relative, information, planar_poses
+        )
+
+    def optimize_online(self) -> None:
+        """Re-optimize the planar keyframe graph from the current estimate, dropping inconsistent loop
+        closures, and move the keyframes (and the map ← odometry correction) accordingly."""
+        self._pending_loops = 0
+        # a hypothesis' correction is relative to the estimate it was found on: void once that moves
+        self._drop_hypotheses(list(self._hypotheses))
+        if len(self._keyframe_poses) < 2 or not any(self._edges.is_loop):
+            return
+        threshold = self.config.loop_closure.chi2_threshold
+        poses = planar.planar(np.array(self._keyframe_poses))
+        while True:
+            graph = self._planar_graph(poses)
+            for step in gauss_newton(graph, poses, max_iterations=REOPTIMIZE_ITERATIONS):
+                poses = step.poses
+            loops = np.flatnonzero(self._edges.is_loop)
+            if len(loops) == 0:
+                break
+            errors = edge_chi2(graph, poses)[loops]
+            worst = int(np.argmax(errors))
+            if errors[worst] <= threshold:
+                break
+            self._edges.remove(int(loops[worst]))
+            self._rejected += 1
+        lifted = planar.lift(poses, np.array(self._keyframe_odometry))
+        self._keyframe_poses = list(lifted)
+        self._map_from_odometry = lifted[-1] @ se3.inverse(self._keyframe_odometry[-1])
+
+    # ------------------------------------------------------------------------------------------ result
+
+    def finish(self) -> Slam3DGraph:
+        """Final online optimization, and the keyframe graph with every cloud's offset from its keyframe.
+        Raises `FrontendError` when no cloud could be registered."""
+        if not self._keyframe_poses:
+            raise FrontendError(
+                f"none of the {self._clouds_seen} clouds had the {self.config.odometry.min_points} points "
+                "needed to register it"
+            )
+        if self._pending_loops:
+            self.optimize_online()
+        self._drop_hypotheses(list(self._hypotheses))
+        first, second, relative, information, is_loop = self._edges.arrays()
+        return Slam3DGraph(
+            keyframe_poses=np.array(self._keyframe_poses),
+            keyframe_odometry=np.array(self._keyframe_odometry),
+            keyframe_stamps_ns=np.array(self._keyframe_stamps, dtype=np.int64),
+            edge_from=first,
+            edge_to=second,
+            relative=relative,
+            information=information,
+            is_loop=is_loop,
+            cloud_stamps_ns=np.array(self._cloud_stamps, dtype=np.int64),
+            cloud_keyframes=np.array(self._cloud_keyframes, dtype=np.int64),
+            cloud_offsets=np.array(self._cloud_offsets).reshape(-1, 4, 4),
+            keyframe_clouds=tuple(self._keyframe_clouds),
+            loop_closures_accepted=int(is_loop.sum()),
+            loop_closures_rejected=self._rejected,
+            loop_candidates=dict(self._candidates),
+            clouds_untracked=self._untracked,
+            clouds_dropped=self._dropped,
+        )
+
+
+def _is_small(transform: FloatArray, linear: float, angular: float) -> bool:
+    return bool(np.hypot(transform[0], transform[1]) <= linear and abs(transform[2]) <= angular)

@@ -1,0 +1,163 @@
+"""The 3D part of a point-cloud replay's recording (rerun is imported only under `pipeline.recording`).
+
+Layout, beside the 2D pose graph of `pipeline.recording` (`world/…`, the SE(2) poses the backend
+optimizes, and the χ² plots):
+- `world3d/keyframes/kNNNNNN`: each keyframe's cloud (downsampled), static, in the keyframe's own frame,
+  with the keyframe's pose as a Transform3D on the `iteration` timeline: the clouds move into place as the
+  graph converges;
+- `world3d/trajectory` on `iteration`: the 3D keyframe trajectory after every iteration;
+- `world3d/initial_trajectory` (static) and `world3d/map` (static): the starting trajectory and the final
+  map (all keyframe clouds at their optimized poses, one point per voxel).
+
+The blueprint shows the 3D scene beside the 2D graph and the χ² plots, with the time panel on `iteration`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+from numpy.typing import NDArray
+
+from pipeline.recording import (
+    CHI2_ENTITY,
+    INITIAL_TRAJECTORY_COLOR,
+    ITERATION_TIMELINE,
+    LOG10_CHI2_ENTITY,
+    STAGE_ENTITY,
+    TRAJECTORY_COLOR,
+    WORLD_ENTITY,
+)
+
+WORLD3D_ENTITY = "world3d"
+KEYFRAMES_ENTITY = "world3d/keyframes"
+TRAJECTORY3D_ENTITY = "world3d/trajectory"
+INITIAL_TRAJECTORY3D_ENTITY = "world3d/initial_trajectory"
+MAP3D_ENTITY = "world3d/map"
+
+MAP3D_COLOR = (60, 60, 60, 255)
+POINT_RADIUS = rr.Radius.ui_points(1.5)
+LINE_WIDTH = rr.Radius.ui_points(2.0)
+DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
+
+FloatArray = NDArray[np.float64]
+
+
+def keyframe_entity(index: int) -> str:
+    return f"{KEYFRAMES_ENTITY}/k{index:06d}"
+
+
+def cloud_blueprint() -> rrb.Blueprint:
+    """The 3D scene, the planar pose graph, χ² and the stage log; the time panel on `iteration`."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin=WORLD3D_ENTITY, name="keyframes and map (3D)"),
+            rrb.Vertical(
+                rrb.Spatial2DView(origin=WORLD_ENTITY, name="pose graph (x, y)"),
+                rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="log10 χ²"),
+                rrb.TimeSeriesView(origin=CHI2_ENTITY, name="χ²"),
+                rrb.TextLogView(origin=STAGE_ENTITY, name="stages"),
+                row_shares=[3, 2, 2, 1],
+            ),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(timeline=ITERATION_TIMELINE),
+        collapse_panels=False,
+    )
+
+
+def send_cloud_blueprint(recording: rr.RecordingStream) -> None:
+    recording.send_blueprint(cloud_blueprint(), make_active=True, make_default=True)
+
+
+def _colour(index: int, count: int) -> tuple[int, int, int, int]:
+    """Keyframes coloured along the drive (a hue wheel), so that a loop's two passes are told apart."""
+    hue = index / max(count, 1)
+    r, g, b = (np.clip(np.abs((hue * 6.0 + shift) % 6.0 - 3.0) - 1.0, 0.0, 1.0) for shift in (0.0, 4.0, 2.0))
+    return int(60 + 180 * r), int(60 + 180 * g), int(60 + 180 * b), 255
+
+
+def log_keyframe_clouds(recording: rr.RecordingStream, clouds: Sequence[NDArray[np.floating]]) -> None:
+    """Each keyframe's cloud, static, in its keyframe's frame (its pose comes per iteration)."""
+    for index, points in enumerate(clouds):
+        recording.log(
+            keyframe_entity(index),
+            rr.Points3D(
+                np.asarray(points, dtype=np.float32),
+                colors=[_colour(index, len(clouds))],
+                radii=[POINT_RADIUS],
+            ),
+            static=True,
+        )
+
+
+def log_initial_trajectory3d(recording: rr.RecordingStream, poses: FloatArray) -> None:
+    """The starting 3D keyframe trajectory, static and faint; `poses` (K, 4, 4)."""
+    recording.log(
+        INITIAL_TRAJECTORY3D_ENTITY,
+        rr.LineStrips3D(
+            [np.asarray(poses[:, :3, 3], dtype=np.float32)],
+            colors=[INITIAL_TRAJECTORY_COLOR],
+            radii=[LINE_WIDTH],
+        ),
+        static=True,
+    )
+    recording.log(
+        TRAJECTORY3D_ENTITY,
+        rr.LineStrips3D.from_fields(colors=[TRAJECTORY_COLOR], radii=[LINE_WIDTH]),
+        static=True,
+    )
+
+
+def log_map(recording: rr.RecordingStream, points: NDArray[np.floating]) -> None:
+    """The final map, static."""
+    recording.log(
+        MAP3D_ENTITY,
+        rr.Points3D(np.asarray(points, dtype=np.float32), colors=[MAP3D_COLOR], radii=[POINT_RADIUS]),
+        static=True,
+    )
+
+
+class KeyframePoseRecorder:
+    """Logs the 3D keyframe poses of every iteration: one Transform3D per keyframe entity and the 3D
+    trajectory, on `iteration`, buffered and sent in column batches of about `batch_bytes`."""
+
+    def __init__(self, recording: rr.RecordingStream, *, batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
+        self._recording = recording
+        self._batch_bytes = batch_bytes
+        self._steps: list[int] = []
+        self._poses: list[NDArray[np.float32]] = []
+        self._buffered_bytes = 0
+
+    def add(self, step: int, poses: FloatArray) -> None:
+        """Buffer the (K, 4, 4) keyframe poses of the iteration logged at `step`."""
+        poses = np.asarray(poses, dtype=np.float32)
+        self._steps.append(step)
+        self._poses.append(poses)
+        self._buffered_bytes += poses.nbytes
+        if self._buffered_bytes >= self._batch_bytes:
+            self.flush()
+
+    def flush(self) -> None:
+        """Send what is buffered."""
+        if not self._steps:
+            return
+        steps = rr.TimeColumn(ITERATION_TIMELINE, sequence=np.asarray(self._steps, dtype=np.int64))
+        poses = np.stack(self._poses)  # (T, K, 4, 4)
+        for index in range(poses.shape[1]):
+            self._recording.send_columns(
+                keyframe_entity(index),
+                indexes=[steps],
+                columns=rr.Transform3D.columns(
+                    translation=poses[:, index, :3, 3], mat3x3=poses[:, index, :3, :3]
+                ),
+            )
+        self._recording.send_columns(
+            TRAJECTORY3D_ENTITY,
+            indexes=[steps],
+            columns=rr.LineStrips3D.columns(strips=[trajectory[:, :3, 3] for trajectory in poses]),
+        )
+        self._steps, self._poses = [], []
+        self._buffered_bytes = 0

@@ -1,0 +1,184 @@
+"""Replaying a 3D LiDAR log: a simulated town loop written as a real ROS 2 MCAP, replayed end to end."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from frontends.slam3d import se3
+from pipeline.errors import PipelineError
+from pipeline.ply import PlyFileError, read_ply, write_ply
+from pipeline.replay_cloud import CloudReplayResult, replay_cloud
+from pipeline.trajectory_io import read_tum
+from tests._frontends_fixtures import write_mcap_ros
+from tests.conftest import shared_file
+from tests.lidar_world import (
+    Lidar,
+    drive,
+    loop_drive,
+    planar_to_matrix,
+    town_loop,
+    write_cloud_log,
+)
+from tests.test_pipeline_replay import read_recording
+
+
+@pytest.fixture(scope="module")
+def loop_replay(tmp_path_factory: pytest.TempPathFactory) -> tuple[CloudReplayResult, Path, np.ndarray]:
+    folder = tmp_path_factory.mktemp("cloud")
+    path = folder / "town.mcap"
+    stamps = write_cloud_log(path, loop_drive())
+    result = replay_cloud(path, out_dir=folder / "out")
+    return result, folder / "out", stamps
+
+
+def test_outputs_are_written_and_the_trajectory_follows_the_truth(
+    loop_replay: tuple[CloudReplayResult, Path, np.ndarray],
+) -> None:
+    result, out, stamps = loop_replay
+    assert sorted(p.name for p in out.iterdir()) == [
+        "town.g2o",
+        "town.json",
+        "town.ply",
+        "town.rrd",
+        "town.tum",
+    ]
+    trajectory = read_tum(out / "town.tum")
+    np.testing.assert_array_equal(trajectory.stamps_ns, stamps)
+    # poses are those of base_link (tf's mount taken out), from the first one; the truth likewise
+    truth = loop_drive().base_poses
+    estimated = trajectory.planar()
+    relative = np.array(
+        [se3.relative(planar_to_matrix(estimated[0]), planar_to_matrix(p)) for p in estimated]
+    )
+    expected = se3.relative(planar_to_matrix(truth[0]), planar_to_matrix(truth))
+    errors = np.linalg.norm(relative[:, :2, 3] - expected[:, :2, 3], axis=1)
+    assert errors.max() < 0.5 and errors[-1] < 0.2
+    summary = json.loads((out / "town.json").read_text())
+    assert summary["schema"] == "sgdslam.replay-cloud/1"
+    assert summary["cloud_topic"] == "/points" and summary["base_frame"] == "base_link"
+    assert summary["counts"]["clouds"] == len(stamps) == summary["counts"]["clouds_in_trajectory"]
+    assert summary["loop_closures"]["accepted"] >= 1
+    assert summary["counts"]["keyframes"] == result.frontend.num_keyframes
+    assert summary["config"]["odometry"]["max_range"] == 100.0
+
+
+def test_the_map_is_a_ply_of_points_on_the_world_s_surfaces(
+    loop_replay: tuple[CloudReplayResult, Path, np.ndarray],
+) -> None:
+    result, out, _ = loop_replay
+    vertices = read_ply(out / "town.ply")
+    assert vertices.dtype.names == ("x", "y", "z")
+    assert (
+        len(vertices)
+        == result.map_points
+        == json.loads((out / "town.json").read_text())["counts"]["map_points"]
+    )
+    points = np.column_stack([vertices["x"], vertices["y"], vertices["z"]]).astype(np.float64)[::7]
+    # Into the world frame with the true first pose: the points lie on the boxes or the ground, up to the
+    # trajectory's errors (a few tenths of a degree of pitch moves a point 50 m away by decimetres).
+    points = se3.transform_points(planar_to_matrix(loop_drive().base_poses[0]), points)
+    boxes = town_loop().boxes
+    gap = np.maximum(
+        np.maximum(boxes[None, :, :3] - points[:, None, :], points[:, None, :] - boxes[None, :, 3:]), 0
+    )
+    distance = np.minimum(np.linalg.norm(gap, axis=2).min(axis=1), np.abs(points[:, 2]))
+    assert np.median(distance) < 0.1
+    assert np.mean(distance < 1.0) > 0.98
+
+
+def test_the_recording_holds_every_iteration_in_2d_and_3d(
+    loop_replay: tuple[CloudReplayResult, Path, np.ndarray],
+) -> None:
+    result, out, _ = loop_replay
+    entities = read_recording(out / "town.rrd")
+    steps = list(range(len(result.chi2_per_iteration)))
+    assert entities["/world/trajectory"].steps == steps
+    assert entities["/world3d/trajectory"].steps == steps
+    first = entities["/world3d/keyframes/k000000"]
+    assert first.steps == steps and first.static_rows == 1
+    last = f"/world3d/keyframes/k{result.frontend.num_keyframes - 1:06d}"
+    assert entities[last].steps == steps
+    assert entities["/world3d/map"].static_rows == 1
+    assert entities["/world/loop_closures"].steps == steps
+    rerun_cli = shutil.which("rerun")
+    if rerun_cli is not None:  # installed with rerun-sdk
+        check = subprocess.run(
+            [rerun_cli, "rrd", "verify", str(out / "town.rrd")],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            stdin=subprocess.DEVNULL,
+        )
+        assert check.returncode == 0, check.stdout + check.stderr
+
+
+def test_without_tf_or_point_times_the_poses_are_the_sensor_s(tmp_path: Path) -> None:
+    short = drive(town_loop(), sweeps=12, step=0.5, lidar=Lidar(columns=360))
+    path = tmp_path / "bare.mcap"
+    write_cloud_log(path, short, with_times=False, with_mount=False)
+    result = replay_cloud(path, out_dir=tmp_path / "out", iterations=5)
+    assert result.base_frame is None
+    summary = json.loads((tmp_path / "out" / "bare.json").read_text())
+    assert summary["base_frame"] is None and summary["loop_closures"]["accepted"] == 0
+    assert len(read_tum(tmp_path / "out" / "bare.tum")) == 12
+
+
+def test_a_laser_scan_log_is_refused_and_nothing_is_written(tmp_path: Path) -> None:
+    path = write_mcap_ros(tmp_path / "scans.mcap")
+    with pytest.raises(PipelineError, match="2D laser scans"):
+        replay_cloud(path, out_dir=tmp_path / "out", cloud_topic="/scan")
+    assert not (tmp_path / "out").exists()
+
+
+def test_ply_round_trip_and_malformed_files(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(50, 3)).astype(np.float32)
+    colours = rng.integers(0, 256, size=(50, 3)).astype(np.uint8)
+    write_ply(tmp_path / "cloud.ply", points, colours)
+    raw = (tmp_path / "cloud.ply").read_bytes()
+    assert raw.startswith(b"ply\nformat binary_little_endian 1.0\n") and b"element vertex 50\n" in raw
+    vertices = read_ply(tmp_path / "cloud.ply")
+    np.testing.assert_array_equal(np.column_stack([vertices[a] for a in "xyz"]), points)
+    np.testing.assert_array_equal(np.column_stack([vertices[c] for c in ("red", "green", "blue")]), colours)
+    (tmp_path / "ascii.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n"
+    )
+    with pytest.raises(PlyFileError, match=re.escape("ascii.ply:2: format ascii 1.0 is not supported")):
+        read_ply(tmp_path / "ascii.ply")
+    (tmp_path / "short.ply").write_bytes(raw[:-7])
+    with pytest.raises(PlyFileError, match="truncated"):
+        read_ply(tmp_path / "short.ply")
+
+
+def test_kitti_city_replays_in_place(tmp_path: Path) -> None:
+    """The shared KITTI sequence (read from ../shared, never copied): 154 clouds, no loop."""
+    path = shared_file("logs/kitti/kitti_city.mcap")
+    result = replay_cloud(path, out_dir=tmp_path, iterations=10)
+    assert len(result.stamps_ns) == 154
+    assert result.frontend.loop_closures_accepted == 0
+    path_length = np.linalg.norm(np.diff(result.poses[:, :3, 3], axis=0), axis=1).sum()
+    assert 60.0 < path_length < 85.0
+
+
+def test_the_replay_command_routes_a_point_cloud_log_to_the_3d_replay(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    short = drive(town_loop(), sweeps=12, step=0.5, lidar=Lidar(columns=360))
+    path = tmp_path / "street.mcap"
+    write_cloud_log(path, short)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, [str(path), "--out", str(out), "--iterations", "5"])
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in out.iterdir()) == [
+        "street.g2o", "street.json", "street.ply", "street.rrd", "street.tum"]
+    assert "point clouds on /points" in result.stderr
+    assert len(read_tum(out / "street.tum")) == 12

@@ -1,0 +1,162 @@
+"""The 3D SLAM frontend end to end on a synthetic town loop: keyframes, loop closures, the planar graph."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from frontends.errors import FrontendError
+from frontends.slam3d import planar, se3
+from frontends.slam3d.config import OdometryConfig, Slam3DConfig
+from frontends.slam3d.odometry import KissOdometry, OdometryStep
+from frontends.slam3d.slam import LidarSlam3D, Slam3DGraph
+from frontends.types import Cloud3D
+from optimizer import se2
+from optimizer.cost import chi2
+from tests.lidar_world import Drive, Lidar, drive, homogeneous, loop_drive, rotation_z, town_loop
+
+PERIOD_NS = 100_000_000
+YAW_DRIFT_PER_METRE = math.radians(0.08)
+
+
+class DriftingOdometry:
+    """KISS-ICP whose heading drifts by a fixed rate per metre driven: the odometry a loop closure fixes.
+    Locally (over a few keyframes) it is as good as KISS-ICP; over the loop it bends by 10°."""
+
+    def __init__(self, rate: float) -> None:
+        self._inner = KissOdometry()
+        self._rate = rate
+        self._travel = 0.0
+        self._previous: np.ndarray | None = None
+
+    def register(self, points: np.ndarray, point_times: np.ndarray | None = None) -> OdometryStep | None:
+        step = self._inner.register(points, point_times)
+        if step is None:
+            return None
+        if self._previous is not None:
+            self._travel += float(np.linalg.norm(step.pose[:3, 3] - self._previous[:3, 3]))
+        self._previous = step.pose
+        drift = homogeneous(rotation_z(self._rate * self._travel), np.zeros(3))
+        return OdometryStep(drift @ step.pose, step.points, drift @ step.points_pose, step.deskewed)
+
+
+def clouds(drive_: Drive) -> list[Cloud3D]:
+    return [
+        Cloud3D(k * PERIOD_NS, k * PERIOD_NS, "lidar", points, times.astype(np.float64))
+        for k, (points, times) in enumerate(zip(drive_.clouds, drive_.times, strict=True))
+    ]
+
+
+def planar_errors(graph: Slam3DGraph, keyframe_poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Position error of every cloud, both trajectories taken relative to their first pose."""
+    poses = planar.planar(graph.cloud_poses(keyframe_poses))
+    estimated = se2.relative(poses[0], poses)
+    expected = se2.relative(truth[0], truth)
+    return np.hypot(*(estimated[:, :2] - expected[:, :2]).T)
+
+
+@pytest.fixture(scope="module")
+def drifting_run() -> tuple[Slam3DGraph, list, Drive]:
+    loop = loop_drive()
+    slam = LidarSlam3D(sensor_to_base=loop.mount, odometry=DriftingOdometry(YAW_DRIFT_PER_METRE))
+    estimates = [slam.add_cloud(cloud) for cloud in clouds(loop)]
+    return slam.finish(), estimates, loop
+
+
+def test_loop_closures_undo_the_odometry_drift(drifting_run: tuple[Slam3DGraph, list, Drive]) -> None:
+    graph, estimates, loop = drifting_run
+    odometry_errors = planar_errors(graph, graph.lift(graph.odometry_chain), loop.base_poses)
+    slam_errors = planar_errors(graph, graph.keyframe_poses, loop.base_poses)
+    assert odometry_errors[-1] > 1.0  # 10° of heading drift over the loop
+    assert slam_errors[-1] < 0.3
+    assert graph.loop_closures_accepted >= 2
+    assert graph.loop_closures_rejected == 0
+    # The loop closures pair the start with the end of the drive (the keyframes that see the same place).
+    loops = [
+        (a, b) for a, b, is_loop in zip(graph.edge_from, graph.edge_to, graph.is_loop, strict=True) if is_loop
+    ]
+    assert all(a < 10 and b > graph.num_keyframes - 12 for a, b in loops)
+    assert sum(len(e.new_loop_closures) for e in estimates) == graph.loop_closures_accepted
+
+
+def test_the_graph_holds_the_whole_drive(drifting_run: tuple[Slam3DGraph, list, Drive]) -> None:
+    graph, estimates, loop = drifting_run
+    count = len(loop.clouds)
+    assert len(graph.cloud_stamps_ns) == count and graph.clouds_untracked == 0
+    np.testing.assert_array_equal(graph.cloud_stamps_ns, np.arange(count) * PERIOD_NS)
+    assert np.all(np.diff(graph.cloud_keyframes) >= 0)
+    assert np.all(graph.edge_from < graph.edge_to)
+    odometry = ~graph.is_loop
+    np.testing.assert_array_equal(graph.edge_to[odometry] - graph.edge_from[odometry], 1)
+    assert len(graph.keyframe_clouds) == graph.num_keyframes
+    # a keyframe once 1 m from the last: every second cloud at 0.8 m per cloud (after the start-up)
+    assert 75 <= graph.num_keyframes <= 90
+    # the online estimate of each cloud is its keyframe's pose times its offset
+    final = graph.cloud_poses(graph.keyframe_poses)
+    np.testing.assert_allclose(final[-1], estimates[-1].pose, atol=1e-9)
+    # heights, roll and pitch are those of the odometry: the planar optimization never changes them
+    np.testing.assert_allclose(graph.keyframe_poses[:, 2, :], graph.keyframe_odometry[:, 2, :], atol=1e-9)
+    # the graph the backend gets is consistent with the online estimate (a low χ² per constraint)
+    planar_graph = graph.planar_graph()
+    assert chi2(planar_graph) / planar_graph.num_edges < 1.0
+
+
+def test_keyframe_clouds_line_up_in_the_map(drifting_run: tuple[Slam3DGraph, list, Drive]) -> None:
+    graph = drifting_run[0]
+    # keyframe clouds are in the base frame: the ground lies at z ≈ 0 below the base
+    first = graph.keyframe_clouds[0]
+    ground = first[np.hypot(first[:, 0], first[:, 1]) < 8.0]
+    assert abs(np.median(ground[:, 2])) < 0.05
+    world = graph.map_points(graph.keyframe_poses, 0.5)
+    assert world.dtype == np.float32 and world.shape[1] == 3
+    assert len(world) < sum(len(c) for c in graph.keyframe_clouds)
+
+
+def test_clouds_without_enough_points_are_skipped_or_keep_the_previous_pose() -> None:
+    short = drive(town_loop(), sweeps=6, step=0.5, lidar=Lidar(columns=360))
+    slam = LidarSlam3D(Slam3DConfig(odometry=OdometryConfig(min_points=200)))
+    empty = Cloud3D(0, 0, "lidar", np.zeros((0, 3), np.float32), None)
+    first = slam.add_cloud(empty)
+    assert first.keyframe == -1 and not first.tracked
+    estimates = [slam.add_cloud(cloud) for cloud in clouds(short)]
+    sparse = Cloud3D(10 * PERIOD_NS, 0, "lidar", short.clouds[-1][:150], None)
+    last = slam.add_cloud(sparse)
+    assert not last.tracked
+    np.testing.assert_array_equal(last.pose, estimates[-1].pose)
+    graph = slam.finish()
+    assert graph.clouds_dropped == 1 and graph.clouds_untracked == 2
+    assert len(graph.cloud_stamps_ns) == len(short.clouds) + 1
+
+
+def test_a_log_without_usable_clouds_is_an_error() -> None:
+    slam = LidarSlam3D()
+    slam.add_cloud(Cloud3D(0, 0, "lidar", np.zeros((3, 3), np.float32), None))
+    with pytest.raises(FrontendError, match="none of the 1 clouds"):
+        slam.finish()
+
+
+def test_the_sensor_mount_is_taken_out_of_the_poses() -> None:
+    mount = homogeneous(rotation_z(math.pi / 2), np.array([1.0, 0.0, 2.0]))  # sensor turned 90°, 1 m ahead
+    poses = np.stack([homogeneous(rotation_z(0.1 * k), np.array([k, 0.0, 0.0])) for k in range(3)])
+
+    class Scripted:
+        def __init__(self) -> None:
+            self.index = 0
+
+        def register(self, points: np.ndarray, point_times: np.ndarray | None = None) -> OdometryStep:
+            # the sensor's poses when the base moves along `poses`
+            sensor = se3.inverse(mount) @ poses[self.index] @ mount
+            self.index += 1
+            return OdometryStep(sensor, np.asarray(points, dtype=np.float64), sensor, False)
+
+    slam = LidarSlam3D(sensor_to_base=mount, odometry=Scripted())
+    points = np.random.default_rng(0).uniform(-5, 5, (300, 3)).astype(np.float32)
+    estimates = [slam.add_cloud(Cloud3D(k, k, "lidar", points, None)) for k in range(3)]
+    np.testing.assert_allclose(np.array([e.pose for e in estimates]), poses, atol=1e-12)
+    # the keyframe cloud is in the base frame: (x, y, z) of the sensor is (1 − y, x, z + 2) of the base
+    kept = slam.finish().keyframe_clouds[0]
+    assert len(kept) > 0
+    assert kept[:, 0].min() >= -4.0 - 1e-5 and kept[:, 0].max() > 5.5
+    assert kept[:, 2].min() >= -3.0 - 1e-5 and kept[:, 2].max() > 6.5
