@@ -14,13 +14,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
 
+from frontends.loop_closing import Constraints, HypothesisPool, path_lengths
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
@@ -86,26 +85,6 @@ class _LoopHypothesis:
     """Matched pose ∘ estimated pose⁻¹ of the current keyframe: how far the match moves the map."""
 
 
-@dataclass
-class _Edges:
-    first: list[int] = field(default_factory=list)
-    second: list[int] = field(default_factory=list)
-    measurement: list[FloatArray] = field(default_factory=list)
-    information: list[FloatArray] = field(default_factory=list)
-    is_loop: list[bool] = field(default_factory=list)
-
-    def add(self, a: int, b: int, z: FloatArray, information: FloatArray, is_loop: bool) -> None:
-        self.first.append(a)
-        self.second.append(b)
-        self.measurement.append(np.asarray(z, dtype=np.float64))
-        self.information.append(0.5 * (information + information.T))
-        self.is_loop.append(is_loop)
-
-    def remove(self, index: int) -> None:
-        for column in (self.first, self.second, self.measurement, self.information, self.is_loop):
-            del column[index]
-
-
 class LaserSlam2D:
     """Feed scans in time order with `add_scan`; `finish` returns the keyframe graph."""
 
@@ -113,7 +92,7 @@ class LaserSlam2D:
         self.config = config or Slam2DConfig()
         self._keyframe_poses: list[FloatArray] = []
         self._keyframes: list[Keyframe] = []
-        self._edges = _Edges()
+        self._edges = Constraints(measurement_shape=(3,), information_size=3)
         self._scan_stamps: list[int] = []
         self._scan_keyframes: list[int] = []
         self._scan_offsets: list[FloatArray] = []
@@ -122,7 +101,8 @@ class LaserSlam2D:
         self._last_motion = np.zeros(3)
         self._local_map: Submap | None = None
         self._pending_loops = 0
-        self._hypotheses: list[_LoopHypothesis] = []
+        settings = self.config.loop_closure
+        self._hypotheses = HypothesisPool(settings.small_correction_linear, settings.small_correction_angular)
         self._rejected = 0
         self._unmatched = 0
 
@@ -294,39 +274,14 @@ class LaserSlam2D:
             if all(abs(int(candidate) - c) > settings.submap_keyframes for c in candidates):
                 candidates.append(int(candidate))
         found = []
-        self._hypotheses = [
-            h for h in self._hypotheses if current - h.current <= settings.hypothesis_keyframes
-        ]
+        self._hypotheses.expire(current, settings.hypothesis_keyframes)
         for candidate in candidates:
             hypothesis = self._verify_loop(candidate, current, float(radius[candidate]))
             if hypothesis is None:
                 continue
-            if _is_small(
-                hypothesis.correction, settings.small_correction_linear, settings.small_correction_angular
-            ):
-                confirmed = [hypothesis]
-            else:
-                agreeing = [
-                    h
-                    for h in self._hypotheses
-                    if _is_small(
-                        se2.relative(h.correction, hypothesis.correction),
-                        settings.small_correction_linear,
-                        settings.small_correction_angular,
-                    )
-                ]
-                self._hypotheses.append(hypothesis)
-                confirmed = [*agreeing, hypothesis] if agreeing else []
-            for accepted in confirmed:
-                if accepted in self._hypotheses:
-                    self._hypotheses.remove(accepted)
-                self._edges.add(
-                    accepted.candidate,
-                    accepted.current,
-                    accepted.measurement,
-                    accepted.information,
-                    is_loop=True,
-                )
+            for accepted in self._hypotheses.confirm(hypothesis):
+                self._edges.add(accepted.candidate, accepted.current, accepted.measurement,
+                                accepted.information, is_loop=True)
                 found.append((accepted.candidate, accepted.current))
         if found:
             self._pending_loops += len(found)
@@ -336,13 +291,9 @@ class LaserSlam2D:
 
     def _path_lengths_to(self, keyframe: int) -> FloatArray:
         """Shortest path length (m) through the graph's constraints from `keyframe` to every keyframe."""
-        count = len(self._keyframe_poses)
-        first = np.array(self._edges.first, dtype=np.int64)
-        second = np.array(self._edges.second, dtype=np.int64)
-        steps = np.array(self._edges.measurement).reshape(-1, 3)
-        length = np.maximum(np.hypot(steps[:, 0], steps[:, 1]), 1e-6)  # 0 would mean "no edge"
-        adjacency = coo_matrix((length, (first, second)), shape=(count, count)).tocsr()
-        return dijkstra(adjacency, directed=False, indices=keyframe)
+        first, second, steps, _, _ = self._edges.arrays()
+        return path_lengths(len(self._keyframe_poses), first, second, np.hypot(steps[:, 0], steps[:, 1]),
+                            keyframe)
 
     def _verify_loop(self, candidate: int, current: int, radius: float) -> _LoopHypothesis | None:
         settings = self.config.loop_closure
@@ -410,20 +361,21 @@ class LaserSlam2D:
     # ------------------------------------------------------------------------------------ optimization
 
     def _graph(self, poses: FloatArray | None = None) -> PoseGraph:
-        count = len(self._keyframe_poses)
+        first, second, measurements, informations, _ = self._edges.arrays()
         return PoseGraph.build(
-            np.arange(count),
+            np.arange(len(self._keyframe_poses)),
             np.array(self._keyframe_poses) if poses is None else poses,
-            np.array(self._edges.first, dtype=np.int64),
-            np.array(self._edges.second, dtype=np.int64),
-            np.array(self._edges.measurement).reshape(-1, 3),
-            np.array(self._edges.information).reshape(-1, 3, 3),
+            first,
+            second,
+            measurements,
+            informations,
         )
 
     def optimize_online(self) -> None:
         """Re-optimize the keyframe graph from the current estimate, dropping inconsistent loop closures."""
         self._pending_loops = 0
-        self._hypotheses: list[_LoopHypothesis] = []
+        settings = self.config.loop_closure
+        self._hypotheses = HypothesisPool(settings.small_correction_linear, settings.small_correction_angular)
         if len(self._keyframe_poses) < 2 or not any(self._edges.is_loop):
             return
         threshold = self.config.loop_closure.chi2_threshold
@@ -460,8 +412,8 @@ class LaserSlam2D:
         if self._pending_loops:
             self.optimize_online()
         graph = self._graph()
-        odometry = ~np.array(self._edges.is_loop, dtype=bool)
-        chain = se2.compose_chain(np.array(self._edges.measurement).reshape(-1, 3)[odometry])
+        _, _, measurements, _, is_loop = self._edges.arrays()
+        chain = se2.compose_chain(measurements[~is_loop])
         return Slam2DGraph(
             graph=graph,
             scan_stamps_ns=np.array(self._scan_stamps, dtype=np.int64),
@@ -474,6 +426,3 @@ class LaserSlam2D:
             scans_unmatched=self._unmatched,
         )
 
-
-def _is_small(transform: FloatArray, linear: float, angular: float) -> bool:
-    return bool(np.hypot(transform[0], transform[1]) <= linear and abs(transform[2]) <= angular)

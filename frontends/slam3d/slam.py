@@ -23,14 +23,13 @@ touching this frontend.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from frontends.errors import FrontendError
+from frontends.loop_closing import Constraints, HypothesisPool, path_lengths
 from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.loop_closure import (
@@ -145,35 +144,6 @@ class _LoopHypothesis:
     """Planar: matched pose ∘ estimated pose⁻¹ of the current keyframe (how far the match moves the map)."""
 
 
-@dataclass
-class _Edges:
-    first: list[int] = field(default_factory=list)
-    second: list[int] = field(default_factory=list)
-    relative: list[FloatArray] = field(default_factory=list)
-    information: list[FloatArray] = field(default_factory=list)
-    is_loop: list[bool] = field(default_factory=list)
-
-    def add(self, a: int, b: int, relative: FloatArray, information: FloatArray, is_loop: bool) -> None:
-        self.first.append(a)
-        self.second.append(b)
-        self.relative.append(np.asarray(relative, dtype=np.float64))
-        self.information.append(0.5 * (information + information.T))
-        self.is_loop.append(is_loop)
-
-    def remove(self, index: int) -> None:
-        for column in (self.first, self.second, self.relative, self.information, self.is_loop):
-            del column[index]
-
-    def arrays(self) -> tuple[IntArray, IntArray, FloatArray, FloatArray, NDArray[np.bool_]]:
-        return (
-            np.array(self.first, dtype=np.int64),
-            np.array(self.second, dtype=np.int64),
-            np.array(self.relative).reshape(-1, 4, 4),
-            np.array(self.information).reshape(-1, 6, 6),
-            np.array(self.is_loop, dtype=bool),
-        )
-
-
 class LidarSlam3D:
     """Feed clouds in time order with `add_cloud`; `finish` returns the keyframe graph.
 
@@ -202,7 +172,7 @@ class LidarSlam3D:
         self._keyframe_clouds: list[NDArray[np.float32]] = []
         self._keyframe_descriptors: list[FloatArray] = []
         self._keyframe_travel: list[float] = []
-        self._edges = _Edges()
+        self._edges = Constraints(measurement_shape=(4, 4), information_size=6)
         self._cloud_stamps: list[int] = []
         self._cloud_keyframes: list[int] = []
         self._cloud_offsets: list[FloatArray] = []
@@ -211,7 +181,10 @@ class LidarSlam3D:
         self._untracked = 0
         self._dropped = 0
         self._pending_loops = 0
-        self._hypotheses: list[_LoopHypothesis] = []
+        self._hypotheses = HypothesisPool(
+            self.config.loop_closure.small_correction_linear,
+            self.config.loop_closure.small_correction_angular,
+        )
         self._rejected = 0
         self._candidates = {"accepted": 0, "poor fit": 0, "ambiguous": 0, "unconfirmed": 0}
 
@@ -300,9 +273,7 @@ class LidarSlam3D:
         older = int(np.searchsorted(travel, travel[current] - settings.min_travel, side="right"))
         if older == 0:
             return ()
-        self._drop_hypotheses(
-            [h for h in self._hypotheses if current - h.current > settings.hypothesis_keyframes]
-        )
+        self._candidates["unconfirmed"] += self._hypotheses.expire(current, settings.hypothesis_keyframes)
         poses = planar.planar(np.array(self._keyframe_poses[:older]))
         here = planar.planar(self._keyframe_poses[current])
         distance = np.hypot(*(poses[:, :2] - here[:2]).T)
@@ -332,7 +303,7 @@ class LidarSlam3D:
             hypothesis = self._verify_loop(candidate, current, heading, older - 1)
             if hypothesis is None:
                 continue
-            for accepted in self._confirmed(hypothesis):
+            for accepted in self._hypotheses.confirm(hypothesis):
                 self._edges.add(
                     accepted.candidate,
                     accepted.current,
@@ -348,41 +319,12 @@ class LidarSlam3D:
                 self.optimize_online()
         return tuple(found)
 
-    def _confirmed(self, hypothesis: _LoopHypothesis) -> list[_LoopHypothesis]:
-        """The loop closures this one makes acceptable: itself when it barely moves the map; otherwise it
-        and the earlier hypotheses it agrees with, or none (it waits for a second one)."""
-        settings = self.config.loop_closure
-        if _is_small(
-            hypothesis.correction, settings.small_correction_linear, settings.small_correction_angular
-        ):
-            return [hypothesis]
-        agreeing = [
-            h
-            for h in self._hypotheses
-            if _is_small(
-                se2.relative(h.correction, hypothesis.correction),
-                settings.small_correction_linear,
-                settings.small_correction_angular,
-            )
-        ]
-        if not agreeing:
-            self._hypotheses.append(hypothesis)
-            return []
-        self._hypotheses = [h for h in self._hypotheses if h not in agreeing]
-        return [*agreeing, hypothesis]
-
-    def _drop_hypotheses(self, dropped: list[_LoopHypothesis]) -> None:
-        """Forget hypotheses that found no second loop closure agreeing with them."""
-        self._candidates["unconfirmed"] += len(dropped)
-        self._hypotheses = [h for h in self._hypotheses if h not in dropped]
-
     def _path_lengths_to(self, keyframe: int) -> FloatArray:
         """Shortest path length (m) through the graph's constraints from `keyframe` to every keyframe."""
-        count = len(self._keyframe_poses)
         first, second, relative, _, _ = self._edges.arrays()
-        length = np.maximum(np.linalg.norm(relative[:, :3, 3], axis=1), 1e-6)  # 0 would mean "no edge"
-        adjacency = coo_matrix((length, (first, second)), shape=(count, count)).tocsr()
-        return dijkstra(adjacency, directed=False, indices=keyframe)
+        return path_lengths(
+            len(self._keyframe_poses), first, second, np.linalg.norm(relative[:, :3, 3], axis=1), keyframe
+        )
 
     def _verify_loop(
         self, candidate: int, current: int, heading: float, last_old: int
@@ -432,7 +374,7 @@ class LidarSlam3D:
         closures, and move the keyframes (and the map ← odometry correction) accordingly."""
         self._pending_loops = 0
         # a hypothesis' correction is relative to the estimate it was found on: void once that moves
-        self._drop_hypotheses(list(self._hypotheses))
+        self._candidates["unconfirmed"] += self._hypotheses.clear()
         if len(self._keyframe_poses) < 2 or not any(self._edges.is_loop):
             return
         threshold = self.config.loop_closure.chi2_threshold
@@ -466,7 +408,7 @@ class LidarSlam3D:
             )
         if self._pending_loops:
             self.optimize_online()
-        self._drop_hypotheses(list(self._hypotheses))
+        self._candidates["unconfirmed"] += self._hypotheses.clear()
         first, second, relative, information, is_loop = self._edges.arrays()
         return Slam3DGraph(
             keyframe_poses=np.array(self._keyframe_poses),
@@ -487,7 +429,3 @@ class LidarSlam3D:
             clouds_untracked=self._untracked,
             clouds_dropped=self._dropped,
         )
-
-
-def _is_small(transform: FloatArray, linear: float, angular: float) -> bool:
-    return bool(np.hypot(transform[0], transform[1]) <= linear and abs(transform[2]) <= angular)
