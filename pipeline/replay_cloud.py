@@ -33,10 +33,10 @@ from frontends.slam3d.odometry import downsample
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
-from optimizer.polish import gauss_newton
-from optimizer.solve import DEFAULT_METHOD, METHODS, optimize
+from optimizer.solve import DEFAULT_METHOD, METHODS
 from pipeline import recording
 from pipeline.errors import PipelineError
+from pipeline.keyframe_optimization import optimize_keyframes
 from pipeline.outputs import json_text, prepare_output_dir, staged_outputs, write_text
 from pipeline.ply import write_ply
 from pipeline.recording import clouds as cloud_recording
@@ -155,9 +155,22 @@ def replay_cloud(
                     {"input": str(path), "topic": topic, "method": method, "clouds": clouds,
                      "keyframes": frontend.num_keyframes},
                 )  # fmt: skip
-                trace, planar_poses, final_start = _optimize_and_record(
-                    stream, frontend, method, iterations, on_iteration
+                cloud_recording.send_cloud_blueprint(stream)
+                cloud_recording.log_keyframe_clouds(
+                    stream,
+                    [downsample(cloud, RECORDING_KEYFRAME_VOXEL) for cloud in frontend.keyframe_clouds],
                 )
+                cloud_recording.log_initial_trajectory3d(stream, frontend.keyframe_odometry)
+                optimized = optimize_keyframes(
+                    stream,
+                    frontend.planar_graph(frontend.odometry_chain),
+                    frontend.planar_graph(),
+                    method,
+                    iterations,
+                    on_iteration,
+                    _LiftedPoses(frontend, cloud_recording.KeyframePoseRecorder(stream)),
+                )
+                trace, planar_poses, final_start = optimized.trace, optimized.poses, optimized.start
                 timings["optimize_and_record"] = time.perf_counter() - optimize_started
                 keyframe_poses = frontend.lift(planar_poses)
                 map_started = time.perf_counter()
@@ -204,45 +217,18 @@ def replay_cloud(
     return result
 
 
-def _optimize_and_record(
-    stream: Any,
-    frontend: Slam3DGraph,
-    method: str,
-    iterations: int | None,
-    on_iteration: IterationCallback | None,
-) -> tuple[list[tuple[str, int, float]], FloatArray, str]:
-    graph = frontend.planar_graph(frontend.odometry_chain)
-    loops = frontend.is_loop
-    recording.log_styles(stream)
-    recording.log_initial_trajectory(stream, graph.poses)
-    cloud_recording.send_cloud_blueprint(stream)
-    cloud_recording.log_keyframe_clouds(
-        stream, [downsample(cloud, RECORDING_KEYFRAME_VOXEL) for cloud in frontend.keyframe_clouds]
-    )
-    cloud_recording.log_initial_trajectory3d(stream, frontend.keyframe_odometry)
-    recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops])
-    poses3d = cloud_recording.KeyframePoseRecorder(stream)
-    trace: list[tuple[str, int, float]] = []
-    final = graph.poses
-    final_chi2 = np.inf
-    for iteration in optimize(graph, method=method, iterations=iterations):
-        step = recorder.add(iteration)
-        poses3d.add(step, frontend.lift(iteration.poses))
-        trace.append((iteration.stage, iteration.index, float(iteration.chi2)))
-        final, final_chi2 = iteration.poses, float(iteration.chi2)
-        if on_iteration is not None:
-            on_iteration(iteration)
-    recorder.flush()
-    poses3d.flush()
-    # The online estimate had the loop closures applied as they came: polish it too and keep the better.
-    online_graph = frontend.planar_graph()
-    online = online_graph.poses
-    online_chi2 = float(np.inf)
-    for iteration in gauss_newton(online_graph, online):
-        online, online_chi2 = iteration.poses, float(iteration.chi2)
-    if online_chi2 < final_chi2 * (1.0 - 1e-9):
-        return trace, np.array(online), "online"
-    return trace, np.array(final), "odometry"
+class _LiftedPoses:
+    """Records every iteration's keyframe poses in 3D (height, roll and pitch from odometry)."""
+
+    def __init__(self, frontend: Slam3DGraph, recorder: cloud_recording.KeyframePoseRecorder) -> None:
+        self._frontend = frontend
+        self._recorder = recorder
+
+    def add(self, step: int, iteration: Iteration) -> None:
+        self._recorder.add(step, self._frontend.lift(iteration.poses))
+
+    def flush(self) -> None:
+        self._recorder.flush()
 
 
 def summary(result: CloudReplayResult, config: Slam3DConfig | None = None) -> dict[str, Any]:

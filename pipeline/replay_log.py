@@ -34,10 +34,10 @@ from frontends.transforms import TransformTree
 from optimizer import se2
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
-from optimizer.polish import gauss_newton
-from optimizer.solve import DEFAULT_METHOD, METHODS, optimize
+from optimizer.solve import DEFAULT_METHOD, METHODS
 from pipeline import recording
 from pipeline.errors import PipelineError
+from pipeline.keyframe_optimization import optimize_keyframes
 from pipeline.outputs import json_text, prepare_output_dir, staged_outputs, write_png, write_text
 from pipeline.recording import scans as scan_recording
 from pipeline.trajectory_io import write_tum
@@ -108,8 +108,10 @@ def replay_log(
     with open_log(path) as log:
         topic, kind = log.sensor_topic(scan_topic)
         if kind != "scan":
-            raise PipelineError(f"{path}: topic {topic} holds 3D point clouds: replay it with "
-                                "pipeline.replay_cloud (the replay command chooses it by itself)")
+            raise PipelineError(
+                f"{path}: topic {topic} holds 3D point clouds: replay it with "
+                "pipeline.replay_cloud (the replay command chooses it by itself)"
+            )
         chosen_odometry = log.odometry_topic(odometry_topic)
         odometry = read_odometry(log, odometry_topic)
         tree = log.transform_tree()
@@ -124,9 +126,16 @@ def replay_log(
                     timings["frontend"] = run.seconds - run.record_seconds
                     frontend = run.frontend
                     optimize_started = time.perf_counter()
-                    trace, keyframe_poses, final_start = _optimize_and_record(
-                        stream, frontend, method, iterations, on_iteration, timings
+                    optimized = optimize_keyframes(
+                        stream,
+                        frontend.graph.with_poses(frontend.odometry_chain),
+                        frontend.graph,
+                        method,
+                        iterations,
+                        on_iteration,
                     )
+                    trace, keyframe_poses, final_start = optimized.trace, optimized.poses, optimized.start
+                    timings["record_iterations"] = optimized.record_seconds
                     timings["optimize_and_record"] = time.perf_counter() - optimize_started
                     poses = frontend.scan_poses(keyframe_poses)
                     map_started = time.perf_counter()
@@ -235,46 +244,6 @@ def _run_frontend(
         scan_recording.log_odometry_trajectory(stream, se2.relative(track[0], track))
     record_seconds += time.perf_counter() - record_started
     return _FrontendRun(slam.finish(), counts, time.perf_counter() - started, record_seconds)
-
-
-def _optimize_and_record(
-    stream: Any,
-    frontend: Slam2DGraph,
-    method: str,
-    iterations: int | None,
-    on_iteration: IterationCallback | None,
-    timings: dict[str, float],
-) -> tuple[list[tuple[str, int, float]], FloatArray, str]:
-    """Optimize from the odometry-only estimate, logging every iteration; adds "record_iterations"."""
-    record_started = time.perf_counter()
-    graph = frontend.graph.with_poses(frontend.odometry_chain)
-    loops = ~graph.is_odometry
-    recording.log_styles(stream)
-    recording.log_initial_trajectory(stream, graph.poses)
-    recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops])
-    record_seconds = time.perf_counter() - record_started
-    trace: list[tuple[str, int, float]] = []
-    final = graph.poses
-    final_chi2 = np.inf
-    for iteration in optimize(graph, method=method, iterations=iterations):
-        record_started = time.perf_counter()
-        recorder.add(iteration)
-        record_seconds += time.perf_counter() - record_started
-        trace.append((iteration.stage, iteration.index, float(iteration.chi2)))
-        final, final_chi2 = iteration.poses, float(iteration.chi2)
-        if on_iteration is not None:
-            on_iteration(iteration)
-    record_started = time.perf_counter()
-    recorder.flush()
-    timings["record_iterations"] = record_seconds + time.perf_counter() - record_started
-    # The online estimate had the loop closures applied as they came: polish it too and keep the better.
-    online = frontend.graph.poses
-    online_chi2 = float(np.inf)
-    for iteration in gauss_newton(frontend.graph, online):
-        online, online_chi2 = iteration.poses, float(iteration.chi2)
-    if online_chi2 < final_chi2 * (1.0 - 1e-9):
-        return trace, np.array(online), "online"
-    return trace, np.array(final), "odometry"
 
 
 def summary(result: LogReplayResult) -> dict[str, Any]:
