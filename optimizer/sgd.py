@@ -62,7 +62,6 @@ def sgd(
     if implementation == "linear":
         stiffness = np.empty((n, 3))
     elif implementation == "tree":
-        weights = np.empty((n, 3))
         tree = np.empty((2 * tree_size(n), 3, 3))
     else:
         raise OptimizerError(f"unknown SGD implementation {implementation!r}")
@@ -75,8 +74,8 @@ def sgd(
             sgd_iteration_linear(state, *edges, graph.measurements, graph.information, stiffness, gamma, t)
         else:
             if offset == 0 or recomputes_stiffness(t):
-                stiffness_tree(state, *edges, graph.information, weights, tree, gamma)
-            sgd_iteration_tree(state, *edges, graph.measurements, graph.information, weights, tree,
+                stiffness_tree(state, *edges, graph.information, tree, gamma)
+            sgd_iteration_tree(state, *edges, graph.measurements, graph.information, tree,
                                gamma, t)
         if not np.all(np.isfinite(state[-1])):
             raise OptimizerError(f"SGD diverged at iteration {t} (non-finite poses)")

@@ -138,8 +138,8 @@ def tree_size(num_poses: int) -> int:
 
 @njit(cache=True)
 def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, information: np.ndarray,
-                   weights: np.ndarray, tree: np.ndarray, gamma: np.ndarray) -> None:
-    """Weights w_i = 1/M_i and the tree's interval weights, in O(M log N + N).
+                   tree: np.ndarray, gamma: np.ndarray) -> None:
+    """Weights w_i = 1/M_i (the tree's leaves) and the tree's interval weights, in O(M log N + N).
 
     M is summed with positive range adds on the tree's nodes, then pushed down to the leaves: a running
     sum of a difference array would cancel catastrophically when huge and tiny informations meet.
@@ -170,14 +170,13 @@ def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
         for j in range(3):
             tree[2 * node, LAZY, j] += tree[node, LAZY, j]
             tree[2 * node + 1, LAZY, j] += tree[node, LAZY, j]
-    for j in range(3):
-        weights[0, j] = 0.0  # pose 0 is the anchor: no loop covers it
-        for i in range(1, n):
-            weights[i, j] = 1.0 / tree[size + i, LAZY, j]
-    tree[:] = 0.0
+    # Leaf i now holds M_i in LAZY; its WEIGHT becomes 1/M_i (pose 0, the anchor, and the padding
+    # leaves past N keep 0), and every LAZY and ACCUMULATED starts the iteration at 0.
     for i in range(1, n):
         for j in range(3):
-            tree[size + i, WEIGHT, j] = weights[i, j]
+            tree[size + i, WEIGHT, j] = 1.0 / tree[size + i, LAZY, j]
+    tree[:, LAZY, :] = 0.0
+    tree[:, ACCUMULATED, :] = 0.0
     for node in range(size - 1, 0, -1):
         for j in range(3):
             tree[node, WEIGHT, j] = tree[2 * node, WEIGHT, j] + tree[2 * node + 1, WEIGHT, j]
@@ -276,7 +275,7 @@ def _tree_add(first: int, last: int, amount: np.ndarray, tree: np.ndarray) -> No
 
 @njit(cache=True)
 def sgd_iteration_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray,
-                       measurements: np.ndarray, information: np.ndarray, weights: np.ndarray,
+                       measurements: np.ndarray, information: np.ndarray,
                        tree: np.ndarray, gamma: np.ndarray, t: int) -> None:
     """One pass over all constraints in O(log N) each; `poses` is brought up to date at the end (O(N)).
 
@@ -311,5 +310,5 @@ def sgd_iteration_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.nda
     for j in range(3):
         moved = 0.0
         for i in range(1, n):
-            moved += weights[i, j] * tree[size + i, LAZY, j]
+            moved += tree[size + i, WEIGHT, j] * tree[size + i, LAZY, j]
             poses[i, j] += moved
