@@ -6,6 +6,7 @@ final `os.replace` is atomic) and renamed only once all of a run's outputs are c
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -62,6 +63,26 @@ def staged_outputs(*targets: Path) -> Iterator[tuple[Path, ...]]:
         for temporary in temporaries:
             temporary.unlink(missing_ok=True)
         raise
+
+
+@contextmanager
+def staged_outputs_in(directory: Path, *targets: Path) -> Iterator[tuple[Path, ...]]:
+    """`staged_outputs` for a run's outputs in `directory`, created if needed: a folder this call created
+    is removed again when the run fails (left alone if someone else wrote there meanwhile)."""
+    created = prepare_output_dir(directory)
+    try:
+        with staged_outputs(*targets) as temporaries:
+            yield temporaries
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                directory.rmdir()
+        raise
+
+
+def output_stem(path: Path) -> str:
+    """What a replay names its outputs after: a file's stem, a folder's name (a ROS 2 bag)."""
+    return path.stem if path.is_file() else path.name
 
 
 def atomic_write_text(path: Path, text: str) -> None:

@@ -15,7 +15,6 @@ Library code: raises `FrontendError`, `OptimizerError` or `PipelineError`, never
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import time
 from collections.abc import Callable
@@ -37,7 +36,7 @@ from optimizer.solve import DEFAULT_METHOD, METHODS
 from pipeline import recording
 from pipeline.errors import PipelineError
 from pipeline.keyframe_optimization import optimize_keyframes
-from pipeline.outputs import json_text, prepare_output_dir, staged_outputs, write_text
+from pipeline.outputs import json_text, output_stem, staged_outputs_in, write_text
 from pipeline.ply import write_ply
 from pipeline.recording import clouds as cloud_recording
 from pipeline.trajectory_io import write_tum
@@ -64,7 +63,7 @@ class CloudReplayOutputs:
 
     @classmethod
     def for_input(cls, out_dir: Path, input_path: Path) -> CloudReplayOutputs:
-        stem = input_path.stem if input_path.is_file() else input_path.name
+        stem = output_stem(input_path)
         return cls(*(out_dir / f"{stem}.{suffix}" for suffix in ("tum", "ply", "g2o", "json", "rrd")))
 
     def as_tuple(self) -> tuple[Path, Path, Path, Path, Path]:
@@ -144,76 +143,69 @@ def replay_cloud(
         frontend = slam.finish()
         timings["frontend"] = time.perf_counter() - frontend_started
 
-    created_dir = prepare_output_dir(out_dir)
-    try:
-        with staged_outputs(*outputs.as_tuple()) as (tum_tmp, ply_tmp, g2o_tmp, json_tmp, rrd_tmp):
-            optimize_started = time.perf_counter()
-            stream = recording.create_recording(rrd_tmp, name=path.name)
-            try:
-                recording.log_run_properties(
-                    stream,
-                    {"input": str(path), "topic": topic, "method": method, "clouds": clouds,
-                     "keyframes": frontend.num_keyframes},
-                )  # fmt: skip
-                cloud_recording.send_cloud_blueprint(stream)
-                cloud_recording.log_keyframe_clouds(
-                    stream,
-                    [downsample(cloud, RECORDING_KEYFRAME_VOXEL) for cloud in frontend.keyframe_clouds],
-                )
-                cloud_recording.log_initial_trajectory3d(stream, frontend.keyframe_odometry)
-                optimized = optimize_keyframes(
-                    stream,
-                    frontend.planar_graph(frontend.odometry_chain),
-                    frontend.planar_graph(),
-                    method,
-                    iterations,
-                    on_iteration,
-                    _LiftedPoses(frontend, cloud_recording.KeyframePoseRecorder(stream)),
-                )
-                trace, planar_poses, final_start = optimized.trace, optimized.poses, optimized.start
-                timings["optimize_and_record"] = time.perf_counter() - optimize_started
-                keyframe_poses = frontend.lift(planar_poses)
-                map_started = time.perf_counter()
-                map_points = frontend.map_points(keyframe_poses, MAP_VOXEL)
-                timings["map"] = time.perf_counter() - map_started
-                cloud_recording.log_map(stream, map_points)
-            finally:
-                recording.close_recording(stream)
-            write_started = time.perf_counter()
-            poses = frontend.cloud_poses(keyframe_poses)
-            write_tum(tum_tmp, frontend.cloud_stamps_ns, poses)
-            write_ply(ply_tmp, map_points)
-            write_g2o(g2o_tmp, frontend.planar_graph(), planar_poses)
-            timings["write"] = time.perf_counter() - write_started
-            timings["total"] = time.perf_counter() - started
-            result = CloudReplayResult(
-                input_path=path,
-                cloud_topic=topic,
-                sensor_frame=sensor_frame,
-                base_frame=mounted_on,
-                frontend=frontend,
-                stamps_ns=frontend.cloud_stamps_ns,
-                poses=poses,
-                keyframe_poses=keyframe_poses,
-                planar_keyframe_poses=planar_poses,
-                map_points=len(map_points),
-                chi2_per_iteration=tuple(trace),
-                final_start=final_start,
-                wall_time=timings,
-                outputs=outputs,
-                counts={
-                    "clouds": clouds,
-                    "points_per_cloud": round(points / clouds),
-                    "clouds_in_trajectory": len(frontend.cloud_stamps_ns),
-                    "clouds_untracked": frontend.clouds_untracked,
-                },
+    with staged_outputs_in(out_dir, *outputs.as_tuple()) as (tum_tmp, ply_tmp, g2o_tmp, json_tmp, rrd_tmp):
+        optimize_started = time.perf_counter()
+        stream = recording.create_recording(rrd_tmp, name=path.name)
+        try:
+            recording.log_run_properties(
+                stream,
+                {"input": str(path), "topic": topic, "method": method, "clouds": clouds,
+                 "keyframes": frontend.num_keyframes},
+            )  # fmt: skip
+            cloud_recording.send_cloud_blueprint(stream)
+            cloud_recording.log_keyframe_clouds(
+                stream,
+                [downsample(cloud, RECORDING_KEYFRAME_VOXEL) for cloud in frontend.keyframe_clouds],
             )
-            write_text(json_tmp, json_text(summary(result, config)))
-    except BaseException:
-        if created_dir:
-            with contextlib.suppress(OSError):
-                out_dir.rmdir()
-        raise
+            cloud_recording.log_initial_trajectory3d(stream, frontend.keyframe_odometry)
+            optimized = optimize_keyframes(
+                stream,
+                frontend.planar_graph(frontend.odometry_chain),
+                frontend.planar_graph(),
+                method,
+                iterations,
+                on_iteration,
+                _LiftedPoses(frontend, cloud_recording.KeyframePoseRecorder(stream)),
+            )
+            trace, planar_poses, final_start = optimized.trace, optimized.poses, optimized.start
+            timings["optimize_and_record"] = time.perf_counter() - optimize_started
+            keyframe_poses = frontend.lift(planar_poses)
+            map_started = time.perf_counter()
+            map_points = frontend.map_points(keyframe_poses, MAP_VOXEL)
+            timings["map"] = time.perf_counter() - map_started
+            cloud_recording.log_map(stream, map_points)
+        finally:
+            recording.close_recording(stream)
+        write_started = time.perf_counter()
+        poses = frontend.cloud_poses(keyframe_poses)
+        write_tum(tum_tmp, frontend.cloud_stamps_ns, poses)
+        write_ply(ply_tmp, map_points)
+        write_g2o(g2o_tmp, frontend.planar_graph(), planar_poses)
+        timings["write"] = time.perf_counter() - write_started
+        timings["total"] = time.perf_counter() - started
+        result = CloudReplayResult(
+            input_path=path,
+            cloud_topic=topic,
+            sensor_frame=sensor_frame,
+            base_frame=mounted_on,
+            frontend=frontend,
+            stamps_ns=frontend.cloud_stamps_ns,
+            poses=poses,
+            keyframe_poses=keyframe_poses,
+            planar_keyframe_poses=planar_poses,
+            map_points=len(map_points),
+            chi2_per_iteration=tuple(trace),
+            final_start=final_start,
+            wall_time=timings,
+            outputs=outputs,
+            counts={
+                "clouds": clouds,
+                "points_per_cloud": round(points / clouds),
+                "clouds_in_trajectory": len(frontend.cloud_stamps_ns),
+                "clouds_untracked": frontend.clouds_untracked,
+            },
+        )
+        write_text(json_tmp, json_text(summary(result, config)))
     return result
 
 

@@ -5,7 +5,6 @@ Library code: it raises `OptimizerError` (bad input) or `PipelineError` (outputs
 
 from __future__ import annotations
 
-import contextlib
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -21,7 +20,7 @@ from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, optimize
 from pipeline import recording
 from pipeline.errors import PipelineError
-from pipeline.outputs import json_text, prepare_output_dir, staged_outputs, write_text
+from pipeline.outputs import json_text, staged_outputs_in, write_text
 
 ProgressCallback = Callable[[Iteration], None]
 """Called with every iteration as the optimizer yields it (the initial estimate first)."""
@@ -134,39 +133,33 @@ def replay_graph(
     graph_file = read_graph(path, repair_information=repair_information)
     loaded = time.perf_counter()
     outputs = ReplayOutputs.for_input(out_dir, path)
-    created_dir = prepare_output_dir(out_dir)
-    try:
-        with staged_outputs(*outputs.as_tuple()) as (g2o_temporary, json_temporary, rrd_temporary):
-            run = _optimize_and_record(graph_file, rrd_temporary, method, iterations, progress)
-            optimized = time.perf_counter()
-            write_g2o(g2o_temporary, graph_file.graph, run.final_poses)
-            finished = time.perf_counter()
-            result = GraphReplayResult(
-                input_path=path,
-                input_format=graph_file.format,
-                initialised_from_odometry=graph_file.initialised_from_odometry,
-                skipped=dict(graph_file.skipped),
-                repaired_lines=tuple(int(line) for line in graph_file.repaired_lines),
-                method=method,
-                graph=graph_file.graph,
-                poses=run.final_poses,
-                iterations=run.trace,
-                # "write" is the optimised graph; the JSON, written last, cannot time itself.
-                wall_time={
-                    "load": loaded - started,
-                    "optimize": sum(run.optimize_time.values()),
-                    "record": run.record_seconds,
-                    "write": finished - optimized,
-                    "total": finished - started,
-                },
-                optimize_time=run.optimize_time,
-                outputs=outputs,
-            )
-            write_text(json_temporary, json_text(summary(result)))
-    except BaseException:
-        if created_dir:
-            _remove_if_empty(out_dir)
-        raise
+    with staged_outputs_in(out_dir, *outputs.as_tuple()) as (g2o_temporary, json_temporary, rrd_temporary):
+        run = _optimize_and_record(graph_file, rrd_temporary, method, iterations, progress)
+        optimized = time.perf_counter()
+        write_g2o(g2o_temporary, graph_file.graph, run.final_poses)
+        finished = time.perf_counter()
+        result = GraphReplayResult(
+            input_path=path,
+            input_format=graph_file.format,
+            initialised_from_odometry=graph_file.initialised_from_odometry,
+            skipped=dict(graph_file.skipped),
+            repaired_lines=tuple(int(line) for line in graph_file.repaired_lines),
+            method=method,
+            graph=graph_file.graph,
+            poses=run.final_poses,
+            iterations=run.trace,
+            # "write" is the optimised graph; the JSON, written last, cannot time itself.
+            wall_time={
+                "load": loaded - started,
+                "optimize": sum(run.optimize_time.values()),
+                "record": run.record_seconds,
+                "write": finished - optimized,
+                "total": finished - started,
+            },
+            optimize_time=run.optimize_time,
+            outputs=outputs,
+        )
+        write_text(json_temporary, json_text(summary(result)))
     return result
 
 
@@ -252,8 +245,3 @@ def summary(result: GraphReplayResult) -> dict[str, Any]:
         "optimize_time_s": dict(result.optimize_time),
         "outputs": {kind: str(getattr(result.outputs, kind)) for kind in ("g2o", "json", "rrd")},
     }
-
-
-def _remove_if_empty(directory: Path) -> None:
-    with contextlib.suppress(OSError):  # not empty (someone else wrote there) or already gone: leave it
-        directory.rmdir()

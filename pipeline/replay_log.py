@@ -14,7 +14,6 @@ Library code: raises `FrontendError`, `OptimizerError` or `PipelineError`, never
 
 from __future__ import annotations
 
-import contextlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -38,7 +37,7 @@ from optimizer.solve import DEFAULT_METHOD, METHODS
 from pipeline import recording
 from pipeline.errors import PipelineError
 from pipeline.keyframe_optimization import optimize_keyframes
-from pipeline.outputs import json_text, prepare_output_dir, staged_outputs, write_png, write_text
+from pipeline.outputs import json_text, output_stem, staged_outputs_in, write_png, write_text
 from pipeline.recording import scans as scan_recording
 from pipeline.trajectory_io import write_tum
 
@@ -59,7 +58,7 @@ class LogReplayOutputs:
 
     @classmethod
     def for_input(cls, out_dir: Path, input_path: Path) -> LogReplayOutputs:
-        stem = input_path.stem if input_path.is_file() else input_path.name
+        stem = output_stem(input_path)
         files = [out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd")]
         return cls(*files, out_dir / f"{stem}_map.png")
 
@@ -116,67 +115,61 @@ def replay_log(
         odometry = read_odometry(log, odometry_topic)
         tree = log.transform_tree()
         timings["read_odometry_tf"] = time.perf_counter() - started
-        created_dir = prepare_output_dir(out_dir)
-        try:
-            with staged_outputs(*outputs.as_tuple()) as (tum_tmp, g2o_tmp, json_tmp, rrd_tmp, png_tmp):
-                stream = recording.create_recording(rrd_tmp, name=path.name, with_map=True)
-                run: _FrontendRun | None = None
-                try:
-                    run = _run_frontend(log, topic, odometry, tree, config, stream, on_scan)
-                    timings["frontend"] = run.seconds - run.record_seconds
-                    frontend = run.frontend
-                    optimize_started = time.perf_counter()
-                    optimized = optimize_keyframes(
-                        stream,
-                        frontend.graph.with_poses(frontend.odometry_chain),
-                        frontend.graph,
-                        method,
-                        iterations,
-                        on_iteration,
-                    )
-                    trace, keyframe_poses, final_start = optimized.trace, optimized.poses, optimized.start
-                    timings["record_iterations"] = optimized.record_seconds
-                    timings["optimize_and_record"] = time.perf_counter() - optimize_started
-                    poses = frontend.scan_poses(keyframe_poses)
-                    map_started = time.perf_counter()
-                    picture = occupancy_grid(frontend.keyframe_scans, keyframe_poses).image()
-                    timings["occupancy_grid"] = time.perf_counter() - map_started
-                    record_started = time.perf_counter()
-                    recording.log_final_map(stream, frontend.keyframe_scans, keyframe_poses)
-                    scan_recording.log_final_trajectory(stream, poses)
-                    scan_recording.log_occupancy(stream, picture)
-                    timings["record_maps"] = time.perf_counter() - record_started
-                finally:
-                    close_started = time.perf_counter()
-                    recording.close_recording(stream)
-                    timings["record_scans"] = run.record_seconds if run is not None else 0.0
-                    timings["record_close"] = time.perf_counter() - close_started
-                write_started = time.perf_counter()
-                write_tum(tum_tmp, frontend.scan_stamps_ns, poses)
-                write_g2o(g2o_tmp, frontend.graph, keyframe_poses)
-                write_png(png_tmp, picture)
-                timings["write"] = time.perf_counter() - write_started
-                timings["total"] = time.perf_counter() - started
-                result = LogReplayResult(
-                    input_path=path,
-                    scan_topic=topic,
-                    odometry_topic=chosen_odometry,
-                    frontend=frontend,
-                    stamps_ns=frontend.scan_stamps_ns,
-                    poses=poses,
-                    keyframe_poses=keyframe_poses,
-                    chi2_per_iteration=tuple(trace),
-                    final_start=final_start,
-                    wall_time=timings,
-                    outputs=outputs,
-                    counts=run.counts,
+        staged = staged_outputs_in(out_dir, *outputs.as_tuple())
+        with staged as (tum_tmp, g2o_tmp, json_tmp, rrd_tmp, png_tmp):
+            stream = recording.create_recording(rrd_tmp, name=path.name, with_map=True)
+            run: _FrontendRun | None = None
+            try:
+                run = _run_frontend(log, topic, odometry, tree, config, stream, on_scan)
+                timings["frontend"] = run.seconds - run.record_seconds
+                frontend = run.frontend
+                optimize_started = time.perf_counter()
+                optimized = optimize_keyframes(
+                    stream,
+                    frontend.graph.with_poses(frontend.odometry_chain),
+                    frontend.graph,
+                    method,
+                    iterations,
+                    on_iteration,
                 )
-                write_text(json_tmp, json_text(summary(result)))
-        except BaseException:
-            if created_dir:
-                with contextlib.suppress(OSError):
-                    out_dir.rmdir()
-            raise
+                trace, keyframe_poses, final_start = optimized.trace, optimized.poses, optimized.start
+                timings["record_iterations"] = optimized.record_seconds
+                timings["optimize_and_record"] = time.perf_counter() - optimize_started
+                poses = frontend.scan_poses(keyframe_poses)
+                map_started = time.perf_counter()
+                picture = occupancy_grid(frontend.keyframe_scans, keyframe_poses).image()
+                timings["occupancy_grid"] = time.perf_counter() - map_started
+                record_started = time.perf_counter()
+                recording.log_final_map(stream, frontend.keyframe_scans, keyframe_poses)
+                scan_recording.log_final_trajectory(stream, poses)
+                scan_recording.log_occupancy(stream, picture)
+                timings["record_maps"] = time.perf_counter() - record_started
+            finally:
+                close_started = time.perf_counter()
+                recording.close_recording(stream)
+                timings["record_scans"] = run.record_seconds if run is not None else 0.0
+                timings["record_close"] = time.perf_counter() - close_started
+            write_started = time.perf_counter()
+            write_tum(tum_tmp, frontend.scan_stamps_ns, poses)
+            write_g2o(g2o_tmp, frontend.graph, keyframe_poses)
+            write_png(png_tmp, picture)
+            timings["write"] = time.perf_counter() - write_started
+            timings["total"] = time.perf_counter() - started
+            result = LogReplayResult(
+                input_path=path,
+                scan_topic=topic,
+                odometry_topic=chosen_odometry,
+                frontend=frontend,
+                stamps_ns=frontend.scan_stamps_ns,
+                poses=poses,
+                keyframe_poses=keyframe_poses,
+                chi2_per_iteration=tuple(trace),
+                final_start=final_start,
+                wall_time=timings,
+                outputs=outputs,
+                counts=run.counts,
+            )
+            write_text(json_tmp, json_text(summary(result)))
     return result
 
 
