@@ -13,7 +13,8 @@ import base64
 import json
 import math
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -248,6 +249,31 @@ class RosMessages:
 
 
 # --- writers ------------------------------------------------------------------------------------------
+
+AddMessage = Callable[[str, str, int, Any], None]
+"""add(topic, message type, stamp in ns, message): log time = publish time = the stamp."""
+
+
+@contextmanager
+def ros2_mcap(path: Path) -> Iterator[tuple[RosMessages, AddMessage]]:
+    """A ROS 2 (CDR) MCAP being written with zstd chunks: the message builder, and an `add` that registers
+    each topic's schema and channel on first use."""
+    messages = RosMessages(ros1=False)
+    with path.open("wb") as stream:
+        writer = McapWriter(stream, compression=CompressionType.ZSTD)
+        writer.start(profile="ros2", library="sgdslam tests")
+        channels: dict[str, int] = {}
+
+        def add(topic: str, msgtype: str, stamp: int, message: Any) -> None:
+            if topic not in channels:
+                definition, _ = messages.store.generate_msgdef(msgtype, ros_version=2)
+                schema = writer.register_schema(msgtype, "ros2msg", definition.encode())
+                channels[topic] = writer.register_channel(topic, "cdr", schema)
+            writer.add_message(channels[topic], stamp, messages.serialize(message, msgtype), stamp)
+
+        yield messages, add
+        writer.finish()
+
 
 
 def write_mcap_ros(

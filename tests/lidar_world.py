@@ -333,33 +333,19 @@ def write_cloud_log(
     """The drive as a ROS 2 MCAP: `/points` sensor_msgs/PointCloud2 (x, y, z, intensity float32, and a
     float32 `time` field in seconds since the stamp when `with_times`), stamped at each sweep's start,
     and `/tf_static` base_link → lidar (the mount) when `with_mount`. Returns the stamps."""
-    from mcap.writer import CompressionType
-    from mcap.writer import Writer as McapWriter
     from scipy.spatial.transform import Rotation
 
-    from tests._frontends_fixtures import RosMessages
+    from tests._frontends_fixtures import ros2_mcap
 
-    messages = RosMessages(ros1=False)
-    types = messages.types
     stamps = START_NS + np.arange(len(drive.clouds), dtype=np.int64) * int(SWEEP_PERIOD * 1e9)
     names = ["x", "y", "z", "intensity", *(["time"] if with_times else [])]
     point_dtype = np.dtype([(name, "<f4") for name in names])
-    fields = [
-        types["sensor_msgs/msg/PointField"](name=name, offset=4 * i, datatype=7, count=1)
-        for i, name in enumerate(names)
-    ]
-    with path.open("wb") as stream:
-        writer = McapWriter(stream, compression=CompressionType.ZSTD)
-        writer.start(profile="ros2", library="sgdslam tests")
-        channels: dict[str, int] = {}
-
-        def add(topic: str, msgtype: str, stamp: int, message: object) -> None:
-            if topic not in channels:
-                definition, _ = messages.store.generate_msgdef(msgtype, ros_version=2)
-                schema = writer.register_schema(msgtype, "ros2msg", definition.encode())
-                channels[topic] = writer.register_channel(topic, "cdr", schema)
-            writer.add_message(channels[topic], stamp, messages.serialize(message, msgtype), stamp)
-
+    with ros2_mcap(path) as (messages, add):
+        types = messages.types
+        fields = [
+            types["sensor_msgs/msg/PointField"](name=name, offset=4 * i, datatype=7, count=1)
+            for i, name in enumerate(names)
+        ]
         if with_mount:
             q = Rotation.from_matrix(drive.mount[:3, :3]).as_quat()
             t = drive.mount[:3, 3]
@@ -391,7 +377,6 @@ def write_cloud_log(
                 is_dense=True,
             )
             add("/points", "sensor_msgs/msg/PointCloud2", stamp, cloud)
-        writer.finish()
     return stamps
 
 

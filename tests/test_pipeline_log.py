@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from PIL import Image
 from typer.testing import CliRunner
@@ -18,7 +17,7 @@ from typer.testing import CliRunner
 from optimizer import se2
 from pipeline.cli import app
 from pipeline.trajectory_io import read_tum
-from tests._frontends_fixtures import RosMessages, quaternion_from_yaw
+from tests._frontends_fixtures import RosMessages, quaternion_from_yaw, ros2_mcap
 from tests.laser_world import drive, simulate_scan, square_loop, wheel_odometry
 from tests.test_pipeline_replay import read_recording
 
@@ -44,19 +43,8 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
     rng = np.random.default_rng(7)
     truth = drive(square_loop(), 0.4)[:scans]
     odometry = wheel_odometry(truth, rng)
-    messages = RosMessages(ros1=False)
-    types = messages.types
-    with path.open("wb") as stream:
-        writer = McapWriter(stream, compression=CompressionType.ZSTD)
-        writer.start(profile="ros2", library="sgdslam tests")
-        channels: dict[str, int] = {}
-
-        def add(topic: str, msgtype: str, stamp: int, message: object) -> None:
-            if topic not in channels:
-                definition, _ = messages.store.generate_msgdef(msgtype, ros_version=2)
-                schema = writer.register_schema(msgtype, "ros2msg", definition.encode())
-                channels[topic] = writer.register_channel(topic, "cdr", schema)
-            writer.add_message(channels[topic], stamp, messages.serialize(message, msgtype), stamp)
+    with ros2_mcap(path) as (messages, add):
+        types = messages.types
 
         def transform(stamp: int, parent: str, child: str, pose: np.ndarray) -> object:
             q = quaternion_from_yaw(float(pose[2]))
@@ -128,7 +116,6 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                 intensities=np.zeros(0, dtype=np.float32),
             )
             add("/scan", "sensor_msgs/msg/LaserScan", stamp, scan)
-        writer.finish()
     return truth
 
 
