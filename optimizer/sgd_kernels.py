@@ -171,12 +171,10 @@ def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
             tree[2 * node, LAZY, j] += tree[node, LAZY, j]
             tree[2 * node + 1, LAZY, j] += tree[node, LAZY, j]
     # Leaf i now holds M_i in LAZY; its WEIGHT becomes 1/M_i (pose 0, the anchor, and the padding
-    # leaves past N keep 0), and every LAZY and ACCUMULATED starts the iteration at 0.
+    # leaves past N keep 0). `sgd_iteration_tree` clears LAZY and ACCUMULATED before it starts.
     for i in range(1, n):
         for j in range(3):
             tree[size + i, WEIGHT, j] = 1.0 / tree[size + i, LAZY, j]
-    tree[:, LAZY, :] = 0.0
-    tree[:, ACCUMULATED, :] = 0.0
     for node in range(size - 1, 0, -1):
         for j in range(3):
             tree[node, WEIGHT, j] = tree[2 * node, WEIGHT, j] + tree[2 * node + 1, WEIGHT, j]
