@@ -13,7 +13,7 @@ and symbolic analysis are likewise done once and only the numeric factorisation 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
@@ -200,13 +200,22 @@ class _DampedSolver:
         return float(-(2.0 * self._gradient @ step + step @ (self._hessian @ step)))
 
 
+@dataclass(frozen=True)
+class PolishStatus:
+    """How a polish ended: the generator's return value (`status = yield from gauss_newton(...)`)."""
+
+    converged: bool
+    reason: str
+    iterations: int
+
+
 def gauss_newton(
     graph: PoseGraph,
     poses: FloatArray | None = None,
     *,
     max_iterations: int = 50,
     relative_tolerance: float = 1e-9,
-) -> Iterator[Iteration]:
+) -> Generator[Iteration, None, PolishStatus]:
     """Levenberg–Marquardt on the χ² of `graph`, from `poses` (default: the graph's estimate).
 
     Yields Iteration("gauss-newton", k, poses, χ²) after every accepted step, k from 1; rejected trial
@@ -221,7 +230,7 @@ def gauss_newton(
     current = _starting_poses(graph, poses)
     current_chi2 = chi2(graph, current)
     if graph.num_poses < 2 or current_chi2 == 0.0:
-        return
+        return PolishStatus(True, "nothing to optimize (χ² = 0)", 0)
     pattern = _NormalEquationsPattern.of(graph)
     damping = _INITIAL_LAMBDA
     growth = 2.0
@@ -244,7 +253,7 @@ def gauss_newton(
             damping *= growth
             growth *= 2.0
             if damping > _MAX_LAMBDA:
-                return
+                return PolishStatus(True, f"no decreasing step (λ > {_MAX_LAMBDA:g})", index - 1)
         factorisation = solver.factorisation
 
         # Nielsen's update: shrink λ the more the linear model predicted the actual decrease.
@@ -258,7 +267,8 @@ def gauss_newton(
         current.setflags(write=False)
         yield Iteration(STAGE, index, current, current_chi2)
         if decrease < relative_tolerance or current_chi2 == 0.0:
-            return
+            return PolishStatus(True, f"relative χ² change {decrease:.2g} < {relative_tolerance:g}", index)
+    return PolishStatus(False, f"iteration cap {max_iterations} reached", max_iterations)
 
 
 def _starting_poses(graph: PoseGraph, poses: FloatArray | None) -> FloatArray:
