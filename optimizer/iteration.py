@@ -7,6 +7,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+ESTIMATE = "estimate"
+"""The name of the graph's own estimate as a start."""
+
 
 @dataclass(frozen=True, eq=False)
 class Iteration:
@@ -24,4 +27,4 @@ class Iteration:
     index: int
     poses: NDArray[np.float64]
     chi2: float
-    start: str = "estimate"
+    start: str = ESTIMATE

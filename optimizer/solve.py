@@ -20,7 +20,7 @@ from optimizer.cost import chi2
 from optimizer.errors import OptimizerError
 from optimizer.gauss_seidel import gauss_seidel
 from optimizer.graph import PoseGraph
-from optimizer.iteration import Iteration
+from optimizer.iteration import ESTIMATE, Iteration
 from optimizer.polish import PolishStatus, gauss_newton
 from optimizer.sgd import sgd
 
@@ -51,8 +51,6 @@ MAX_ITERATIONS = 1_000_000
 DEFAULT_POLISH_ITERATIONS = 1000
 """Cap on polish iterations, far above what the benchmark graphs need; it stops on its convergence test."""
 
-ESTIMATE = "estimate"
-"""Name of the graph's own estimate among the starts."""
 
 
 @dataclass(frozen=True)
