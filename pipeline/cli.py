@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 import typer
 from typer.core import TyperCommand, TyperGroup
 
-from optimizer.solve import METHODS
+from optimizer.solve import MAX_ITERATIONS, METHODS
 from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, SAMPLE_DESCRIPTION, input_kind, sample_input
 from pipeline.errors import PipelineError
 from pipeline.evaluation import DEFAULT_TOLERANCE_NS, RelationsResult, evaluate_files
@@ -45,6 +45,8 @@ DEFAULT_COMMAND = "run"
 EXIT_ERROR = 2
 """Exit code of a run that failed on bad input or unwritable outputs (the same as usage errors), and of a
 batch in which any input failed."""
+MAX_JOBS = 256
+"""Worker processes at most (each holds a whole replay in memory)."""
 EXIT_INTERRUPTED = 130
 """Exit code after Ctrl-C (128 + SIGINT); after SIGTERM it is 143."""
 EXIT_UNCONVERGED = 3
@@ -140,7 +142,7 @@ def run(
              "sgd: SGD only; gn: Gauss-Newton only; gauss-seidel: the paper's baseline."),
     ] = None,
     iterations: Annotated[int | None, typer.Option(
-        "--iterations", "-n", min=0, show_default=False,
+        "--iterations", "-n", min=0, max=MAX_ITERATIONS, show_default=False,
         help="SGD (or Gauss-Seidel) iterations; default 100. With gn: the Gauss-Newton cap.")] = None,
     repair_information: Annotated[bool, typer.Option(
         "--repair-information", help="Clamp the eigenvalues of information matrices that are not positive "
@@ -150,7 +152,8 @@ def run(
     odom_topic: Annotated[str | None, typer.Option(
         "--odom-topic", metavar="TOPIC", help="The odometry topic, when the log has several.")] = None,
     jobs: Annotated[int, typer.Option(
-        "--jobs", "-j", min=1, metavar="N", help="Inputs replayed at the same time (worker processes).")] = 1,
+        "--jobs", "-j", min=1, max=MAX_JOBS, metavar="N",
+        help="Inputs replayed at the same time (worker processes).")] = 1,
     allow_unconverged: Annotated[bool, typer.Option(
         "--allow-unconverged", help=f"Exit 0, not {EXIT_UNCONVERGED}, when the optimization stops before "
                                     "its convergence test holds (always so for sgd and gauss-seidel alone, "
@@ -543,12 +546,23 @@ def main() -> NoReturn:
 
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, on_sigterm)
+    code: int | str | None
     try:
         with threadpool_limits(limits=1, user_api="blas"):
-            app(prog_name=PROGRAM)
-        code: int | str | None = 0
+            code = app(prog_name=PROGRAM, standalone_mode=False)
+    except typer.Abort:  # Ctrl-C, or SIGTERM (see on_sigterm)
+        code = EXIT_INTERRUPTED
+    except Exception as error:
+        # A bad option or value (click's UsageError family, whichever click typer uses): one line naming
+        # it, like bad input. Anything else is a bug and keeps its traceback.
+        if not (hasattr(error, "format_message") and hasattr(error, "exit_code")):
+            raise
+        message = " ".join(error.format_message().split())
+        typer.echo(f"{PROGRAM}: error: {message} (see {PROGRAM} --help)", err=True)
+        code = EXIT_ERROR
     except SystemExit as exit_:
         code = exit_.code
+    code = 0 if not isinstance(code, int | str) else code
     if terminated and code == EXIT_INTERRUPTED:
         code = 128 + signal.SIGTERM
     _exit_now(code)
