@@ -44,6 +44,9 @@ DEFAULT_COMMAND = "run"
 EXIT_ERROR = 2
 """Exit code of a run that failed on bad input or unwritable outputs (the same as usage errors), and of a
 batch in which any input failed."""
+EXIT_UNCONVERGED = 3
+"""Exit code of a run whose optimization did not reach its convergence test (outputs are written and say
+`"converged": false`), unless --allow-unconverged."""
 
 _IMPLICIT_DEFAULT = "pipeline.cli.implicit_default"
 
@@ -101,7 +104,7 @@ Examples:
   replay run.bag --scan-topic /front/scan --odom-topic /wheel_odom
   replay rosbag2_dir/                    # a ROS 2 bag (sqlite3 or MCAP storage)
   replay graph.g2o                       # SGD then Gauss-Newton (the default method)
-  replay graph.graph --method sgd --iterations 30 --out results
+  replay graph.graph --method sgd --iterations 30 --allow-unconverged --out results
   replay a.mcap b.bag c/ --jobs 3 --json > summary.json
   replay --dump-config > replay.toml     # then: replay run.mcap --config replay.toml
 
@@ -112,7 +115,8 @@ scan at its sensor stamp) and <stem>_map.png. Open the recording with the Rerun 
 rerun recordings/csail_sample.rrd. Settings: a TOML file (--config; --dump-config writes the defaults), which
 the options override. Other commands: replay info LOG, replay evaluate TRAJECTORY.tum RELATIONS.
 Exit code {EXIT_ERROR} on bad input (one line naming the file, nothing written for it) or when any of
-several inputs failed."""
+several inputs failed; {EXIT_UNCONVERGED} when an optimization stopped before its convergence test held (the
+outputs are written and say so), unless --allow-unconverged."""
 
 
 @app.command(DEFAULT_COMMAND, cls=_DefaultCommand, epilog=_EPILOG)
@@ -144,6 +148,10 @@ def run(
         "--odom-topic", metavar="TOPIC", help="The odometry topic, when the log has several.")] = None,
     jobs: Annotated[int, typer.Option(
         "--jobs", "-j", min=1, metavar="N", help="Inputs replayed at the same time (worker processes).")] = 1,
+    allow_unconverged: Annotated[bool, typer.Option(
+        "--allow-unconverged", help=f"Exit 0, not {EXIT_UNCONVERGED}, when the optimization stops before "
+                                    "its convergence test holds (always so for sgd and gauss-seidel alone, "
+                                    "which run a fixed number of iterations).")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress and no summary.")] = False,
     as_json: Annotated[bool, typer.Option(
         "--json", help="Print the summary on stdout as JSON: one object, or a list for several inputs.")
@@ -191,6 +199,14 @@ def run(
     _report(outcomes, quiet=quiet, as_json=as_json)
     if not all(outcome.ok for outcome in outcomes):
         raise typer.Exit(EXIT_ERROR)
+    unconverged = [outcome for outcome in outcomes if outcome.stats and not outcome.stats.converged]
+    for outcome in unconverged if not (quiet and allow_unconverged) else []:
+        assert outcome.stats is not None
+        advice = "" if allow_unconverged else "; --allow-unconverged accepts this"
+        typer.echo(f"{PROGRAM}: not converged: {outcome.input_path}: {outcome.stats.stop_reason} "
+                   f"(outputs written with \"converged\": false{advice})", err=True)
+    if unconverged and not allow_unconverged:
+        raise typer.Exit(EXIT_UNCONVERGED)
 
 
 def _load_config(path: Path | None, overrides: dict[str, dict[str, Any]]) -> ReplayConfig:

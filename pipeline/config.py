@@ -195,7 +195,7 @@ _METHOD_CHOICE = Literal[METHODS]  # type: ignore[valid-type]
 
 class OptimizerSection(_Section):
     """The [optimizer] section. `iterations`: SGD (or Gauss–Seidel) iterations; with method "gn", the cap on
-    Gauss–Newton iterations. Left out, it is 100, or the polish cap (300) for "gn"."""
+    Gauss–Newton iterations. Left out, it is 100, or the polish cap (1000) for "gn"."""
 
     method: _METHOD_CHOICE = DEFAULT_METHOD  # type: ignore[valid-type]
     iterations: int = Field(DEFAULT_ITERATIONS, ge=0)

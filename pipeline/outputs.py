@@ -14,9 +14,12 @@ import secrets
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pipeline.errors import OutputError
+
+if TYPE_CHECKING:
+    from optimizer.solve import OptimizationResult
 
 
 def temporary_path(target: Path) -> Path:
@@ -122,3 +125,17 @@ def _finite_or_none(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_finite_or_none(item) for item in value]
     return value
+
+
+def optimization_summary(result: OptimizationResult) -> dict[str, Any]:
+    """How an optimization ended, for the JSON summaries: converged or not and why, every start."""
+    return {
+        "converged": result.converged,
+        "stop_reason": result.reason,
+        "start": result.winner,
+        "candidates": [
+            {"start": candidate.start, "chi2_final": candidate.chi2, "converged": candidate.converged,
+             "stop_reason": candidate.reason, "iterations": candidate.iterations}
+            for candidate in result.candidates
+        ],
+    }
