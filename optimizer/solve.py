@@ -21,7 +21,7 @@ from optimizer.errors import OptimizerError
 from optimizer.gauss_seidel import gauss_seidel
 from optimizer.graph import PoseGraph
 from optimizer.iteration import ESTIMATE, Iteration
-from optimizer.polish import PolishStatus, gauss_newton
+from optimizer.polish import DEFAULT_MAX_ITERATIONS, PolishStatus, gauss_newton
 from optimizer.sgd import sgd
 
 FloatArray = NDArray[np.float64]
@@ -48,7 +48,7 @@ DEFAULT_METHOD = "sgd+gn"
 DEFAULT_ITERATIONS = 100
 MAX_ITERATIONS = 1_000_000
 """Bound on `iterations`: far beyond any use (a 10⁶-pose SGD iteration takes about a second)."""
-DEFAULT_POLISH_ITERATIONS = 1000
+DEFAULT_POLISH_ITERATIONS = DEFAULT_MAX_ITERATIONS
 """Cap on polish iterations, far above what the benchmark graphs need; it stops on its convergence test."""
 
 

@@ -230,7 +230,7 @@ _METHOD_CHOICE = Literal[METHODS]  # type: ignore[valid-type]
 
 class OptimizerSection(_Section):
     """The [optimizer] section. `iterations`: SGD (or Gauss–Seidel) iterations; with method "gn", the cap on
-    Gauss–Newton iterations. Left out, it is 100, or the polish cap (1000) for "gn"."""
+    Gauss–Newton iterations. Left out, it is 100, or the polish cap (5000) for "gn"."""
 
     method: _METHOD_CHOICE = DEFAULT_METHOD  # type: ignore[valid-type]
     iterations: int = Field(DEFAULT_ITERATIONS, ge=0, le=MAX_ITERATIONS)
