@@ -61,15 +61,17 @@ def sgd(
         raise OptimizerError(f"first_iteration must be >= 1, got {first_iteration}")
     if tree_block < 1:
         raise OptimizerError(f"tree_block must be >= 1, got {tree_block}")
-    state = np.array(graph.poses if poses is None else poses, dtype=np.float64, copy=True)
-    if state.shape != graph.poses.shape:
-        raise OptimizerError(f"expected poses of shape {graph.poses.shape}, got {state.shape}")
-    if implementation == "linear":
-        yield from _sgd_linear(graph, iterations, state, first_iteration)
-    elif implementation == "tree":
-        yield from _sgd_tree(graph, iterations, state, first_iteration, tree_block)
-    else:
+    if implementation not in ("tree", "linear"):
         raise OptimizerError(f"unknown SGD implementation {implementation!r}")
+    # The tree only reads its starting poses, so the graph's own (read-only) need no copy.
+    start = graph.poses if poses is None and implementation == "tree" else np.array(
+        graph.poses if poses is None else poses, dtype=np.float64, copy=True)
+    if start.shape != graph.poses.shape:
+        raise OptimizerError(f"expected poses of shape {graph.poses.shape}, got {start.shape}")
+    if implementation == "linear":
+        yield from _sgd_linear(graph, iterations, start, first_iteration)
+    else:
+        yield from _sgd_tree(graph, iterations, start, first_iteration, tree_block)
 
 
 def _sgd_tree(graph: PoseGraph, iterations: int, base: NDArray[np.float64], first_iteration: int,

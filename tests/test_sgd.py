@@ -148,3 +148,18 @@ def test_bad_arguments_raise_our_error() -> None:
         list(sgd(graph, 1, np.zeros((2, 3))))
     with pytest.raises(OptimizerError):
         list(sgd(graph, 1, tree_block=0))
+
+
+def test_later_iterations_leave_earlier_poses_and_the_graph_untouched() -> None:
+    # The tree starts each iteration from the poses it yielded last and writes a new array.
+    graph, _ = _square_loop(noise=0.1, seed=4)
+    initial = graph.poses.copy()
+    iterations = []
+    copies = []
+    for iteration in sgd(graph, 5):
+        iterations.append(iteration)
+        copies.append(iteration.poses.copy())
+    np.testing.assert_array_equal(graph.poses, initial)
+    for iteration, copy in zip(iterations, copies, strict=True):
+        np.testing.assert_array_equal(iteration.poses, copy)
+    assert len({id(iteration.poses) for iteration in iterations}) == len(iterations)
