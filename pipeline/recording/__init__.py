@@ -286,28 +286,28 @@ class IterationRecorder:
     def add(self, iteration: Iteration) -> int:
         """Buffer one iteration; returns its step on the `iteration` timeline."""
         step = self.steps_recorded
-        previous = self._latest_poses
-        if previous is not None and (len(previous) > self._max_points or self._loop_shown is not None):
-            # the previous iteration is not the final one: thin it
-            self._buffered_bytes -= self._trajectories[-1].nbytes + self._loop_segments[-1].nbytes
-            self._trajectories[-1], self._loop_segments[-1] = self._geometry(previous, thin=True)
-            self._buffered_bytes += self._trajectories[-1].nbytes + self._loop_segments[-1].nbytes
+        if self._latest_poses is not None:  # the previous iteration was not the final one: thinned
+            self._buffer_geometry(self._latest_poses, thin=True)
         self._latest_poses = iteration.poses  # read-only by the optimizers' contract: no copy
-        trajectory, segments = self._geometry(iteration.poses, thin=False)
-        self._trajectories.append(trajectory)
-        self._loop_segments.append(segments)
         self._stages.append(iteration.stage)
         self._indices.append(iteration.index)
         self._chi2.append(float(iteration.chi2))
-        self._buffered_bytes += trajectory.nbytes + segments.nbytes
         if self._buffered_bytes >= self._batch_bytes:
-            self._send(len(self._stages) - 1)  # keep the most recent: it may be the final one
+            self._send(len(self._trajectories))
         return step
 
     def flush(self) -> None:
         """Send everything buffered, the most recent iteration whole (call it once the run is over)."""
-        self._send(len(self._stages))
-        self._latest_poses = None
+        if self._latest_poses is not None:
+            self._buffer_geometry(self._latest_poses, thin=False)
+            self._latest_poses = None
+        self._send(len(self._trajectories))
+
+    def _buffer_geometry(self, poses: NDArray[np.float64], *, thin: bool) -> None:
+        trajectory, segments = self._geometry(poses, thin=thin)
+        self._trajectories.append(trajectory)
+        self._loop_segments.append(segments)
+        self._buffered_bytes += trajectory.nbytes + segments.nbytes
 
     def _geometry(self, poses: NDArray[np.float64], *, thin: bool) -> tuple[NDArray[np.float32],
                                                                            NDArray[np.float32]]:
@@ -325,7 +325,8 @@ class IterationRecorder:
         return trajectory.astype(np.float32), segments.astype(np.float32)
 
     def _send(self, count: int) -> None:
-        """Send the first `count` buffered iterations: runs of equally thinned ones as one column batch."""
+        """Send the first `count` buffered iterations (the latest has no geometry until the next `add` or
+        `flush`): runs of equally thinned ones as one column batch each."""
         sent = 0
         while sent < count:
             end = sent + 1
