@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pa_csv
 from numpy.typing import NDArray
 
 from optimizer import se2
@@ -452,21 +454,26 @@ def _write(path: Path, graph: PoseGraph, poses: FloatArray | None, format_name: 
     # g2o slot k is file slot information_order.index(k) → invert the permutation to go g2o → file
     to_file = np.argsort(information_order)
     upper = graph.information[:, _UPPER_ROWS, _UPPER_COLS][:, to_file]
-    vertex_lines = _format_rows(f"{vertex_tag} %d" + " %.17g" * 3, graph.vertex_ids[:, None], poses)
-    edge_ids = np.stack([graph.vertex_ids[graph.edge_from], graph.vertex_ids[graph.edge_to]], axis=1)
-    edge_lines = _format_rows(f"{edge_tag} %d %d" + " %.17g" * 9, edge_ids,
-                              np.concatenate([graph.measurements, upper], axis=1))
+    vertices = _table(vertex_tag, [graph.vertex_ids], poses)
+    edges = _table(edge_tag, [graph.vertex_ids[graph.edge_from], graph.vertex_ids[graph.edge_to]],
+                   np.concatenate([graph.measurements, upper], axis=1))
+    options = pa_csv.WriteOptions(include_header=False, delimiter=" ", quoting_style="none")
     try:
-        with path.open("w", encoding="utf-8", newline="\n") as file:
-            file.writelines(vertex_lines)
-            file.writelines(edge_lines)
+        with path.open("wb") as file:
+            pa_csv.write_csv(vertices, file, options)
+            pa_csv.write_csv(edges, file, options)
     except OSError as error:
         raise GraphFileError(path, f"cannot write the file: {error.strerror or error}") from error
 
 
-def _format_rows(template: str, ids: IntArray, values: FloatArray) -> list[str]:
-    """One text line per row of (K, i) ids and (K, v) values: integer ids then floats at full precision
-    (%.17g round-trips float64)."""
-    line = template + "\n"
-    return [line % (*row_ids, *row_values) for row_ids, row_values in zip(ids.tolist(), values.tolist(),
-                                                                          strict=True)]
+def _table(tag: str, ids: list[IntArray], values: FloatArray) -> pa.Table:
+    """One row per file line: the tag, integer ids, then floats. Arrow's CSV writer prints each float in its
+    shortest form that reads back to the same float64 (exact round trip), in compiled code: Python's
+    per-line formatting took a minute for a 10⁶-pose graph."""
+    same_tag = pa.DictionaryArray.from_arrays(pa.array(np.zeros(len(values), dtype=np.int8)), pa.array([tag]))
+    columns: dict[str, pa.Array] = {"tag": same_tag}
+    for k, column in enumerate(ids):
+        columns[f"id{k}"] = pa.array(np.asarray(column, dtype=np.int64))
+    for k in range(values.shape[1]):
+        columns[f"value{k}"] = pa.array(np.ascontiguousarray(values[:, k]))
+    return pa.table(columns)
