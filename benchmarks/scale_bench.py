@@ -180,8 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         results = []
         for run in args.runs:
             method, iterations = _parse_run(run)
-            results.append(bench_run(graph_path, folder / f"out_{method}", method, iterations, num_poses,
-                                     num_edges))
+            out_dir = folder / f"out_{method}_{'default' if iterations is None else iterations}"
+            results.append(bench_run(graph_path, out_dir, method, iterations, num_poses, num_edges))
             print(f"{run}: {results[-1]['process_seconds']:.1f} s", file=sys.stderr)
         print(report(results, num_poses, num_edges, file_mb))
     finally:
