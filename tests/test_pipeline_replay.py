@@ -375,6 +375,36 @@ def test_iteration_recorder_sends_batches_on_one_timeline(tmp_path: Path) -> Non
         np.testing.assert_allclose(strip_points(row), iteration.poses[:, :2], atol=1e-5)
 
 
+def test_iteration_recorder_thins_huge_graphs_except_the_final_iteration(tmp_path: Path) -> None:
+    # With room for 7 points per iteration, the 30-pose loop is drawn through poses 0, 5, …, 25 and the
+    # last (stride ceil(29 / 6) = 5); room for 2 points keeps one of the two loop closures.
+    graph = read_graph(write_loop_graph(tmp_path / "loop.g2o")).graph
+    iterations = list(optimize(graph, method="sgd", iterations=4))
+    loops = ~graph.is_odometry
+    shown = [0, 5, 10, 15, 20, 25, LOOP_POSES - 1]
+    for max_points, loops_shown in ((7, 2), (2, 1)):
+        path = tmp_path / f"thinned{max_points}.rrd"
+        stream = recording.create_recording(path, name="thinned")
+        recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops],
+                                               batch_bytes=200, max_points=max_points)
+        for iteration in iterations:
+            recorder.add(iteration)
+        recorder.flush()
+        recording.close_recording(stream)
+        content = read_recording(path)
+        trajectory = content["/world/trajectory"]
+        closures = content["/world/loop_closures"]
+        assert trajectory.steps == closures.steps == list(range(len(iterations)))
+        rows = trajectory.columns["LineStrips2D:strips"]
+        for iteration, row, segments in zip(iterations, rows, closures.columns["LineStrips2D:strips"],
+                                            strict=True):
+            final = iteration is iterations[-1]
+            expected = iteration.poses[:, :2] if final else iteration.poses[shown if max_points == 7 else
+                                                                            [0, LOOP_POSES - 1], :2]
+            np.testing.assert_allclose(strip_points(row), expected, atol=1e-5)
+            assert len(list(segments)) == (int(loops.sum()) if final else loops_shown)
+
+
 def test_module_entry_point_reports_errors_without_traceback(tmp_path: Path) -> None:
     bad = tmp_path / "bad.g2o"
     bad.write_text("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1\n")
