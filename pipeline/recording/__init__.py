@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from rerun.components import LineStrip2DBatch
 from rerun.encodings import Vec2DBatch
 
-from optimizer.iteration import Iteration
+from optimizer.iteration import ESTIMATE, Iteration
 from pipeline.errors import OutputError
 
 APPLICATION_ID = "sgdslam"
@@ -276,7 +276,9 @@ class IterationRecorder:
         step = self.steps_recorded
         positions = np.asarray(iteration.poses[:, :2], dtype=np.float32)
         self._positions.append(positions)
-        self._stages.append(iteration.stage)
+        # Several starts are optimized one after another: name the start unless it is the graph's own.
+        self._stages.append(iteration.stage if iteration.start == ESTIMATE else
+                            f"{iteration.start}: {iteration.stage}")
         self._indices.append(iteration.index)
         self._chi2.append(float(iteration.chi2))
         # geometry sent per iteration: the trajectory plus two points per loop closure
