@@ -73,13 +73,15 @@ def row(name: str, graph: PoseGraph, truth: FloatArray | None) -> list[str]:
     return [name, *cells, f"{seconds * 1e3:.1f}"]
 
 
-def print_table(rows: list[list[str]]) -> None:
+def print_header() -> None:
     headers = ["graph", "(a) file/DR→GN", "(b) SGD→GN", "(c) chordal→GN", "(d) chordal→SGD→GN",
                "(e) truth→GN", "chordal ms"]
     print("| " + " | ".join(headers) + " |")
-    print("|" + "|".join("---" for _ in headers) + "|")
-    for cells in rows:
-        print("| " + " | ".join(cells) + " |", flush=True)
+    print("|" + "|".join("---" for _ in headers) + "|", flush=True)
+
+
+def print_row(cells: list[str]) -> None:
+    print("| " + " | ".join(cells) + " |", flush=True)
 
 
 def scale(num_poses: int) -> None:
@@ -115,19 +117,18 @@ def main() -> None:
     warm = generate_grid_world(300, seed=0)
     polished_chi2(warm.graph, after_sgd(warm.graph, chordal_initialization(warm.graph)))
 
-    rows = []
+    print_header()
     for path in sorted(POSEGRAPHS.iterdir()) if POSEGRAPHS.is_dir() else []:
         try:
             graph = read_graph(path, repair_information=True).graph
         except OptimizerError as error:
-            rows.append([path.name, f"unreadable: {error}", "", "", "", "", ""])
+            print_row([path.name, f"unreadable: {error}", "", "", "", "", ""])
             continue
-        rows.append(row(path.name, graph, None))
+        print_row(row(path.name, graph, None))
     for sigma in HEADING_SIGMAS:
         for seed in range(arguments.seeds):
             world = generate_grid_world(3500, seed=seed, odometry_sigma=(0.02, 0.02, sigma))
-            rows.append(row(f"grid 3500 σθ={sigma} seed {seed}", world.graph, world.ground_truth))
-    print_table(rows)
+            print_row(row(f"grid 3500 σθ={sigma} seed {seed}", world.graph, world.ground_truth))
 
     if arguments.scale:
         print("\n| poses | constraints | chordal s | peak RSS Δ MB |\n|---|---|---|---|", flush=True)
