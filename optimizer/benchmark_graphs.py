@@ -7,8 +7,8 @@
 - `noisy_manhattan`: M3500-sized grid worlds with heavy odometry-angle noise, i.e. very poor starts;
 - `odometry_chain`: the start obtained by composing the odometry constraints from pose 0.
 
-Edges are kept as stored (a > b allowed), so the graphs are built with the dataclass constructor rather
-than `PoseGraph.build` (which, before the "keep every edge in its stored direction" change, flips a > b).
+Edges are kept as stored (a > b allowed), as `PoseGraph.build` keeps them; building through it also
+validates the result (positive definite information, a connected graph).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ MANHATTAN_ODOMETRY_SIGMA_XY = 0.02
 
 def loop_closures(graph: PoseGraph) -> BoolArray:
     """Mask of the constraints that are not between consecutive poses (|b − a| > 1), in either direction."""
-    return np.abs(graph.edge_to - graph.edge_from) > 1
+    return ~graph.is_odometry
 
 
 def reversed_anisotropic_variant(graph: PoseGraph, seed: int) -> PoseGraph:
@@ -158,21 +158,19 @@ def noisy_manhattan(num_poses: int = M3500_POSES, sigma_theta: float = 0.1, seed
 def odometry_chain(graph: PoseGraph) -> FloatArray:
     """Poses composed from pose 0's estimate along the odometry constraints (the first stored between each
     consecutive pair, inverted when stored k+1 → k). Raises GraphError if a consecutive pair has none."""
-    low = np.minimum(graph.edge_from, graph.edge_to)
-    odometry = np.flatnonzero(np.abs(graph.edge_to - graph.edge_from) == 1)
-    steps_from, first = np.unique(low[odometry], return_index=True)
+    odometry = np.flatnonzero(graph.is_odometry)
+    steps_from, first = np.unique(graph.edge_low[odometry], return_index=True)
     if len(steps_from) != graph.num_poses - 1:
         missing = np.setdiff1d(np.arange(graph.num_poses - 1), steps_from)
         raise GraphError(f"no odometry constraint between poses {int(missing[0])} and {int(missing[0]) + 1}")
     chosen = odometry[first]
     steps = graph.measurements[chosen].copy()
-    backward = graph.edge_from[chosen] > graph.edge_to[chosen]
+    backward = graph.is_reversed[chosen]
     steps[backward] = se2.inverse(steps[backward])
     return se2.compose_chain(steps, start=graph.poses[0])
 
 
 def _graph_with_edges(graph: PoseGraph, edge_from: IntArray, edge_to: IntArray, measurements: FloatArray,
                       information: FloatArray) -> PoseGraph:
-    return PoseGraph(graph.poses.copy(), np.ascontiguousarray(edge_from, dtype=np.int64),
-                     np.ascontiguousarray(edge_to, dtype=np.int64), np.ascontiguousarray(measurements),
-                     np.ascontiguousarray(information), graph.vertex_ids.copy())
+    ids = graph.vertex_ids
+    return PoseGraph.build(ids, graph.poses, ids[edge_from], ids[edge_to], measurements, information)
