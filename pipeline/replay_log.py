@@ -2,12 +2,12 @@
 
 1. Read the log's wheel odometry and transform tree (small), then stream the scans in sensor-time order.
 2. The frontend matches each scan, makes keyframes and loop closures (`frontends.slam2d`).
-3. The keyframe graph is optimized from its odometry-only estimate (what the robot believed before any
-   loop closure), so the recording shows the map straightening out; the online estimate is polished as
-   well and the lower χ² wins.
+3. The keyframe graph is optimized by the chosen method from two recorded starts: the odometry-only
+   estimate (what the robot believed before any loop closure), so the recording shows the map
+   straightening out, and the online estimate; the lower final χ² wins and is the recorded last iteration.
 4. Outputs: `<stem>.tum` (one pose per scan at its sensor stamp), `<stem>.g2o` (keyframe graph with
-   optimized poses), `<stem>.json` (counts, timings, χ² per iteration) and `<stem>.rrd`, written under
-   temporary names and renamed on success.
+   optimized poses), `<stem>.json` (counts, timings, χ² per iteration, convergence) and `<stem>.rrd`,
+   staged and published together on success (`pipeline.outputs`).
 
 Library code: raises `FrontendError`, `OptimizerError` or `PipelineError`, never prints or exits.
 """
