@@ -121,8 +121,8 @@ def sgd_tree(
         if offset == 0 or recomputes_stiffness(t):
             tree_stiffness(state, graph.edge_from, graph.edge_to, tree.top, graph.information, tree.parent,
                            stiffness, gamma)
-        tree_sgd_iteration(params, state, graph.edge_from, graph.edge_to, tree.top, visit_order,
-                           graph.measurements, graph.information, tree.parent, stiffness, gamma,
+        tree_sgd_iteration(params, graph.edge_from, graph.edge_to, tree.top, visit_order, graph.measurements,
+                           graph.information, tree.parent, tree.root, stiffness, gamma,
                            learning_rate_scale, t)
         poses_from_parameters(params, tree.parent, tree.order, state)
         if not np.all(np.isfinite(state)):

@@ -5,7 +5,7 @@ wrapped), and q_root = p_root. A pose is the sum of the parameters on its path t
 (a, b) is satisfied by the parameters on the tree path a → top → b (top = lowest common ancestor): moving
 the parameters on b's side by +δ and those on a's side by −δ changes p_b − p_a by the sum of the δ. The
 residual is computed in the stored direction (the frame of a, as the file measured it), so reversed edges
-need no special case.
+need no special case. Poses are summed exactly from the root at every visit, never read stale.
 """
 
 from __future__ import annotations
@@ -82,6 +82,21 @@ def poses_from_parameters(params: np.ndarray, parent: np.ndarray, order: np.ndar
 
 
 @njit(cache=True, inline="always")
+def _pose_of(node: int, params: np.ndarray, parent: np.ndarray, root: int, out: np.ndarray) -> None:
+    out[0] = 0.0
+    out[1] = 0.0
+    out[2] = 0.0
+    while node != root:
+        out[0] += params[node, 0]
+        out[1] += params[node, 1]
+        out[2] += params[node, 2]
+        node = parent[node]
+    out[0] += params[root, 0]
+    out[1] += params[root, 1]
+    out[2] += params[root, 2]
+
+
+@njit(cache=True, inline="always")
 def _global_information_diagonal(theta: float, info: np.ndarray, out: np.ndarray) -> None:
     """diag(R Ω Rᵀ) with R = Rot(θ): the constraint's information expressed in the global frame."""
     c = math.cos(theta)
@@ -115,51 +130,16 @@ def tree_stiffness(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
                 node = parent[node]
 
 
-@njit(cache=True, inline="always")
-def _path_sum(node: int, top: int, params: np.ndarray, parent: np.ndarray, stiffness: np.ndarray,
-              out: np.ndarray, total_weight: np.ndarray) -> int:
-    """out += Σ q over the path node → top (top excluded), total_weight += Σ 1/M there; returns its length."""
-    length = 0
-    while node != top:
-        length += 1
-        for j in range(3):
-            out[j] += params[node, j]
-            total_weight[j] += 1.0 / stiffness[node, j]
-        node = parent[node]
-    return length
-
-
-@njit(cache=True, inline="always")
-def _refresh_path(node: int, top: int, params: np.ndarray, parent: np.ndarray, poses: np.ndarray,
-                  below: np.ndarray) -> None:
-    """poses of the path node → top (top excluded) = p_top + the parameters between it and the top."""
-    below[:] = 0.0
-    walker = node
-    while walker != top:
-        for j in range(3):
-            below[j] += params[walker, j]
-        walker = parent[walker]
-    while node != top:
-        for j in range(3):
-            poses[node, j] = poses[top, j] + below[j]
-            below[j] -= params[node, j]
-        node = parent[node]
-
-
 @njit(cache=True)
-def tree_sgd_iteration(params: np.ndarray, poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray,
-                       top: np.ndarray, visit_order: np.ndarray, measurements: np.ndarray,
-                       information: np.ndarray, parent: np.ndarray, stiffness: np.ndarray, gamma: np.ndarray,
+def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, top: np.ndarray,
+                       visit_order: np.ndarray, measurements: np.ndarray, information: np.ndarray,
+                       parent: np.ndarray, root: int, stiffness: np.ndarray, gamma: np.ndarray,
                        learning_rate_scale: float, t: int) -> None:
-    """One pass over the constraints in `visit_order`, updating the parameters in place, in O(path) each.
+    """One pass over the constraints in `visit_order`, updating the parameters in place.
 
-    Per constraint: p_a and p_b are p_top plus the parameters down each side of the path (TORO's
-    shortcut: `poses` is refreshed only along the paths just moved, so p_top may lag an ancestor's change
-    made earlier in the pass; walking to the root instead would cost the tree depth, 5× the mean path on a
-    10⁵-pose grid world, for the same χ² within 2 %); the residual r = (P_a·z) − p_b (θ wrapped) and
-    d = 2 W r with W = R Ω Rᵀ in the global frame; the step β_j = ℓ d_j /(s γ_j t) (ℓ = path length,
-    s = `learning_rate_scale`), clamped to r_j so it never overshoots, is split over the path's parameters
-    in proportion to 1/M_i. The caller recomputes every pose from the parameters after the pass.
+    Per constraint: the residual r = (P_a·z) − p_b (θ wrapped) and d = 2 W r with W = R Ω Rᵀ in the global
+    frame; the step β_j = ℓ d_j /(s γ_j t) (ℓ = path length, s = `learning_rate_scale`), clamped to r_j so
+    it never overshoots, is split over the path's parameters in proportion to 1/M_i.
     """
     pa = np.empty(3)
     pb = np.empty(3)
@@ -167,18 +147,12 @@ def tree_sgd_iteration(params: np.ndarray, poses: np.ndarray, edge_from: np.ndar
     d = np.empty(3)
     total_weight = np.empty(3)
     beta = np.empty(3)
-    scratch = np.empty(3)
     for position in range(visit_order.shape[0]):
         k = visit_order[position]
         a = edge_from[k]
         b = edge_to[k]
-        turn = top[k]
-        for j in range(3):
-            pa[j] = poses[turn, j]
-            pb[j] = poses[turn, j]
-        total_weight[:] = 0.0
-        length = _path_sum(a, turn, params, parent, stiffness, pa, total_weight)
-        length += _path_sum(b, turn, params, parent, stiffness, pb, total_weight)
+        _pose_of(a, params, parent, root, pa)
+        _pose_of(b, params, parent, root, pb)
         z = measurements[k]
         c = math.cos(pa[2])
         s = math.sin(pa[2])
@@ -194,6 +168,16 @@ def tree_sgd_iteration(params: np.ndarray, poses: np.ndarray, edge_from: np.ndar
         d[0] = 2.0 * (c * ox - s * oy)
         d[1] = 2.0 * (s * ox + c * oy)
         d[2] = 2.0 * (info[2, 0] * lx + info[2, 1] * ly + info[2, 2] * r[2])
+
+        length = 0
+        total_weight[:] = 0.0
+        for side in range(2):
+            node = a if side == 0 else b
+            while node != top[k]:
+                length += 1
+                for j in range(3):
+                    total_weight[j] += 1.0 / stiffness[node, j]
+                node = parent[node]
         for j in range(3):
             step = length * d[j] / (learning_rate_scale * gamma[j] * t)
             if abs(step) > abs(r[j]):
@@ -202,9 +186,7 @@ def tree_sgd_iteration(params: np.ndarray, poses: np.ndarray, edge_from: np.ndar
         for side in range(2):
             node = a if side == 0 else b
             sign = -1.0 if side == 0 else 1.0
-            while node != turn:
+            while node != top[k]:
                 for j in range(3):
                     params[node, j] += sign * beta[j] / stiffness[node, j]
                 node = parent[node]
-        _refresh_path(a, turn, params, parent, poses, scratch)
-        _refresh_path(b, turn, params, parent, poses, scratch)
