@@ -1,0 +1,192 @@
+"""Compiled kernels of the tree-parameterised SGD (TORO's idea, Grisetti et al. 2007, on our state).
+
+State: for every pose i other than the root, the parameter q_i = p_i − p_parent(i) (global frame, θ not
+wrapped), and q_root = p_root. A pose is the sum of the parameters on its path to the root, so a constraint
+(a, b) is satisfied by the parameters on the tree path a → top → b (top = lowest common ancestor): moving
+the parameters on b's side by +δ and those on a's side by −δ changes p_b − p_a by the sum of the δ. The
+residual is computed in the stored direction (the frame of a, as the file measured it), so reversed edges
+need no special case. Poses are summed exactly from the root at every visit, never read stale.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+TWO_PI = 2.0 * math.pi
+
+
+@njit(cache=True, inline="always")
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % TWO_PI - math.pi
+
+
+@njit(cache=True)
+def tree_depths(order: np.ndarray, parent: np.ndarray) -> np.ndarray:
+    """Depth of every node, given a breadth-first order (parents before children) and the parents."""
+    depth = np.zeros(order.shape[0], dtype=np.int64)
+    for position in range(1, order.shape[0]):
+        node = order[position]
+        depth[node] = depth[parent[node]] + 1
+    return depth
+
+
+@njit(cache=True)
+def lowest_common_ancestors(edge_from: np.ndarray, edge_to: np.ndarray, parent: np.ndarray,
+                            depth: np.ndarray) -> np.ndarray:
+    """The top node of every constraint's tree path (O(path length) each)."""
+    top = np.empty(edge_from.shape[0], dtype=np.int64)
+    for k in range(edge_from.shape[0]):
+        a = edge_from[k]
+        b = edge_to[k]
+        while depth[a] > depth[b]:
+            a = parent[a]
+        while depth[b] > depth[a]:
+            b = parent[b]
+        while a != b:
+            a = parent[a]
+            b = parent[b]
+        top[k] = a
+    return top
+
+
+@njit(cache=True)
+def parameters_from_poses(poses: np.ndarray, parent: np.ndarray, root: int, params: np.ndarray) -> None:
+    """q_i = p_i − p_parent(i) with the angle difference wrapped, so that sums along paths are consistent."""
+    for i in range(poses.shape[0]):
+        if i == root:
+            params[i, 0] = poses[i, 0]
+            params[i, 1] = poses[i, 1]
+            params[i, 2] = poses[i, 2]
+        else:
+            q = parent[i]
+            params[i, 0] = poses[i, 0] - poses[q, 0]
+            params[i, 1] = poses[i, 1] - poses[q, 1]
+            params[i, 2] = _wrap(poses[i, 2] - poses[q, 2])
+
+
+@njit(cache=True)
+def poses_from_parameters(params: np.ndarray, parent: np.ndarray, order: np.ndarray,
+                          poses: np.ndarray) -> None:
+    """p_i = p_parent(i) + q_i, parents first (θ left unwrapped)."""
+    root = order[0]
+    for j in range(3):
+        poses[root, j] = params[root, j]
+    for position in range(1, order.shape[0]):
+        node = order[position]
+        q = parent[node]
+        for j in range(3):
+            poses[node, j] = poses[q, j] + params[node, j]
+
+
+@njit(cache=True, inline="always")
+def _pose_of(node: int, params: np.ndarray, parent: np.ndarray, root: int, out: np.ndarray) -> None:
+    out[0] = 0.0
+    out[1] = 0.0
+    out[2] = 0.0
+    while node != root:
+        out[0] += params[node, 0]
+        out[1] += params[node, 1]
+        out[2] += params[node, 2]
+        node = parent[node]
+    out[0] += params[root, 0]
+    out[1] += params[root, 1]
+    out[2] += params[root, 2]
+
+
+@njit(cache=True, inline="always")
+def _global_information_diagonal(theta: float, info: np.ndarray, out: np.ndarray) -> None:
+    """diag(R Ω Rᵀ) with R = Rot(θ): the constraint's information expressed in the global frame."""
+    c = math.cos(theta)
+    s = math.sin(theta)
+    out[0] = c * c * info[0, 0] - 2.0 * c * s * info[0, 1] + s * s * info[1, 1]
+    out[1] = s * s * info[0, 0] + 2.0 * c * s * info[0, 1] + c * c * info[1, 1]
+    out[2] = info[2, 2]
+
+
+@njit(cache=True)
+def tree_stiffness(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, top: np.ndarray,
+                   information: np.ndarray, parent: np.ndarray, stiffness: np.ndarray,
+                   gamma: np.ndarray) -> None:
+    """M_i = Σ diag(W) over the constraints whose tree path moves q_i; γ = min diag(W) over constraints.
+
+    Summed by walking each path (positive terms only): a subtree sum of +W at the ends and −2W at the top
+    would cancel catastrophically where huge and tiny informations meet (INTEL).
+    """
+    stiffness[:] = 0.0
+    gamma[:] = np.inf
+    w = np.empty(3)
+    for k in range(edge_from.shape[0]):
+        _global_information_diagonal(poses[edge_from[k], 2], information[k], w)
+        for j in range(3):
+            gamma[j] = min(gamma[j], w[j])
+        for side in range(2):
+            node = edge_from[k] if side == 0 else edge_to[k]
+            while node != top[k]:
+                for j in range(3):
+                    stiffness[node, j] += w[j]
+                node = parent[node]
+
+
+@njit(cache=True)
+def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, top: np.ndarray,
+                       visit_order: np.ndarray, measurements: np.ndarray, information: np.ndarray,
+                       parent: np.ndarray, root: int, stiffness: np.ndarray, gamma: np.ndarray,
+                       learning_rate_scale: float, t: int) -> None:
+    """One pass over the constraints in `visit_order`, updating the parameters in place.
+
+    Per constraint: the residual r = (P_a·z) − p_b (θ wrapped) and d = 2 W r with W = R Ω Rᵀ in the global
+    frame; the step β_j = ℓ d_j /(s γ_j t) (ℓ = path length, s = `learning_rate_scale`), clamped to r_j so
+    it never overshoots, is split over the path's parameters in proportion to 1/M_i.
+    """
+    pa = np.empty(3)
+    pb = np.empty(3)
+    r = np.empty(3)
+    d = np.empty(3)
+    total_weight = np.empty(3)
+    beta = np.empty(3)
+    for position in range(visit_order.shape[0]):
+        k = visit_order[position]
+        a = edge_from[k]
+        b = edge_to[k]
+        _pose_of(a, params, parent, root, pa)
+        _pose_of(b, params, parent, root, pb)
+        z = measurements[k]
+        c = math.cos(pa[2])
+        s = math.sin(pa[2])
+        r[0] = pa[0] + c * z[0] - s * z[1] - pb[0]
+        r[1] = pa[1] + s * z[0] + c * z[1] - pb[1]
+        r[2] = _wrap(pa[2] + z[2] - pb[2])
+        info = information[k]
+        # W = R Ω Rᵀ, applied as R (Ω (Rᵀ r)).
+        lx = c * r[0] + s * r[1]
+        ly = -s * r[0] + c * r[1]
+        ox = info[0, 0] * lx + info[0, 1] * ly + info[0, 2] * r[2]
+        oy = info[1, 0] * lx + info[1, 1] * ly + info[1, 2] * r[2]
+        d[0] = 2.0 * (c * ox - s * oy)
+        d[1] = 2.0 * (s * ox + c * oy)
+        d[2] = 2.0 * (info[2, 0] * lx + info[2, 1] * ly + info[2, 2] * r[2])
+
+        length = 0
+        total_weight[:] = 0.0
+        for side in range(2):
+            node = a if side == 0 else b
+            while node != top[k]:
+                length += 1
+                for j in range(3):
+                    total_weight[j] += 1.0 / stiffness[node, j]
+                node = parent[node]
+        for j in range(3):
+            step = length * d[j] / (learning_rate_scale * gamma[j] * t)
+            if abs(step) > abs(r[j]):
+                step = r[j]
+            beta[j] = step / total_weight[j]
+        for side in range(2):
+            node = a if side == 0 else b
+            sign = -1.0 if side == 0 else 1.0
+            while node != top[k]:
+                for j in range(3):
+                    params[node, j] += sign * beta[j] / stiffness[node, j]
+                node = parent[node]

@@ -1,0 +1,163 @@
+"""The tree-parameterised SGD: its spanning tree, exact behaviour on trees, and optima on loopy graphs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import shortest_path
+
+from optimizer import se2
+from optimizer.cost import chi2
+from optimizer.errors import OptimizerError
+from optimizer.graph import PoseGraph
+from optimizer.gridworld import generate_grid_world
+from optimizer.polish import gauss_newton
+from optimizer.sgd import sgd
+from optimizer.sgd_tree import sgd_tree, spanning_tree
+from tests.conftest import shared_file
+
+
+def _reversed_every(graph: PoseGraph, every: int, truth: np.ndarray, rng: np.random.Generator,
+                    noise: tuple[float, float, float]) -> PoseGraph:
+    """The same pose pairs with every `every`-th constraint measured from its other end (a fresh noisy
+    measurement of b→a, not the inverted one), built with the dataclass so the stored direction stays."""
+    edge_from = graph.edge_from.copy()
+    edge_to = graph.edge_to.copy()
+    flipped = np.arange(graph.num_edges) % every == 0
+    edge_from[flipped], edge_to[flipped] = graph.edge_to[flipped], graph.edge_from[flipped]
+    measurements = se2.compose(se2.relative(truth[edge_from], truth[edge_to]),
+                               rng.normal(0.0, noise, (graph.num_edges, 3)))
+    return PoseGraph(graph.poses.copy(), edge_from, edge_to, measurements, graph.information.copy(),
+                     graph.vertex_ids.copy())
+
+
+def _last_chi2_of_gauss_newton(graph: PoseGraph, poses: np.ndarray) -> float:
+    result = chi2(graph, poses)
+    for step in gauss_newton(graph, poses, max_iterations=200):
+        result = step.chi2
+    return result
+
+
+def test_spanning_tree_paths_are_shortest_hop_paths() -> None:
+    graph = generate_grid_world(200, seed=3).graph
+    tree = spanning_tree(graph)
+    adjacency = coo_matrix((np.ones(graph.num_edges), (graph.edge_from, graph.edge_to)),
+                           shape=(graph.num_poses,) * 2)
+    hops = shortest_path(adjacency, directed=False, unweighted=True, indices=0)
+    np.testing.assert_array_equal(tree.depth, hops.astype(np.int64))
+    assert tree.parent[0] == 0
+    others = np.arange(1, graph.num_poses)
+    np.testing.assert_array_equal(tree.depth[tree.parent[others]], tree.depth[others] - 1)
+    # Each top is a common ancestor of both ends, and no child of it is (it is the lowest one).
+    for k in range(graph.num_edges):
+        ancestors = []
+        for node in (graph.edge_from[k], graph.edge_to[k]):
+            chain = [node]
+            while chain[-1] != 0:
+                chain.append(tree.parent[chain[-1]])
+            ancestors.append(chain)
+        common = [node for node in ancestors[0] if node in ancestors[1]]
+        assert tree.top[k] == common[0]
+        assert tree.path_length[k] == ancestors[0].index(common[0]) + ancestors[1].index(common[0])
+
+
+def test_a_tree_of_constraints_is_solved_in_one_iteration() -> None:
+    # With α = 1/γ at t = 1 and isotropic information every step is clamped to the whole residual; a
+    # constraint graph that is itself a tree is then satisfied constraint by constraint, parents first.
+    rng = np.random.default_rng(4)
+    n = 60
+    parents = np.array([rng.integers(0, i) for i in range(1, n)])
+    children = np.arange(1, n)
+    z = rng.normal([1.0, 0.2, 0.1], [0.5, 0.5, 0.6], (n - 1, 3))
+    info = np.tile(np.diag([20.0, 20.0, 80.0]), (n - 1, 1, 1))
+    graph = PoseGraph.build(np.arange(n), rng.normal(size=(n, 3)), parents, children, z, info)
+    result = next(sgd_tree(graph, 1, learning_rate_scale=1.0))
+    expected = graph.poses.copy()
+    for child, parent, measurement in zip(children, parents, z, strict=True):
+        expected[child] = se2.compose(expected[parent], measurement)
+    difference = result.poses - expected
+    difference[:, 2] = se2.wrap_angle(difference[:, 2])
+    assert np.abs(difference).max() < 1e-9
+    assert result.chi2 < 1e-18
+
+
+def test_consistent_graph_at_its_solution_does_not_move() -> None:
+    world = generate_grid_world(300, seed=1, add_noise=False)
+    graph = world.graph.with_poses(world.ground_truth)
+    for step in sgd_tree(graph, 3):
+        difference = step.poses - world.ground_truth
+        difference[:, 2] = se2.wrap_angle(difference[:, 2])
+        assert np.abs(difference).max() < 1e-9
+
+
+@pytest.mark.parametrize("every", [2, 3])
+def test_reversed_edges_reach_the_gauss_newton_optimum(every: int) -> None:
+    rng = np.random.default_rng(every)
+    world = generate_grid_world(500, seed=every)
+    noise = (0.02, 0.02, 0.01)
+    graph = _reversed_every(world.graph, every, world.ground_truth, rng, noise)
+    assert graph.is_reversed.sum() > graph.num_edges // 4
+    start = se2.compose_chain(_odometry_as_forward_steps(graph), start=world.ground_truth[0])
+    graph = graph.with_poses(start)
+    optimum = _last_chi2_of_gauss_newton(graph, world.ground_truth)
+
+    steps = list(sgd_tree(graph, 100))
+    assert [s.index for s in steps] == list(range(1, 101))
+    assert all(s.stage == "sgd-tree" for s in steps)
+    assert steps[-1].chi2 < 1e-2 * chi2(graph)
+    assert steps[-1].chi2 < 2.0 * optimum
+    # A wrong sign on reversed constraints would leave SGD in another basin; GN from it finds the optimum.
+    assert _last_chi2_of_gauss_newton(graph, steps[-1].poses) == pytest.approx(optimum, rel=1e-6)
+    np.testing.assert_array_equal(steps[-1].poses[0], graph.poses[0])
+
+
+def _odometry_as_forward_steps(graph: PoseGraph) -> np.ndarray:
+    """The odometry motions i → i+1 from the stored constraints, inverting the reversed ones."""
+    odometry = np.flatnonzero(graph.is_odometry)
+    low = np.minimum(graph.edge_from[odometry], graph.edge_to[odometry])
+    first = odometry[np.unique(low, return_index=True)[1]]
+    steps = graph.measurements[first].copy()
+    backwards = graph.is_reversed[first]
+    steps[backwards] = se2.inverse(steps[backwards])
+    return steps
+
+
+def test_beats_the_paper_sgd_on_a_grid_world() -> None:
+    graph = generate_grid_world(2000, seed=5).graph
+    paper = list(sgd(graph, 30))[-1].chi2
+    tree = list(sgd_tree(graph, 30))[-1].chi2
+    assert tree < 0.5 * paper
+
+
+def test_beats_the_paper_sgd_tenfold_on_m3500() -> None:
+    from optimizer.graph_files import read_graph
+
+    graph = read_graph(shared_file("posegraphs/2d/M3500.g2o")).graph
+    tree = list(sgd_tree(graph, 100))[-1].chi2
+    paper = list(sgd(graph, 100))[-1].chi2
+    assert tree < 0.1 * paper
+
+
+def test_continuing_the_schedule_matches_a_restart_at_that_iteration() -> None:
+    graph = generate_grid_world(300, seed=2).graph
+    head = list(sgd_tree(graph, 3))[-1]
+    tail = list(sgd_tree(graph, 2, head.poses, first_iteration=4))
+    assert tail[-1].chi2 < head.chi2
+
+
+def test_bad_arguments_raise_our_error() -> None:
+    graph = generate_grid_world(50, seed=0).graph
+    with pytest.raises(OptimizerError):
+        list(sgd_tree(graph, -1))
+    with pytest.raises(OptimizerError):
+        list(sgd_tree(graph, 1, first_iteration=0))
+    with pytest.raises(OptimizerError):
+        list(sgd_tree(graph, 1, np.zeros((2, 3))))
+    with pytest.raises(OptimizerError):
+        list(sgd_tree(graph, 1, learning_rate_scale=0.0))
+    poses = graph.poses.copy()
+    poses[3, 0] = np.nan
+    with pytest.raises(OptimizerError):
+        list(sgd_tree(graph, 1, poses))
+    assert list(sgd_tree(graph, 0)) == []
