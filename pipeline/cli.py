@@ -21,6 +21,7 @@ import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
 from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import typer
@@ -539,13 +540,19 @@ def main() -> NoReturn:
     # and on a busy machine their spinning made one 10k-element dot product take 8 ms instead of 5 µs.
     terminated: list[int] = []
 
-    def on_sigterm(signum: int, _frame: object) -> None:
-        # Cleaned up like Ctrl-C (staged outputs removed, workers stopped), then reported as a SIGTERM.
-        terminated.append(signum)
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        # SIGTERM is cleaned up like Ctrl-C (staged outputs removed, workers stopped), then reported as such.
+        if signum == signal.SIGTERM:
+            terminated.append(signum)
+        if _in_finaliser(frame):
+            # An exception raised in a __del__ is printed and dropped, and the interrupt lost: try again
+            # in a moment, once the finaliser has returned.
+            signal.setitimer(signal.ITIMER_REAL, 0.05)
+            return
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, on_sigterm)
+    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
+        signal.signal(number, on_signal)
     code: int | str | None
     try:
         with threadpool_limits(limits=1, user_api="blas"):
@@ -566,6 +573,14 @@ def main() -> NoReturn:
     if terminated and code == EXIT_INTERRUPTED:
         code = 128 + signal.SIGTERM
     _exit_now(code)
+
+
+def _in_finaliser(frame: FrameType | None) -> bool:
+    while frame is not None:
+        if frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
 
 
 def _exit_now(code: int | str | None) -> NoReturn:
