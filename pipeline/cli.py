@@ -135,16 +135,18 @@ Examples:
   replay graph.g2o                       # SGD then Gauss-Newton (the default method)
   replay graph.graph --method sgd --iterations 30 --out results
   replay a.mcap b.bag c/ --jobs 3 --json > summary.json
-  replay --inputs logs.txt --ray --out /shared/results        # a local Ray runtime
-  replay --inputs /fleet/2026-11-23/ --ray head:6379 --out /shared/results --retries 2
+  replay --inputs logs.txt --ray         # each input a task on a local Ray runtime
+  replay --inputs /fleet/today/ --ray head:6379 --out /shared/results --retries 2
   replay --dump-config > replay.toml     # then: replay run.mcap --config replay.toml
 
 \b
 Outputs, in DIR: <stem>.g2o (optimised poses), <stem>.json (counts, chi2 per iteration, wall time per
 stage), <stem>.rrd (every iteration on the timeline `iteration`) and, for logs, <stem>.tum (one pose per
-scan at its sensor stamp) and <stem>_map.png. Open the recording with the Rerun viewer of rerun-sdk 0.41:
-rerun recordings/csail_sample.rrd. Settings: a TOML file (--config; --dump-config writes the defaults), which
-the options override. Other commands: replay info LOG, replay evaluate TRAJECTORY.tum RELATIONS.
+scan at its sensor stamp) and <stem>_map.png. A batch (several inputs, --inputs, --ray) also writes
+batch_summary.parquet: one row per input (status, error, counts, chi2, times, host). Open the
+recording with the Rerun viewer of rerun-sdk 0.41: rerun recordings/csail_sample.rrd. Settings: a TOML
+file (--config; --dump-config writes the defaults), which the options override. Other commands: replay
+info LOG, replay evaluate TRAJECTORY.tum RELATIONS.
 Exit code {EXIT_ERROR} on bad input (one line naming the file, nothing written for it) or when any of
 several inputs failed."""
 
@@ -243,7 +245,8 @@ def run(
         if ray is not None or (jobs > 1 and len(sources) > 1):
             outcomes = _run_in_pool(sources, config, out, jobs, show_progress, ray)
         else:
-            outcomes = _run_in_process(sources, config, out, show_progress, several=len(sources) > 1)
+            outcomes = _run_in_process(sources, config, out, show_progress,
+                                       several=len(sources) > 1 or inputs_from is not None)
     summary_error = None
     summary_path = None
     if len(outcomes) > 1 or ray is not None or inputs_from is not None:
