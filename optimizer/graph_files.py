@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from optimizer import se2
 from optimizer.errors import GraphError, GraphFileError
-from optimizer.graph import PoseGraph
+from optimizer.graph import PoseGraph, not_positive_definite
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -28,10 +28,6 @@ REPAIR_EIGENVALUE_FLOOR = 1e-6
 """`repair_information=True` raises every eigenvalue of a bad information matrix to this fraction of
 its largest eigenvalue (a direction the file gives no information about becomes very uncertain)."""
 
-_SPD_TOLERANCE = 16.0 * np.finfo(np.float64).eps
-"""An information matrix counts as positive definite when its smallest eigenvalue exceeds this fraction
-of its largest: anything smaller is singular up to the rounding of the eigenvalue computation. The
-INTEL graph's condition numbers (up to 2.4e11) pass comfortably."""
 
 _LARGEST_EXACT_ID = 2**53  # ids go through float64 parsing; beyond this they would not be exact
 
@@ -108,7 +104,8 @@ def read_graph(path: str | Path, *, repair_information: bool = False) -> GraphFi
     all_ids, all_poses, initialised = _complete_poses(path, vertex_ids, vertices.values[:, 1:4], edge_ids,
                                                       measurements, edges.lines)
     try:
-        graph = PoseGraph.build(all_ids, all_poses, edge_ids[:, 0], edge_ids[:, 1], measurements, information)
+        graph = PoseGraph.build(all_ids, all_poses, edge_ids[:, 0], edge_ids[:, 1], measurements, information,
+                                check_information=False)  # just checked, with the file's line numbers
     except GraphError as error:
         raise GraphFileError(path, str(error)) from error
     return GraphFile(graph, path, format_name, skipped, initialised, repaired)
@@ -291,16 +288,16 @@ def _check_information(path: Path, information: FloatArray, lines: IntArray,
     """Reject (or, with `repair`, fix) information matrices that are not positive definite."""
     if len(information) == 0:
         return information, np.zeros(0, dtype=np.int64)
-    eigenvalues = np.linalg.eigvalsh(information)  # ascending, batched over edges
-    bad = ~(eigenvalues[:, 0] > _SPD_TOLERANCE * eigenvalues[:, 2])
+    bad = not_positive_definite(information)
     if not bad.any():
         return information, np.zeros(0, dtype=np.int64)
     first = int(np.argmax(bad))
+    eigenvalues = np.linalg.eigvalsh(information[first:first + 1])
     if not repair:
         raise GraphFileError(
             path,
             "the edge's information matrix is not positive definite (eigenvalues "
-            f"{', '.join(f'{value:.6g}' for value in eigenvalues[first])}); "
+            f"{', '.join(f'{value:.6g}' for value in eigenvalues[0])}); "
             "ask for it to be repaired (replay --repair-information) to clamp its eigenvalues",
             line=int(lines[first]),
         )

@@ -1,8 +1,11 @@
 """Compiled kernels of the SGD of Olson, Leonard & Teller (2006).
 
 State: global poses p (N, 3) with θ kept unwrapped, so that the incremental state x_i = p_i − p_{i−1}
-is a plain difference. A constraint (a, b) is satisfied by the motions x_{a+1..b}; its weighted residual
-is spread over them in proportion to 1/M (the stiffness, diag of JᵀΣ⁻¹J).
+is a plain difference. A constraint (a, b) is satisfied by the motions x_{lo+1..hi}, lo = min(a, b),
+hi = max(a, b); its weighted residual is spread over them in proportion to 1/M (the stiffness, diag of
+JᵀΣ⁻¹J). The residual is always computed in the stored direction (the frame of a, as the file measured
+it); for a reversed constraint (a > b) the motions lo+1..hi carry p_a away from p_b, so the step is
+applied with the opposite sign. This is exact, not a flipped approximation of the constraint.
 
 Two implementations of one iteration, visiting constraints in their stored order:
 - `sgd_iteration_linear`: Algorithm 1 of the paper, O(N) per constraint. Kept as the test oracle.
@@ -86,10 +89,11 @@ def stiffness_linear(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarr
     w_global = np.empty((3, 3))
     for k in range(edge_from.shape[0]):
         a = edge_from[k]
-        b = edge_to[k]
+        lo = min(a, edge_to[k])
+        hi = max(a, edge_to[k])
         _rotated_information(poses[a, 2], information[k], w_global)
         for j in range(3):
-            for i in range(a + 1, b + 1):
+            for i in range(lo + 1, hi + 1):
                 stiffness[i, j] += w_global[j, j]
             gamma[j] = min(gamma[j], w_global[j, j])
 
@@ -106,15 +110,18 @@ def sgd_iteration_linear(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.n
     for k in range(edge_from.shape[0]):
         a = edge_from[k]
         b = edge_to[k]
+        lo = min(a, b)
+        hi = max(a, b)
+        sign = 1.0 if a < b else -1.0
         _weighted_residual(poses[a], poses[b], measurements[k], information[k], w_global, r, d)
         for j in range(3):
             total_weight = 0.0
-            for i in range(a + 1, b + 1):
+            for i in range(lo + 1, hi + 1):
                 total_weight += 1.0 / stiffness[i, j]
-            beta = _clamped_step(b - a, d[j], r[j], gamma[j], t)
+            beta = sign * _clamped_step(hi - lo, d[j], r[j], gamma[j], t)
             dpose = 0.0
-            for i in range(a + 1, n):
-                if i <= b:
+            for i in range(lo + 1, n):
+                if i <= hi:
                     dpose += beta / stiffness[i, j] / total_weight
                 poses[i, j] += dpose
 
@@ -151,8 +158,8 @@ def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
     w_global = np.empty((3, 3))
     for k in range(edge_from.shape[0]):
         _rotated_information(poses[edge_from[k], 2], information[k], w_global)
-        lo = edge_from[k] + 1 + size
-        hi = edge_to[k] + size + 1
+        lo = min(edge_from[k], edge_to[k]) + 1 + size
+        hi = max(edge_from[k], edge_to[k]) + size + 1
         while lo < hi:
             if lo & 1:
                 for j in range(3):
@@ -296,10 +303,13 @@ def sgd_iteration_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.nda
         _tree_pose(a, poses, tree, pa)
         _tree_pose(b, poses, tree, pb)
         _weighted_residual(pa, pb, measurements[k], information[k], w_global, r, d)
-        _tree_weight(a + 1, b, tree, total_weight)
+        lo = min(a, b)
+        hi = max(a, b)
+        sign = 1.0 if a < b else -1.0
+        _tree_weight(lo + 1, hi, tree, total_weight)
         for j in range(3):
-            amount[j] = _clamped_step(b - a, d[j], r[j], gamma[j], t) / total_weight[j]
-        _tree_add(a + 1, b, amount, tree)
+            amount[j] = sign * _clamped_step(hi - lo, d[j], r[j], gamma[j], t) / total_weight[j]
+        _tree_add(lo + 1, hi, amount, tree)
     # Push every LAZY down to the leaves: C_i, then p_i += Σ_{m≤i} w_m C_m.
     for node in range(1, size):
         for j in range(3):

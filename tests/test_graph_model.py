@@ -77,19 +77,39 @@ def test_reversing_a_constraint_twice_gives_it_back() -> None:
     np.testing.assert_allclose(twice[1], info, atol=1e-12)
 
 
-def test_reversed_edge_is_stored_forward_with_the_same_cost() -> None:
+def test_reversed_edge_is_kept_as_stored_with_the_files_exact_cost() -> None:
     rng = np.random.default_rng(1)
     poses = rng.normal(size=(2, 3))
     info = np.array([[5.0, 1.0, 0.5], [1.0, 3.0, -0.2], [0.5, -0.2, 2.0]])
-    # The file says: pose 0 seen from pose 1 is z_10 (slightly wrong).
-    z_10 = se2.relative(poses[1], poses[0]) + np.array([0.01, -0.02, 0.015])
+    # The file says: pose 0 seen from pose 1 is z_10 (slightly wrong), θ given outside [-π, π).
+    z_10 = se2.relative(poses[1], poses[0]) + np.array([0.01, -0.02, 0.015 + 2 * np.pi])
     graph = PoseGraph.build([0, 1], poses, [1], [0], [z_10], info[None])
-    assert (graph.edge_from[0], graph.edge_to[0]) == (0, 1)
-    assert _close(graph.measurements[0], se2.inverse(z_10), 1e-12)
-    # The cost of the relation as the file wrote it, computed by hand in the 1 → 0 direction.
+    assert (graph.edge_from[0], graph.edge_to[0]) == (1, 0)
+    assert graph.is_reversed.tolist() == [True] and graph.is_odometry.tolist() == [True]
+    assert (graph.edge_low[0], graph.edge_high[0]) == (0, 1)
+    np.testing.assert_array_equal(graph.measurements[0], z_10)  # number for number, not wrapped
+    np.testing.assert_array_equal(graph.information[0], info)
+    # The cost of the relation exactly as the file wrote it, computed by hand in the 1 → 0 direction.
     e_10 = se2.relative(z_10, se2.relative(poses[1], poses[0]))
-    as_written = float(e_10 @ info @ e_10)
-    assert chi2(graph) == pytest.approx(as_written, rel=0.05)  # equal to first order in the error
+    assert chi2(graph) == pytest.approx(float(e_10 @ info @ e_10), rel=1e-12)
+
+
+def test_flipping_an_edge_changes_the_problem_with_anisotropic_information() -> None:
+    # Why edges are never flipped: the adjoint-moved information only matches to first order.
+    poses = np.array([[0.0, 0.0, 0.0], [2.0, 0.5, 0.3]])
+    info = np.diag([1e4, 1.0, 1e2])
+    z_10 = se2.relative(poses[1], poses[0]) + np.array([0.3, -0.2, 0.25])
+    stored = PoseGraph.build([0, 1], poses, [1], [0], [z_10], info[None])
+    z_01, info_01 = reverse_constraints(np.array([z_10]), info[None])
+    flipped = PoseGraph.build([0, 1], poses, [0], [1], z_01, info_01)
+    assert abs(chi2(flipped) - chi2(stored)) > 0.01 * chi2(stored)
+
+
+@pytest.mark.parametrize("matrix", [np.diag([1.0, 1.0, 0.0]), np.diag([1.0, -2.0, 3.0]),
+                                    np.array([[1.0, 5.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])])
+def test_information_that_is_not_positive_definite_is_rejected(matrix: np.ndarray) -> None:
+    with pytest.raises(GraphError, match=r"constraint 0 \(7 → 9\).*not symmetric positive definite"):
+        PoseGraph.build([7, 9], np.zeros((2, 3)), [7], [9], [[1, 0, 0]], matrix[None])
 
 
 def test_duplicate_edges_are_kept() -> None:

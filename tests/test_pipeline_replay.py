@@ -194,7 +194,7 @@ def test_replay_writes_graph_summary_and_recording(tmp_path: Path, method: str) 
 
     closures = entities["/world/loop_closures"].columns["LineStrips2D:strips"][-1]
     final = written.poses[:, :2]
-    expected_segments = {(0, LOOP_POSES - 1), (LOOP_POSES // 3, 2 * LOOP_POSES // 3)}
+    expected_segments = {(LOOP_POSES - 1, 0), (LOOP_POSES // 3, 2 * LOOP_POSES // 3)}  # as stored
     assert len(closures) == len(expected_segments)
     for a, b in expected_segments:
         assert any(np.allclose(segment, [final[a], final[b]], atol=1e-5) for segment in closures)

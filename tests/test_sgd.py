@@ -19,8 +19,12 @@ def _angle_aware_max_difference(a: np.ndarray, b: np.ndarray) -> float:
     return float(difference.max())
 
 
-def _square_loop(noise: float, seed: int = 0, laps: int = 3, side: int = 5) -> tuple[PoseGraph, np.ndarray]:
-    """A robot driving `laps` laps of a square; odometry edges plus loop closures to the first lap."""
+def _square_loop(noise: float, seed: int = 0, laps: int = 3, side: int = 5,
+                 reverse_every: int = 0) -> tuple[PoseGraph, np.ndarray]:
+    """A robot driving `laps` laps of a square; odometry edges plus loop closures to the first lap.
+
+    With `reverse_every` = k > 0, every k-th edge is stored from its later to its earlier pose (measured
+    that way, not turned around)."""
     rng = np.random.default_rng(seed)
     per_lap = 4 * side
     steps = np.tile(np.array([1.0, 0.0, 0.0]), (laps * per_lap, 1))
@@ -30,11 +34,14 @@ def _square_loop(noise: float, seed: int = 0, laps: int = 3, side: int = 5) -> t
     edges = [(i, i + 1) for i in range(n - 1)]
     edges += [(i, i + per_lap * lap) for lap in range(1, laps) for i in range(0, per_lap, 3)
               if i + per_lap * lap < n]
+    if reverse_every:
+        edges = [(b, a) if k % reverse_every == 0 else (a, b) for k, (a, b) in enumerate(edges)]
     a = np.array([e[0] for e in edges])
     b = np.array([e[1] for e in edges])
     z = se2.relative(truth[a], truth[b]) + rng.normal(0.0, noise, (len(edges), 3)) * [1.0, 1.0, 0.2]
     info = np.tile(np.diag([100.0, 100.0, 400.0]), (len(edges), 1, 1))
-    odometry = se2.compose_chain(z[: n - 1])
+    steps = se2.relative(truth[:-1], truth[1:]) + rng.normal(0.0, noise, (n - 1, 3)) * [1.0, 1.0, 0.2]
+    odometry = se2.compose_chain(steps)
     return PoseGraph.build(np.arange(n), odometry, a, b, z, info), truth
 
 
@@ -87,9 +94,20 @@ def test_first_pose_is_the_anchor() -> None:
         np.testing.assert_array_equal(step.poses[0], graph.poses[0])
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_tree_equals_algorithm_1_on_generated_loops(seed: int) -> None:
-    graph, _ = _square_loop(noise=0.1, seed=seed, laps=4)
+@pytest.mark.parametrize("reverse_every", [2, 3])
+def test_sgd_solves_reversed_edges_as_stored(reverse_every: int) -> None:
+    # Edges measured from the later pose: a wrong sign on their steps would drive χ² up, not down.
+    graph, truth = _square_loop(noise=0.03, seed=1, reverse_every=reverse_every)
+    assert graph.is_reversed.sum() > graph.num_edges // 4
+    final = list(sgd(graph, 100))[-1]
+    assert final.chi2 < 0.05 * chi2(graph)
+    aligned = se2.relative(final.poses[0], final.poses)
+    assert np.abs(aligned[:, :2] - truth[:, :2]).max() < 0.5
+
+
+@pytest.mark.parametrize(("seed", "reverse_every"), [(0, 0), (1, 0), (2, 0), (0, 2), (1, 3)])
+def test_tree_equals_algorithm_1_on_generated_loops(seed: int, reverse_every: int) -> None:
+    graph, _ = _square_loop(noise=0.1, seed=seed, laps=4, reverse_every=reverse_every)
     tree = list(sgd(graph, 40))
     linear = list(sgd(graph, 40, implementation="linear"))
     for a, b in zip(tree, linear, strict=True):
