@@ -142,15 +142,27 @@ def test_crashed_tasks_and_dead_workers_are_retried_and_failures_do_not_stop_the
     assert outcome.traceback is not None and "a transient bug" in outcome.traceback
 
 
+def events_file(path: Path) -> Path:
+    return path.with_suffix(".events")
+
+
 def write_forever(path: str | Path, config: ReplayConfig | None = None, *, out_dir: str | Path = ".",
                   catch_unexpected: bool = True) -> BatchOutcome:
-    """Runs in the worker: inputs named slow* stage an output and never finish; others replay."""
+    """Runs in the worker: inputs named slow* stage an output and never finish (noting beside the input
+    that they started, and that they were interrupted); others replay."""
     path = Path(path)
     if path.stem.startswith("slow"):
-        with staged_outputs(Path(out_dir) / f"{path.stem}.g2o") as (temporary,):
-            temporary.write_text("the start of a graph")
-            for _ in range(6000):  # Python work: Ray's cancel interrupts it between two bytecodes
-                time.sleep(0.1)
+        with events_file(path).open("a") as events:
+            events.write("started\n")
+        try:
+            with staged_outputs(Path(out_dir) / f"{path.stem}.g2o") as (temporary,):
+                temporary.write_text("the start of a graph")
+                for _ in range(6000):  # Python work: Ray's cancel interrupts it between two bytecodes
+                    time.sleep(0.1)
+        except KeyboardInterrupt:
+            with events_file(path).open("a") as events:
+                events.write("interrupted\n")
+            raise
     return run_one_on_this_host(path, config, out_dir=out_dir, catch_unexpected=catch_unexpected)
 
 
@@ -170,6 +182,9 @@ def test_an_interrupt_cancels_the_outstanding_tasks_and_leaves_no_partial_file(t
                          replay_one=write_forever)
     assert [outcome.input_path.name for outcome in finished] == ["good.g2o"]
     assert sorted(path.name for path in out.iterdir()) == ["good.g2o", "good.json", "good.rrd"]
+    # the running tasks were interrupted (and removed their temporaries themselves), not killed
+    started = [events_file(path).read_text() for path in inputs[1:] if events_file(path).exists()]
+    assert started and set(started) == {"started\ninterrupted\n"}
 
 
 def test_command_with_ray_reads_an_input_list_and_writes_the_table(tmp_path: Path) -> None:
