@@ -1,10 +1,11 @@
 """Benchmark of batches (issue 14): the same inputs through `replay --jobs 2` and `replay --ray`.
 
-    python benchmarks/batch_bench.py [--logs 8] [--graphs 32] [--shared ../shared] [--out DIR] [--no-cluster]
+    python benchmarks/batch_bench.py [--logs 4] [--graphs 36] [--shared ../shared] [--out DIR] [--no-cluster]
 
 Inputs: copies of the bundled sample log (the first 1000 scans of CSAIL) and of the shared 2D pose graphs
-(M3500, FR079, CSAIL, pg1, w100, pose2example), 40 by default. Each run is the whole `replay` command in a
-fresh process (`--inputs LIST --quiet`), its wall time from start to exit:
+(M3500, FR079, CSAIL, pg1, w100, pose2example), 40 by default (a sample log takes about 20 times as long as
+a graph). Each run is the whole `replay` command in a fresh process (`--inputs LIST --quiet
+--repair-information`, pg1 needs it), its wall time from start to exit, numba's cache already warm:
 
 1. `--jobs 2`: two worker processes on this machine;
 2. `--ray`: a local Ray runtime started by the command (2 CPUs, one task per input);
@@ -57,7 +58,7 @@ def make_inputs(folder: Path, shared: Path, logs: int, graphs: int) -> Path:
 def run_replay(listing: Path, out: Path, *options: str) -> float:
     """The whole command in a fresh process; its wall time."""
     command = [sys.executable, "-m", "pipeline.cli", "--inputs", str(listing), "--out", str(out), "--quiet",
-               *options]
+               "--repair-information", *options]
     started = time.perf_counter()
     completed = subprocess.run(command, cwd=REPO, capture_output=True, text=True, check=False)
     seconds = time.perf_counter() - started
@@ -107,11 +108,29 @@ def ray_costs() -> tuple[float, float, float]:
     return start_s, time.perf_counter() - started, per_task_s
 
 
+def cluster_run(listing: Path, out: Path) -> float:
+    """`replay --ray ADDRESS` on a two-node cluster (1 CPU each) started here on the loopback interface.
+    Ray turns a 127.0.0.1 address into the machine's network address unless told that this is a
+    single-machine cluster (RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0, set for the nodes and the command)."""
+    os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+    from ray.cluster_utils import Cluster
+
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "node_ip_address": "127.0.0.1",
+                                                            "include_dashboard": False})
+    try:
+        cluster.add_node(num_cpus=1, node_ip_address="127.0.0.1")
+        cluster.wait_for_nodes()
+        return run_replay(listing, out, "--ray", cluster.address)
+    finally:
+        cluster.shutdown()
+        del os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--logs", type=int, default=8, help="copies of the bundled sample log")
-    parser.add_argument("--graphs", type=int, default=32, help="copies of the shared pose graphs")
+    parser.add_argument("--logs", type=int, default=4, help="copies of the bundled sample log")
+    parser.add_argument("--graphs", type=int, default=36, help="copies of the shared pose graphs")
     parser.add_argument("--shared", type=Path, default=REPO.parent / "shared")
     parser.add_argument("--out", type=Path, default=None, help="keep the inputs and outputs here")
     parser.add_argument("--no-cluster", action="store_true", help="skip the two-node cluster run")
@@ -119,41 +138,35 @@ def main() -> None:
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     for variable in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(variable, "1")
+    os.chdir(REPO)  # Ray workers started from this process import pipeline from the driver's folder
+    sys.path.insert(0, str(REPO))
 
     scratch = Path(tempfile.mkdtemp(prefix="batch_bench_")) if args.out is None else args.out
     try:
         listing = make_inputs(scratch / "inputs", args.shared, args.logs, args.graphs)
         inputs = args.logs + args.graphs
-        run_replay(listing, scratch / "warm", "--jobs", "2")  # numba's cache, the page cache
-        runs: dict[str, tuple[float, Path]] = {}
-        runs["--jobs 2"] = (run_replay(listing, scratch / "jobs", "--jobs", "2"), scratch / "jobs")
-        local_ray = "--ray (local runtime, 2 CPUs)"
-        runs[local_ray] = (run_replay(listing, scratch / "ray", "--ray"), scratch / "ray")
-        if not args.no_cluster:
-            from ray.cluster_utils import Cluster
-
-            cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1,
-                                                                    "node_ip_address": "127.0.0.1"})
-            try:
-                cluster.add_node(num_cpus=1, node_ip_address="127.0.0.1")
-                cluster.wait_for_nodes()
-                label = "--ray ADDRESS (2 nodes × 1 CPU)"
-                runs[label] = (run_replay(listing, scratch / "cluster", "--ray", cluster.address),
-                               scratch / "cluster")
-            finally:
-                cluster.shutdown()
-        start_s, stop_s, per_task_s = ray_costs()
-
-        reference = comparable(scratch / "jobs")
         print(f"## {inputs} inputs ({args.logs} sample logs, {args.graphs} pose graphs), 2 CPUs\n")
         print("| run | wall s | Σ replay s | (wall − Σ/2)/input s | outputs equal to --jobs 2 |")
-        print("|---|---:|---:|---:|---|")
-        for label, (wall, out) in runs.items():
+        print("|---|---:|---:|---:|---|", flush=True)
+        reference: dict[str, object] = {}
+
+        def report(label: str, wall: float, out: Path) -> None:
             replay_sum, rows, _ = batch_figures(out)
             assert rows == inputs
-            same = "yes" if comparable(out) == reference else "NO"
+            outputs = comparable(out)
+            if not reference:
+                reference.update(outputs)
+            same = "yes" if outputs == reference else "NO"
             overhead = (wall - replay_sum / 2) / inputs
-            print(f"| {label} | {wall:.1f} | {replay_sum:.1f} | {overhead:.3f} | {same} |")
+            print(f"| {label} | {wall:.1f} | {replay_sum:.1f} | {overhead:.3f} | {same} |", flush=True)
+
+        report("replay --jobs 2", run_replay(listing, scratch / "jobs", "--jobs", "2"), scratch / "jobs")
+        report("replay --ray (local runtime, 2 CPUs)", run_replay(listing, scratch / "ray", "--ray"),
+               scratch / "ray")
+        if not args.no_cluster:
+            report("replay --ray ADDRESS (2 nodes × 1 CPU)",
+                   cluster_run(listing, scratch / "cluster"), scratch / "cluster")
+        start_s, stop_s, per_task_s = ray_costs()
         print("\n| Ray cost | seconds |\n|---|---:|")
         print(f"| start a local runtime (ray.init) | {start_s:.2f} |")
         print(f"| stop it (ray.shutdown) | {stop_s:.2f} |")

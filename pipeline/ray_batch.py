@@ -70,10 +70,10 @@ def run_batch_on_ray(
     if options.retries < 0:
         raise PipelineError(f"retries must be >= 0, got {options.retries}")
     ray = import_ray()
-    prepare_output_dir(out_dir)
     stems = {output_stem(path) for path in inputs}
     started_here = _connect(ray, options.address)
     try:
+        prepare_output_dir(out_dir)  # here, not by a task: a failed replay removes a folder it created
         return _run_tasks(ray, list(inputs), config, out_dir, options, on_done, replay_one)
     finally:
         if started_here:
