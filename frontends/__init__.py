@@ -13,6 +13,8 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+import optimizer.jit_cache  # noqa: F401  (chooses numba's cache folder before any kernel is compiled)
+
 _EXPORTS = {
     "FrontendError": "frontends.errors",
     "LogFileError": "frontends.errors",

@@ -7,17 +7,24 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+ESTIMATE = "estimate"
+"""The name of the graph's own estimate as a start."""
+
 
 @dataclass(frozen=True, eq=False)
 class Iteration:
     """The state after one iteration of one stage.
 
-    `stage` is one of "initial" (index 0, the starting estimate), "sgd", "gauss-newton" (the polish,
-    Levenberg–Marquardt-damped Gauss–Newton) or "gauss-seidel"; `index` counts from 1 within the stage.
-    `poses` is (N, 3) with θ wrapped to [-π, π) and must not be modified by the receiver.
+    `stage` is one of "initial" (index 0, a starting estimate), "sgd" (the paper's), the stronger SGD's
+    name, "gauss-newton" (the polish, Levenberg–Marquardt-damped Gauss–Newton), "gauss-seidel", or
+    "selected" (index 0: the winning candidate's result, repeated when several starts were optimized);
+    `index` counts from 1 within the stage. `start` names the starting estimate the run began from
+    ("estimate": the graph's own; see `optimizer.solve`). `poses` is (N, 3) with θ wrapped to [-π, π)
+    and must not be modified by the receiver.
     """
 
     stage: str
     index: int
     poses: NDArray[np.float64]
     chi2: float
+    start: str = ESTIMATE

@@ -6,31 +6,39 @@ its three columns are dropped from the system, so the normal equations are (3N�
 The information of real graphs (INTEL.g2o) is badly scaled — 3×3 edge informations with condition numbers
 up to 2e11 — so the damped system is solved in Jacobi-scaled form: with S = diag(H)^(-1/2),
 (S H S + λ·I) y = −S g, Δ = S y. This is exactly Marquardt's λ·diag(H) damping, but the matrix handed to
-the factorisation has a unit diagonal. The sparsity pattern of H is computed once per call and every
-iteration only refills the values; the factorisation is qdldl's LDLᵀ (OSQP's), whose fill-reducing order
-and symbolic analysis are likewise done once and only the numeric factorisation repeats.
+the factorisation has a unit diagonal. H and g are assembled edge by edge by the compiled kernels of
+`optimizer.normal_equations`; the damped system is solved by `optimizer.damped_solvers` (qdldl's exact
+LDLᵀ, or chain-preconditioned conjugate gradients on graphs too large to factorise).
+
+The generator's return value says whether it converged (`PolishStatus`): it never stops silently.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Generator
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
-import qdldl
-import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from optimizer import se2
 from optimizer.cost import chi2, edge_errors
+from optimizer.damped_solvers import ChainPCGSolver, DirectSolver, Linearisation
 from optimizer.errors import GraphError, OptimizerError
 from optimizer.graph import PoseGraph
 from optimizer.iteration import Iteration
+from optimizer.normal_equations import UpperPattern, assemble, diagonal_of, hessian_diagonal, quadratic_form
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 STAGE = "gauss-newton"
+DEFAULT_MAX_ITERATIONS = 5000
+"""Far above what the benchmark graphs need: INTEL, the worst, takes 270–840 steps (from paper-SGD after
+100/10 iterations); M3500, CSAIL, FR079 and 10⁵-pose grid worlds 10–20."""
+DIRECT_SOLVER_MAX_POSES = 200_000
+"""Above this the factorisation's fill outgrows the machine: conjugate gradients instead."""
 _INITIAL_LAMBDA = 1e-5
 _MIN_LAMBDA = 1e-12
 _MAX_LAMBDA = 1e12
@@ -69,77 +77,6 @@ def edge_jacobians(
     return errors, jac_a, jac_b
 
 
-@dataclass(frozen=True)
-class _NormalEquationsPattern:
-    """The fixed sparsity of H = JᵀΩJ over the free poses, computed once.
-
-    Every edge contributes four 3×3 blocks (aa, ab, ba, bb) = 36 values; `slot` sends each value that
-    survives the anchoring to its position in the CSC data array, so refilling H is one `bincount`.
-    """
-
-    size: int
-    kept: NDArray[np.bool_]
-    """(M·36,) values not touching the anchored pose."""
-    slot: IntArray
-    """Position in the CSC data of each kept value."""
-    indices: IntArray
-    indptr: IntArray
-    column_of_entry: IntArray
-    """Column of each CSC data entry (the CSC `indices` give the row)."""
-    diagonal: IntArray
-    """Position in the CSC data of each diagonal entry, in variable order."""
-    upper: IntArray
-    """Positions in the CSC data of the upper triangle (row ≤ column), what the factorisation reads."""
-    upper_indptr: IntArray
-
-    @classmethod
-    def of(cls, graph: PoseGraph) -> _NormalEquationsPattern:
-        size = 3 * (graph.num_poses - 1)
-        # Variable block of each pose: pose k > 0 owns variables 3(k−1)..3(k−1)+2; the anchor gets −1.
-        block_a = graph.edge_from - 1
-        block_b = graph.edge_to - 1
-        row_block = np.stack([block_a, block_a, block_b, block_b], axis=1)  # (M, 4) for aa, ab, ba, bb
-        col_block = np.stack([block_a, block_b, block_a, block_b], axis=1)
-        within = np.arange(3)
-        rows = 3 * row_block[:, :, None, None] + within[None, None, :, None]
-        cols = 3 * col_block[:, :, None, None] + within[None, None, None, :]
-        rows, cols = np.broadcast_arrays(rows, cols)
-        kept = ((row_block >= 0) & (col_block >= 0))[:, :, None, None]
-        kept = np.broadcast_to(kept, rows.shape).reshape(-1)
-        rows = rows.reshape(-1)[kept].astype(np.int64)
-        cols = cols.reshape(-1)[kept].astype(np.int64)
-
-        keys, slot = _csc_keys(size, rows, cols)
-        entry_rows = keys % size
-        entry_cols = keys // size
-        indptr = np.zeros(size + 1, dtype=np.int64)
-        indptr[1:] = np.cumsum(np.bincount(entry_cols, minlength=size))
-        diagonal_entries = np.flatnonzero(entry_rows == entry_cols)
-        diagonal = np.empty(size, dtype=np.int64)
-        diagonal[entry_rows[diagonal_entries]] = diagonal_entries
-        upper = np.flatnonzero(entry_rows <= entry_cols)
-        upper_indptr = np.zeros(size + 1, dtype=np.int64)
-        upper_indptr[1:] = np.cumsum(np.bincount(entry_cols[upper], minlength=size))
-        return cls(size, kept.copy(), slot, entry_rows, indptr, entry_cols, diagonal, upper, upper_indptr)
-
-    def hessian_values(self, information: FloatArray, jac_a: FloatArray, jac_b: FloatArray) -> FloatArray:
-        """CSC data of H = Σ JᵀΩJ."""
-        omega_a = information @ jac_a
-        omega_b = information @ jac_b
-        jac_a_t = np.swapaxes(jac_a, 1, 2)
-        jac_b_t = np.swapaxes(jac_b, 1, 2)
-        blocks = np.stack([jac_a_t @ omega_a, jac_a_t @ omega_b, jac_b_t @ omega_a, jac_b_t @ omega_b],
-                          axis=1)
-        values = blocks.reshape(-1)[self.kept]
-        return np.bincount(self.slot, weights=values, minlength=len(self.indices))
-
-
-def _csc_keys(size: int, rows: IntArray, cols: IntArray) -> tuple[IntArray, IntArray]:
-    """Distinct column-major keys col·size + row (sorted: the CSC order) and the key of every entry."""
-    keys, slot = np.unique(cols * size + rows, return_inverse=True)
-    return keys.astype(np.int64), slot.reshape(-1).astype(np.int64)
-
-
 def _gradient(graph: PoseGraph, errors: FloatArray, jac_a: FloatArray, jac_b: FloatArray) -> FloatArray:
     """g = Σ JᵀΩe over the free variables (the anchor's three entries dropped)."""
     weighted = np.einsum("mij,mj->mi", graph.information, errors)
@@ -153,87 +90,90 @@ def _gradient(graph: PoseGraph, errors: FloatArray, jac_a: FloatArray, jac_b: Fl
     return full[3:]
 
 
-class _DampedSolver:
-    """Solves (H + λ·diag(H)) Δ = −g for one linearisation, for as many λ as the step search needs.
+@dataclass(frozen=True)
+class PolishStatus:
+    """How the polish ended: `converged` only when its convergence test held, with the reason."""
 
-    `factorisation` carries qdldl's ordering and symbolic analysis from one linearisation to the next.
-    """
+    converged: bool
+    reason: str
+    iterations: int
+    """Accepted steps (the iterations yielded)."""
 
-    def __init__(self, pattern: _NormalEquationsPattern, hessian: FloatArray, gradient: FloatArray,
-                 factorisation: qdldl.Solver | None) -> None:
-        self._pattern = pattern
-        size = pattern.size
-        self._hessian = sp.csc_matrix((hessian, pattern.indices, pattern.indptr), shape=(size, size))
-        self._gradient = gradient
-        diagonal = hessian[pattern.diagonal]
-        floor = _DIAGONAL_FLOOR * max(float(diagonal.max(initial=0.0)), 1.0)
-        self._scale = 1.0 / np.sqrt(np.maximum(diagonal, floor))
-        self._scaled = hessian * self._scale[pattern.indices] * self._scale[pattern.column_of_entry]
-        self._scaled_gradient = self._scale * self._gradient
-        self.factorisation = factorisation
 
-    def step(self, damping: float) -> FloatArray | None:
-        """The damped step, or None when the factorisation fails or gives non-finite values."""
-        data = self._scaled.copy()
-        # λ·I in the scaled space is λ·diag(H), except that a variable H leaves unconstrained still gets
-        # λ·floor, which keeps the damped matrix nonsingular.
-        data[self._pattern.diagonal] += damping
-        size = self._pattern.size
-        upper = sp.csc_matrix((data[self._pattern.upper], self._pattern.indices[self._pattern.upper],
-                               self._pattern.upper_indptr), shape=(size, size))
-        try:
-            # The damped matrix is symmetric positive definite in exact arithmetic: LDLᵀ needs no pivoting.
-            if self.factorisation is None:
-                self.factorisation = qdldl.Solver(upper, upper=True)
-            else:
-                self.factorisation.update(upper, upper=True)
-            scaled_step = self.factorisation.solve(-self._scaled_gradient)
-        except (ValueError, RuntimeError):  # qdldl reports a zero pivot this way
-            self.factorisation = None
-            return None
-        if not np.all(np.isfinite(scaled_step)):
-            return None
-        return self._scale * scaled_step
-
-    def predicted_decrease(self, step: FloatArray) -> float:
-        """χ² decrease the linearisation predicts for `step`: −(2gᵀΔ + ΔᵀHΔ)."""
-        return float(-(2.0 * self._gradient @ step + step @ (self._hessian @ step)))
+LinearSolver = Literal["auto", "direct", "cg"]
 
 
 def gauss_newton(
     graph: PoseGraph,
     poses: FloatArray | None = None,
     *,
-    max_iterations: int = 50,
+    max_iterations: int = DEFAULT_MAX_ITERATIONS,
     relative_tolerance: float = 1e-9,
-) -> Iterator[Iteration]:
+    step_tolerance: float = 1e-6,
+    gradient_tolerance: float = 1e-18,
+    linear_solver: LinearSolver = "auto",
+) -> Generator[Iteration, None, PolishStatus]:
     """Levenberg–Marquardt on the χ² of `graph`, from `poses` (default: the graph's estimate).
 
     Yields Iteration("gauss-newton", k, poses, χ²) after every accepted step, k from 1; rejected trial
-    steps (χ² did not decrease, so λ is raised and the step recomputed) are not yielded. Stops when an
-    accepted step decreases χ² by less than `relative_tolerance` of its value, after `max_iterations`
-    accepted steps, or when λ grows past any useful value (no decrease can be found). Pose 0 stays fixed.
+    steps (χ² did not decrease, so λ is raised and the step recomputed) are not yielded. Pose 0 stays fixed.
+    Returns a `PolishStatus` (`status = yield from gauss_newton(...)`). It has converged when either
+    - an accepted near-Gauss–Newton step (λ ≤ 1 in the scaled system; a solved, not truncated, linear
+      system) changed χ² by less than `relative_tolerance` of its value and moved the poses by less than
+      `step_tolerance`·(‖x‖ + `step_tolerance`) (Euclidean norms over all free coordinates), or
+    - the Jacobi-scaled gradient is negligible: gᵀ·diag(H)⁻¹·g ≤ `gradient_tolerance`·χ².
+    It has not converged when `max_iterations` steps were taken first, or when λ grew past 1e12 without a
+    decrease while the gradient test fails (a stall, not an optimum). `linear_solver` "direct" is qdldl's
+    exact LDLᵀ, "cg" the chain-preconditioned conjugate gradients; "auto" takes "direct" up to
+    `DIRECT_SOLVER_MAX_POSES` poses.
     """
     if max_iterations < 0:
         raise OptimizerError(f"max_iterations must be >= 0, got {max_iterations}")
-    if not relative_tolerance >= 0.0:
-        raise OptimizerError(f"relative_tolerance must be >= 0, got {relative_tolerance}")
+    for name, value in (("relative_tolerance", relative_tolerance), ("step_tolerance", step_tolerance),
+                        ("gradient_tolerance", gradient_tolerance)):
+        if not value >= 0.0:
+            raise OptimizerError(f"{name} must be >= 0, got {value}")
+    if linear_solver not in ("auto", "direct", "cg"):
+        raise OptimizerError(f"unknown linear solver {linear_solver!r}; choose auto, direct or cg")
     current = _starting_poses(graph, poses)
     current_chi2 = chi2(graph, current)
-    if graph.num_poses < 2 or current_chi2 == 0.0:
-        return
-    pattern = _NormalEquationsPattern.of(graph)
+    if graph.num_poses < 2:
+        return PolishStatus(True, "a single pose: nothing to optimize", 0)
+    if current_chi2 == 0.0:
+        return PolishStatus(True, "χ² is zero", 0)
+    use_direct = linear_solver == "direct" or (
+        linear_solver == "auto" and graph.num_poses <= DIRECT_SOLVER_MAX_POSES)
+    pattern = UpperPattern.of(graph) if use_direct else None
+    solver: DirectSolver | ChainPCGSolver = (
+        DirectSolver(pattern) if pattern is not None else ChainPCGSolver(graph))
     damping = _INITIAL_LAMBDA
     growth = 2.0
-    factorisation = None
+    first_gradient_norm = 0.0
+    last_change = float("nan")
+    rounding_chi2 = _rounding_chi2(graph, current)
+    index = 0
 
-    for index in range(1, max_iterations + 1):
-        errors, jac_a, jac_b = edge_jacobians(graph, current)
-        solver = _DampedSolver(pattern, pattern.hessian_values(graph.information, jac_a, jac_b),
-                               _gradient(graph, errors, jac_a, jac_b), factorisation)
+    while True:
+        if current_chi2 <= rounding_chi2:
+            return PolishStatus(True, f"χ² {current_chi2:.1e} is zero up to rounding", index)
+        linearisation = _linearise(graph, pattern, current)
+        scaled_gradient = linearisation.scale * linearisation.gradient
+        gradient_measure = float(scaled_gradient @ scaled_gradient) / current_chi2
+        if gradient_measure <= gradient_tolerance:
+            return PolishStatus(True, f"scaled gradient gᵀdiag(H)⁻¹g/χ² {gradient_measure:.1e} ≤ "
+                                      f"{gradient_tolerance:.0e}", index)
+        if index >= max_iterations:
+            return PolishStatus(False, f"iteration cap {max_iterations} reached (last relative χ² change "
+                                       f"{last_change:.1e})", index)
+        if isinstance(solver, ChainPCGSolver):
+            # Inexact Newton: solve more accurately as the gradient vanishes (superlinear convergence).
+            gradient_norm = float(np.sqrt(gradient_measure))
+            first_gradient_norm = first_gradient_norm or gradient_norm
+            solver.forcing = float(np.clip(gradient_norm / first_gradient_norm, 1e-10, 1e-2))
         while True:
-            step = solver.step(damping)
-            if step is not None:
+            scaled_step = solver.step(linearisation, damping)
+            if scaled_step is not None:
+                step = linearisation.scale * scaled_step
                 trial = current.copy()
                 trial[1:] += step.reshape(-1, 3)
                 trial[:, 2] = se2.wrap_angle(trial[:, 2])
@@ -244,21 +184,59 @@ def gauss_newton(
             damping *= growth
             growth *= 2.0
             if damping > _MAX_LAMBDA:
-                return
-        factorisation = solver.factorisation
+                return PolishStatus(False, f"no decreasing step (λ > {_MAX_LAMBDA:.0e}) with scaled gradient "
+                                           f"gᵀdiag(H)⁻¹g/χ² {gradient_measure:.1e} > "
+                                           f"{gradient_tolerance:.0e}", index)
+        step_damping = damping
 
         # Nielsen's update: shrink λ the more the linear model predicted the actual decrease.
-        predicted = solver.predicted_decrease(step)
+        predicted = -(2.0 * float(linearisation.gradient @ step) + quadratic_form(
+            current, graph.edge_from, graph.edge_to, graph.measurements, graph.information, step))
         gain = (current_chi2 - trial_chi2) / predicted if predicted > 0.0 else 0.0
         damping = max(damping * max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
         growth = 2.0
 
-        decrease = (current_chi2 - trial_chi2) / current_chi2
+        change = last_change = (current_chi2 - trial_chi2) / current_chi2
+        step_norm = float(np.linalg.norm(step))
+        state_norm = float(np.linalg.norm(current[1:]))
         current, current_chi2 = trial, trial_chi2
         current.setflags(write=False)
+        index += 1
         yield Iteration(STAGE, index, current, current_chi2)
-        if decrease < relative_tolerance or current_chi2 == 0.0:
-            return
+        if current_chi2 == 0.0:
+            return PolishStatus(True, "χ² is zero", index)
+        solved = solver.exact or solver.last_converged
+        if (change < relative_tolerance and step_norm <= step_tolerance * (state_norm + step_tolerance)
+                and step_damping <= 1.0 and solved):
+            return PolishStatus(True, f"relative χ² change {change:.1e} < {relative_tolerance:.0e}, step "
+                                      f"{step_norm:.1e} (‖x‖ {state_norm:.1e})", index)
+
+
+def _rounding_chi2(graph: PoseGraph, poses: FloatArray) -> float:
+    """The χ² that rounding alone leaves in the errors: a few ulps of the coordinates, weighted by Ω.
+
+    Below it a relative test on χ² or the gradient only measures rounding noise.
+    """
+    ulps = 16.0 * np.finfo(np.float64).eps * (1.0 + float(np.abs(poses).max()))
+    return ulps**2 * float(np.trace(graph.information, axis1=1, axis2=2).sum())
+
+
+def _linearise(graph: PoseGraph, pattern: UpperPattern | None, poses: FloatArray) -> Linearisation:
+    size = 3 * (graph.num_poses - 1)
+    gradient = np.empty(size)
+    if pattern is not None:
+        hessian = np.empty(pattern.nnz)
+        assemble(poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information,
+                 pattern.edge_block, pattern.indptr, pattern.block_count, hessian, gradient)
+        diagonal = diagonal_of(hessian, pattern.indptr)
+    else:
+        hessian = None
+        diagonal = np.empty(size)
+        hessian_diagonal(poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information,
+                         diagonal, gradient)
+    floor = _DIAGONAL_FLOOR * max(float(diagonal.max(initial=0.0)), 1.0)
+    scale = 1.0 / np.sqrt(np.maximum(diagonal, floor))
+    return Linearisation(poses, gradient, diagonal, scale, hessian)
 
 
 def _starting_poses(graph: PoseGraph, poses: FloatArray | None) -> FloatArray:

@@ -20,6 +20,7 @@ from optimizer.errors import OptimizerError
 from optimizer.graph import PoseGraph
 from optimizer.iteration import Iteration
 from optimizer.sgd_kernels import (
+    TREE_BLOCK,
     sgd_iteration_linear,
     sgd_iteration_tree,
     stiffness_linear,
@@ -42,43 +43,70 @@ def sgd(
     *,
     implementation: Implementation = "tree",
     first_iteration: int = 1,
+    tree_block: int = TREE_BLOCK,
 ) -> Iterator[Iteration]:
     """Run `iterations` SGD iterations from `poses` (default: the graph's estimate), yielding each one.
 
     `implementation="tree"` is the O(log N)-per-constraint production path; `"linear"` is Algorithm 1
     (O(N) per constraint), the oracle the tree is tested against. `first_iteration` > 1 continues a
-    schedule (a smaller learning rate) when re-optimizing an already aligned graph.
+    schedule (a smaller learning rate) when re-optimizing an already aligned graph. `tree_block` is the
+    number of increments per leaf of the tree (a memory/speed trade-off; results agree to rounding).
+
+    Memory beyond the graph: the tree (`tree_block` = 8: about 67 bytes per pose) and the yielded poses.
+    The tree starts each iteration from the poses it yielded last, which the receiver must not modify.
     """
     if iterations < 0:
         raise OptimizerError(f"iterations must be >= 0, got {iterations}")
     if first_iteration < 1:
         raise OptimizerError(f"first_iteration must be >= 1, got {first_iteration}")
-    state = np.array(graph.poses if poses is None else poses, dtype=np.float64, copy=True)
-    if state.shape != graph.poses.shape:
-        raise OptimizerError(f"expected poses of shape {graph.poses.shape}, got {state.shape}")
-    edges = (graph.edge_from, graph.edge_to)
-    n = graph.num_poses
-    gamma = np.empty(3)
-    if implementation == "linear":
-        stiffness = np.empty((n, 3))
-    elif implementation == "tree":
-        tree = np.empty((2 * tree_size(n), 3, 3))
-    else:
+    if tree_block < 1:
+        raise OptimizerError(f"tree_block must be >= 1, got {tree_block}")
+    if implementation not in ("tree", "linear"):
         raise OptimizerError(f"unknown SGD implementation {implementation!r}")
+    # The tree only reads its starting poses, so the graph's own (read-only) need no copy.
+    start = graph.poses if poses is None and implementation == "tree" else np.array(
+        graph.poses if poses is None else poses, dtype=np.float64, copy=True)
+    if start.shape != graph.poses.shape:
+        raise OptimizerError(f"expected poses of shape {graph.poses.shape}, got {start.shape}")
+    if implementation == "linear":
+        yield from _sgd_linear(graph, iterations, start, first_iteration)
+    else:
+        yield from _sgd_tree(graph, iterations, start, first_iteration, tree_block)
 
+
+def _sgd_tree(graph: PoseGraph, iterations: int, base: NDArray[np.float64], first_iteration: int,
+              block: int) -> Iterator[Iteration]:
+    n = graph.num_poses
+    edges = (graph.edge_from, graph.edge_to)
+    gamma = np.empty(3)
+    weights = np.empty((n, 3))
+    amounts = np.empty((n, 3))
+    tree = np.empty((2 * tree_size(n, block), 3, 3))
     for offset in range(iterations):
         t = first_iteration + offset
-        if implementation == "linear":
-            if offset == 0 or recomputes_stiffness(t):
-                stiffness_linear(state, *edges, graph.information, stiffness, gamma)
-            sgd_iteration_linear(state, *edges, graph.measurements, graph.information, stiffness, gamma, t)
-        else:
-            if offset == 0 or recomputes_stiffness(t):
-                stiffness_tree(state, *edges, graph.information, tree, gamma)
-            sgd_iteration_tree(state, *edges, graph.measurements, graph.information, tree,
-                               gamma, t)
+        if offset == 0 or recomputes_stiffness(t):
+            stiffness_tree(base, *edges, graph.information, weights, amounts, tree, gamma, block)
+        poses = np.empty_like(base)
+        sgd_iteration_tree(base, *edges, graph.measurements, graph.information, weights, amounts, tree,
+                           gamma, t, block, poses)
+        if not np.all(np.isfinite(poses[-1])):
+            raise OptimizerError(f"SGD diverged at iteration {t} (non-finite poses)")
+        yield Iteration("sgd", offset + 1, poses, chi2(graph, poses))
+        base = poses  # θ wrapped: the same poses for the SGD, whose angles only enter through sin, cos, wrap
+
+
+def _sgd_linear(graph: PoseGraph, iterations: int, state: NDArray[np.float64],
+                first_iteration: int) -> Iterator[Iteration]:
+    edges = (graph.edge_from, graph.edge_to)
+    gamma = np.empty(3)
+    stiffness = np.empty((graph.num_poses, 3))
+    for offset in range(iterations):
+        t = first_iteration + offset
+        if offset == 0 or recomputes_stiffness(t):
+            stiffness_linear(state, *edges, graph.information, stiffness, gamma)
+        sgd_iteration_linear(state, *edges, graph.measurements, graph.information, stiffness, gamma, t)
         if not np.all(np.isfinite(state[-1])):
             raise OptimizerError(f"SGD diverged at iteration {t} (non-finite poses)")
-        poses_out = state.copy()
-        poses_out[:, 2] = se2.wrap_angle(poses_out[:, 2])
-        yield Iteration("sgd", offset + 1, poses_out, chi2(graph, poses_out))
+        poses = state.copy()
+        poses[:, 2] = se2.wrap_angle(poses[:, 2])
+        yield Iteration("sgd", offset + 1, poses, chi2(graph, poses))

@@ -103,10 +103,13 @@ class ReplayStats:
     """Iterations per optimizer stage, in the order they ran."""
     chi2_initial: float
     chi2_final: float
-    """χ² of the final poses (for a log, the better of the recorded optimization and the polished online
-    estimate)."""
+    """χ² of the final poses (the recorded last iteration)."""
     wall_time_s: Mapping[str, float]
     """Seconds per pipeline stage, and "total"."""
+    converged: bool = False
+    """Whether the optimizer's convergence test held (methods without a polish never converge)."""
+    stop_reason: str = ""
+    """Why the optimizer stopped, in a few words."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -193,6 +196,8 @@ def _replay_cloud_file(path: Path, config: ReplayConfig, out_dir: Path,
         chi2_initial=detail.chi2_per_iteration[0][2],
         chi2_final=float(chi2(graph)),
         wall_time_s=dict(detail.wall_time),
+        converged=detail.optimization.converged,
+        stop_reason=detail.optimization.reason,
     )
     return ReplayResult(path, "log", graph, planar.planar(detail.poses), detail.stamps_ns, stats,
                         _outputs(detail.outputs), module.summary(detail), detail)
@@ -216,6 +221,8 @@ def _replay_graph_file(path: Path, config: ReplayConfig, out_dir: Path,
         chi2_initial=detail.initial_chi2,
         chi2_final=detail.final_chi2,
         wall_time_s=dict(detail.wall_time),
+        converged=detail.optimization.converged,
+        stop_reason=detail.optimization.reason,
     )
     return ReplayResult(path, "graph", graph.with_poses(detail.poses), detail.poses, None, stats,
                         _outputs(detail.outputs),
@@ -245,6 +252,8 @@ def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: S
         chi2_initial=detail.chi2_per_iteration[0][2],
         chi2_final=float(chi2(frontend.graph, detail.keyframe_poses)),
         wall_time_s=dict(detail.wall_time),
+        converged=detail.optimization.converged,
+        stop_reason=detail.optimization.reason,
     )
     return ReplayResult(path, "log", frontend.graph.with_poses(detail.keyframe_poses), detail.poses,
                         detail.stamps_ns, stats, _outputs(detail.outputs), module.summary(detail), detail)

@@ -18,6 +18,7 @@ import json
 import math
 import os
 import re
+import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -27,7 +28,7 @@ from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 import typer
 from typer.core import TyperCommand, TyperGroup
 
-from optimizer.solve import METHODS
+from optimizer.solve import MAX_ITERATIONS, METHODS
 from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, SAMPLE_DESCRIPTION, input_kind, sample_input
 from pipeline.errors import PipelineError
 from pipeline.evaluation import DEFAULT_TOLERANCE_NS, RelationsResult, evaluate_files
@@ -46,6 +47,13 @@ DEFAULT_COMMAND = "run"
 EXIT_ERROR = 2
 """Exit code of a run that failed on bad input or unwritable outputs (the same as usage errors), and of a
 batch in which any input failed."""
+MAX_JOBS = 256
+"""Worker processes at most (each holds a whole replay in memory)."""
+EXIT_INTERRUPTED = 130
+"""Exit code after Ctrl-C (128 + SIGINT); after SIGTERM it is 143."""
+EXIT_UNCONVERGED = 3
+"""Exit code of a run whose optimization did not reach its convergence test (outputs are written and say
+`"converged": false`), unless --allow-unconverged."""
 
 _IMPLICIT_DEFAULT = "pipeline.cli.implicit_default"
 
@@ -133,7 +141,7 @@ Examples:
   replay run.bag --scan-topic /front/scan --odom-topic /wheel_odom
   replay rosbag2_dir/                    # a ROS 2 bag (sqlite3 or MCAP storage)
   replay graph.g2o                       # SGD then Gauss-Newton (the default method)
-  replay graph.graph --method sgd --iterations 30 --out results
+  replay graph.graph --method sgd --iterations 30 --allow-unconverged --out results
   replay a.mcap b.bag c/ --jobs 3 --json > summary.json
   replay --inputs logs.txt --ray         # each input a task on a local Ray runtime
   replay --inputs /fleet/today/ --ray head:6379 --out /shared/results --retries 2
@@ -148,7 +156,8 @@ recording with the Rerun viewer of rerun-sdk 0.41: rerun recordings/csail_sample
 file (--config; --dump-config writes the defaults), which the options override. Other commands: replay
 info LOG, replay evaluate TRAJECTORY.tum RELATIONS.
 Exit code {EXIT_ERROR} on bad input (one line naming the file, nothing written for it) or when any of
-several inputs failed."""
+several inputs failed; {EXIT_UNCONVERGED} when an optimization stopped before its convergence test held (the
+outputs are written and say so), unless --allow-unconverged."""
 
 
 @app.command(DEFAULT_COMMAND, cls=_DefaultCommand, epilog=_EPILOG)
@@ -169,7 +178,7 @@ def run(
              "sgd: SGD only; gn: Gauss-Newton only; gauss-seidel: the paper's baseline."),
     ] = None,
     iterations: Annotated[int | None, typer.Option(
-        "--iterations", "-n", min=0, show_default=False,
+        "--iterations", "-n", min=0, max=MAX_ITERATIONS, show_default=False,
         help="SGD (or Gauss-Seidel) iterations; default 100. With gn: the Gauss-Newton cap.")] = None,
     repair_information: Annotated[bool, typer.Option(
         "--repair-information", help="Clamp the eigenvalues of information matrices that are not positive "
@@ -179,7 +188,12 @@ def run(
     odom_topic: Annotated[str | None, typer.Option(
         "--odom-topic", metavar="TOPIC", help="The odometry topic, when the log has several.")] = None,
     jobs: Annotated[int, typer.Option(
-        "--jobs", "-j", min=1, metavar="N", help="Inputs replayed at the same time (worker processes).")] = 1,
+        "--jobs", "-j", min=1, max=MAX_JOBS, metavar="N",
+        help="Inputs replayed at the same time (worker processes).")] = 1,
+    allow_unconverged: Annotated[bool, typer.Option(
+        "--allow-unconverged", help=f"Exit 0, not {EXIT_UNCONVERGED}, when the optimization stops before "
+                                    "its convergence test holds (always so for sgd and gauss-seidel alone, "
+                                    "which run a fixed number of iterations).")] = False,
     inputs_from: Annotated[Path | None, typer.Option(
         "--inputs", metavar="FILE|DIR", show_default=False,
         help="More inputs: a file listing them (one path a line, # comments), or a folder searched for "
@@ -256,6 +270,14 @@ def run(
         typer.echo(f"{PROGRAM}: error: {summary_error}", err=True)
     if summary_error is not None or not all(outcome.ok for outcome in outcomes):
         raise typer.Exit(EXIT_ERROR)
+    unconverged = [outcome for outcome in outcomes if outcome.stats and not outcome.stats.converged]
+    for outcome in unconverged if not (quiet and allow_unconverged) else []:
+        assert outcome.stats is not None
+        advice = "" if allow_unconverged else "; --allow-unconverged accepts this"
+        typer.echo(f"{PROGRAM}: not converged: {outcome.input_path}: {outcome.stats.stop_reason} "
+                   f"(outputs written with \"converged\": false{advice})", err=True)
+    if unconverged and not allow_unconverged:
+        raise typer.Exit(EXIT_UNCONVERGED)
 
 
 def _ray_options(address: str | None, cpus_per_task: float | None, retries: int | None,
@@ -624,12 +646,34 @@ def main() -> NoReturn:
 
     # Our linear algebra is many small vectors and 3×3 blocks: BLAS threads only add hand-off latency,
     # and on a busy machine their spinning made one 10k-element dot product take 8 ms instead of 5 µs.
+    terminated: list[int] = []
+
+    def on_sigterm(signum: int, _frame: object) -> None:
+        # Cleaned up like Ctrl-C (staged outputs removed, workers stopped), then reported as a SIGTERM.
+        terminated.append(signum)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, on_sigterm)
+    code: int | str | None
     try:
         with threadpool_limits(limits=1, user_api="blas"):
-            app(prog_name=PROGRAM)
-        code: int | str | None = 0
+            code = app(prog_name=PROGRAM, standalone_mode=False)
+    except typer.Abort:  # Ctrl-C, or SIGTERM (see on_sigterm)
+        code = EXIT_INTERRUPTED
+    except Exception as error:
+        # A bad option or value (click's UsageError family, whichever click typer uses): one line naming
+        # it, like bad input. Anything else is a bug and keeps its traceback.
+        if not (hasattr(error, "format_message") and hasattr(error, "exit_code")):
+            raise
+        message = " ".join(error.format_message().split())
+        typer.echo(f"{PROGRAM}: error: {message} (see {PROGRAM} --help)", err=True)
+        code = EXIT_ERROR
     except SystemExit as exit_:
         code = exit_.code
+    code = 0 if not isinstance(code, int | str) else code
+    if terminated and code == EXIT_INTERRUPTED:
+        code = 128 + signal.SIGTERM
     _exit_now(code)
 
 

@@ -38,7 +38,14 @@ from pydantic import (
 )
 
 from frontends.slam2d.config import Slam2DConfig
-from optimizer.solve import DEFAULT_ITERATIONS, DEFAULT_METHOD, DEFAULT_POLISH_ITERATIONS, METHODS
+from optimizer.file_input import read_bytes_bounded
+from optimizer.solve import (
+    DEFAULT_ITERATIONS,
+    DEFAULT_METHOD,
+    DEFAULT_POLISH_ITERATIONS,
+    MAX_ITERATIONS,
+    METHODS,
+)
 from pipeline.errors import PipelineError
 
 __all__ = [
@@ -102,6 +109,35 @@ _BOUNDS: dict[tuple[str, str], dict[str, float]] = {
 }
 """Bounds of the numbers that need not be strictly positive (every other number must be)."""
 
+_FLOORS: dict[tuple[str, str], float] = {
+    ("matching", "resolution"): 0.005,
+    ("loop_closure", "query_thinning"): 0.005,
+    ("odometry", "angular_step"): 0.01,
+    ("loop_closure", "angular_step"): 0.01,
+}
+"""Steps and cells finer than these (m, degrees) multiply the work and memory of a search or a grid far
+beyond any use."""
+
+_CEILINGS: dict[tuple[str, str], float] = {
+    ("matching", "max_range"): 1000.0,
+    ("keyframes", "max_turn_rate"): 3600.0,
+}
+_MAX_NUMBER = 10_000.0
+"""Every other number's upper bound (metres, counts, scales): far above any use, and low enough that no
+value in range can overflow a computation or size an allocation beyond the memory bound."""
+_MAX_ANGLE = 360.0
+"""Upper bound of an angle (degrees)."""
+
+
+def _bounds(section: str, name: str) -> dict[str, float]:
+    bounds = dict(_BOUNDS.get((section, name), _POSITIVE))
+    if (section, name) in _FLOORS:
+        bounds.pop("gt", None)
+        bounds["ge"] = _FLOORS[section, name]
+    ceiling = _CEILINGS.get((section, name), _MAX_ANGLE if is_angle_field(name) else _MAX_NUMBER)
+    bounds["le"] = min(bounds.get("le", ceiling), ceiling)
+    return bounds
+
 _AT_LEAST: dict[tuple[str, str], str] = {
     ("loop_closure", "max_search_radius"): "search_radius",
 }
@@ -137,8 +173,7 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
             raise TypeError(f"{dataclass_type.__name__}.{item.name}: no TOML form for {annotation!r}")
         if annotation is float and is_angle_field(item.name):
             default = round(math.degrees(default), _DEGREE_DIGITS)
-        bounds = _BOUNDS.get((section, item.name), _POSITIVE)
-        fields[item.name] = (annotation, Field(default, **bounds))
+        fields[item.name] = (annotation, Field(default, **_bounds(section, item.name)))
 
     validators: dict[str, Any] = {}
     for (rule_section, key), other in _AT_LEAST.items():
@@ -195,10 +230,10 @@ _METHOD_CHOICE = Literal[METHODS]  # type: ignore[valid-type]
 
 class OptimizerSection(_Section):
     """The [optimizer] section. `iterations`: SGD (or Gauss–Seidel) iterations; with method "gn", the cap on
-    Gauss–Newton iterations. Left out, it is 100, or the polish cap (300) for "gn"."""
+    Gauss–Newton iterations. Left out, it is 100, or the polish cap (5000) for "gn"."""
 
     method: _METHOD_CHOICE = DEFAULT_METHOD  # type: ignore[valid-type]
-    iterations: int = Field(DEFAULT_ITERATIONS, ge=0)
+    iterations: int = Field(DEFAULT_ITERATIONS, ge=0, le=MAX_ITERATIONS)
 
     @model_validator(mode="before")
     @classmethod
@@ -291,6 +326,10 @@ def default_config_toml() -> str:
 # ------------------------------------------------------------------------------------------------ loading
 
 
+MAX_CONFIG_BYTES = 1 << 20
+"""A settings file is a few kilobytes; anything past this is not one (e.g. /dev/zero)."""
+
+
 def load_config(path: str | Path, overrides: Mapping[str, Mapping[str, Any]] | None = None) -> ReplayConfig:
     """Read a TOML configuration; `overrides` (section → key → value, e.g. from command-line options)
     replace the file's values before validation, so values derived from them follow too.
@@ -299,7 +338,7 @@ def load_config(path: str | Path, overrides: Mapping[str, Mapping[str, Any]] | N
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_bytes_bounded(path, MAX_CONFIG_BYTES).decode("utf-8")
     except FileNotFoundError:
         raise ConfigError(path, "no such file") from None
     except (OSError, UnicodeDecodeError) as error:

@@ -1,27 +1,40 @@
-"""Writing outputs so that a failed run leaves nothing partial behind and never clobbers good files.
+"""Writing outputs so that a failed, interrupted or killed run leaves nothing partial and never clobbers
+good files.
 
-Every output is first written under a hidden temporary name in its final folder (same file system, so the
-final `os.replace` is atomic) and renamed only once all of a run's outputs are complete.
+A run's outputs are written into a hidden staging folder inside the output folder (same file system),
+flushed to disk (files, then the folder), and only then renamed into place one after another, with SIGINT
+and SIGTERM held back until the last rename, so an interruption leaves the old outputs or the new ones.
+A run killed outright (SIGKILL, power loss) leaves its staging folder behind: the next run writing the
+same outputs cleans it up, and finishes its renames first if it was killed while publishing (a `.complete`
+marker says the staged set was whole). A lock per output name (`.<stem>.lock`, removed afterwards) makes a
+second run of the same outputs into the same folder fail with a clear message instead of interleaving.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import json
 import math
 import os
 import secrets
+import shutil
+import signal
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pipeline.errors import OutputError
 
+if TYPE_CHECKING:
+    from optimizer.solve import OptimizationResult
 
-def temporary_path(target: Path) -> Path:
-    """A hidden, unique name beside `target` that keeps its suffix (some writers look at it)."""
-    return target.with_name(f".{target.stem}.{secrets.token_hex(4)}.partial{target.suffix}")
+_STAGING = ".staging-"
+_COMPLETE = ".complete"
+_HELD_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 
 
 def prepare_output_dir(directory: Path) -> bool:
@@ -43,26 +56,135 @@ def prepare_output_dir(directory: Path) -> bool:
 
 @contextmanager
 def staged_outputs(*targets: Path) -> Iterator[tuple[Path, ...]]:
-    """Yield one temporary path per target; on success rename each onto its target, on any failure
-    (including KeyboardInterrupt) delete the temporaries and leave the targets untouched.
+    """Yield one temporary path per target (same name, in a hidden staging folder beside the targets); on
+    success publish them all (see the module docstring), on any failure (KeyboardInterrupt included)
+    delete them and leave the targets untouched. The targets must share one folder; the lock and the
+    staging folder are named after the first target's stem."""
+    if not targets:
+        raise ValueError("no outputs to stage")
+    directory = targets[0].parent
+    if any(target.parent != directory for target in targets):
+        raise ValueError("staged outputs must share one folder")
+    stem = targets[0].stem
+    with _output_lock(directory, stem):
+        _recover_stale_staging(directory, stem)
+        staging = directory / f".{stem}{_STAGING}{os.getpid()}-{secrets.token_hex(4)}"
+        try:
+            staging.mkdir()
+        except OSError as error:
+            raise _folder_error(directory, error) from error
+        temporaries = tuple(staging / target.name for target in targets)
+        try:
+            try:
+                yield temporaries
+            except OutputError as error:  # name the output the user asked for, not the hidden copy
+                raise OutputError(str(error).replace(str(staging), str(directory))) from error
+            for temporary, target in zip(temporaries, targets, strict=True):
+                if not temporary.is_file():
+                    raise OutputError(f"{target}: was not written")
+            _publish(staging, temporaries, targets)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
 
-    Each rename is atomic; a set of several files is renamed one after another once all are written.
-    """
-    temporaries = tuple(temporary_path(target) for target in targets)
+
+def _publish(staging: Path, temporaries: tuple[Path, ...], targets: tuple[Path, ...]) -> None:
+    """Flush the staged files to disk, mark the set complete, then rename each into place with SIGINT and
+    SIGTERM held back (delivered right after), and flush the folder."""
     try:
-        yield temporaries
         for temporary in temporaries:
-            if not temporary.is_file():
-                raise OutputError(f"{temporary}: was not written")
+            _fsync_path(temporary)
+        (staging / _COMPLETE).touch()
+        _fsync_path(staging)
+    except OSError as error:
+        raise _folder_error(targets[0].parent, error) from error
+    with _signals_held():
         for temporary, target in zip(temporaries, targets, strict=True):
             try:
                 os.replace(temporary, target)
             except OSError as error:
                 raise OutputError(f"{target}: cannot write the file: {error.strerror or error}") from error
-    except BaseException:
-        for temporary in temporaries:
-            temporary.unlink(missing_ok=True)
-        raise
+        with contextlib.suppress(OSError):
+            _fsync_path(targets[0].parent)
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back while the block runs, then deliver them. Python runs signal handlers
+    in the main thread whichever thread the kernel picks, so the main thread's handlers are swapped (a
+    thread mask would not do); elsewhere signals cannot interrupt this thread anyway."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    previous = {number: signal.getsignal(number) for number in _HELD_SIGNALS}
+    for number in _HELD_SIGNALS:
+        signal.signal(number, lambda signum, _frame: received.append(signum))
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+        for number in received:
+            signal.raise_signal(number)
+
+
+def _folder_error(directory: Path, error: OSError) -> OutputError:
+    return OutputError(f"{directory}: cannot write in the folder: {error.strerror or error}")
+
+
+def _fsync_path(path: Path) -> None:
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+def _recover_stale_staging(directory: Path, stem: str) -> None:
+    """Clean up what a killed run writing these outputs left (the caller holds their lock): finish the
+    renames of a set it had completed, delete any other staging folder."""
+    for staging in directory.glob(f".{stem}{_STAGING}*"):
+        if (staging / _COMPLETE).is_file():
+            for staged in staging.iterdir():
+                if staged.name != _COMPLETE:
+                    with contextlib.suppress(OSError):
+                        os.replace(staged, directory / staged.name)
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+@contextmanager
+def _output_lock(directory: Path, stem: str) -> Iterator[None]:
+    """Hold an exclusive lock on `.<stem>.lock` in `directory`; fail at once when another run holds it.
+
+    The lock file is removed on release; a run that opened it just before is detected (the path no
+    longer names the locked file) and retries with a fresh one."""
+    path = directory / f".{stem}.lock"
+    while True:
+        try:
+            descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as error:
+            raise _folder_error(directory, error) from error
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            os.close(descriptor)
+            if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN):
+                raise OutputError(f"{directory}: another replay is writing the {stem} outputs there now; "
+                                  "wait for it or choose another --out folder") from None
+            raise OutputError(f"{path}: cannot lock: {error.strerror or error}") from error
+        try:
+            same = os.path.samestat(os.fstat(descriptor), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(descriptor)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        os.close(descriptor)
 
 
 @contextmanager
@@ -122,3 +244,17 @@ def _finite_or_none(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_finite_or_none(item) for item in value]
     return value
+
+
+def optimization_summary(result: OptimizationResult) -> dict[str, Any]:
+    """How an optimization ended, for the JSON summaries: converged or not and why, every start."""
+    return {
+        "converged": result.converged,
+        "stop_reason": result.reason,
+        "start": result.winner,
+        "candidates": [
+            {"start": candidate.start, "chi2_final": candidate.chi2, "converged": candidate.converged,
+             "stop_reason": candidate.reason, "iterations": candidate.iterations}
+            for candidate in result.candidates
+        ],
+    }

@@ -167,26 +167,31 @@ def _cancel(ray: ModuleType, pending: list[Any]) -> None:
         ray.wait(still_running, num_returns=len(still_running), timeout=CANCEL_GRACE_S)
 
 
-def remove_partial_outputs(out_dir: Path, stems: set[str]) -> list[Path]:
-    """Remove the temporaries (`pipeline.outputs.temporary_path`: `.<name>.<8 hex>.partial<suffix>`) that
-    replays of these stems left in `out_dir`, i.e. of `<stem>.*` and `<stem>_map.png`; the paths removed."""
-    pattern = _PARTIAL_NAME
+def remove_partial_outputs(out_dir: Path, stems: set[str]) -> list[str]:
+    """Clean up what replays of these stems killed mid-write left in `out_dir` (a staging folder, a lock
+    file: see `pipeline.outputs`) the way the next replay of the same outputs would: a staged set that was
+    complete is published, anything else deleted. Returns the stems cleaned up."""
+    # Private helpers of pipeline.outputs, so that this follows its naming and recovery rules exactly.
+    from pipeline.outputs import _output_lock, _recover_stale_staging
+
     try:
-        names = os.listdir(out_dir)
+        names = os.listdir(out_dir)  # once, not once per stem: batches have thousands
     except OSError:
         return []
-    removed = []
+    left_by = set()
     for name in names:
-        match = pattern.fullmatch(name)
-        if match is None:
+        match = _LEFT_BEHIND.fullmatch(name)
+        if match is not None and match.group("stem") in stems:
+            left_by.add(match.group("stem"))
+    cleaned = []
+    for stem in sorted(left_by):
+        try:
+            with _output_lock(out_dir, stem):
+                _recover_stale_staging(out_dir, stem)
+        except PipelineError:  # still held by a live process (a worker Ray could not kill): leave it
             continue
-        target_stem = match.group("stem")
-        owner = target_stem.removesuffix("_map")
-        if target_stem in stems or owner in stems:
-            path = out_dir / name
-            path.unlink(missing_ok=True)
-            removed.append(path)
-    return removed
+        cleaned.append(stem)
+    return cleaned
 
 
-_PARTIAL_NAME = re.compile(r"\.(?P<stem>.+)\.[0-9a-f]{8}\.partial(\.[^.]+)?")
+_LEFT_BEHIND = re.compile(r"\.(?P<stem>.+?)(\.staging-.*|\.lock)")

@@ -32,11 +32,11 @@ from frontends.slam3d.odometry import downsample
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
-from optimizer.solve import DEFAULT_METHOD, METHODS
+from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
 from pipeline import recording
 from pipeline.errors import PipelineError
 from pipeline.keyframe_optimization import optimize_keyframes
-from pipeline.outputs import json_text, output_stem, staged_outputs_in, write_text
+from pipeline.outputs import json_text, optimization_summary, output_stem, staged_outputs_in, write_text
 from pipeline.ply import write_ply
 from pipeline.recording import clouds as cloud_recording
 from pipeline.trajectory_io import write_tum
@@ -45,7 +45,7 @@ FloatArray = NDArray[np.float64]
 CloudCallback = Callable[[CloudEstimate], None]
 IterationCallback = Callable[[Iteration], None]
 
-SUMMARY_SCHEMA = "sgdslam.replay-cloud/1"
+SUMMARY_SCHEMA = "sgdslam.replay-cloud/2"
 DEFAULT_BASE_FRAME = "base_link"
 MAP_VOXEL = 0.2
 """The map (PLY and recording) keeps one point per voxel of this size (m)."""
@@ -87,8 +87,8 @@ class CloudReplayResult:
     """(K, 3) the optimized planar poses they were lifted from."""
     map_points: int
     chi2_per_iteration: tuple[tuple[str, int, float], ...]
-    final_start: str
-    """"odometry" when the recorded optimization from the odometry-only estimate won, else "online"."""
+    optimization: OptimizationResult
+    """How the keyframe optimization ended (converged, why, every start and the winner)."""
     wall_time: dict[str, float]
     outputs: CloudReplayOutputs
     counts: dict[str, int] = field(default_factory=dict)
@@ -167,7 +167,7 @@ def replay_cloud(
                 on_iteration,
                 _LiftedPoses(frontend, cloud_recording.KeyframePoseRecorder(stream)),
             )
-            trace, planar_poses, final_start = optimized.trace, optimized.poses, optimized.start
+            trace, planar_poses = optimized.trace, optimized.poses
             timings["optimize_and_record"] = time.perf_counter() - optimize_started
             keyframe_poses = frontend.lift(planar_poses)
             map_started = time.perf_counter()
@@ -195,7 +195,7 @@ def replay_cloud(
             planar_keyframe_poses=planar_poses,
             map_points=len(map_points),
             chi2_per_iteration=tuple(trace),
-            final_start=final_start,
+            optimization=optimized.result,
             wall_time=timings,
             outputs=outputs,
             counts={
@@ -244,7 +244,7 @@ def summary(result: CloudReplayResult, config: Slam3DConfig | None = None) -> di
             "rejected": frontend.loop_closures_rejected,
             "candidates": frontend.loop_candidates,
         },
-        "final_start": result.final_start,
+        **optimization_summary(result.optimization),
         "chi2_per_iteration": [{"stage": s, "index": i, "chi2": c} for s, i, c in result.chi2_per_iteration],
         "wall_time_s": result.wall_time,
         "frontend_clouds_per_second": clouds / frontend_seconds if frontend_seconds > 0 else None,

@@ -17,15 +17,15 @@ from numpy.typing import NDArray
 from optimizer.graph import PoseGraph
 from optimizer.graph_files import GraphFile, read_graph, write_g2o
 from optimizer.iteration import Iteration
-from optimizer.solve import DEFAULT_METHOD, METHODS, optimize
+from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult, optimize
 from pipeline import recording
 from pipeline.errors import PipelineError
-from pipeline.outputs import json_text, staged_outputs_in, write_text
+from pipeline.outputs import json_text, optimization_summary, staged_outputs_in, write_text
 
 ProgressCallback = Callable[[Iteration], None]
 """Called with every iteration as the optimizer yields it (the initial estimate first)."""
 
-SUMMARY_SCHEMA = "sgdslam.replay-graph/1"
+SUMMARY_SCHEMA = "sgdslam.replay-graph/2"
 """Names the layout of `<stem>.json`; bumped when a key changes meaning or disappears."""
 
 
@@ -81,6 +81,8 @@ class GraphReplayResult:
     optimize_time: Mapping[str, float]
     """Seconds inside the optimizer per optimizer stage (initial, sgd, gauss-newton, gauss-seidel)."""
     outputs: ReplayOutputs
+    optimization: OptimizationResult
+    """How the optimization ended: converged or not and why, every candidate start, the winner."""
 
     @property
     def initial_chi2(self) -> float:
@@ -158,6 +160,7 @@ def replay_graph(
             },
             optimize_time=run.optimize_time,
             outputs=outputs,
+            optimization=run.result,
         )
         write_text(json_temporary, json_text(summary(result)))
     return result
@@ -167,6 +170,7 @@ def replay_graph(
 class _RecordedRun:
     trace: tuple[IterationRecord, ...]
     final_poses: NDArray[np.float64]
+    result: OptimizationResult
     optimize_time: dict[str, float]
     """Seconds spent inside the optimizer, per optimizer stage."""
     record_seconds: float
@@ -200,7 +204,8 @@ def _optimize_and_record(
         recording.log_initial_trajectory(stream, graph.poses)
         loops = ~graph.is_odometry
         recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops])
-        iterator = optimize(graph, method=method, iterations=iterations)
+        optimization = optimize(graph, method=method, iterations=iterations)
+        iterator = iter(optimization)
         while True:
             step_started = time.perf_counter()
             iteration = next(iterator, None)
@@ -217,7 +222,8 @@ def _optimize_and_record(
     finally:
         recording.close_recording(stream)
     record_seconds = time.perf_counter() - started - sum(optimize_time.values())
-    return _RecordedRun(tuple(trace), np.array(final_poses, dtype=np.float64), optimize_time, record_seconds)
+    return _RecordedRun(tuple(trace), np.array(final_poses, dtype=np.float64), optimization.result,
+                        optimize_time, record_seconds)
 
 
 def summary(result: GraphReplayResult) -> dict[str, Any]:
@@ -237,6 +243,7 @@ def summary(result: GraphReplayResult) -> dict[str, Any]:
         "iterations": result.iterations_per_stage,
         "chi2_initial": result.initial_chi2,
         "chi2_final": result.final_chi2,
+        **optimization_summary(result.optimization),
         "chi2_per_iteration": [
             {"step": record.step, "stage": record.stage, "index": record.index, "chi2": record.chi2}
             for record in result.iterations
@@ -245,3 +252,4 @@ def summary(result: GraphReplayResult) -> dict[str, Any]:
         "optimize_time_s": dict(result.optimize_time),
         "outputs": {kind: str(getattr(result.outputs, kind)) for kind in ("g2o", "json", "rrd")},
     }
+

@@ -2,12 +2,12 @@
 
 1. Read the log's wheel odometry and transform tree (small), then stream the scans in sensor-time order.
 2. The frontend matches each scan, makes keyframes and loop closures (`frontends.slam2d`).
-3. The keyframe graph is optimized from its odometry-only estimate (what the robot believed before any
-   loop closure), so the recording shows the map straightening out; the online estimate is polished as
-   well and the lower χ² wins.
+3. The keyframe graph is optimized by the chosen method from two recorded starts: the odometry-only
+   estimate (what the robot believed before any loop closure), so the recording shows the map
+   straightening out, and the online estimate; the lower final χ² wins and is the recorded last iteration.
 4. Outputs: `<stem>.tum` (one pose per scan at its sensor stamp), `<stem>.g2o` (keyframe graph with
-   optimized poses), `<stem>.json` (counts, timings, χ² per iteration) and `<stem>.rrd`, written under
-   temporary names and renamed on success.
+   optimized poses), `<stem>.json` (counts, timings, χ² per iteration, convergence) and `<stem>.rrd`,
+   staged and published together on success (`pipeline.outputs`).
 
 Library code: raises `FrontendError`, `OptimizerError` or `PipelineError`, never prints or exits.
 """
@@ -33,11 +33,18 @@ from frontends.transforms import TransformTree
 from optimizer import se2
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
-from optimizer.solve import DEFAULT_METHOD, METHODS
+from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
 from pipeline import recording
 from pipeline.errors import PipelineError
 from pipeline.keyframe_optimization import optimize_keyframes
-from pipeline.outputs import json_text, output_stem, staged_outputs_in, write_png, write_text
+from pipeline.outputs import (
+    json_text,
+    optimization_summary,
+    output_stem,
+    staged_outputs_in,
+    write_png,
+    write_text,
+)
 from pipeline.recording import scans as scan_recording
 from pipeline.trajectory_io import write_tum
 
@@ -45,7 +52,7 @@ FloatArray = NDArray[np.float64]
 ScanCallback = Callable[[ScanEstimate], None]
 IterationCallback = Callable[[Iteration], None]
 
-SUMMARY_SCHEMA = "sgdslam.replay-log/1"
+SUMMARY_SCHEMA = "sgdslam.replay-log/2"
 
 
 @dataclass(frozen=True)
@@ -77,8 +84,8 @@ class LogReplayResult:
     """(S, 3) final pose of every scan."""
     keyframe_poses: FloatArray
     chi2_per_iteration: tuple[tuple[str, int, float], ...]
-    final_start: str
-    """"odometry" when the recorded optimization from the odometry-only estimate won, else "online"."""
+    optimization: OptimizationResult
+    """How the keyframe optimization ended (converged, why, every start and the winner)."""
     wall_time: dict[str, float]
     outputs: LogReplayOutputs
     counts: dict[str, int] = field(default_factory=dict)
@@ -132,7 +139,7 @@ def replay_log(
                     iterations,
                     on_iteration,
                 )
-                trace, keyframe_poses, final_start = optimized.trace, optimized.poses, optimized.start
+                trace, keyframe_poses = optimized.trace, optimized.poses
                 timings["record_iterations"] = optimized.record_seconds
                 timings["optimize_and_record"] = time.perf_counter() - optimize_started
                 poses = frontend.scan_poses(keyframe_poses)
@@ -164,7 +171,7 @@ def replay_log(
                 poses=poses,
                 keyframe_poses=keyframe_poses,
                 chi2_per_iteration=tuple(trace),
-                final_start=final_start,
+                optimization=optimized.result,
                 wall_time=timings,
                 outputs=outputs,
                 counts=run.counts,
@@ -256,7 +263,7 @@ def summary(result: LogReplayResult) -> dict[str, Any]:
             "accepted": frontend.loop_closures_accepted,
             "rejected": frontend.loop_closures_rejected,
         },
-        "final_start": result.final_start,
+        **optimization_summary(result.optimization),
         "chi2_per_iteration": [{"stage": s, "index": i, "chi2": c} for s, i, c in result.chi2_per_iteration],
         "wall_time_s": result.wall_time,
         "outputs": {

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from optimizer.file_input import read_bytes_bounded
 from pipeline.errors import PipelineError
 from pipeline.outputs import write_text
 
@@ -167,11 +168,15 @@ def tum_rows(poses: ArrayLike) -> FloatArray:
 # -------------------------------------------------------------------------------------------------- read
 
 
+MAX_DATA_FILE_BYTES = 256 << 20
+"""Largest trajectory or relations file read (a TUM line is under 200 bytes: over a million poses)."""
+
+
 def read_data_lines(path: Path, error: type[DataFileError]) -> list[tuple[int, list[str]]]:
     """The non-blank lines of a text file split on whitespace, with their 1-based numbers; `#` starts a
     comment (whole-line or trailing). Raises `error` naming the file when it cannot be read."""
     try:
-        data = path.read_bytes()
+        data = read_bytes_bounded(path, MAX_DATA_FILE_BYTES)
     except FileNotFoundError:
         raise error(path, "no such file") from None
     except IsADirectoryError:

@@ -371,3 +371,75 @@ def test_crlf_lines_tabs_and_repeated_spaces(tmp_path: Path) -> None:
     graph = read_graph(path).graph
     np.testing.assert_array_equal(graph.poses, [[0, 0, 0], [2.5, 0, 0]])
     np.testing.assert_array_equal(graph.measurements, [[2.5, 0, 0]])
+
+
+# ------------------------------------------------------------------------- the compiled fast path
+
+PLAIN_FILES = {
+    "interleaved lines, sparse ids, other tags": _tiny("VERTEX_SE2", "EDGE_SE2", G2O_UPPER),
+    "toro": _tiny("VERTEX2", "EDGE2", TORO_UPPER),
+    "crlf, tabs, repeated spaces": "VERTEX_SE2\t0 0 0 0\r\nVERTEX_SE2 1   2.5 0 0\r\n\r\n# c\r\n"
+                                   "EDGE_SE2 0 1 2.5 0 0 1 0 0 1 0 1\r\n",
+    "vertices after edges": "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\nVERTEX_SE2 1 1 0 0\n"
+                            "EDGE_SE2 1 2 1 0 0 1 0 0 1 0 1\nVERTEX_SE2 2 2 0 0\n",
+    "number forms, no final newline": "\ufeffVERTEX_SE2 0 +1. .5 -0\n  VERTEX_SE2 1 1e-3 -2.5E+2 7\n"
+                                      "EDGE_SE2 0 1 1e308 -1e-308 0.1 1 0 0 1 0 1",
+}
+
+
+@pytest.mark.parametrize("name", PLAIN_FILES)
+def test_fast_path_agrees_with_the_line_by_line_reader(name: str, tmp_path: Path) -> None:
+    from optimizer.graph_files import _group_lines, _group_plain, _parse_block
+
+    text = PLAIN_FILES[name]
+    fast = _group_plain(text.encode("utf-8"))
+    assert fast is not None, "a plain file must take the fast path"
+    slow_groups, slow_skipped = _group_lines(tmp_path / "x", text.lstrip("\ufeff"))
+    fast_groups, fast_skipped = fast
+    assert fast_skipped == slow_skipped
+    for tag, slow in slow_groups.items():
+        np.testing.assert_array_equal(fast_groups[tag].lines, slow.lines)
+        expected = 4 if tag.startswith("VERTEX") else 11
+        values = np.zeros((0, expected))
+        if slow.texts:
+            values, problem = _parse_block(tag, slow.texts, expected)
+            assert problem is None
+        np.testing.assert_array_equal(fast_groups[tag].values, values)
+
+
+@pytest.mark.parametrize("text", [
+    "VERTEX_SE2 0 nan 0 0\n",
+    "VERTEX_SE2 0 inf 0 0\n",
+    "VERTEX_SE2 0 1.2.3 0\n",
+    "VERTEX_SE2 0 1e 0 0\n",
+    "VERTEX_SE2 0 0x10 0 0\n",
+    "VERTEX_SE2 0 0 0\n",
+    "VERTEX_SE2 0 0 0 0 0\n",
+    "VERTEX_SE2\n",
+    "VERTEX_SE2 0 0 0 0\r5\n",
+    "VERTEX_SE2 0 0\x0b0 0\n",
+    "# Größe\nVERTEX_SE2 0 0 0 0\n",
+    "VERTEX_SE2 0 0 0 0\nVERTEX_SE3:QUAT 1 0 0 0 0 0 0 1\n",
+    "VERTEX3 0 0 0 0 0 0 0\n",
+])
+def test_fast_path_leaves_irregular_files_to_the_line_by_line_reader(text: str) -> None:
+    from optimizer.graph_files import _group_plain
+
+    assert _group_plain(text.encode("utf-8")) is None
+
+
+def test_gershgorin_shortcut_never_passes_a_matrix_the_eigenvalues_reject() -> None:
+    from optimizer.graph import not_positive_definite
+    from optimizer.graph_files import _clearly_positive_definite
+
+    rng = np.random.default_rng(5)
+    rotations = np.linalg.qr(rng.standard_normal((4000, 3, 3)))[0]
+    # eigenvalues from clearly positive through the tolerance down to zero and negative
+    eigenvalues = 10.0 ** rng.uniform(-17, 3, (4000, 3)) * rng.choice([1.0, 1.0, 1.0, -1.0], (4000, 3))
+    matrices = np.einsum("mij,mj,mkj->mik", rotations, eigenvalues, rotations)
+    matrices = 0.5 * (matrices + np.swapaxes(matrices, 1, 2))
+    diagonal = np.abs(rng.standard_normal((1000, 3))) * 10.0 ** rng.uniform(-3, 8, (1000, 1))
+    matrices = np.concatenate([matrices, np.einsum("mi,ij->mij", diagonal, np.eye(3))])
+    clear = _clearly_positive_definite(matrices)
+    assert clear.any() and not clear.all()
+    assert not (clear & not_positive_definite(matrices)).any()

@@ -106,7 +106,7 @@ def test_sequential_inputs_keep_going_and_quiet_keeps_only_the_error(
 def test_all_good_inputs_exit_0(tmp_path: Path) -> None:
     first = write_loop_graph(tmp_path / "a.g2o")
     second = write_loop_graph(tmp_path / "b.g2o")
-    result = run_replay(first, second, "--out", tmp_path / "out", "--method", "sgd", "--iterations", 1)
+    result = run_replay(first, second, "--out", tmp_path / "out")
     assert result.exit_code == 0, result.output
     assert "2 inputs, 2 done, 0 failed" in result.stderr
 
@@ -227,13 +227,32 @@ def test_ray_options_need_ray(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
     assert not (tmp_path / "out").exists()
 
 
-def test_partial_outputs_of_the_batch_are_found_by_stem(tmp_path: Path) -> None:
-    from pipeline.outputs import temporary_path
+KILLED_MID_WRITE = """
+import os, sys
+from pathlib import Path
+from pipeline.outputs import staged_outputs
+folder = Path(sys.argv[1])
+with staged_outputs(folder / f"{sys.argv[2]}.g2o", folder / f"{sys.argv[2]}.json") as temporaries:
+    for temporary in temporaries:
+        temporary.write_text("half")
+    os._exit(1)  # as a worker killed mid-write: nothing of staged_outputs' cleanup runs
+"""
+
+
+def test_what_killed_replays_left_is_cleaned_up_for_the_batch_stems_only(tmp_path: Path) -> None:
+    import subprocess
+
     from pipeline.ray_batch import remove_partial_outputs
 
-    left = [temporary_path(tmp_path / name) for name in ("run.g2o", "run.json", "run_map.png", "run.x.tum")]
-    kept = [temporary_path(tmp_path / "other.g2o"), tmp_path / "run.g2o", tmp_path / ".run.g2o"]
-    for path in left + kept:
-        path.write_text("")
-    assert sorted(remove_partial_outputs(tmp_path, {"run", "run.x"})) == sorted(left)
-    assert sorted(tmp_path.iterdir()) == sorted(kept)
+    for stem in ("run", "run.x", "other"):
+        subprocess.run([sys.executable, "-c", KILLED_MID_WRITE, str(tmp_path), stem], check=False,
+                       cwd=Path(__file__).resolve().parents[1])
+    (tmp_path / "run.g2o").write_text("a finished output")
+    left = sorted(path.name for path in tmp_path.iterdir() if path.name.startswith("."))
+    assert len(left) >= 3 and any(".other" in name for name in left)
+
+    assert remove_partial_outputs(tmp_path, {"run", "run.x"}) == ["run", "run.x"]
+    remaining = sorted(path.name for path in tmp_path.iterdir())
+    assert "run.g2o" in remaining and (tmp_path / "run.g2o").read_text() == "a finished output"
+    hidden = [name for name in remaining if name.startswith(".")]
+    assert hidden and all(name.startswith(".other") for name in hidden)

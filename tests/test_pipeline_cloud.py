@@ -61,7 +61,7 @@ def test_outputs_are_written_and_the_trajectory_follows_the_truth(
     errors = np.linalg.norm(relative[:, :2, 3] - expected[:, :2, 3], axis=1)
     assert errors.max() < 0.5 and errors[-1] < 0.2
     summary = json.loads((out / "town.json").read_text())
-    assert summary["schema"] == "sgdslam.replay-cloud/1"
+    assert summary["schema"] == "sgdslam.replay-cloud/2"
     assert summary["cloud_topic"] == "/points" and summary["base_frame"] == "base_link"
     assert summary["counts"]["clouds"] == len(stamps) == summary["counts"]["clouds_in_trajectory"]
     assert summary["loop_closures"]["accepted"] >= 1

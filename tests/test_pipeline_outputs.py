@@ -1,4 +1,5 @@
-"""Staged outputs: written under temporary names, renamed only when all are complete."""
+"""Staged outputs: written in a hidden staging folder, published only when all are complete, one run of
+an output set at a time, and whatever a killed run left cleaned up by the next."""
 
 from __future__ import annotations
 
@@ -16,8 +17,8 @@ def test_staged_outputs_rename_all_on_success(tmp_path: Path) -> None:
     targets[0].write_text("old")
     with staged_outputs(*targets) as temporaries:
         for temporary, target, text in zip(temporaries, targets, ("new graph", "new summary"), strict=True):
-            assert temporary.parent == target.parent and temporary.suffix == target.suffix
-            assert temporary.name.startswith(".")  # hidden while incomplete
+            assert temporary.name == target.name  # writers that look at the suffix see the real one
+            assert temporary.parent.parent == target.parent and temporary.parent.name.startswith(".")
             temporary.write_text(text)
         assert targets[0].read_text() == "old"  # nothing replaced before the block ends
         assert not targets[1].exists()
@@ -36,6 +37,48 @@ def test_staged_outputs_keep_old_files_and_remove_temporaries_on_failure(tmp_pat
         raise failure("interrupted")
     assert target.read_text() == "good"
     assert [path.name for path in tmp_path.iterdir()] == ["a.rrd"]
+
+
+def test_a_second_run_of_the_same_outputs_fails_clearly_while_the_first_writes(tmp_path: Path) -> None:
+    with staged_outputs(tmp_path / "a.g2o", tmp_path / "a.json") as (first, second):
+        with pytest.raises(OutputError, match="another replay is writing the a outputs"), \
+                staged_outputs(tmp_path / "a.g2o"):
+            pass
+        with staged_outputs(tmp_path / "b.g2o") as (other,):  # other outputs in the same folder: fine
+            other.write_text("b")
+        first.write_text("g2o")
+        second.write_text("json")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["a.g2o", "a.json", "b.g2o"]
+
+
+def test_the_next_run_cleans_up_after_a_killed_one(tmp_path: Path) -> None:
+    (tmp_path / "a.json").write_text("old")
+    # Killed while writing: an incomplete staging folder and the lock file remain.
+    incomplete = tmp_path / ".a.staging-123-abcd"
+    incomplete.mkdir()
+    (incomplete / "a.json").write_text("half")
+    (tmp_path / ".a.lock").write_text("")
+    # Killed while publishing: the staged set was whole, one file was already renamed.
+    publishing = tmp_path / ".b.staging-124-abcd"
+    publishing.mkdir()
+    (publishing / "b.json").write_text("new json")
+    (publishing / ".complete").write_text("")
+    (tmp_path / "b.g2o").write_text("new g2o")
+    with staged_outputs(tmp_path / "a.g2o") as (temporary,):
+        temporary.write_text("a")
+    with staged_outputs(tmp_path / "b.rrd") as (temporary,):
+        temporary.write_text("b")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["a.g2o", "a.json", "b.g2o", "b.json", "b.rrd"]
+    assert (tmp_path / "a.json").read_text() == "old" and (tmp_path / "b.json").read_text() == "new json"
+
+
+def test_errors_name_the_output_not_the_hidden_copy(tmp_path: Path) -> None:
+    from pipeline.outputs import write_text
+
+    with pytest.raises(OutputError) as caught, staged_outputs(tmp_path / "a.json") as (temporary,):
+        temporary.mkdir()  # writing a file there now fails
+        write_text(temporary, "x")
+    assert str(caught.value).startswith(f"{tmp_path / 'a.json'}: cannot write the file")
 
 
 def test_staged_outputs_require_every_file(tmp_path: Path) -> None:

@@ -22,7 +22,7 @@ from pipeline.batch import BatchOutcome, RayOptions, run_batch, run_one, run_one
 from pipeline.batch_summary import BATCH_SUMMARY_NAME
 from pipeline.cli import app
 from pipeline.config import ReplayConfig
-from pipeline.outputs import staged_outputs, temporary_path
+from pipeline.outputs import staged_outputs
 from tests.test_pipeline_batch import BROKEN_GRAPH
 from tests.test_pipeline_log import write_drive
 from tests.test_pipeline_replay import LOOP_POSES, write_loop_graph
@@ -48,7 +48,8 @@ def ray_runtime() -> Iterator[None]:
 
 
 def partial_files(folder: Path) -> list[str]:
-    return sorted(path.name for path in folder.iterdir() if ".partial" in path.name)
+    """Anything hidden: staging folders, locks (`pipeline.outputs`)."""
+    return sorted(path.name for path in folder.iterdir() if path.name.startswith("."))
 
 
 def comparable_outputs(out: Path, stem: str) -> dict[str, object]:
@@ -104,8 +105,9 @@ def crash_by_name(path: str | Path, config: ReplayConfig | None = None, *, out_d
         attempts.write("try\n")
     first_try = attempts_file(path).read_text().count("try") == 1
     if path.stem == "always_dies" or (path.stem == "dies_once" and first_try):
-        temporary_path(Path(out_dir) / f"{path.stem}.g2o").write_text("half a graph")
-        os._exit(1)
+        with staged_outputs(Path(out_dir) / f"{path.stem}.g2o") as (temporary,):
+            temporary.write_text("half a graph")
+            os._exit(1)
     if path.stem == "raises_once" and first_try:
         raise RuntimeError("a transient bug")
     return run_one_on_this_host(path, config, out_dir=out_dir, catch_unexpected=catch_unexpected)

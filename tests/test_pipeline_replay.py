@@ -135,9 +135,14 @@ def test_replay_writes_graph_summary_and_recording(tmp_path: Path, method: str) 
     graph_path = write_loop_graph(tmp_path / "loop.g2o")
     out = tmp_path / "out"
     sweeps = 15
+    converges = method in ("sgd+gn", "gn")  # the others run a fixed number of iterations
     result = run_replay(graph_path, "--out", out, "--method", method, "--iterations", sweeps, "--quiet")
-    assert result.exit_code == 0, result.output
-    assert result.output == ""  # --quiet
+    assert result.exit_code == (0 if converges else 3), result.output
+    if converges:
+        assert result.output == ""  # --quiet
+    else:
+        assert result.stderr.startswith(f"replay: not converged: {graph_path}: {sweeps} iterations")
+        assert len(result.stderr.splitlines()) == 1
     assert output_names(out) == {"loop.g2o", "loop.json", "loop.rrd"}
 
     # The .g2o: the input's constraints around new poses, which the summary's final χ² describes.
@@ -153,6 +158,7 @@ def test_replay_writes_graph_summary_and_recording(tmp_path: Path, method: str) 
     summary = json.loads((out / "loop.json").read_text())
     trace = summary["chi2_per_iteration"]
     assert summary["method"] == method
+    assert summary["converged"] is converges
     counts = (summary["poses"], summary["constraints"], summary["loop_closures"])
     assert counts == (LOOP_POSES, LOOP_POSES + 1, 2)
     assert trace[0] == {"step": 0, "stage": "initial", "index": 0, "chi2": pytest.approx(chi2(original))}
@@ -315,7 +321,7 @@ def test_failure_during_optimization_leaves_no_partial_files(tmp_path: Path, mon
     graph_path = write_loop_graph(tmp_path / "loop.g2o")
 
     def failing_optimize(graph, method, iterations):  # type: ignore[no-untyped-def]
-        yielded = optimize(graph, method=method, iterations=iterations)
+        yielded = iter(optimize(graph, method=method, iterations=iterations))
         for _ in range(3):
             yield next(yielded)
         raise failure("stopped")
@@ -367,6 +373,36 @@ def test_iteration_recorder_sends_batches_on_one_timeline(tmp_path: Path) -> Non
     assert trajectory.steps == steps
     for iteration, row in zip(iterations, trajectory.columns["LineStrips2D:strips"], strict=True):
         np.testing.assert_allclose(strip_points(row), iteration.poses[:, :2], atol=1e-5)
+
+
+def test_iteration_recorder_thins_huge_graphs_except_the_final_iteration(tmp_path: Path) -> None:
+    # With room for 7 points per iteration, the 30-pose loop is drawn through poses 0, 5, …, 25 and the
+    # last (stride ceil(29 / 6) = 5); room for 2 points keeps one of the two loop closures.
+    graph = read_graph(write_loop_graph(tmp_path / "loop.g2o")).graph
+    iterations = list(optimize(graph, method="sgd", iterations=4))
+    loops = ~graph.is_odometry
+    shown = [0, 5, 10, 15, 20, 25, LOOP_POSES - 1]
+    for max_points, loops_shown in ((7, 2), (2, 1)):
+        path = tmp_path / f"thinned{max_points}.rrd"
+        stream = recording.create_recording(path, name="thinned")
+        recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops],
+                                               batch_bytes=200, max_points=max_points)
+        for iteration in iterations:
+            recorder.add(iteration)
+        recorder.flush()
+        recording.close_recording(stream)
+        content = read_recording(path)
+        trajectory = content["/world/trajectory"]
+        closures = content["/world/loop_closures"]
+        assert trajectory.steps == closures.steps == list(range(len(iterations)))
+        rows = trajectory.columns["LineStrips2D:strips"]
+        for iteration, row, segments in zip(iterations, rows, closures.columns["LineStrips2D:strips"],
+                                            strict=True):
+            final = iteration is iterations[-1]
+            expected = iteration.poses[:, :2] if final else iteration.poses[shown if max_points == 7 else
+                                                                            [0, LOOP_POSES - 1], :2]
+            np.testing.assert_allclose(strip_points(row), expected, atol=1e-5)
+            assert len(list(segments)) == (int(loops.sum()) if final else loops_shown)
 
 
 def test_module_entry_point_reports_errors_without_traceback(tmp_path: Path) -> None:

@@ -106,9 +106,11 @@ def test_sgd_solves_reversed_edges_as_stored(reverse_every: int) -> None:
 
 
 @pytest.mark.parametrize(("seed", "reverse_every"), [(0, 0), (1, 0), (2, 0), (0, 2), (1, 3)])
-def test_tree_equals_algorithm_1_on_generated_loops(seed: int, reverse_every: int) -> None:
+@pytest.mark.parametrize("tree_block", [1, 3, 8, 128])
+def test_tree_equals_algorithm_1_on_generated_loops(seed: int, reverse_every: int, tree_block: int) -> None:
+    # Blocks of 1 are a plain segment tree over the increments; 128 > N puts the whole loop in one block.
     graph, _ = _square_loop(noise=0.1, seed=seed, laps=4, reverse_every=reverse_every)
-    tree = list(sgd(graph, 40))
+    tree = list(sgd(graph, 40, tree_block=tree_block))
     linear = list(sgd(graph, 40, implementation="linear"))
     for a, b in zip(tree, linear, strict=True):
         assert _angle_aware_max_difference(a.poses, b.poses) < 1e-9
@@ -144,3 +146,20 @@ def test_bad_arguments_raise_our_error() -> None:
         list(sgd(graph, 1, implementation="quadratic"))  # type: ignore[arg-type]
     with pytest.raises(OptimizerError):
         list(sgd(graph, 1, np.zeros((2, 3))))
+    with pytest.raises(OptimizerError):
+        list(sgd(graph, 1, tree_block=0))
+
+
+def test_later_iterations_leave_earlier_poses_and_the_graph_untouched() -> None:
+    # The tree starts each iteration from the poses it yielded last and writes a new array.
+    graph, _ = _square_loop(noise=0.1, seed=4)
+    initial = graph.poses.copy()
+    iterations = []
+    copies = []
+    for iteration in sgd(graph, 5):
+        iterations.append(iteration)
+        copies.append(iteration.poses.copy())
+    np.testing.assert_array_equal(graph.poses, initial)
+    for iteration, copy in zip(iterations, copies, strict=True):
+        np.testing.assert_array_equal(iteration.poses, copy)
+    assert len({id(iteration.poses) for iteration in iterations}) == len(iterations)

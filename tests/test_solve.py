@@ -1,4 +1,5 @@
-"""The optimizer's entry point: stage chaining, and the exact minima of real benchmark graphs."""
+"""The optimizer's entry point: stage chaining, the exact minima of real benchmark graphs, the paper's SGD
+finding the basin from a poor start, candidate starts and honest convergence."""
 
 from __future__ import annotations
 
@@ -7,9 +8,13 @@ import itertools
 import numpy as np
 import pytest
 
+from optimizer.cost import chi2
 from optimizer.errors import OptimizerError
 from optimizer.graph_files import read_graph
-from optimizer.solve import METHODS, optimize
+from optimizer.gridworld import GridWorld, generate_grid_world
+from optimizer.iteration import Iteration
+from optimizer.polish import gauss_newton
+from optimizer.solve import ESTIMATE, METHODS, optimize
 from tests.conftest import shared_file
 from tests.test_sgd import _square_loop
 
@@ -63,3 +68,84 @@ def test_intel_with_its_ill_conditioned_information_stays_finite_and_reaches_the
     steps = list(optimize(graph))
     assert all(np.isfinite(s.chi2) and np.all(np.isfinite(s.poses)) for s in steps)
     assert steps[-1].chi2 <= 216.0
+
+
+# ------------------------------------------------------------------- poor starts, candidates, convergence
+
+
+def _final(iterations: object) -> Iteration:
+    *_, last = iterations  # type: ignore[misc]
+    return last
+
+
+def _poor_start_world(seed: int) -> GridWorld:
+    """A small city whose odometry headings carry heavy noise (σθ = 0.2 rad): dead reckoning is far off."""
+    return generate_grid_world(300, seed=seed, odometry_sigma=(0.02, 0.02, 0.2))
+
+
+def _optimum(world: GridWorld) -> float:
+    """The minimum near the truth: the polish started from the ground truth."""
+    return _final(gauss_newton(world.graph, world.ground_truth, max_iterations=1000)).chi2
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sgd_finds_the_basin_that_gauss_newton_alone_misses(seed: int) -> None:
+    # The paper's claim: from a poor initial estimate, Gauss–Newton alone stalls in a wrong basin, SGD
+    # gets the map into the right one and the polish then reaches the minimum. Without SGD this fails.
+    world = _poor_start_world(seed)
+    optimum = _optimum(world)
+    alone = optimize(world.graph, "gn", starts={ESTIMATE: world.graph.poses})
+    assert _final(alone).chi2 > 10.0 * optimum
+    with_sgd = optimize(world.graph, "sgd+gn", starts={ESTIMATE: world.graph.poses})
+    final = _final(with_sgd)
+    assert final.chi2 == pytest.approx(optimum, rel=1e-3)
+    assert with_sgd.result.converged
+    stages = [iteration.stage for iteration in with_sgd]
+    assert stages.count("sgd") == 100 and stages[-1] == "gauss-newton"
+
+
+def test_the_lowest_candidate_wins_and_is_the_last_iteration() -> None:
+    world = _poor_start_world(0)
+    graph = world.graph
+    run = optimize(graph, "gn", starts={"dead reckoning": graph.poses, "truth": world.ground_truth})
+    iterations = list(run)
+    starts = [iteration.start for iteration in iterations if iteration.stage == "initial"]
+    assert starts == ["dead reckoning", "truth"]
+    assert iterations[-1].stage == "selected" and iterations[-1].start == "truth"
+    result = run.result
+    assert result.winner == "truth" and result.converged
+    np.testing.assert_array_equal(result.poses, iterations[-1].poses)
+    assert result.chi2 == pytest.approx(chi2(graph, result.poses), rel=1e-12)
+    assert [candidate.start for candidate in result.candidates] == starts
+    losing = result.candidates[0]
+    assert losing.chi2 > result.chi2 and losing.iterations > 0
+
+
+def test_a_capped_polish_is_not_reported_as_converged() -> None:
+    graph = _poor_start_world(1).graph
+    run = optimize(graph, "gn", iterations=2)
+    assert [iteration.stage for iteration in run] == ["initial", "gauss-newton", "gauss-newton"]
+    assert not run.result.converged
+    assert "cap" in run.result.reason
+
+
+def test_methods_without_a_polish_never_claim_convergence() -> None:
+    graph = _poor_start_world(2).graph
+    for method in ("sgd", "gauss-seidel"):
+        run = optimize(graph, method, iterations=3)
+        assert len(list(run)) == 4
+        assert not run.result.converged
+
+
+def test_bad_arguments_raise_our_error() -> None:
+    graph = _poor_start_world(0).graph
+    with pytest.raises(OptimizerError, match="unknown method"):
+        optimize(graph, "newton")
+    with pytest.raises(OptimizerError, match="iterations must be between"):
+        optimize(graph, iterations=10**9)
+    with pytest.raises(OptimizerError, match="expected poses of shape"):
+        optimize(graph, starts={"bad": np.zeros((3, 3))})
+    with pytest.raises(OptimizerError, match="non-finite"):
+        optimize(graph, starts={"bad": np.full(graph.poses.shape, np.nan)})
+    with pytest.raises(OptimizerError, match="not run to its end"):
+        _ = optimize(graph).result

@@ -7,7 +7,8 @@ one), so several recordings can be written side by side.
 Layout of a recording:
 - `world/initial_trajectory` (static): the trajectory before optimization;
 - `world/trajectory` and `world/loop_closures` on the timeline `iteration`: the trajectory and the
-  loop-closure constraints (b − a > 1) after every iteration;
+  loop-closure constraints (|b − a| > 1) after every iteration (thinned on huge graphs, except the final
+  iteration: see `IterationRecorder`);
 - `optimizer/chi2` and `optimizer/log10_chi2` on `iteration`: χ² as scalar series (the log is what shows
   the SGD's progress; χ² falls by orders of magnitude);
 - `optimizer/stage` on `iteration`: a text log naming the stage and its iteration number.
@@ -30,8 +31,8 @@ from numpy.typing import NDArray
 from rerun.components import LineStrip2DBatch
 from rerun.encodings import Vec2DBatch
 
-from optimizer.iteration import Iteration
-from pipeline.errors import OutputError
+from optimizer.iteration import ESTIMATE, Iteration
+from pipeline.errors import OutputError, PipelineError
 
 APPLICATION_ID = "sgdslam"
 ITERATION_TIMELINE = "iteration"
@@ -57,6 +58,10 @@ MAP_CELL = 0.05
 
 DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
 """How much per-iteration geometry `IterationRecorder` buffers before sending it as one column batch."""
+
+DEFAULT_MAX_POINTS_PER_ITERATION = 100_000
+"""Above this many poses (or half as many loop closures) `IterationRecorder` thins each iteration's
+geometry, except the final iteration's."""
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -172,18 +177,11 @@ def send_trajectories(recording: rr.RecordingStream, steps: IntArray, positions:
     )
 
 
-def send_loop_closures(
-    recording: rr.RecordingStream,
-    steps: IntArray,
-    positions: NDArray[np.float32],
-    loop_from: IntArray,
-    loop_to: IntArray,
-) -> None:
-    """The L loop-closure constraints as L two-point segments per iteration (nothing when L = 0)."""
-    count = len(loop_from)
+def send_loop_segments(recording: rr.RecordingStream, steps: IntArray, segments: NDArray[np.float32]) -> None:
+    """(K, L, 2, 2) segments: L two-point loop-closure segments per iteration (nothing when L = 0)."""
+    count = segments.shape[1]
     if count == 0:
         return
-    segments = np.stack([positions[:, loop_from], positions[:, loop_to]], axis=2)  # (K, L, 2, 2)
     recording.send_columns(
         LOOP_CLOSURES_ENTITY,
         indexes=[_iteration_column(steps)],
@@ -245,6 +243,13 @@ class IterationRecorder:
 
     Iterations are buffered (positions as float32, which is what Rerun stores) and sent in column batches
     of about `batch_bytes`, so memory stays bounded on large graphs and the file stays compact.
+
+    Huge graphs are thinned per iteration so the recording stays bounded (at 10⁶ poses × 100 iterations
+    the full trajectories alone would be gigabytes): when the graph has more than `max_points` poses, each
+    iteration's trajectory is the line through every k-th pose (and the last), with the smallest k that
+    keeps it to `max_points` points; when it has more than `max_points` / 2 loop closures, every k-th loop
+    closure is drawn, likewise. The most recent iteration (the final one, once `flush` is called at the
+    end) is always sent whole. Graphs within both limits are recorded in full at every iteration.
     """
 
     def __init__(
@@ -254,15 +259,22 @@ class IterationRecorder:
         loop_to: IntArray,
         *,
         batch_bytes: int = DEFAULT_BATCH_BYTES,
+        max_points: int = DEFAULT_MAX_POINTS_PER_ITERATION,
     ) -> None:
+        if max_points < 2:
+            raise PipelineError(f"max_points must be at least 2, got {max_points}")
         self._recording = recording
         self._loop_from = np.asarray(loop_from, dtype=np.int64)
         self._loop_to = np.asarray(loop_to, dtype=np.int64)
+        self._loop_shown = _every_kth(len(self._loop_from), max_points // 2, keep_last=False)
+        self._max_points = max_points
         self._batch_bytes = batch_bytes
-        self._positions: list[NDArray[np.float32]] = []
+        self._trajectories: list[NDArray[np.float32]] = []
+        self._loop_segments: list[NDArray[np.float32]] = []
         self._stages: list[str] = []
         self._indices: list[int] = []
         self._chi2: list[float] = []
+        self._latest_poses: NDArray[np.float64] | None = None
         self._first_step = 0
         self._buffered_bytes = 0
 
@@ -274,29 +286,77 @@ class IterationRecorder:
     def add(self, iteration: Iteration) -> int:
         """Buffer one iteration; returns its step on the `iteration` timeline."""
         step = self.steps_recorded
-        positions = np.asarray(iteration.poses[:, :2], dtype=np.float32)
-        self._positions.append(positions)
-        self._stages.append(iteration.stage)
+        if self._latest_poses is not None:  # the previous iteration was not the final one: thinned
+            self._buffer_geometry(self._latest_poses, thin=True)
+        self._latest_poses = iteration.poses  # read-only by the optimizers' contract: no copy
+        # Several starts are optimized one after another: name the start unless it is the graph's own.
+        self._stages.append(iteration.stage if iteration.start == ESTIMATE else
+                            f"{iteration.start}: {iteration.stage}")
         self._indices.append(iteration.index)
         self._chi2.append(float(iteration.chi2))
-        # geometry sent per iteration: the trajectory plus two points per loop closure
-        self._buffered_bytes += positions.nbytes + 16 * len(self._loop_from)
         if self._buffered_bytes >= self._batch_bytes:
-            self.flush()
+            self._send(len(self._trajectories))
         return step
 
     def flush(self) -> None:
-        """Send what is buffered."""
-        if not self._stages:
-            return
-        steps = np.arange(self._first_step, self._first_step + len(self._stages), dtype=np.int64)
-        positions = np.stack(self._positions)
-        chi2 = np.asarray(self._chi2, dtype=np.float64)
-        indices = np.asarray(self._indices, dtype=np.int64)
-        send_trajectories(self._recording, steps, positions)
-        send_loop_closures(self._recording, steps, positions, self._loop_from, self._loop_to)
-        send_chi2(self._recording, steps, chi2)
-        send_stages(self._recording, steps, self._stages, indices, chi2)
-        self._first_step += len(self._stages)
-        self._positions, self._stages, self._indices, self._chi2 = [], [], [], []
-        self._buffered_bytes = 0
+        """Send everything buffered, the most recent iteration whole (call it once the run is over)."""
+        if self._latest_poses is not None:
+            self._buffer_geometry(self._latest_poses, thin=False)
+            self._latest_poses = None
+        self._send(len(self._trajectories))
+
+    def _buffer_geometry(self, poses: NDArray[np.float64], *, thin: bool) -> None:
+        trajectory, segments = self._geometry(poses, thin=thin)
+        self._trajectories.append(trajectory)
+        self._loop_segments.append(segments)
+        self._buffered_bytes += trajectory.nbytes + segments.nbytes
+
+    def _geometry(self, poses: NDArray[np.float64], *, thin: bool) -> tuple[NDArray[np.float32],
+                                                                           NDArray[np.float32]]:
+        """The trajectory (P, 2) and loop-closure segments (L, 2, 2) of one iteration, as float32."""
+        if thin:
+            shown = _every_kth(len(poses), self._max_points, keep_last=True)
+            trajectory = poses[shown, :2] if shown is not None else poses[:, :2]
+            loop_from, loop_to = self._loop_from, self._loop_to
+            if self._loop_shown is not None:
+                loop_from, loop_to = loop_from[self._loop_shown], loop_to[self._loop_shown]
+        else:
+            trajectory = poses[:, :2]
+            loop_from, loop_to = self._loop_from, self._loop_to
+        segments = np.stack([poses[loop_from, :2], poses[loop_to, :2]], axis=1)
+        return trajectory.astype(np.float32), segments.astype(np.float32)
+
+    def _send(self, count: int) -> None:
+        """Send the first `count` buffered iterations (the latest has no geometry until the next `add` or
+        `flush`): runs of equally thinned ones as one column batch each."""
+        sent = 0
+        while sent < count:
+            end = sent + 1
+            shape = (self._trajectories[sent].shape, self._loop_segments[sent].shape)
+            while end < count and (self._trajectories[end].shape, self._loop_segments[end].shape) == shape:
+                end += 1
+            steps = np.arange(self._first_step + sent, self._first_step + end, dtype=np.int64)
+            chi2 = np.asarray(self._chi2[sent:end], dtype=np.float64)
+            send_trajectories(self._recording, steps, np.stack(self._trajectories[sent:end]))
+            send_loop_segments(self._recording, steps, np.stack(self._loop_segments[sent:end]))
+            send_chi2(self._recording, steps, chi2)
+            send_stages(self._recording, steps, self._stages[sent:end],
+                        np.asarray(self._indices[sent:end], dtype=np.int64), chi2)
+            sent = end
+        self._first_step += count
+        for buffer in (self._trajectories, self._loop_segments, self._stages, self._indices, self._chi2):
+            del buffer[:count]
+        self._buffered_bytes = sum(trajectory.nbytes + segments.nbytes for trajectory, segments
+                                   in zip(self._trajectories, self._loop_segments, strict=True))
+
+
+def _every_kth(count: int, limit: int, *, keep_last: bool) -> IntArray | None:
+    """Indices of every k-th of `count` items, with the smallest k that keeps at most `limit` of them
+    (plus the last item when `keep_last`, counted in the limit); None when all `count` fit."""
+    if count <= limit:
+        return None
+    if keep_last:
+        stride = -(-(count - 1) // (limit - 1))  # ceil: 0, k, 2k, … < count − 1, then count − 1
+        return np.append(np.arange(0, count - 1, stride), count - 1)
+    stride = -(-count // limit)
+    return np.arange(0, count, stride)

@@ -1,0 +1,210 @@
+"""The fast path of reading a graph file: one compiled pass over the raw bytes groups the lines by tag.
+
+It handles the files that need no explanation: ASCII text whose pose-graph lines hold exactly the
+expected number of plain decimal numbers. Anything else (non-ASCII or control bytes, a malformed number,
+a wrong count, `nan`/`inf` spelled out) makes it give up, and `graph_files` reads the file again with its
+line-by-line reader, which names what is wrong and where. So the fast path never has to explain errors.
+
+The numbers are converted by Arrow's string-to-float cast (correctly rounded, like Python's `float`):
+the scanner copies every token into one buffer with its offsets, which is an Arrow string array as it
+stands.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+from numba import njit
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+_SPACE, _TAB, _CR, _NEWLINE, _HASH = 32, 9, 13, 10, 35
+_PLUS, _MINUS, _DOT, _LOWER_E, _UPPER_E, _ZERO, _NINE = 43, 45, 46, 101, 69, 48, 57
+_UTF8_BOM = b"\xef\xbb\xbf"
+
+
+@dataclass(frozen=True)
+class ScannedTag:
+    """The lines of one graph tag: their 1-based line numbers and their values, (rows, fields)."""
+
+    lines: IntArray
+    values: FloatArray
+
+
+@dataclass(frozen=True)
+class ScannedFile:
+    """What the fast path found: the graph tags' lines, and the tags of all other lines with their line
+    numbers (blank lines and comments excluded)."""
+
+    tags: dict[str, ScannedTag]
+    other_tags: list[str]
+    other_lines: IntArray
+
+
+def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]) -> ScannedFile | None:
+    """Group the lines of `data` by tag, parsing the lines of `tags` (each with `fields` numbers after
+    the tag); None when the file is not plain enough for the fast path."""
+    raw = np.frombuffer(data, dtype=np.uint8)
+    start = len(_UTF8_BOM) if data.startswith(_UTF8_BOM) else 0
+    tag_bytes = np.frombuffer("".join(tags).encode("ascii"), dtype=np.uint8)
+    tag_bounds = np.concatenate([[0], np.cumsum([len(tag) for tag in tags])]).astype(np.int64)
+    expected = np.asarray(fields, dtype=np.int64)
+
+    # Upper bounds: untouched pages of np.empty are never made resident, so only what is used costs memory.
+    line_bound = data.count(b"\n") + 1
+    counts = np.zeros((len(tags) + 1, 2), dtype=np.int64)  # rows, tokens of each tag; last row: others
+    lines = np.empty((len(tags) + 1, line_bound), dtype=np.int64)
+    first_tokens = np.empty((len(tags), line_bound), dtype=np.int64)
+    other_spans = np.empty((2, line_bound), dtype=np.int64)
+    token_bytes = np.empty(len(data), dtype=np.uint8)
+    wide = len(data) >= 2**31
+    offsets = np.empty(len(data) // 2 + 2, dtype=np.int64 if wide else np.int32)
+    token_count = _scan(raw, start, tag_bytes, tag_bounds, expected, counts, lines, first_tokens, other_spans,
+                        token_bytes, offsets)
+    if token_count < 0:
+        return None
+    strings = pa.Array.from_buffers(
+        pa.large_string() if wide else pa.string(), token_count,
+        [None, pa.py_buffer(offsets[:token_count + 1]), pa.py_buffer(token_bytes[:offsets[token_count]])])
+    del token_bytes, offsets
+    values = pc.cast(strings, pa.float64()).to_numpy(zero_copy_only=False)  # every token, in file order
+    del strings
+
+    scanned: dict[str, ScannedTag] = {}
+    for index, tag in enumerate(tags):
+        rows = int(counts[index, 0])
+        first = first_tokens[index, :rows]
+        if rows and first[-1] - first[0] == (rows - 1) * fields[index]:  # one run of lines: a view
+            tag_values = values[first[0]:first[0] + rows * fields[index]].reshape(rows, fields[index])
+        else:
+            tag_values = values[first[:, None] + np.arange(fields[index])]
+        scanned[tag] = ScannedTag(lines[index, :rows].copy(), tag_values)
+    others = int(counts[-1, 0])
+    other_tags = [data[first:stop].decode("ascii") for first, stop in other_spans[:, :others].T.tolist()]
+    return ScannedFile(scanned, other_tags, lines[-1, :others].copy())
+
+
+@njit(cache=True, inline="always")
+def _is_digit(byte: int) -> bool:
+    return _ZERO <= byte <= _NINE
+
+
+@njit(cache=True, inline="always")
+def _number_end(raw: np.ndarray, first: int, stop: int) -> int:
+    """End of the decimal number starting at `first` ([+-] digits [. digits] [e [+-] digits], at least
+    one mantissa digit), or -1 when the token there is not one."""
+    k = first
+    if raw[k] == _PLUS or raw[k] == _MINUS:
+        k += 1
+    digits = 0
+    while k < stop and _is_digit(raw[k]):
+        k += 1
+        digits += 1
+    if k < stop and raw[k] == _DOT:
+        k += 1
+        while k < stop and _is_digit(raw[k]):
+            k += 1
+            digits += 1
+    if digits == 0:
+        return -1
+    if k < stop and (raw[k] == _LOWER_E or raw[k] == _UPPER_E):
+        k += 1
+        if k < stop and (raw[k] == _PLUS or raw[k] == _MINUS):
+            k += 1
+        exponent_digits = 0
+        while k < stop and _is_digit(raw[k]):
+            k += 1
+            exponent_digits += 1
+        if exponent_digits == 0:
+            return -1
+    if k < stop and raw[k] != _SPACE and raw[k] != _TAB:
+        return -1
+    return k
+
+
+@njit(cache=True)
+def _scan(raw: np.ndarray, start: int, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expected: np.ndarray,
+          counts: np.ndarray, lines: np.ndarray, first_tokens: np.ndarray, other_spans: np.ndarray,
+          token_bytes: np.ndarray, offsets: np.ndarray) -> int:
+    """One pass over the file; -1 as soon as a line is not plain, else the number of tokens. Per tag t
+    (row t of `counts`, `lines`, `first_tokens`; the last row of `counts` and `lines`: other lines) it
+    counts rows and writes their line numbers and first tokens; every token goes to `token_bytes`, end
+    to end, with its end in `offsets` (an Arrow string array's layout)."""
+    num_tags = expected.shape[0]
+    token_count = 0
+    offsets[0] = 0
+    size = raw.shape[0]
+    position = start
+    line = 0
+    while position < size:
+        line += 1
+        end = position
+        while end < size and raw[end] != _NEWLINE:
+            byte = raw[end]
+            if (byte < _SPACE and byte != _TAB and byte != _CR) or byte >= 127:
+                return -1  # control or non-ASCII bytes: the line-by-line reader decides
+            end += 1
+        stop = end
+        if stop > position and raw[stop - 1] == _CR:
+            stop -= 1
+        next_position = end + 1
+        i = position
+        while i < stop and (raw[i] == _SPACE or raw[i] == _TAB):
+            i += 1
+        if i == stop or raw[i] == _HASH:
+            position = next_position
+            continue
+        tag_first = i
+        while i < stop and raw[i] != _SPACE and raw[i] != _TAB:
+            if raw[i] == _CR:
+                return -1  # a carriage return inside a line
+            i += 1
+        tag = -1
+        for t in range(num_tags):
+            length = tag_bounds[t + 1] - tag_bounds[t]
+            if length == i - tag_first:
+                same = True
+                for c in range(length):
+                    if raw[tag_first + c] != tag_bytes[tag_bounds[t] + c]:
+                        same = False
+                        break
+                if same:
+                    tag = t
+                    break
+        if tag < 0:
+            row = counts[num_tags, 0]
+            lines[num_tags, row] = line
+            other_spans[0, row] = tag_first
+            other_spans[1, row] = i
+            counts[num_tags, 0] += 1
+            position = next_position
+            continue
+        tokens = 0
+        first_tokens[tag, counts[tag, 0]] = token_count
+        while True:
+            while i < stop and (raw[i] == _SPACE or raw[i] == _TAB):
+                i += 1
+            if i == stop:
+                break
+            token_end = _number_end(raw, i, stop)
+            if token_end < 0:
+                return -1
+            used = offsets[token_count]
+            for c in range(token_end - i):
+                token_bytes[used + c] = raw[i + c]
+            offsets[token_count + 1] = used + token_end - i
+            token_count += 1
+            counts[tag, 1] += 1
+            tokens += 1
+            i = token_end
+        if tokens != expected[tag]:
+            return -1
+        lines[tag, counts[tag, 0]] = line
+        counts[tag, 0] += 1
+        position = next_position
+    return token_count

@@ -1,0 +1,78 @@
+"""Hostile inputs to the command: absurd option values, endless or special files. Each ends in exit 2 with
+one line on stderr naming the option or file, quickly, with nothing written."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from pipeline.cli import app
+
+
+def _replay_process(*args: str | Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    """The console script's own entry point, which formats usage errors."""
+    return subprocess.run([sys.executable, "-m", "pipeline.launcher", *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize(("args", "named"), [
+    (["--iterations", "2147483648"], "--iterations"),
+    (["--iterations", "-1"], "--iterations"),
+    (["--jobs", "100000"], "--jobs"),
+    (["--method", "newton"], "--method"),
+])
+def test_option_values_out_of_range_are_one_line_errors(tmp_path: Path, args: list[str], named: str) -> None:
+    result = _replay_process(tmp_path / "graph.g2o", *args, "--out", tmp_path / "out")
+    assert result.returncode == 2
+    assert len(result.stderr.splitlines()) == 1 and result.stderr.startswith("replay: error: ")
+    assert named in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("setting", "bound"), [
+    ("[matching]\nresolution = 1e-9\n", "greater than or equal to 0.005"),
+    ("[matching]\nmax_range = 1e300\n", "less than or equal to 1000"),
+    ("[keyframes]\nlocal_map_keyframes = 2000000000\n", "less than or equal to 10000"),
+    ("[optimizer]\niterations = 1000000000\n", "less than or equal to 1000000"),
+])
+def test_config_values_that_would_overflow_are_rejected(tmp_path: Path, setting: str, bound: str) -> None:
+    config = tmp_path / "replay.toml"
+    config.write_text(setting)
+    result = CliRunner().invoke(app, ["--config", str(config), "--dump-config"])
+    assert result.exit_code == 2
+    assert result.stderr.startswith(f"replay: error: {config}:2: ") and bound in result.stderr
+    assert len(result.stderr.splitlines()) == 1
+
+
+@pytest.mark.parametrize("command", [
+    ["--config", "{special}", "--dump-config"],
+    ["evaluate", "{special}", "{special}"],
+])
+def test_endless_files_are_refused_without_reading_them_whole(command: list[str]) -> None:
+    arguments = [part.format(special="/dev/zero") for part in command]
+    result = CliRunner().invoke(app, arguments)
+    assert result.exit_code == 2
+    assert "/dev/zero" in result.stderr and "larger than" in result.stderr
+    assert len(result.stderr.splitlines()) == 1
+
+
+def test_a_fifo_without_a_writer_does_not_block(tmp_path: Path) -> None:
+    fifo = tmp_path / "relations"
+    os.mkfifo(fifo)
+    finished = threading.Event()
+    outcome: list[object] = []
+
+    def run() -> None:
+        outcome.append(CliRunner().invoke(app, ["evaluate", str(fifo), str(fifo)]))
+        finished.set()
+
+    threading.Thread(target=run, daemon=True).start()
+    assert finished.wait(timeout=30), "reading a FIFO blocked"
+    result = outcome[0]
+    assert result.exit_code == 2 and str(fifo) in result.stderr  # type: ignore[attr-defined]
