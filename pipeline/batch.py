@@ -1,4 +1,5 @@
-"""Replays of several inputs: one after another in this process, or in parallel in a pool of processes.
+"""Replays of several inputs: one after another in this process, in parallel in a pool of processes, or
+as tasks on a Ray cluster (`RayOptions`; `pipeline.ray_batch`).
 
 A failing input never stops the others: every input ends as a `BatchOutcome`, its summary or its error.
 Library code: nothing is printed; callers report the outcomes.
@@ -6,7 +7,9 @@ Library code: nothing is printed; callers report the outcomes.
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
+import socket
 import traceback
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
@@ -45,6 +48,8 @@ class BatchOutcome:
     outputs: Mapping[str, Path] = field(default_factory=dict)
     error: str | None = None
     traceback: str | None = None
+    host: str | None = None
+    """The host name of the machine that replayed the input, when it ran as part of a batch."""
 
     @property
     def ok(self) -> bool:
@@ -65,9 +70,23 @@ class BatchOutcome:
     def to_json(self) -> dict[str, Any]:
         """The machine-readable form: the summary written to `<stem>.json` with `"ok": true`, or the
         input, `"ok": false` and the error."""
+        host = {} if self.host is None else {"host": self.host}
         if self.summary is None:
-            return {"input": str(self.input_path), "ok": False, "error": self.error}
-        return {"input": str(self.input_path), "ok": True, "kind": self.kind, **self.summary}
+            return {"input": str(self.input_path), "ok": False, "error": self.error, **host}
+        return {"input": str(self.input_path), "ok": True, "kind": self.kind, **self.summary, **host}
+
+
+@dataclass(frozen=True)
+class RayOptions:
+    """Run a batch on Ray: each input one task."""
+
+    address: str | None = None
+    """The cluster to connect to ("auto", "host:port", "ray://host:port"); None or "local" starts a local
+    Ray runtime for the batch. A runtime already initialised in this process is used as it is."""
+    cpus_per_task: float = 1.0
+    retries: int = 1
+    """How many times a task that crashed (an unexpected exception, or its worker died) is run again; bad
+    input (our own errors) is not retried."""
 
 
 def one_line(error: BaseException) -> str:
@@ -111,23 +130,43 @@ def run_one(
     return BatchOutcome.from_result(result)
 
 
+def run_one_on_this_host(
+    path: str | Path,
+    config: ReplayConfig | None = None,
+    *,
+    out_dir: str | Path = DEFAULT_OUT_DIR,
+    catch_unexpected: bool = True,
+) -> BatchOutcome:
+    """`run_one`, the outcome naming this machine (`BatchOutcome.host`): what a batch's workers run."""
+    return with_this_host(run_one(path, config, out_dir=out_dir, catch_unexpected=catch_unexpected))
+
+
+def with_this_host(outcome: BatchOutcome) -> BatchOutcome:
+    return dataclasses.replace(outcome, host=socket.gethostname())
+
+
 def run_batch(
     paths: Sequence[str | Path],
     config: ReplayConfig | None = None,
     *,
     out_dir: str | Path = DEFAULT_OUT_DIR,
     jobs: int = 1,
+    ray: RayOptions | None = None,
     on_done: OutcomeCallback | None = None,
 ) -> list[BatchOutcome]:
-    """Replay every input (outputs side by side in `out_dir`), `jobs` at a time; the outcomes in input order.
+    """Replay every input (outputs side by side in `out_dir`), `jobs` at a time or as Ray tasks (`ray`);
+    the outcomes in input order, each naming the host that replayed it.
 
     With `jobs` > 1 the inputs run in worker processes (forkserver where available, else spawn: never a
-    fork of a process that may hold rerun's or numba's threads). `on_done` is called in this process as
-    each input finishes. Raises `PipelineError` before starting when two inputs would write the same
-    output names.
+    fork of a process that may hold rerun's or numba's threads). With `ray` each input is one Ray task
+    (`pipeline.ray_batch.run_batch_on_ray`; `out_dir` must be reachable from every node). `on_done` is
+    called in this process as each input finishes. Raises `PipelineError` before starting when two inputs
+    would write the same output names, or when Ray is asked for and not installed or not reachable.
     """
     if jobs < 1:
         raise PipelineError(f"jobs must be >= 1, got {jobs}")
+    if ray is not None and jobs > 1:
+        raise PipelineError("choose jobs (worker processes here) or ray (tasks on a cluster), not both")
     inputs = [Path(path) for path in paths]
     clashes = duplicate_outputs(inputs)
     if clashes:
@@ -135,10 +174,14 @@ def run_batch(
         raise PipelineError(f"{first} and {second} would write the same outputs ({output_stem(first)}.*) "
                             "in one folder; replay them into different folders (--out)")
     config = config if config is not None else ReplayConfig()
+    if ray is not None:
+        from pipeline.ray_batch import run_batch_on_ray
+
+        return run_batch_on_ray(inputs, config, out_dir=Path(out_dir), options=ray, on_done=on_done)
     if jobs == 1 or len(inputs) <= 1:
         outcomes = []
         for path in inputs:
-            outcome = run_one(path, config, out_dir=out_dir)
+            outcome = run_one_on_this_host(path, config, out_dir=out_dir)
             outcomes.append(outcome)
             if on_done is not None:
                 on_done(outcome)
@@ -152,7 +195,8 @@ def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, worker
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=pool_context(), initializer=_init_worker)
     try:
         futures: dict[Future[BatchOutcome], int] = {
-            pool.submit(run_one, path, config, out_dir=out_dir): index for index, path in enumerate(inputs)
+            pool.submit(run_one_on_this_host, path, config, out_dir=out_dir): index
+            for index, path in enumerate(inputs)
         }
         for future in as_completed(futures):
             index = futures[future]

@@ -3,7 +3,8 @@
 `replay [INPUT ...] [options]` runs the default command on logs (MCAP, ROS 1 bag, ROS 2 bag directory) or
 2D pose graphs (g2o, TORO), told apart by the path and its content; a first argument naming a subcommand
 (`info`, `evaluate`) runs that one instead. Several inputs run `--jobs` at a time in worker processes;
-one failing does not stop the others.
+one failing does not stop the others; `--ray` runs them as tasks on a Ray cluster instead, and `--inputs`
+reads them from a list or a folder. A batch also writes its result table, `batch_summary.parquet`.
 
 Errors the program raises on purpose (`OptimizerError`, `FrontendError`, `PipelineError`) end in one line
 on stderr, `replay: error: <message>`, and exit code 2; anything else is a bug and keeps its traceback.
@@ -16,6 +17,7 @@ import enum
 import json
 import math
 import os
+import re
 import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -38,7 +40,7 @@ if TYPE_CHECKING:
 
     from frontends.slam2d.slam import ScanEstimate
     from optimizer.iteration import Iteration
-    from pipeline.batch import BatchOutcome
+    from pipeline.batch import BatchOutcome, RayOptions
     from pipeline.config import ReplayConfig
 
 PROGRAM = "replay"
@@ -71,7 +73,37 @@ class ReplayGroup(TyperGroup):
         if not args or args[0] not in self.commands:
             ctx.meta[_IMPLICIT_DEFAULT] = True
             args = [DEFAULT_COMMAND, *args]
+        if args[0] == DEFAULT_COMMAND:
+            args = _with_ray_address(args)
         return super().parse_args(ctx, args)
+
+
+_RAY_OPTION = "--ray"
+_RAY_ADDRESS = re.compile(r"auto|local|(ray://)?[\w.\-\[\]:]+:\d+")
+"""What can follow `--ray` as its address ("auto", "local", "host:port", "ray://host:port")."""
+
+
+def _with_ray_address(args: list[str]) -> list[str]:
+    """`--ray` takes an optional address: make it `--ray=ADDRESS`, or `--ray=local` when what follows is
+    not an address (an input, another option), so that `replay --ray a.mcap` replays a.mcap."""
+    result: list[str] = []
+    position = 0
+    while position < len(args):
+        arg = args[position]
+        position += 1
+        if arg == "--":
+            result.extend(args[position - 1:])
+            break
+        if arg != _RAY_OPTION:
+            result.append(arg)
+            continue
+        following = args[position] if position < len(args) else None
+        if following is not None and _RAY_ADDRESS.fullmatch(following) and not Path(following).exists():
+            result.append(f"{_RAY_OPTION}={following}")
+            position += 1
+        else:
+            result.append(f"{_RAY_OPTION}=local")
+    return result
 
 
 class _DefaultCommandContext(typer.Context):
@@ -112,14 +144,18 @@ Examples:
   replay graph.g2o                       # SGD then Gauss-Newton (the default method)
   replay graph.graph --method sgd --iterations 30 --allow-unconverged --out results
   replay a.mcap b.bag c/ --jobs 3 --json > summary.json
+  replay --inputs logs.txt --ray         # each input a task on a local Ray runtime
+  replay --inputs /fleet/today/ --ray head:6379 --out /shared/results --retries 2
   replay --dump-config > replay.toml     # then: replay run.mcap --config replay.toml
 
 \b
 Outputs, in DIR: <stem>.g2o (optimised poses), <stem>.json (counts, chi2 per iteration, wall time per
 stage), <stem>.rrd (every iteration on the timeline `iteration`) and, for logs, <stem>.tum (one pose per
-scan at its sensor stamp) and <stem>_map.png. Open the recording with the Rerun viewer of rerun-sdk 0.41:
-rerun recordings/csail_sample.rrd. Settings: a TOML file (--config; --dump-config writes the defaults), which
-the options override. Other commands: replay info LOG, replay evaluate TRAJECTORY.tum RELATIONS.
+scan at its sensor stamp) and <stem>_map.png. A batch (several inputs, --inputs, --ray) also writes
+batch_summary.parquet: one row per input (status, error, counts, chi2, times, host). Open the
+recording with the Rerun viewer of rerun-sdk 0.41: rerun recordings/csail_sample.rrd. Settings: a TOML
+file (--config; --dump-config writes the defaults), which the options override. Other commands: replay
+info LOG, replay evaluate TRAJECTORY.tum RELATIONS.
 Exit code {EXIT_ERROR} on bad input (one line naming the file, nothing written for it) or when any of
 several inputs failed; {EXIT_UNCONVERGED} when an optimization stopped before its convergence test held (the
 outputs are written and say so), unless --allow-unconverged."""
@@ -159,6 +195,22 @@ def run(
         "--allow-unconverged", help=f"Exit 0, not {EXIT_UNCONVERGED}, when the optimization stops before "
                                     "its convergence test holds (always so for sgd and gauss-seidel alone, "
                                     "which run a fixed number of iterations).")] = False,
+    inputs_from: Annotated[Path | None, typer.Option(
+        "--inputs", metavar="FILE|DIR", show_default=False,
+        help="More inputs: a file listing them (one path a line, # comments), or a folder searched for "
+             "logs and pose graphs (ROS 2 bag folders whole; the --out folder skipped).")] = None,
+    ray_address: Annotated[str | None, typer.Option(
+        _RAY_OPTION, metavar="[ADDRESS]", show_default=False,
+        help="Replay each input as one task on Ray (pip install '.[ray]'): on the cluster at ADDRESS "
+             "(auto, host:port, ray://host:port), or on a local Ray runtime without one. --out must be "
+             "reachable from every node.")] = None,
+    cpus_per_task: Annotated[float | None, typer.Option(
+        "--cpus-per-task", min=0.01, metavar="N", show_default=False,
+        help="With --ray: the CPUs each task reserves (default 1).")] = None,
+    retries: Annotated[int | None, typer.Option(
+        "--retries", min=0, metavar="N", show_default=False,
+        help="With --ray: how often a task that crashed or lost its worker is run again (default 1).")
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress and no summary.")] = False,
     as_json: Annotated[bool, typer.Option(
         "--json", help="Print the summary on stdout as JSON: one object, or a list for several inputs.")
@@ -188,9 +240,15 @@ def run(
         return
 
     show_progress = not quiet and sys.stderr.isatty()
+    ray = _ray_options(ray_address, cpus_per_task, retries, jobs)
+    if inputs_from is not None:
+        sources = [*(sources or []), *_listed_inputs(inputs_from, out)]
     if not sources:
         with sample_input() as sample:
-            outcomes = _run_in_process([sample], config, out, show_progress, several=False)
+            if ray is not None:
+                outcomes = _run_in_pool([sample], config, out, jobs, show_progress, ray)
+            else:
+                outcomes = _run_in_process([sample], config, out, show_progress, several=False)
     else:
         from pipeline.batch import duplicate_outputs
 
@@ -199,12 +257,19 @@ def run(
             first, second = clashes[0]
             _fail(PipelineError(f"{first} and {second} would write the same outputs in {out}; "
                                 "replay them separately with different --out folders"))
-        if jobs > 1 and len(sources) > 1:
-            outcomes = _run_in_pool(sources, config, out, jobs, show_progress)
+        if ray is not None or (jobs > 1 and len(sources) > 1):
+            outcomes = _run_in_pool(sources, config, out, jobs, show_progress, ray)
         else:
-            outcomes = _run_in_process(sources, config, out, show_progress, several=len(sources) > 1)
-    _report(outcomes, quiet=quiet, as_json=as_json)
-    if not all(outcome.ok for outcome in outcomes):
+            outcomes = _run_in_process(sources, config, out, show_progress,
+                                       several=len(sources) > 1 or inputs_from is not None)
+    summary_error = None
+    summary_path = None
+    if len(outcomes) > 1 or ray is not None or inputs_from is not None:
+        summary_path, summary_error = _write_batch_summary(out, outcomes)
+    _report(outcomes, quiet=quiet, as_json=as_json, summary_path=summary_path)
+    if summary_error is not None:
+        typer.echo(f"{PROGRAM}: error: {summary_error}", err=True)
+    if summary_error is not None or not all(outcome.ok for outcome in outcomes):
         raise typer.Exit(EXIT_ERROR)
     unconverged = [outcome for outcome in outcomes if outcome.stats and not outcome.stats.converged]
     for outcome in unconverged if not (quiet and allow_unconverged) else []:
@@ -214,6 +279,46 @@ def run(
                    f"(outputs written with \"converged\": false{advice})", err=True)
     if unconverged and not allow_unconverged:
         raise typer.Exit(EXIT_UNCONVERGED)
+
+
+def _ray_options(address: str | None, cpus_per_task: float | None, retries: int | None,
+                 jobs: int) -> RayOptions | None:
+    """The Ray settings of the command line, None without --ray (where its options are refused)."""
+    from pipeline.batch import RayOptions
+
+    if address is None:
+        if cpus_per_task is not None or retries is not None:
+            option = "--cpus-per-task" if cpus_per_task is not None else "--retries"
+            raise typer.BadParameter("applies to --ray only", param_hint=option)
+        return None
+    if jobs > 1:
+        raise typer.BadParameter("--jobs runs worker processes here, --ray tasks on Ray: choose one",
+                                 param_hint="--jobs")
+    return RayOptions(address=address, cpus_per_task=1.0 if cpus_per_task is None else cpus_per_task,
+                      retries=1 if retries is None else retries)
+
+
+def _listed_inputs(source: Path, out: Path) -> list[Path]:
+    from pipeline.batch_inputs import batch_inputs
+
+    try:
+        listed = batch_inputs(source, exclude=out)
+    except KNOWN_ERRORS as error:
+        _fail(error)
+    if not listed:
+        what = "no logs or pose graphs in the folder" if source.is_dir() else "the list names no input"
+        _fail(PipelineError(f"{source}: {what}"))
+    return listed
+
+
+def _write_batch_summary(out: Path, outcomes: Sequence[BatchOutcome]) -> tuple[Path | None, str | None]:
+    """Write `batch_summary.parquet` in `out`: its path, or None and the error."""
+    from pipeline.batch_summary import BATCH_SUMMARY_NAME, write_batch_summary
+
+    try:
+        return write_batch_summary(out / BATCH_SUMMARY_NAME, outcomes), None
+    except KNOWN_ERRORS as error:
+        return None, " ".join(str(error).split())
 
 
 def _load_config(path: Path | None, overrides: dict[str, dict[str, Any]]) -> ReplayConfig:
@@ -238,25 +343,27 @@ def _run_in_process(sources: Sequence[Path], config: ReplayConfig, out: Path, sh
                     several: bool) -> list[BatchOutcome]:
     """One input after another, with live progress. A single input's bug keeps its traceback; among
     several, it becomes that input's failure so the others still run."""
-    from pipeline.batch import run_one
+    from pipeline.batch import run_one, with_this_host
 
     outcomes = []
     with _progress_display(show_progress, len(sources) if several else 0) as display:
         for path in sources:
             with display.watch(path, config) as (on_scan, on_iteration):
-                outcomes.append(run_one(path, config, out_dir=out, on_scan=on_scan, on_iteration=on_iteration,
-                                        catch_unexpected=several))
+                outcome = run_one(path, config, out_dir=out, on_scan=on_scan, on_iteration=on_iteration,
+                                  catch_unexpected=several)
+            outcomes.append(with_this_host(outcome) if several else outcome)
             display.finished(outcomes[-1])
     return outcomes
 
 
 def _run_in_pool(sources: Sequence[Path], config: ReplayConfig, out: Path, jobs: int,
-                 show_progress: bool) -> list[BatchOutcome]:
+                 show_progress: bool, ray: RayOptions | None = None) -> list[BatchOutcome]:
+    """Worker processes here (`jobs`), or Ray tasks (`ray`)."""
     from pipeline.batch import run_batch
 
     with _progress_display(show_progress, len(sources)) as display:
         try:
-            return run_batch(sources, config, out_dir=out, jobs=jobs, on_done=display.finished)
+            return run_batch(sources, config, out_dir=out, jobs=jobs, ray=ray, on_done=display.finished)
         except KNOWN_ERRORS as error:
             _fail(error)
 
@@ -348,7 +455,8 @@ class _ProgressDisplay:
 # ------------------------------------------------------------------------------------------------ reports
 
 
-def _report(outcomes: Sequence[BatchOutcome], *, quiet: bool, as_json: bool) -> None:
+def _report(outcomes: Sequence[BatchOutcome], *, quiet: bool, as_json: bool,
+            summary_path: Path | None = None) -> None:
     """Errors (always), the summary on stderr (unless --quiet), JSON on stdout (--json)."""
     if as_json:
         from pipeline.outputs import json_text
@@ -366,7 +474,7 @@ def _report(outcomes: Sequence[BatchOutcome], *, quiet: bool, as_json: bool) -> 
         if outcome.traceback is not None:
             typer.echo(outcome.traceback.rstrip(), err=True)
     if not quiet:
-        _print_table(outcomes)
+        _print_table(outcomes, summary_path)
     for outcome in outcomes:
         if not outcome.ok:
             typer.echo(f"{PROGRAM}: error: {outcome.error}", err=True)
@@ -405,12 +513,13 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     return "\n".join(lines)
 
 
-def _print_table(outcomes: Sequence[BatchOutcome]) -> None:
+def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None = None) -> None:
     from rich.table import Table
 
     failed = sum(not outcome.ok for outcome in outcomes)
     table = Table(title=f"{len(outcomes)} inputs, {len(outcomes) - failed} done, {failed} failed",
-                  title_justify="left")
+                  title_justify="left", caption=None if summary_path is None else f"table: {summary_path}",
+                  caption_justify="left")
     for column, justify in (("input", "left"), ("result", "left"), ("poses", "right"), ("loops", "right"),
                             ("chi2 initial -> final", "right"), ("time s", "right")):
         table.add_column(column, justify=justify)  # type: ignore[arg-type]

@@ -140,6 +140,13 @@ def _fsync_path(path: Path) -> None:
         os.close(descriptor)
 
 
+def recover_outputs(directory: Path, stem: str) -> None:
+    """Clean up what a killed run writing the `stem` outputs left in `directory`, as the next run into it
+    would (see `staged_outputs`). Raises `OutputError` while a live run still holds their lock."""
+    with _output_lock(directory, stem):
+        _recover_stale_staging(directory, stem)
+
+
 def _recover_stale_staging(directory: Path, stem: str) -> None:
     """Clean up what a killed run writing these outputs left (the caller holds their lock): finish the
     renames of a set it had completed, delete any other staging folder."""

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import socket
+import sys
 from pathlib import Path
 
 import pytest
@@ -10,7 +12,9 @@ from typer.testing import CliRunner
 
 from pipeline import api
 from pipeline.batch import run_batch, run_one
-from pipeline.cli import app
+from pipeline.batch_inputs import batch_inputs
+from pipeline.batch_summary import BATCH_SUMMARY_NAME
+from pipeline.cli import _with_ray_address, app
 from pipeline.config import ReplayConfig
 from pipeline.errors import PipelineError
 from tests.test_pipeline_log import write_drive
@@ -68,6 +72,22 @@ def test_parallel_jobs_keep_going_past_a_failure(
         assert str(path) in result.stderr
     assert "FAILED" in result.stderr
     assert result.stderr.rstrip().splitlines()[-1] == f"replay: error: {entries[1]['error']}"
+    assert {entry["host"] for entry in entries} == {socket.gethostname()}
+
+    # the same rows, queryable afterwards: batch_summary.parquet in the output folder
+    import pyarrow.parquet as pq
+
+    rows = pq.read_table(out / BATCH_SUMMARY_NAME).to_pylist()
+    assert [(row["input"], row["kind"], row["status"]) for row in rows] == [
+        (str(log), "log", "ok"), (str(broken), "graph", "failed"), (str(graph), "graph", "ok")]
+    assert rows[0]["scans"] == DRIVE_SCANS and rows[0]["poses"] == entries[0]["counts"]["keyframes"]
+    assert (rows[2]["poses"], rows[2]["constraints"], rows[2]["loop_closures"]) == counts
+    assert dict(rows[2]["iterations"]) == {"sgd": 3}
+    assert rows[2]["chi2_final"] == graph_entry["chi2_final"] <= rows[2]["chi2_initial"]
+    assert rows[2]["time_total_s"] == dict(rows[2]["wall_time_s"])["total"] > 0
+    assert rows[1]["error"] == entries[1]["error"]
+    assert rows[1]["poses"] is None and rows[1]["wall_time_s"] is None
+    assert {row["host"] for row in rows} == {socket.gethostname()}
 
 
 def test_sequential_inputs_keep_going_and_quiet_keeps_only_the_error(
@@ -140,3 +160,100 @@ def test_json_for_one_input_is_one_object(tmp_path: Path) -> None:
     entry = json.loads(result.stdout)
     assert (entry["ok"], entry["kind"], entry["poses"], entry["method"]) == (True, "graph", LOOP_POSES, "gn")
     assert entry == {"ok": True, "kind": "graph", **json.loads((tmp_path / "out" / "loop.json").read_text())}
+
+
+def test_inputs_from_a_list_or_a_folder(tmp_path: Path) -> None:
+    listing = tmp_path / "inputs.txt"
+    listing.write_text("# tonight\n/data/a.mcap\n\n  relative/b.g2o  \n#/data/skipped.bag\n")
+    assert batch_inputs(listing) == [Path("/data/a.mcap"), Path("relative/b.g2o")]
+
+    fleet = tmp_path / "fleet"
+    for name in ("robot2/run.bag", "robot1/run.MCAP", "robot1/loop.g2o", "robot1/notes.txt",
+                 "robot1/.run.1a2b3c4d.partial.g2o", ".hidden/x.mcap", "results/run.g2o",
+                 "robot3/ros2/metadata.yaml", "robot3/ros2/ros2_0.db3"):
+        (fleet / name).parent.mkdir(parents=True, exist_ok=True)
+        (fleet / name).write_text("")
+    found = batch_inputs(fleet, exclude=fleet / "results")
+    assert found == [fleet / "robot1/loop.g2o", fleet / "robot1/run.MCAP", fleet / "robot2/run.bag",
+                     fleet / "robot3/ros2"]
+    assert batch_inputs(fleet / "robot3" / "ros2") == [fleet / "robot3" / "ros2"]
+
+    with pytest.raises(PipelineError, match="cannot read the input list"):
+        batch_inputs(tmp_path / "missing.txt")
+
+
+def test_command_reads_inputs_from_a_folder_and_refuses_an_empty_one(tmp_path: Path) -> None:
+    fleet = tmp_path / "fleet"
+    fleet.mkdir()
+    write_loop_graph(fleet / "loop.g2o")
+    out = fleet / "out"  # inside the searched folder: its results are not inputs
+    out.mkdir()
+    (out / "old.g2o").write_text(BROKEN_GRAPH)
+    result = run_replay("--inputs", fleet, "--out", out, "--method", "sgd", "--iterations", 1, "--json",
+                        "--allow-unconverged")
+    assert result.exit_code == 0, result.output
+    entry = json.loads(result.stdout)  # one input: one object
+    assert (entry["input"], entry["host"]) == (str(fleet / "loop.g2o"), socket.gethostname())
+    assert (out / BATCH_SUMMARY_NAME).is_file()
+
+    empty = tmp_path / "empty.txt"
+    empty.write_text("# nothing tonight\n")
+    result = run_replay("--inputs", empty, "--out", tmp_path / "out2")
+    assert result.exit_code == 2
+    assert result.stderr == f"replay: error: {empty}: the list names no input\n"
+
+
+def test_ray_takes_an_optional_address() -> None:
+    assert _with_ray_address(["run", "--ray", "a.mcap"]) == ["run", "--ray=local", "a.mcap"]
+    assert _with_ray_address(["run", "a.mcap", "--ray"]) == ["run", "a.mcap", "--ray=local"]
+    assert _with_ray_address(["run", "--ray", "--jobs", "2"]) == ["run", "--ray=local", "--jobs", "2"]
+    assert _with_ray_address(["run", "--ray", "auto", "a.mcap"]) == ["run", "--ray=auto", "a.mcap"]
+    assert _with_ray_address(["run", "--ray", "head.lan:6379"]) == ["run", "--ray=head.lan:6379"]
+    assert _with_ray_address(["run", "--ray", "ray://10.0.0.2:10001"]) == ["run", "--ray=ray://10.0.0.2:10001"]
+    assert _with_ray_address(["run", "--ray=auto"]) == ["run", "--ray=auto"]
+    assert _with_ray_address(["run", "--", "--ray"]) == ["run", "--", "--ray"]
+
+
+def test_ray_options_need_ray(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    result = run_replay(graph, "--retries", 2, "--out", tmp_path / "out")
+    assert result.exit_code == 2 and "--retries" in result.stderr and "--ray" in result.stderr
+    result = run_replay(graph, "--ray", "--jobs", 2, "--out", tmp_path / "out")
+    assert result.exit_code == 2 and "choose one" in result.stderr
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if the ray extra were not installed
+    result = run_replay(graph, "--ray", "--out", tmp_path / "out")
+    assert result.exit_code == 2
+    assert result.stderr.startswith("replay: error: running on Ray needs the ray package: pip install")
+    assert not (tmp_path / "out").exists()
+
+
+KILLED_MID_WRITE = """
+import os, sys
+from pathlib import Path
+from pipeline.outputs import staged_outputs
+folder = Path(sys.argv[1])
+with staged_outputs(folder / f"{sys.argv[2]}.g2o", folder / f"{sys.argv[2]}.json") as temporaries:
+    for temporary in temporaries:
+        temporary.write_text("half")
+    os._exit(1)  # as a worker killed mid-write: nothing of staged_outputs' cleanup runs
+"""
+
+
+def test_what_killed_replays_left_is_cleaned_up_for_the_batch_stems_only(tmp_path: Path) -> None:
+    import subprocess
+
+    from pipeline.ray_batch import remove_partial_outputs
+
+    for stem in ("run", "run.x", "other"):
+        subprocess.run([sys.executable, "-c", KILLED_MID_WRITE, str(tmp_path), stem], check=False,
+                       cwd=Path(__file__).resolve().parents[1])
+    (tmp_path / "run.g2o").write_text("a finished output")
+    left = sorted(path.name for path in tmp_path.iterdir() if path.name.startswith("."))
+    assert len(left) >= 3 and any(".other" in name for name in left)
+
+    assert remove_partial_outputs(tmp_path, {"run", "run.x"}) == ["run", "run.x"]
+    remaining = sorted(path.name for path in tmp_path.iterdir())
+    assert "run.g2o" in remaining and (tmp_path / "run.g2o").read_text() == "a finished output"
+    hidden = [name for name in remaining if name.startswith(".")]
+    assert hidden and all(name.startswith(".other") for name in hidden)

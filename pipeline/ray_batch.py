@@ -1,0 +1,195 @@
+"""A batch of replays on a Ray cluster: each input one task, retried when it crashes or its worker dies.
+
+Ray is an optional dependency (`pip install '.[ray]'`), imported only here and only when asked for. The
+tasks run `pipeline.batch.run_one_on_this_host` in the driver's working folder, so relative paths mean
+what they mean on the command line and the outputs equal those of a local `replay` byte for byte; every
+node must have sgdslam installed and reach the inputs and the output folder at the same paths.
+
+Library code: returns the outcomes, raises `PipelineError`; nothing is printed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import re
+from collections.abc import Sequence
+from pathlib import Path
+from types import ModuleType
+from typing import Any, Protocol
+
+from pipeline.api import input_kind, output_stem
+from pipeline.batch import BatchOutcome, OutcomeCallback, RayOptions, one_line, run_one_on_this_host
+from pipeline.config import ReplayConfig
+from pipeline.errors import PipelineError
+from pipeline.outputs import prepare_output_dir
+
+RAY_INSTALL_HINT = "pip install 'sgdslam[ray]' (from a checkout: pip install '.[ray]')"
+LOCAL_ADDRESS = "local"
+CANCEL_GRACE_S = 10.0
+"""How long cancelled tasks get to stop by themselves (and remove their temporary outputs) before their
+workers are killed."""
+
+
+class ReplayOne(Protocol):
+    """What a task runs for its input (`run_one_on_this_host`, or a wrapper of it)."""
+
+    def __call__(self, path: str | Path, config: ReplayConfig | None = None, *, out_dir: str | Path = ...,
+                 catch_unexpected: bool = True) -> BatchOutcome: ...
+
+
+def import_ray() -> ModuleType:
+    """The `ray` module, or a `PipelineError` saying how to install it."""
+    try:
+        import ray
+    except ImportError as error:
+        raise PipelineError(f"running on Ray needs the ray package: {RAY_INSTALL_HINT}") from error
+    return ray
+
+
+def run_batch_on_ray(
+    inputs: Sequence[Path],
+    config: ReplayConfig,
+    *,
+    out_dir: Path,
+    options: RayOptions,
+    on_done: OutcomeCallback | None = None,
+    replay_one: ReplayOne = run_one_on_this_host,
+) -> list[BatchOutcome]:
+    """Replay each input as one Ray task (`options.cpus_per_task` CPUs, `options.retries` retries); the
+    outcomes in input order. A task still failing after its retries becomes a failed outcome, the others
+    go on. When this call is interrupted (KeyboardInterrupt) or `on_done` raises, the outstanding tasks are
+    cancelled, completed outputs stay and no partial output file is left; the exception propagates.
+
+    Callers normally go through `pipeline.batch.run_batch(..., ray=RayOptions(...))`, which checks the
+    output names first. `replay_one` is what each task runs (a wrapper can add per-task setup).
+    """
+    if options.cpus_per_task <= 0:
+        raise PipelineError(f"cpus per task must be > 0, got {options.cpus_per_task}")
+    if options.retries < 0:
+        raise PipelineError(f"retries must be >= 0, got {options.retries}")
+    ray = import_ray()
+    stems = {output_stem(path) for path in inputs}
+    started_here = _connect(ray, options.address)
+    try:
+        prepare_output_dir(out_dir)  # here, not by a task: a failed replay removes a folder it created
+        return _run_tasks(ray, list(inputs), config, out_dir, options, on_done, replay_one)
+    finally:
+        if started_here:
+            ray.shutdown()
+        # A worker killed mid-task (and then retried, or cancelled by force) could not remove its temporaries.
+        remove_partial_outputs(out_dir, stems)
+
+
+def _connect(ray: ModuleType, address: str | None) -> bool:
+    """Start or join a Ray runtime unless this process already has one; whether this call started it."""
+    if ray.is_initialized():
+        return False
+    local = address in (None, LOCAL_ADDRESS)
+    # Ray reports usage to its authors unless told not to; a replay started on someone's behalf should not.
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    settings: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
+                                "logging_level": logging.ERROR}
+    if local:
+        # A runtime for this machine alone: nothing in it needs to listen beyond the loopback interface.
+        settings["_node_ip_address"] = "127.0.0.1"
+    try:
+        ray.init(address=LOCAL_ADDRESS if local else address, **settings)
+    except Exception as error:  # ConnectionError, RuntimeError, ValueError…: Ray's errors vary by cause
+        where = "start a local Ray runtime" if local else f"connect to the Ray cluster at {address}"
+        raise PipelineError(f"cannot {where}: {one_line(error)}") from error
+    return True
+
+
+def _run_tasks(ray: ModuleType, inputs: list[Path], config: ReplayConfig, out_dir: Path, options: RayOptions,
+               on_done: OutcomeCallback | None, replay_one: ReplayOne) -> list[BatchOutcome]:
+    task = ray.remote(_replay_task).options(num_cpus=options.cpus_per_task, max_retries=options.retries,
+                                            retry_exceptions=True)
+    config_ref = ray.put(config)  # sent to the object store once, not with each of thousands of tasks
+    working_folder = os.getcwd()
+    index_of = {task.remote(str(path), config_ref, str(out_dir), working_folder, replay_one): index
+                for index, path in enumerate(inputs)}
+    outcomes: list[BatchOutcome | None] = [None] * len(inputs)
+    pending = list(index_of)
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                index = index_of[ref]
+                outcome = _outcome_of(ray, ref, inputs[index])
+                outcomes[index] = outcome
+                if on_done is not None:
+                    on_done(outcome)
+    except BaseException:
+        _cancel(ray, pending)
+        raise
+    return [outcome for outcome in outcomes if outcome is not None]
+
+
+def _replay_task(path: str, config: ReplayConfig, out_dir: str, working_folder: str,
+                 replay_one: ReplayOne) -> BatchOutcome:
+    """One input, in a Ray worker. Our own errors (bad input) are outcomes; anything else raises, so that
+    Ray retries the task."""
+    from threadpoolctl import threadpool_limits
+
+    if os.path.isdir(working_folder):  # the driver's, so that relative paths resolve as they do there
+        os.chdir(working_folder)
+    # As in the command's main(): BLAS threads only add latency to our small linear algebra.
+    with threadpool_limits(limits=1, user_api="blas"):
+        return replay_one(Path(path), config, out_dir=Path(out_dir), catch_unexpected=False)
+
+
+def _outcome_of(ray: ModuleType, ref: Any, path: Path) -> BatchOutcome:
+    from ray.exceptions import RayError, RayTaskError
+
+    try:
+        outcome: BatchOutcome = ray.get(ref)
+    except RayTaskError as error:  # it raised on every try: a bug, reported with the remote traceback
+        cause = error.cause if isinstance(error.cause, BaseException) else error
+        return dataclasses.replace(BatchOutcome.failure(path, cause, unexpected=True), traceback=str(error))
+    except RayError as error:  # its worker died on every try (killed, out of memory) or its node was lost
+        return BatchOutcome(path, input_kind(path), error=f"Ray task failed: {one_line(error)}")
+    return outcome
+
+
+def _cancel(ray: ModuleType, pending: list[Any]) -> None:
+    """Cancel the outstanding tasks: queued ones do not start, running ones get a KeyboardInterrupt (their
+    staged outputs are removed); those still running after `CANCEL_GRACE_S` have their workers killed."""
+    if not pending:
+        return
+    for ref in pending:
+        ray.cancel(ref)
+    _, still_running = ray.wait(pending, num_returns=len(pending), timeout=CANCEL_GRACE_S)
+    for ref in still_running:
+        ray.cancel(ref, force=True)
+    if still_running:
+        ray.wait(still_running, num_returns=len(still_running), timeout=CANCEL_GRACE_S)
+
+
+def remove_partial_outputs(out_dir: Path, stems: set[str]) -> list[str]:
+    """Clean up what replays of these stems killed mid-write left in `out_dir` (a staging folder, a lock
+    file: see `pipeline.outputs`) the way the next replay of the same outputs would: a staged set that was
+    complete is published, anything else deleted. Returns the stems cleaned up."""
+    from pipeline.outputs import recover_outputs
+
+    try:
+        names = os.listdir(out_dir)  # once, not once per stem: batches have thousands
+    except OSError:
+        return []
+    left_by = set()
+    for name in names:
+        match = _LEFT_BEHIND.fullmatch(name)
+        if match is not None and match.group("stem") in stems:
+            left_by.add(match.group("stem"))
+    cleaned = []
+    for stem in sorted(left_by):
+        try:
+            recover_outputs(out_dir, stem)
+        except PipelineError:  # still held by a live process (a worker Ray could not kill): leave it
+            continue
+        cleaned.append(stem)
+    return cleaned
+
+
+_LEFT_BEHIND = re.compile(r"\.(?P<stem>.+?)(\.staging-.*|\.lock)")
