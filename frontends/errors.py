@@ -34,6 +34,15 @@ class LogFileError(FrontendError):
         super().__init__(text)
 
 
+class UnusableLogError(LogFileError):
+    """The log was read, but too little of it is usable data (e.g. most scans have no valid return)."""
+
+
+class MapExtentError(FrontendError):
+    """A grid would cover more cells than memory allows: the poses or points it was asked for span an
+    implausible area."""
+
+
 class TopicSelectionError(FrontendError):
     """No topic, or more than one, fits what was asked for; lists the candidates and the option to use."""
 
