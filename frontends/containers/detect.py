@@ -110,7 +110,7 @@ def split_bag_files(path: Path) -> tuple[Path, ...]:
 
     A name alone does not make a split set (`trial_1.bag` and `trial_2.bag` are often two runs): the parts
     must be numbered consecutively, carry the same topics with the same types, and follow each other in
-    time (each starts at most `MAX_SPLIT_GAP_NS` after the previous one ended, and not before it began).
+    time (each starts within `SPLIT_OVERLAP_NS` before to `MAX_SPLIT_GAP_NS` after the previous one's end).
     """
     match = _SPLIT_BAG.match(path.name)
     if match is None:
@@ -138,6 +138,9 @@ def split_bag_files(path: Path) -> tuple[Path, ...]:
 
 MAX_SPLIT_GAP_NS = 10_000_000_000
 """`rosbag record --split` starts the next file with the next message: a longer pause is another run."""
+SPLIT_OVERLAP_NS = 1_000_000_000
+"""Messages are written as they arrive, so a part may begin slightly before the previous one's last
+message (a late topic); a part beginning earlier than that is another recording of the same time."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -172,4 +175,4 @@ def _follows(spans: dict[int, _BagSpan | None], files: dict[int, Path], before: 
     shared = earlier.types.keys() & later.types.keys()
     if not shared or any(earlier.types[t] != later.types[t] for t in shared):
         return False
-    return earlier.start_ns <= later.start_ns and later.start_ns - earlier.end_ns <= MAX_SPLIT_GAP_NS
+    return -SPLIT_OVERLAP_NS <= later.start_ns - earlier.end_ns <= MAX_SPLIT_GAP_NS

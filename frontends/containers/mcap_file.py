@@ -55,7 +55,11 @@ _OP_NAMES = {
     0x07: "message index",
     0x08: "chunk index",
     0x09: "attachment",
+    0x0A: "attachment index",
+    0x0B: "statistics",
     0x0C: "metadata",
+    0x0D: "metadata index",
+    0x0E: "summary offset",
     0x0F: "data end",
 }
 
@@ -399,6 +403,21 @@ def _unpack_records(
     return Unpacked(out, pos, message_count, message_bytes)
 
 
+_OP_ATTACHMENT = 0x09
+_FIRST_USER_OPCODE = 0x80  # opcodes from here on are the user's (the spec's extension range)
+
+
+def _implausible_record(opcode: int, length: int, offset: int) -> bool:
+    """Whether a record head cannot be a real one: the first record is not the header, an opcode the
+    spec does not define (outside the user range), or a length no writer produces (attachments, which
+    may be large, are skipped without reading)."""
+    if offset == len(MAGIC):
+        return opcode != _OP_HEADER or length > 1 << 20
+    if opcode == 0 or (opcode not in _OP_NAMES and opcode < _FIRST_USER_OPCODE):
+        return True
+    return opcode != _OP_ATTACHMENT and length > MAX_CHUNK_BYTES
+
+
 class _LinearReader:
     """Reads the data section record by record from the start: for files without a usable summary."""
 
@@ -437,6 +456,12 @@ class _LinearReader:
                 if opcode in (_OP_DATA_END, _OP_FOOTER):
                     return
                 name = _OP_NAMES.get(opcode, f"opcode {opcode:#x}")
+                if _implausible_record(opcode, length, offset):
+                    # A cut-off file ends inside a real record; this one is not one (random bytes, or a
+                    # length field damaged): reading on would only invent records.
+                    raise LogFileError(
+                        self.path, f"damaged record at byte {offset}: {name} record claiming {length} bytes"
+                    )
                 if opcode not in (_OP_CHUNK, _OP_MESSAGE, _OP_SCHEMA, _OP_CHANNEL):
                     if offset + 9 + length >= size:
                         self._truncation = f"ends inside a {name} record at byte {offset}"

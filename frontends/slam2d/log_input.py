@@ -160,7 +160,7 @@ def _reachable(
 ) -> bool:
     seconds = max((stamps_ns[b] - stamps_ns[a]) * 1e-9, 1e-3)
     distance = math.hypot(poses[b, 0] - poses[a, 0], poses[b, 1] - poses[a, 1])
-    turn = abs(math.remainder(poses[b, 2] - poses[a, 2], 2.0 * math.pi))
+    turn = abs((poses[b, 2] - poses[a, 2] + math.pi) % (2.0 * math.pi) - math.pi)
     return distance <= max_speed * seconds and turn <= max_turn_rate * seconds
 
 
