@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator, Set
 from dataclasses import dataclass, field
 from operator import itemgetter
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import lz4.frame
 import zstandard
@@ -138,7 +138,7 @@ class McapContainer:
                 if stream.read(len(MAGIC)) != MAGIC:
                     return None  # no closing magic: cut off before the footer
                 stream.seek(0)
-                summary = SeekingReader(stream, record_size_limit=size).get_summary()
+                summary = SeekingReader(_ReadsCutToFile(stream), record_size_limit=size).get_summary()
         except (McapError, struct.error, ValueError, EOFError):
             return None
         if summary is None or not summary.channels:
@@ -252,6 +252,35 @@ class McapContainer:
                     LogWarning,
                     stacklevel=2,
                 )
+
+
+class _ReadsCutToFile(io.RawIOBase):
+    """A file whose reads never ask for more than it holds: the `mcap` package reads a string by its
+    length field, and Python allocates the whole request before reading."""
+
+    def __init__(self, stream: BinaryIO) -> None:
+        super().__init__()
+        self._stream = stream
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._stream.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._stream.tell()
+
+    def read(self, size: int = -1) -> bytes:
+        return read_at_most(self._stream, size) if size >= 0 else self._stream.read()
+
+    def readinto(self, buffer: Any) -> int:
+        data = self.read(len(buffer))
+        buffer[: len(data)] = data
+        return len(data)
 
 
 def _indexed_chunk_loader(
