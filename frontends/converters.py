@@ -44,7 +44,7 @@ _FOXGLOVE_TYPE_NAMES = {
 POINT_TIME_FIELDS = ("time", "t", "timestamp", "time_stamp", "offset_time")
 
 
-MAX_BEAMS = 100_000
+MAX_BEAMS = 32_768
 """Most beams one scan may have: planar lasers have a few hundred to a few thousand. More is a damaged
 message, refused before any per-beam work (a 2-million-beam scan would take gigabytes downstream)."""
 MAX_CLOUD_COORDINATE = 10_000.0
