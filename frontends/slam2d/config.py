@@ -106,7 +106,9 @@ class LoopClosureConfig:
 
 @dataclass(frozen=True)
 class DataChecksConfig:
-    """What the 2D SLAM input refuses from a log, before it reaches the matcher or a map."""
+    """What the 2D SLAM input refuses from a log, before it reaches the matcher or a map. Passed to
+    `log_input.read_odometry` and `log_input.scans_in_base_frame` (not part of `Slam2DConfig`, whose
+    fields are the matcher's)."""
 
     min_usable_scan_share: float = 0.5
     """A log where fewer scans than this share have at least `matching.min_points` valid returns is
@@ -126,4 +128,3 @@ class Slam2DConfig:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
-    data_checks: DataChecksConfig = field(default_factory=DataChecksConfig)
