@@ -21,6 +21,8 @@ _EXPORTS = {
     "LogWarning": "frontends.errors",
     "TopicSelectionError": "frontends.errors",
     "TransformLookupError": "frontends.errors",
+    "UnusableLogError": "frontends.errors",
+    "MapExtentError": "frontends.errors",
     "LogReader": "frontends.log",
     "open_log": "frontends.log",
     "TransformTree": "frontends.transforms",

@@ -44,6 +44,15 @@ _FOXGLOVE_TYPE_NAMES = {
 POINT_TIME_FIELDS = ("time", "t", "timestamp", "time_stamp", "offset_time")
 
 
+MAX_BEAMS = 32_768
+"""Most beams one scan may have: planar lasers have a few hundred to a few thousand. More is a damaged
+message, refused before any per-beam work (a 2-million-beam scan would take gigabytes downstream)."""
+MAX_CLOUD_COORDINATE = 10_000.0
+"""Cloud points farther than this along any axis (m) are dropped: no lidar sees them, and such values
+would overflow the voxel keys of the 3D matching."""
+_FULL_TURN = 2.0 * math.pi * (1.0 + 1e-3)
+
+
 @dataclass(frozen=True, slots=True)
 class RangeLimits:
     """Extra limits on valid ranges, on top of a LaserScan's own [range_min, range_max] (inclusive)."""
@@ -118,14 +127,44 @@ def _scan(
     return Scan2D(stamp_ns, log_time_ns, frame_id, points, kept, kept_bearings, ranges.shape[0])
 
 
+def _check_beam_count(count: int) -> None:
+    if count > MAX_BEAMS:
+        raise WireError(f"scan has {count} beams, more than the {MAX_BEAMS} any planar laser has")
+
+
+def _beam_layout_valid(count: int, first: float, increment: float) -> bool:
+    """Whether beams at first + i·increment are a real sweep: finite angles, distinct beams, at most
+    a full turn (a negative increment is a laser sweeping clockwise, e.g. mounted upside down)."""
+    if count <= 1:
+        return math.isfinite(first) and math.isfinite(increment)
+    return (
+        math.isfinite(first)
+        and math.isfinite(increment)
+        and increment != 0.0
+        and abs(increment) * (count - 1) <= _FULL_TURN
+    )
+
+
+def _unusable(stamp_ns: int, log_time_ns: int, frame_id: str, count: int) -> Scan2D:
+    """A scan whose beams cannot be placed: no valid return (the SLAM input skips and counts it)."""
+    empty = np.empty(0)
+    return Scan2D(stamp_ns, log_time_ns, frame_id, np.empty((0, 2)), empty, empty, count)
+
+
 def ros_laser_scan(
     message: LaserScanFields, log_time_ns: int, limits: RangeLimits, bearings: BearingTable
 ) -> Scan2D:
-    """sensor_msgs/LaserScan: beam i at angle_min + i·angle_increment; valid in [range_min, range_max]."""
+    """sensor_msgs/LaserScan: beam i at angle_min + i·angle_increment; valid in [range_min, range_max].
+    A scan whose angles are not a real sweep (NaN, infinite, zero or more than a turn) has no valid beam;
+    ranges are never negative whatever range_min says."""
+    count = message.ranges.shape[0]
+    _check_beam_count(count)
+    if not _beam_layout_valid(count, message.angle_min, message.angle_increment):
+        return _unusable(message.stamp_ns, log_time_ns, message.frame_id, count)
     range_min = message.range_min if math.isfinite(message.range_min) else 0.0
     range_max = message.range_max if not math.isnan(message.range_max) else math.inf
-    table = bearings.get(message.ranges.shape[0], message.angle_min, message.angle_increment)
-    low = max(range_min, limits.minimum)
+    table = bearings.get(count, message.angle_min, message.angle_increment)
+    low = max(range_min, limits.minimum, 0.0)
     high = min(range_max, limits.maximum)
     return _scan(message.stamp_ns, log_time_ns, message.frame_id, message.ranges, table, low, high)
 
@@ -136,20 +175,19 @@ def foxglove_laser_scan(
     """foxglove.LaserScan: beams evenly from start_angle to end_angle (inclusive); no range limits of its
     own, so only non-finite, negative and out-of-`limits` ranges are dropped. A non-identity `pose` (of the
     scan origin in frame_id) is applied to the points."""
-    ranges = np.asarray(foxglove.field(message, "ranges", ()), dtype=np.float64)
+    raw_ranges = foxglove.field(message, "ranges", ())
+    _check_beam_count(len(raw_ranges))
+    ranges = np.asarray(raw_ranges, dtype=np.float64).reshape(-1)
     count = ranges.shape[0]
     start = float(foxglove.field(message, "start_angle", 0.0))
     end = float(foxglove.field(message, "end_angle", 0.0))
-    table = bearings.get(count, start, (end - start) / (count - 1) if count > 1 else 0.0)
-    scan = _scan(
-        foxglove.stamp_ns(foxglove.field(message, "timestamp")),
-        log_time_ns,
-        str(foxglove.field(message, "frame_id", "")),
-        ranges,
-        table,
-        limits.minimum,
-        limits.maximum,
-    )
+    increment = (end - start) / (count - 1) if count > 1 else 0.0
+    stamp_ns = foxglove.stamp_ns(foxglove.field(message, "timestamp"))
+    frame_id = str(foxglove.field(message, "frame_id", ""))
+    if not _beam_layout_valid(count, start, increment):
+        return _unusable(stamp_ns, log_time_ns, frame_id, count)
+    table = bearings.get(count, start, increment)
+    scan = _scan(stamp_ns, log_time_ns, frame_id, ranges, table, max(limits.minimum, 0.0), limits.maximum)
     position, orientation = foxglove.pose(foxglove.field(message, "pose"))
     if _is_identity(position, orientation):
         return scan
@@ -232,7 +270,7 @@ def _cloud(
         code, offset = layout[time_name]
         raw = np.ndarray((height, width), code, data, offset, (row_step, point_step)).reshape(count)
         times = _point_times(raw, stamp_ns)
-    finite = np.isfinite(points).all(axis=1)
+    finite = (np.abs(points) <= MAX_CLOUD_COORDINATE).all(axis=1)  # NaN compares False: dropped too
     if not finite.all():
         points = points[finite]
         times = times[finite] if times is not None else None

@@ -6,6 +6,12 @@ from collections.abc import Sequence
 from pathlib import Path
 
 
+def one_line(text: str) -> str:
+    """Text from a library or a file (sqlite messages, names inside a log) on one line, so an error is
+    always one line whatever the log holds."""
+    return " ".join(text.split())
+
+
 class FrontendError(Exception):
     """Base class of every error the frontends raise on purpose."""
 
@@ -19,12 +25,22 @@ class LogFileError(FrontendError):
 
     def __init__(self, path: str | Path, message: str, message_index: int | None = None) -> None:
         self.path = Path(path)
+        message = one_line(message)
         self.reason = message
         self.message_index = message_index
         text = f"{self.path}: {message}"
         if message_index is not None:
             text += f" #{message_index}"
         super().__init__(text)
+
+
+class UnusableLogError(LogFileError):
+    """The log was read, but too little of it is usable data (e.g. most scans have no valid return)."""
+
+
+class MapExtentError(FrontendError):
+    """A grid would cover more cells than memory allows: the poses or points it was asked for span an
+    implausible area."""
 
 
 class TopicSelectionError(FrontendError):
@@ -38,10 +54,10 @@ class TopicSelectionError(FrontendError):
         option: str | None = None,
     ) -> None:
         self.path = Path(path)
-        self.reason = message
-        self.candidates = tuple(candidates)
+        self.reason = one_line(message)
+        self.candidates = tuple(one_line(c) for c in candidates)
         self.option = option
-        text = f"{self.path}: {message}"
+        text = f"{self.path}: {self.reason}"
         if self.candidates:
             text += ": " + ", ".join(self.candidates)
         if option is not None:

@@ -14,6 +14,7 @@ chooses one.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import TracebackType
@@ -23,6 +24,7 @@ from frontends.containers.detect import open_container
 from frontends.converters import RangeLimits
 from frontends.dispatch import DecodeOptions, Item, Kind, build_decoders, decode, message_kind
 from frontends.errors import TopicSelectionError
+from frontends.guard import guarded_call, guarded_iter
 from frontends.ordering import DEFAULT_MAX_ITEMS, DEFAULT_WINDOW_NS, by_stamp
 from frontends.transforms import TransformTree
 from frontends.types import Cloud3D, LogInfo, OdometryPose, Scan2D, Transform
@@ -49,8 +51,11 @@ class LogReader:
     def __init__(self, container: Container) -> None:
         self._container = container
         self.path: Path = container.path
-        self.channels: tuple[Channel, ...] = container.channels()
+        self.channels: tuple[Channel, ...] = guarded_call(self.path, container.channels)
         self._info: LogInfo | None = None
+        self.counts: Counter[str] = Counter()
+        """What reading dropped or repaired, summed over every pass (e.g. `messages_late`); for the
+        caller's summary."""
 
     def __enter__(self) -> LogReader:
         return self
@@ -68,7 +73,7 @@ class LogReader:
     def info(self) -> LogInfo:
         """Path, container, time span and topics, from the summary / index (not from the messages)."""
         if self._info is None:
-            self._info = self._container.info()
+            self._info = guarded_call(self.path, self._container.info)
         return self._info
 
     def topics_of_kind(self, kind: Kind) -> tuple[str, ...]:
@@ -140,8 +145,8 @@ class LogReader:
         topics = set(topics)
         channels = [c for c in self.channels if c.topic in topics and message_kind(c) is not None]
         decoders = build_decoders(self.path, channels, DecodeOptions(RangeLimits(*range_limits)))
-        raw = self._container.messages({c.id for c in channels})
-        return by_stamp(decode(self.path, raw, decoders), self.path, window_ns, max_items)
+        raw = guarded_iter(self.path, self._container.messages({c.id for c in channels}))
+        return by_stamp(decode(self.path, raw, decoders), self.path, window_ns, max_items, counts=self.counts)
 
     def scans(
         self,

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import heapq
 import warnings
-from collections.abc import Hashable, Iterable, Iterator
+from collections.abc import Hashable, Iterable, Iterator, MutableMapping
 from pathlib import Path
 from typing import Protocol, TypeVar
 
@@ -43,9 +43,10 @@ def by_stamp(
     window_ns: int = DEFAULT_WINDOW_NS,
     max_items: int = DEFAULT_MAX_ITEMS,
     idle_ns: int = DEFAULT_IDLE_NS,
+    counts: MutableMapping[str, int] | None = None,
 ) -> Iterator[T]:
     """The items sorted by `stamp_ns` (ties keep arrival order), as long as none is more than `window_ns`
-    of sensor time late within its own source."""
+    of sensor time late within its own source. Dropped items are added to `counts["messages_late"]`."""
     heap: list[tuple[int, int, T]] = []
     newest: dict[Hashable, int] = {}  # per source: newest stamp
     last_seen: dict[Hashable, int] = {}  # per source: log time of its latest item
@@ -84,6 +85,8 @@ def by_stamp(
             yield ready
     while heap:
         yield pop(heap)[2]
+    if late and counts is not None:
+        counts["messages_late"] = counts.get("messages_late", 0) + late
     if late:
         warnings.warn(
             f"{path}: {late} messages dropped: their stamps were more than {window_ns / 1e9:g} s older than "

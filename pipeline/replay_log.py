@@ -119,7 +119,8 @@ def replay_log(
                 "pipeline.replay_cloud (the replay command chooses it by itself)"
             )
         chosen_odometry = log.odometry_topic(odometry_topic)
-        odometry = read_odometry(log, odometry_topic)
+        data_counts: dict[str, int] = {}  # what the input checks dropped, skipped or reordered
+        odometry = read_odometry(log, odometry_topic, counts=data_counts)
         tree = log.transform_tree()
         timings["read_odometry_tf"] = time.perf_counter() - started
         staged = staged_outputs_in(out_dir, *outputs.as_tuple())
@@ -127,7 +128,7 @@ def replay_log(
             stream = recording.create_recording(rrd_tmp, name=path.name, with_map=True)
             run: _FrontendRun | None = None
             try:
-                run = _run_frontend(log, topic, odometry, tree, config, stream, on_scan)
+                run = _run_frontend(log, topic, odometry, tree, config, stream, on_scan, data_counts)
                 timings["frontend"] = run.seconds - run.record_seconds
                 frontend = run.frontend
                 optimize_started = time.perf_counter()
@@ -197,8 +198,10 @@ def _run_frontend(
     config: Slam2DConfig | None,
     stream: Any,
     on_scan: ScanCallback | None,
+    data_counts: dict[str, int],
 ) -> _FrontendRun:
-    """Stream the scans through the SLAM frontend, recording each one as it is processed."""
+    """Stream the scans through the SLAM frontend, recording each one as it is processed; the counts of
+    the input checks (scans without returns, odometry dropped, messages late) join `data_counts`."""
     started = time.perf_counter()
     base_frame = odometry.child_frame if odometry is not None else "base_link"
     slam = LaserSlam2D(config)
@@ -207,7 +210,9 @@ def _run_frontend(
     record_seconds = 0.0
     counts = {"scans": 0, "scans_with_tf_mount": 0, "scans_with_odometry": 0}
     odometry_poses: list[FloatArray] = []
-    for scan, has_mount in scans_in_base_frame(log, topic, tree, base_frame):
+    min_points = (config or Slam2DConfig()).matching.min_points
+    for scan, has_mount in scans_in_base_frame(log, topic, tree, base_frame, min_points=min_points,
+                                               counts=data_counts):
         prediction, interval = None, 0.0
         if odometry is not None:
             at, intervals = odometry.interpolate(np.array([scan.stamp_ns]))
@@ -243,6 +248,8 @@ def _run_frontend(
         track = np.array(odometry_poses)
         scan_recording.log_odometry_trajectory(stream, se2.relative(track[0], track))
     record_seconds += time.perf_counter() - record_started
+    counts.update(data_counts)
+    counts.update(log.counts)
     return _FrontendRun(slam.finish(), counts, time.perf_counter() - started, record_seconds)
 
 

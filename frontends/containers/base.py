@@ -6,10 +6,11 @@ container stays small and the message converters are written once.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator, Mapping, Set
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple, Protocol
+from typing import BinaryIO, NamedTuple, Protocol
 
 from frontends.types import LogInfo, TopicInfo
 
@@ -79,3 +80,16 @@ def topic_table(channels: Mapping[int, Channel], counts: Mapping[int, int]) -> t
         count = counts.get(channel.id, 0) + (rows[key].count if key in rows else 0)
         rows[key] = TopicInfo(channel.topic, channel.type, count, channel.encoding)
     return tuple(rows[key] for key in sorted(rows))
+
+
+def read_at_most(stream: BinaryIO, length: int) -> bytes:
+    """`length` bytes from the stream's position, or fewer when the file ends first. Length fields of a
+    damaged file may claim up to 2⁶⁴ bytes; Python allocates what `read` is asked for before reading, so
+    the request is cut to what the file holds."""
+    remaining = os.fstat(stream.fileno()).st_size - stream.tell()
+    return stream.read(max(0, min(length, remaining)))
+
+
+MAX_CHUNK_BYTES = 512 << 20
+"""Largest uncompressed chunk we accept (recorders write chunks of a few MB): a damaged size field must
+not make us allocate gigabytes. The chunk is refused as damaged instead."""

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import re
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 from frontends.containers.base import Container
@@ -11,7 +13,8 @@ from frontends.containers.mcap_file import McapContainer
 from frontends.containers.rosbag1 import MAGIC as ROSBAG1_MAGIC
 from frontends.containers.rosbag1 import Rosbag1Container
 from frontends.containers.rosbag2 import SQLITE_MAGIC, Rosbag2Container
-from frontends.errors import LogFileError
+from frontends.errors import FrontendError, LogFileError, LogWarning
+from frontends.guard import DATA_ERRORS, check_is_regular, check_readable_file, guarded_call
 
 _SPLIT_BAG = re.compile(r"^(?P<prefix>.*)_(?P<number>\d+)\.bag$")
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
@@ -19,14 +22,23 @@ _EXPECTED = "expected an MCAP file, a ROS 1 bag or a ROS 2 bag"
 
 
 def open_container(path: str | Path) -> Container:
-    """The container reader for a log file or ROS 2 bag directory."""
+    """The container reader for a log file or ROS 2 bag directory. Anything else, and a file whose
+    structure is damaged beyond reading, is a one-line `LogFileError` naming the path."""
     path = Path(path)
+    return guarded_call(path, lambda: _open(path))
+
+
+def _open(path: Path) -> Container:
     if not path.exists():
         raise LogFileError(path, "no such file or directory")
     if path.is_dir():
-        return _open_directory(path)
+        try:
+            return _open_directory(path)
+        except PermissionError as err:
+            raise LogFileError(path, f"cannot read: {err.strerror}") from None
+    check_readable_file(path)
     if path.name == "metadata.yaml":
-        return Rosbag2Container(path.parent)
+        return _checked_rosbag2(path.parent)
     try:
         with path.open("rb") as stream:
             head = stream.read(16)
@@ -45,19 +57,36 @@ def open_container(path: str | Path) -> Container:
         )
     if head.startswith(SQLITE_MAGIC):
         if (path.parent / "metadata.yaml").exists():
-            return Rosbag2Container(path.parent)
+            return _checked_rosbag2(path.parent)
         return Rosbag2Container(path)
     if head.startswith(_ZSTD_MAGIC):
         raise LogFileError(path, f"zstd-compressed file: decompress it first ({_EXPECTED})")
     raise LogFileError(path, f"not a log ({_EXPECTED})")
 
 
+def _checked_rosbag2(directory: Path) -> Container:
+    """A ROS 2 bag directory, once its metadata and every regular file in it are known to be regular."""
+    check_readable_file(directory / "metadata.yaml")
+    for entry in directory.iterdir():
+        if entry.suffix in (".db3", ".mcap", ".zstd"):
+            check_readable_file(entry)
+    return Rosbag2Container(directory)
+
+
 def _open_directory(path: Path) -> Container:
     if (path / "metadata.yaml").exists():
-        return Rosbag2Container(path)
+        return _checked_rosbag2(path)
     bags = sorted(path.glob("*.bag"), key=_split_order)
     if bags:
-        return Rosbag1Container(path, tuple(bags))
+        for bag in bags:
+            check_readable_file(bag)
+        parts = split_bag_files(bags[0])
+        if len(parts) != len(bags):
+            names = ", ".join(b.name for b in bags)
+            raise LogFileError(
+                path, f"several .bag files that are not one split recording: {names}; name one"
+            )
+        return Rosbag1Container(path, parts)
     for pattern in ("*.db3", "*.mcap"):
         found = sorted(path.glob(pattern))
         if len(found) == 1:
@@ -77,14 +106,73 @@ def _split_order(path: Path) -> tuple[str, int]:
 
 def split_bag_files(path: Path) -> tuple[Path, ...]:
     """The files of a split ROS 1 recording (`name_0.bag`, `name_1.bag`, …) that `path` belongs to, in
-    order; just `path` when it is not part of one."""
+    order; just `path` when it is not part of one.
+
+    A name alone does not make a split set (`trial_1.bag` and `trial_2.bag` are often two runs): the parts
+    must be numbered consecutively, carry the same topics with the same types, and follow each other in
+    time (each starts within `SPLIT_OVERLAP_NS` before to `MAX_SPLIT_GAP_NS` after the previous one's end).
+    """
     match = _SPLIT_BAG.match(path.name)
     if match is None:
         return (path,)
     prefix = match["prefix"]
-    parts = [
-        sibling
+    numbered = {
+        int(m["number"]): sibling
         for sibling in path.parent.glob("*.bag")
         if (m := _SPLIT_BAG.match(sibling.name)) is not None and m["prefix"] == prefix
-    ]
-    return tuple(sorted(parts, key=_split_order))
+    }
+    number = int(match["number"])
+    numbered[number] = path
+    if len(numbered) == 1:
+        return (path,)
+    spans: dict[int, _BagSpan | None] = {number: _bag_span(path)}
+    if spans[number] is None:
+        return (path,)  # the named file is read, and reports its own damage, alone
+    first = last = number
+    while first - 1 in numbered and _follows(spans, numbered, first - 1, first):
+        first -= 1
+    while last + 1 in numbered and _follows(spans, numbered, last, last + 1):
+        last += 1
+    return tuple(numbered[n] for n in range(first, last + 1))
+
+
+MAX_SPLIT_GAP_NS = 10_000_000_000
+"""`rosbag record --split` starts the next file with the next message: a longer pause is another run."""
+SPLIT_OVERLAP_NS = 1_000_000_000
+"""Messages are written as they arrive, so a part may begin slightly before the previous one's last
+message (a late topic); a part beginning earlier than that is another recording of the same time."""
+
+
+@dataclass(frozen=True, slots=True)
+class _BagSpan:
+    start_ns: int
+    end_ns: int
+    types: dict[str, str]  # topic → type
+
+
+def _bag_span(path: Path) -> _BagSpan | None:
+    """Time span and topics of one bag from its index, None when it cannot be read or is empty."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", LogWarning)  # the named file's damage is reported when read
+            info = Rosbag1Container(path, (path,)).info()
+    except (FrontendError, *DATA_ERRORS, OSError):
+        return None
+    counted = {t.name: t.type for t in info.topics if t.count}
+    if not counted:
+        return None
+    return _BagSpan(info.start_ns, info.end_ns, counted)
+
+
+def _follows(spans: dict[int, _BagSpan | None], files: dict[int, Path], before: int, after: int) -> bool:
+    """Whether part `after` continues part `before` of the same recording."""
+    for n in (before, after):
+        if n not in spans:
+            spans[n] = _bag_span(files[n]) if check_is_regular(files[n]) else None
+    earlier, later = spans[before], spans[after]
+    if earlier is None or later is None:
+        return False
+    shared = earlier.types.keys() & later.types.keys()
+    if not shared or any(earlier.types[t] != later.types[t] for t in shared):
+        return False
+    return -SPLIT_OVERLAP_NS <= later.start_ns - earlier.end_ns <= MAX_SPLIT_GAP_NS

@@ -11,11 +11,12 @@ from __future__ import annotations
 import io
 import struct
 import warnings
+import zlib
 from collections.abc import Callable, Iterator, Set
 from dataclasses import dataclass, field
 from operator import itemgetter
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import lz4.frame
 import zstandard
@@ -23,7 +24,14 @@ from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.summary import Summary
 
-from frontends.containers.base import Channel, RawMessage, ros2_type_name, topic_table
+from frontends.containers.base import (
+    MAX_CHUNK_BYTES,
+    Channel,
+    RawMessage,
+    read_at_most,
+    ros2_type_name,
+    topic_table,
+)
 from frontends.containers.chunk_merge import ChunkMessage, ChunkRef, Unpacked, lost_in_cut_chunk, merge_chunks
 from frontends.errors import LogFileError, LogWarning
 from frontends.types import LogInfo
@@ -47,7 +55,11 @@ _OP_NAMES = {
     0x07: "message index",
     0x08: "chunk index",
     0x09: "attachment",
+    0x0A: "attachment index",
+    0x0B: "statistics",
     0x0C: "metadata",
+    0x0D: "metadata index",
+    0x0E: "summary offset",
     0x0F: "data end",
 }
 
@@ -60,8 +72,12 @@ _U64 = struct.Struct("<Q")
 _CHUNK_FIXED = struct.Struct("<QQQI")  # message start, message end, uncompressed size, uncompressed crc
 
 
-class _CorruptError(Exception):
+class _CorruptError(ValueError):
     """A record cannot be parsed (internal; becomes a warning or a LogFileError)."""
+
+
+class ChecksumError(_CorruptError):
+    """A chunk decompressed, but its CRC says the data is not what was written: never read on past it."""
 
 
 @dataclass(slots=True)
@@ -122,7 +138,7 @@ class McapContainer:
                 if stream.read(len(MAGIC)) != MAGIC:
                     return None  # no closing magic: cut off before the footer
                 stream.seek(0)
-                summary = SeekingReader(stream, record_size_limit=size).get_summary()
+                summary = SeekingReader(_ReadsCutToFile(stream), record_size_limit=size).get_summary()
         except (McapError, struct.error, ValueError, EOFError):
             return None
         if summary is None or not summary.channels:
@@ -219,7 +235,7 @@ class McapContainer:
                         index.message_end_time,
                         order,
                         _indexed_chunk_loader(
-                            stream, index.chunk_start_offset, index.chunk_length, wanted, damaged
+                            self.path, stream, index.chunk_start_offset, index.chunk_length, wanted, damaged
                         ),
                     )
                 )
@@ -238,17 +254,48 @@ class McapContainer:
                 )
 
 
+class _ReadsCutToFile(io.RawIOBase):
+    """A file whose reads never ask for more than it holds: the `mcap` package reads a string by its
+    length field, and Python allocates the whole request before reading."""
+
+    def __init__(self, stream: BinaryIO) -> None:
+        super().__init__()
+        self._stream = stream
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._stream.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._stream.tell()
+
+    def read(self, size: int = -1) -> bytes:
+        return read_at_most(self._stream, size) if size >= 0 else self._stream.read()
+
+    def readinto(self, buffer: Any) -> int:
+        data = self.read(len(buffer))
+        buffer[: len(data)] = data
+        return len(data)
+
+
 def _indexed_chunk_loader(
-    stream: BinaryIO, offset: int, length: int, wanted: frozenset[int], damaged: list[str]
+    path: Path, stream: BinaryIO, offset: int, length: int, wanted: frozenset[int], damaged: list[str]
 ) -> Callable[[], list[ChunkMessage]]:
     def load() -> list[ChunkMessage]:
         stream.seek(offset)
-        record = stream.read(length)
+        record = read_at_most(stream, length)
         try:
             if len(record) < length or record[0] != _OP_CHUNK:
                 raise _CorruptError("chunk record missing")
             data, _ = _chunk_records(memoryview(record)[9:], partial=False)
             messages = _unpack_records(data, wanted, None).messages
+        except ChecksumError as err:
+            raise LogFileError(path, f"damaged chunk at byte {offset}: {err}") from None
         except _CorruptError:
             damaged.append(str(offset))
             return []
@@ -296,28 +343,54 @@ def _chunk_records(body: memoryview, partial: bool) -> tuple[bytes | memoryview,
     With `partial`, the body may be cut off: what decompresses of it is returned.
     """
     try:
-        _, _, uncompressed_size, _ = _CHUNK_FIXED.unpack_from(body, 0)
+        _, _, uncompressed_size, uncompressed_crc = _CHUNK_FIXED.unpack_from(body, 0)
         compression, pos = _read_string(body, _CHUNK_FIXED.size)
         (records_length,) = _U64.unpack_from(body, pos)
     except struct.error:
         raise _CorruptError("chunk header cut off") from None
+    if uncompressed_size > MAX_CHUNK_BYTES:
+        raise _CorruptError(f"chunk claims {uncompressed_size} bytes uncompressed")
     compressed = body[pos + 8 : pos + 8 + records_length]
     if not partial and len(compressed) < records_length:
         raise _CorruptError("chunk data cut off")
     try:
+        # Never more than the declared size is decompressed, whatever the compressed frame claims.
         if compression == "":
-            return compressed, uncompressed_size
-        if compression == "zstd":
-            if partial:
-                return zstandard.ZstdDecompressor().decompressobj().decompress(compressed), uncompressed_size
-            return zstandard.decompress(compressed, uncompressed_size), uncompressed_size
-        if compression == "lz4":
-            if partial:
-                return lz4.frame.LZ4FrameDecompressor().decompress(compressed), uncompressed_size
-            return lz4.frame.decompress(compressed), uncompressed_size
-    except (zstandard.ZstdError, RuntimeError, ValueError) as err:
+            records: bytes | memoryview = compressed[:uncompressed_size]
+        elif compression == "zstd" and partial:
+            records = _zstd_at_most(compressed, uncompressed_size)
+        elif compression == "zstd":
+            declared = zstandard.get_frame_parameters(compressed).content_size
+            if declared not in (uncompressed_size, zstandard.CONTENTSIZE_UNKNOWN):
+                raise _CorruptError(f"zstd frame claims {declared} bytes, the chunk {uncompressed_size}")
+            records = zstandard.decompress(compressed, uncompressed_size)
+        elif compression == "lz4":
+            records = lz4.frame.LZ4FrameDecompressor().decompress(compressed, max_length=uncompressed_size)
+        else:
+            raise _CorruptError(f"unsupported chunk compression {compression!r}")
+    except (zstandard.ZstdError, RuntimeError, ValueError, EOFError) as err:
+        if isinstance(err, _CorruptError):
+            raise
         raise _CorruptError(f"{compression} data does not decompress: {err}") from None
-    raise _CorruptError(f"unsupported chunk compression {compression!r}")
+    if not partial:
+        if len(records) != uncompressed_size:
+            raise _CorruptError(f"chunk holds {len(records)} bytes, its header says {uncompressed_size}")
+        if uncompressed_crc and zlib.crc32(records) != uncompressed_crc:
+            raise ChecksumError("chunk CRC does not match its data")
+    return records, uncompressed_size
+
+
+def _zstd_at_most(compressed: bytes | memoryview, limit: int) -> bytes:
+    """What the (possibly cut-off) zstd data decompresses to, stopping once past `limit` bytes: fed in
+    small pieces, so neither a frame header's content size nor a damaged stream allocates more."""
+    decompressor = zstandard.ZstdDecompressor().decompressobj()
+    out = bytearray()
+    piece = 4096
+    for start in range(0, len(compressed), piece):
+        out += decompressor.decompress(compressed[start : start + piece])
+        if len(out) > limit:
+            break
+    return bytes(out)
 
 
 def _unpack_records(
@@ -359,6 +432,21 @@ def _unpack_records(
     return Unpacked(out, pos, message_count, message_bytes)
 
 
+_OP_ATTACHMENT = 0x09
+_FIRST_USER_OPCODE = 0x80  # opcodes from here on are the user's (the spec's extension range)
+
+
+def _implausible_record(opcode: int, length: int, offset: int) -> bool:
+    """Whether a record head cannot be a real one: the first record is not the header, an opcode the
+    spec does not define (outside the user range), or a length no writer produces (attachments, which
+    may be large, are skipped without reading)."""
+    if offset == len(MAGIC):
+        return opcode != _OP_HEADER or length > 1 << 20
+    if opcode == 0 or (opcode not in _OP_NAMES and opcode < _FIRST_USER_OPCODE):
+        return True
+    return opcode != _OP_ATTACHMENT and length > MAX_CHUNK_BYTES
+
+
 class _LinearReader:
     """Reads the data section record by record from the start: for files without a usable summary."""
 
@@ -385,6 +473,7 @@ class _LinearReader:
         by log time within each chunk."""
         definitions = self.definitions
         with self.path.open("rb") as stream:
+            size = stream.seek(0, io.SEEK_END)
             stream.seek(len(MAGIC))
             offset = len(MAGIC)
             while True:
@@ -396,15 +485,20 @@ class _LinearReader:
                 if opcode in (_OP_DATA_END, _OP_FOOTER):
                     return
                 name = _OP_NAMES.get(opcode, f"opcode {opcode:#x}")
+                if _implausible_record(opcode, length, offset):
+                    # A cut-off file ends inside a real record; this one is not one (random bytes, or a
+                    # length field damaged): reading on would only invent records.
+                    raise LogFileError(
+                        self.path, f"damaged record at byte {offset}: {name} record claiming {length} bytes"
+                    )
                 if opcode not in (_OP_CHUNK, _OP_MESSAGE, _OP_SCHEMA, _OP_CHANNEL):
-                    skipped = stream.seek(length, io.SEEK_CUR)
-                    if stream.read(1) == b"":
+                    if offset + 9 + length >= size:
                         self._truncation = f"ends inside a {name} record at byte {offset}"
                         return
-                    stream.seek(skipped)
+                    stream.seek(length, io.SEEK_CUR)
                     offset += 9 + length
                     continue
-                body = memoryview(stream.read(length))
+                body = memoryview(read_at_most(stream, length))
                 cut = len(body) < length
                 if opcode == _OP_CHUNK:
                     try:
@@ -423,6 +517,8 @@ class _LinearReader:
                 elif cut:
                     self._lost_estimate = 1 if opcode == _OP_MESSAGE else 0
                 elif opcode == _OP_MESSAGE:
+                    if len(body) < _MESSAGE_HEAD_SIZE - 9:
+                        raise LogFileError(self.path, f"damaged message record at byte {offset}: too short")
                     channel_id, _, log_time, _ = struct.unpack_from("<HIQQ", body, 0)
                     if wanted is None or channel_id in wanted:
                         yield log_time, channel_id, body[22:]

@@ -21,7 +21,14 @@ from typing import BinaryIO
 
 import lz4.frame
 
-from frontends.containers.base import Channel, RawMessage, ros2_type_name, topic_table
+from frontends.containers.base import (
+    MAX_CHUNK_BYTES,
+    Channel,
+    RawMessage,
+    read_at_most,
+    ros2_type_name,
+    topic_table,
+)
 from frontends.containers.chunk_merge import ChunkMessage, ChunkRef, Unpacked, lost_in_cut_chunk, merge_chunks
 from frontends.errors import LogFileError, LogWarning
 from frontends.types import LogInfo
@@ -43,7 +50,7 @@ _CHUNK_COUNT = struct.Struct("<II")
 _FILE_STRIDE = 1 << 32
 
 
-class _CorruptError(Exception):
+class _CorruptError(ValueError):
     """A record cannot be parsed (internal; becomes a warning or a LogFileError)."""
 
 
@@ -86,7 +93,7 @@ def _read_record(stream: BinaryIO) -> tuple[dict[str, bytes], bytes, bool] | Non
     if len(size) < 4:
         return {}, b"", True
     (header_length,) = _U32.unpack(size)
-    header = stream.read(header_length)
+    header = read_at_most(stream, header_length)
     if len(header) < header_length:
         return {}, b"", True
     fields = _fields(header)
@@ -94,7 +101,7 @@ def _read_record(stream: BinaryIO) -> tuple[dict[str, bytes], bytes, bool] | Non
     if len(size) < 4:
         return fields, b"", True
     (data_length,) = _U32.unpack(size)
-    data = stream.read(data_length)
+    data = read_at_most(stream, data_length)
     return fields, data, len(data) < data_length
 
 
@@ -242,18 +249,28 @@ class _BagFile:
 
 def _decompress(fields: dict[str, bytes], data: bytes, partial: bool) -> bytes:
     compression = fields.get("compression", b"none").decode("ascii", "replace")
+    size = _u32(fields, "size")  # u32: at most 4 GiB, still refused beyond MAX_CHUNK_BYTES
+    if size > MAX_CHUNK_BYTES:
+        raise _CorruptError(f"chunk claims {size} bytes uncompressed")
     try:
+        # Never more than the declared size is decompressed, whatever the compressed stream holds.
         if compression == "none":
-            return data
-        if compression == "bz2":
-            return bz2.BZ2Decompressor().decompress(data) if partial else bz2.decompress(data)
-        if compression == "lz4":
-            return (
-                lz4.frame.LZ4FrameDecompressor().decompress(data) if partial else lz4.frame.decompress(data)
-            )
-    except (OSError, ValueError, RuntimeError, EOFError) as err:
+            records = data[:size]
+        elif compression == "bz2":
+            records = bz2.BZ2Decompressor().decompress(data, max_length=size)
+        elif compression == "lz4":
+            records = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size)
+        else:
+            raise _CorruptError(f"unsupported chunk compression {compression!r}")
+    except (OSError, RuntimeError, EOFError) as err:
         raise _CorruptError(f"{compression} data does not decompress: {err}") from None
-    raise _CorruptError(f"unsupported chunk compression {compression!r}")
+    except ValueError as err:
+        if isinstance(err, _CorruptError):
+            raise
+        raise _CorruptError(f"{compression} data does not decompress: {err}") from None
+    if not partial and len(records) != size:
+        raise _CorruptError(f"chunk holds {len(records)} bytes, its header says {size}")
+    return records
 
 
 class Rosbag1Container:

@@ -105,6 +105,24 @@ class LoopClosureConfig:
 
 
 @dataclass(frozen=True)
+class DataChecksConfig:
+    """What the 2D SLAM input refuses from a log, before it reaches the matcher or a map. Passed to
+    `log_input.read_odometry` and `log_input.scans_in_base_frame` (not part of `Slam2DConfig`, whose
+    fields are the matcher's)."""
+
+    min_usable_scan_share: float = 0.5
+    """A log where fewer scans than this share have at least `matching.min_points` valid returns is
+    refused: a map made of a few good scans among garbage would look like a result and not be one."""
+    max_speed: float = 30.0
+    """Odometry moving faster than this between two messages (m/s) is a glitch: the message is dropped."""
+    max_turn_rate: float = 20.0
+    """Odometry turning faster than this between two messages (rad/s) is a glitch: dropped."""
+    world_extent: float = 100_000.0
+    """Odometry poses farther than this from the origin (m) are dropped: no robot log spans 100 km, and
+    maps sized from such a pose would need terabytes."""
+
+
+@dataclass(frozen=True)
 class Slam2DConfig:
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)

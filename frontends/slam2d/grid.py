@@ -17,7 +17,14 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from frontends.errors import MapExtentError
+
 FloatArray = NDArray[np.float64]
+
+MAX_LIKELIHOOD_CELLS = 40_000_000
+"""A likelihood grid takes 12 bytes a cell while it is built (values, nearest, best distance): this
+bounds one at ~0.5 GB. Local maps and loop-closure submaps cover tens of metres (≤ 1 M cells at 5 cm);
+only absurd poses or settings reach this."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,7 +52,13 @@ def build_likelihood_grid(
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     low = points.min(axis=0) - margin
     high = points.max(axis=0) + margin
-    shape = np.ceil((high - low) / resolution).astype(np.int64) + 1
+    cells = np.ceil((high - low) / resolution) + 1
+    if not np.all(np.isfinite(cells)) or float(cells[0]) * float(cells[1]) > MAX_LIKELIHOOD_CELLS:
+        raise MapExtentError(
+            f"a likelihood grid of {(high - low)[0]:.4g} × {(high - low)[1]:.4g} m at {resolution} m "
+            f"would need more than {MAX_LIKELIHOOD_CELLS} cells"
+        )
+    shape = cells.astype(np.int64)
     values = np.zeros((int(shape[1]), int(shape[0])), dtype=np.float32)
     nearest = np.full(values.shape, -1, dtype=np.int32)
     radius_cells = max(1, math.ceil(max(3.0 * sigma, pairing_distance) / resolution))

@@ -48,7 +48,17 @@ class Submap:
         likelihood_sigma: float,
         margin: float,
         pairing_distance: float,
+        reach: float | None = None,
     ) -> Submap:
+        """The keyframes' points placed at their poses (the last one being the newest or the centre);
+        with `reach`, only keyframes within it of the last pose."""
+        if reach is not None:
+            # Keyframes farther from the newest than two scan reaches share no point with what is matched
+            # against this map; leaving them out keeps the grid small after a jump in the poses.
+            centre = np.asarray(poses[-1])[:2]
+            near = [np.hypot(*(np.asarray(p)[:2] - centre)) <= reach for p in poses]
+            keyframes = [k for k, n in zip(keyframes, near, strict=True) if n]
+            poses = [p for p, n in zip(poses, near, strict=True) if n]
         points = np.concatenate([place(k.points, p) for k, p in zip(keyframes, poses, strict=True)])
         normals = np.concatenate([k.normals @ rotation(p[2]) for k, p in zip(keyframes, poses, strict=True)])
         # Several keyframes see the same wall: keep one point per half cell, the latest keyframe's

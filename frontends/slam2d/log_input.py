@@ -6,14 +6,17 @@ The odometry track drops exact repeats and answers "no prediction" across gaps i
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import math
+from collections.abc import Iterator, MutableMapping
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
-from frontends.errors import TransformLookupError
+from frontends.errors import TransformLookupError, UnusableLogError
 from frontends.log import LogReader
+from frontends.slam2d.config import DataChecksConfig, MatchingConfig
 from frontends.transforms import TransformTree
 from frontends.types import Scan2D, Transform
 from optimizer import se2
@@ -65,8 +68,19 @@ class OdometryTrack:
         return out, interval
 
 
-def read_odometry(log: LogReader, topic: str | None = None) -> OdometryTrack | None:
-    """The log's wheel odometry (its odometry topic, else the tf edge out of `odom`), None without any."""
+def read_odometry(
+    log: LogReader,
+    topic: str | None = None,
+    checks: DataChecksConfig | None = None,
+    counts: MutableMapping[str, int] | None = None,
+) -> OdometryTrack | None:
+    """The log's wheel odometry (its odometry topic, else the tf edge out of `odom`), None without any.
+
+    Messages out of stamp order are sorted (`odometry_reordered` counts them); non-finite poses, poses
+    beyond `checks.world_extent`, and jumps faster than `checks.max_speed` / `max_turn_rate` from the
+    previous kept message are dropped (`odometry_dropped_nonfinite`, `_out_of_world`, `_jumps`)."""
+    checks = checks or DataChecksConfig()
+    counts = counts if counts is not None else {}
     stamps: list[int] = []
     poses: list[FloatArray] = []
     frames: tuple[str, str] = ("odom", "base_link")
@@ -74,15 +88,80 @@ def read_odometry(log: LogReader, topic: str | None = None) -> OdometryTrack | N
         stamps.append(pose.stamp_ns)
         poses.append(pose.se2)
         frames = (pose.frame_id, pose.child_frame_id)
-    if len(stamps) < 2:
+    if not stamps:
         return None
     stamp_array = np.array(stamps, dtype=np.int64)
-    pose_array = np.array(poses)
+    pose_array = np.array(poses, dtype=np.float64).reshape(-1, 3)
+    _add(counts, "odometry_reordered", int(np.count_nonzero(stamp_array[1:] < stamp_array[:-1])))
     order = np.argsort(stamp_array, kind="stable")
     stamp_array, pose_array = stamp_array[order], pose_array[order]
+    finite = np.isfinite(pose_array).all(axis=1)
+    _add(counts, "odometry_dropped_nonfinite", int(np.count_nonzero(~finite)))
+    inside = finite & (np.hypot(pose_array[:, 0], pose_array[:, 1]) <= checks.world_extent)
+    _add(counts, "odometry_dropped_out_of_world", int(np.count_nonzero(finite & ~inside)))
+    stamp_array, pose_array = stamp_array[inside], pose_array[inside]
     keep = np.ones(len(stamp_array), dtype=bool)
     keep[1:] = stamp_array[1:] != stamp_array[:-1]  # repeated stamps: the first message wins
-    return OdometryTrack(stamp_array[keep], pose_array[keep], frames[0], frames[1])
+    stamp_array, pose_array = stamp_array[keep], pose_array[keep]
+    plausible = _plausible_motion(stamp_array, pose_array, checks.max_speed, checks.max_turn_rate)
+    _add(counts, "odometry_dropped_jumps", int(np.count_nonzero(~plausible)))
+    stamp_array, pose_array = stamp_array[plausible], pose_array[plausible]
+    if len(stamp_array) < 2:
+        return None
+    return OdometryTrack(stamp_array, pose_array, frames[0], frames[1])
+
+
+def _add(counts: MutableMapping[str, int], name: str, value: int) -> None:
+    if value:
+        counts[name] = counts.get(name, 0) + value
+
+
+ODOMETRY_RESTART_RUN = 10
+
+
+@njit(cache=True)
+def _plausible_motion(
+    stamps_ns: NDArray[np.int64], poses: FloatArray, max_speed: float, max_turn_rate: float
+) -> NDArray[np.bool_]:
+    """Keep each pose reachable from the previous kept one within the speed limits. A glitch is one pose
+    (or a few) far off. A run of `ODOMETRY_RESTART_RUN` rejected poses agreeing with each other is the
+    track starting over (an odometry reset): kept from there on. When the first poses were the glitch
+    (the kept track is shorter than that run), they are dropped instead."""
+    count = stamps_ns.shape[0]
+    keep = np.zeros(count, dtype=np.bool_)
+    if count == 0:
+        return keep
+    keep[0] = True
+    last = 0
+    kept_run = 1
+    rejected_start = -1
+    for i in range(1, count):
+        if _reachable(stamps_ns, poses, last, i, max_speed, max_turn_rate):
+            keep[i] = True
+            last = i
+            kept_run += 1
+            rejected_start = -1
+            continue
+        if rejected_start < 0 or not _reachable(stamps_ns, poses, i - 1, i, max_speed, max_turn_rate):
+            rejected_start = i
+        if i - rejected_start + 1 >= ODOMETRY_RESTART_RUN or i - rejected_start + 1 > kept_run:
+            if kept_run < ODOMETRY_RESTART_RUN:  # what was kept was the glitch
+                keep[:rejected_start] = False
+            keep[rejected_start : i + 1] = True
+            last = i
+            kept_run = i - rejected_start + 1
+            rejected_start = -1
+    return keep
+
+
+@njit(cache=True)
+def _reachable(
+    stamps_ns: NDArray[np.int64], poses: FloatArray, a: int, b: int, max_speed: float, max_turn_rate: float
+) -> bool:
+    seconds = max((stamps_ns[b] - stamps_ns[a]) * 1e-9, 1e-3)
+    distance = math.hypot(poses[b, 0] - poses[a, 0], poses[b, 1] - poses[a, 1])
+    turn = abs((poses[b, 2] - poses[a, 2] + math.pi) % (2.0 * math.pi) - math.pi)
+    return distance <= max_speed * seconds and turn <= max_turn_rate * seconds
 
 
 def laser_mount(tree: TransformTree, base_frame: str, laser_frame: str, stamp_ns: int) -> Transform | None:
@@ -97,13 +176,41 @@ def laser_mount(tree: TransformTree, base_frame: str, laser_frame: str, stamp_ns
 
 
 def scans_in_base_frame(
-    log: LogReader, topic: str, tree: TransformTree, base_frame: str
+    log: LogReader,
+    topic: str,
+    tree: TransformTree,
+    base_frame: str,
+    *,
+    min_points: int = MatchingConfig.min_points,
+    checks: DataChecksConfig | None = None,
+    counts: MutableMapping[str, int] | None = None,
 ) -> Iterator[tuple[Scan2D, bool]]:
-    """Every scan of `topic` with its points moved into `base_frame`, and whether tf gave the mount."""
+    """Every scan of `topic` with a valid return, its points moved into `base_frame`, and whether tf gave
+    the mount.
+
+    Scans without any valid return (all NaN, inf, negative, out of range, or angles that are not a sweep)
+    are skipped and counted (`scans_without_returns`); once the log is read, an `UnusableLogError` says so
+    when fewer than `checks.min_usable_scan_share` of the scans had `min_points` valid returns."""
+    checks = checks or DataChecksConfig()
+    counts = counts if counts is not None else {}
     mount: Transform | None = None
     looked_up_for: str | None = None
+    read = usable = 0
     for scan in log.scans(topic):
+        read += 1
+        valid = scan.points.shape[0]
+        usable += valid >= min_points
+        if valid == 0:
+            _add(counts, "scans_without_returns", 1)
+            continue
         if scan.frame_id != looked_up_for:
             looked_up_for = scan.frame_id
             mount = laser_mount(tree, base_frame, scan.frame_id, scan.stamp_ns)
         yield (scan.transformed(mount) if mount is not None else scan), mount is not None
+    if read and usable < checks.min_usable_scan_share * read:
+        raise UnusableLogError(
+            log.path,
+            f"only {usable} of the {read} scans on {topic} have {min_points} or more valid returns "
+            f"(need {checks.min_usable_scan_share:.0%}): the ranges are NaN, infinite, negative or out of "
+            "range, or the beam angles are invalid",
+        )

@@ -15,6 +15,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from frontends.errors import MapExtentError
+
 FloatArray = NDArray[np.float64]
 
 LOG_ODDS_HIT = 0.85
@@ -22,6 +24,9 @@ LOG_ODDS_MISS = -0.4
 LOG_ODDS_LIMIT = 5.0
 OCCUPIED_ABOVE = 0.5
 """Log-odds above this is drawn occupied, below −this free, between unknown."""
+MAX_MAP_CELLS = 50_000_000
+"""The occupancy grid's cells (4 bytes each, and a 1-byte image): 2.5 km² at 5 cm. Larger maps are drawn
+at a coarser `resolution` (see `OccupancyGrid.resolution`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,11 +56,22 @@ def occupancy_grid(scans: Sequence[FloatArray], poses: FloatArray, *, resolution
     points = np.concatenate(ends) if ends else np.zeros((0, 2))
     low = np.minimum(points.min(axis=0, initial=np.inf), poses[:, :2].min(axis=0)) - 1.0
     high = np.maximum(points.max(axis=0, initial=-np.inf), poses[:, :2].max(axis=0)) + 1.0
+    if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
+        raise MapExtentError("occupancy grid: a keyframe pose or point is not finite")
+    resolution = coarsest_needed(high - low, resolution, MAX_MAP_CELLS)
     shape = np.ceil((high - low) / resolution).astype(np.int64) + 1
     log_odds = np.zeros((int(shape[1]), int(shape[0])), dtype=np.float32)
     counts = np.array([len(scan) for scan in scans], dtype=np.int64)
     _integrate(points, counts, poses, low, resolution, max_range, log_odds)
     return OccupancyGrid(low, resolution, log_odds)
+
+
+def coarsest_needed(extent: FloatArray, resolution: float, max_cells: int) -> float:
+    """`resolution`, or the coarser one (a power of two times it) at which a grid over `extent` has at
+    most `max_cells` cells: a map of a long drive is drawn coarser instead of taking gigabytes."""
+    while float(np.prod(np.ceil(extent / resolution) + 1)) > max_cells:
+        resolution *= 2.0
+    return resolution
 
 
 @njit(cache=True)

@@ -242,6 +242,7 @@ class LaserSlam2D:
             likelihood_sigma=matching.likelihood_sigma,
             margin=self.config.odometry.window_linear_without_odometry + 1.0,
             pairing_distance=matching.icp_max_distance,
+            reach=2.0 * matching.max_range + self.config.odometry.window_linear_without_odometry + 1.0,
         )
 
     # ---------------------------------------------------------------------------------- loop closures
