@@ -180,6 +180,7 @@ def _replay_cloud_file(path: Path, config: ReplayConfig, out_dir: Path,
 
     detail = module.replay_cloud(path, out_dir=out_dir, cloud_topic=config.input.scan_topic,
                                  method=config.optimizer.method, iterations=config.optimizer.iterations,
+                                 robust=config.optimizer.robust_kernel,
                                  on_iteration=on_iteration)
     frontend = detail.frontend
     graph = frontend.planar_graph(detail.planar_keyframe_poses)
@@ -208,6 +209,7 @@ def _replay_graph_file(path: Path, config: ReplayConfig, out_dir: Path,
     from pipeline import replay_graph as module
 
     detail = module.replay_graph(path, out_dir=out_dir, method=config.optimizer.method,
+                                 robust=config.optimizer.robust_kernel,
                                  iterations=config.optimizer.iterations,
                                  repair_information=config.input.repair_information, progress=on_iteration)
     graph = detail.graph
@@ -236,6 +238,7 @@ def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: S
 
     detail = module.replay_log(path, out_dir=out_dir, scan_topic=config.input.scan_topic,
                                odometry_topic=config.input.odom_topic, method=config.optimizer.method,
+                               robust=config.optimizer.robust_kernel,
                                iterations=config.optimizer.iterations, config=config.to_slam2d(),
                                on_scan=on_scan, on_iteration=on_iteration)
     frontend = detail.frontend

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 import typer
 from typer.core import TyperCommand, TyperGroup
 
+from optimizer.robust import KERNELS
 from optimizer.solve import MAX_ITERATIONS, METHODS
 from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, SAMPLE_DESCRIPTION, input_kind, sample_input
 from pipeline.errors import PipelineError
@@ -60,6 +61,7 @@ _IMPLICIT_DEFAULT = "pipeline.cli.implicit_default"
 
 Method = enum.StrEnum("Method", [(name, name) for name in METHODS])  # type: ignore[misc]
 """The optimizer's methods as a choice (the names come from `optimizer.solve.METHODS`)."""
+Robust = enum.StrEnum("Robust", [(name, name) for name in KERNELS])  # type: ignore[misc]
 
 
 class ReplayGroup(TyperGroup):
@@ -175,9 +177,15 @@ def run(
         help="Settings (TOML; see --dump-config). The options below override it.")] = None,
     method: Annotated[Method | None, typer.Option(
         "--method", "-m", show_default=False,
-        help="sgd+gn (default): the paper's SGD, then Gauss-Newton to the exact minimum; "
-             "sgd: SGD only; gn: Gauss-Newton only; gauss-seidel: the paper's baseline."),
+        help="sgd+gn (default): the paper's SGD, then SGD on a spanning tree, then Gauss-Newton to the "
+             "exact minimum (and a chordal start polished, the lower kept); sgd: the paper's SGD only; "
+             "sgd-tree, sgd-tree+gn: the tree SGD alone or polished; gn: Gauss-Newton only; "
+             "gauss-seidel: the paper's baseline."),
     ] = None,
+    robust: Annotated[Robust | None, typer.Option(
+        "--robust", show_default=False,
+        help="A robust kernel against false loop closures, in SGD's steps and the polish: cauchy or dcs "
+             "(with sgd+gn or sgd; off by default: it changes the objective).")] = None,
     iterations: Annotated[int | None, typer.Option(
         "--iterations", "-n", min=0, max=MAX_ITERATIONS, show_default=False,
         help="SGD (or Gauss-Seidel) iterations; default 100. With gn: the Gauss-Newton cap.")] = None,
@@ -225,6 +233,8 @@ def run(
         overrides["optimizer"]["method"] = str(method.value)
     if iterations is not None:
         overrides["optimizer"]["iterations"] = iterations
+    if robust is not None:
+        overrides["optimizer"]["robust"] = str(robust.value)
     if scan_topic is not None:
         overrides["input"]["scan_topic"] = scan_topic
     if odom_topic is not None:

@@ -39,6 +39,7 @@ from pydantic import (
 
 from frontends.slam2d.config import Slam2DConfig
 from optimizer.file_input import read_bytes_bounded
+from optimizer.robust import KERNELS
 from optimizer.solve import (
     DEFAULT_ITERATIONS,
     DEFAULT_METHOD,
@@ -234,6 +235,12 @@ class OptimizerSection(_Section):
 
     method: _METHOD_CHOICE = DEFAULT_METHOD  # type: ignore[valid-type]
     iterations: int = Field(DEFAULT_ITERATIONS, ge=0, le=MAX_ITERATIONS)
+    robust: Literal["none", *KERNELS] = "none"  # type: ignore[valid-type]
+    """A robust kernel against false loop closures: "cauchy" or "dcs" (methods sgd+gn and sgd)."""
+
+    @property
+    def robust_kernel(self) -> str | None:
+        return None if self.robust == "none" else self.robust
 
     @model_validator(mode="before")
     @classmethod
@@ -314,7 +321,8 @@ _SECTION_COMMENTS = {
              '# odom_topic = "/odom"    # default: the log\'s only odometry topic, if any\n',
     "optimizer": f"# method: one of {', '.join(METHODS)}\n"
                  f"# iterations: SGD (or Gauss-Seidel) iterations; with gn, the Gauss-Newton cap "
-                 f"(left out: {DEFAULT_POLISH_ITERATIONS})\n",
+                 f"(left out: {DEFAULT_POLISH_ITERATIONS})\n"
+                 f"# robust: none, {' or '.join(KERNELS)}: a robust kernel against false loop closures\n",
 }
 
 

@@ -52,6 +52,7 @@ def optimize_keyframes(
     iterations: int | None,
     on_iteration: IterationCallback | None = None,
     sink: IterationSink | None = None,
+    robust: str | None = None,
 ) -> KeyframeOptimization:
     """Optimize `from_odometry`'s constraints with `method` from the odometry and the online estimates,
     logging every iteration of both to `stream`; the lower final χ² wins. The two graphs hold the same
@@ -67,7 +68,7 @@ def optimize_keyframes(
     trace: list[tuple[str, int, float]] = []
     final = from_odometry.poses
     optimization = optimize(from_odometry, method=method, iterations=iterations,
-                            starts={"odometry": from_odometry.poses, "online": online.poses})
+                            starts={"odometry": from_odometry.poses, "online": online.poses}, robust=robust)
     for iteration in optimization:
         record_started = time.perf_counter()
         step = recorder.add(iteration)

@@ -101,6 +101,7 @@ def replay_cloud(
     cloud_topic: str | None = None,
     method: str = DEFAULT_METHOD,
     iterations: int | None = None,
+    robust: str | None = None,
     config: Slam3DConfig | None = None,
     on_iteration: IterationCallback | None = None,
     on_cloud: CloudCallback | None = None,
@@ -166,6 +167,7 @@ def replay_cloud(
                 iterations,
                 on_iteration,
                 _LiftedPoses(frontend, cloud_recording.KeyframePoseRecorder(stream)),
+                robust=robust,
             )
             trace, planar_poses = optimized.trace, optimized.poses
             timings["optimize_and_record"] = time.perf_counter() - optimize_started

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from optimizer.graph import PoseGraph
 from optimizer.graph_files import GraphFile, read_graph, write_g2o
-from optimizer.iteration import Iteration
+from optimizer.iteration import ESTIMATE, Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult, optimize
 from pipeline import recording
 from pipeline.errors import PipelineError
@@ -37,6 +37,8 @@ class IterationRecord:
     stage: str
     index: int
     chi2: float
+    start: str = ESTIMATE
+    """The starting estimate (candidate) the iteration belongs to."""
 
 
 @dataclass(frozen=True)
@@ -94,10 +96,12 @@ class GraphReplayResult:
 
     @property
     def iterations_per_stage(self) -> dict[str, int]:
-        """Number of iterations of each optimizer stage, in the order they ran (without "initial")."""
+        """Number of iterations of each optimizer stage over every candidate, in the order they ran (without
+        the starting estimates and the selection)."""
         counts: dict[str, int] = {}
-        for record in self.iterations[1:]:
-            counts[record.stage] = counts.get(record.stage, 0) + 1
+        for record in self.iterations:
+            if record.stage not in ("initial", "selected"):
+                counts[record.stage] = counts.get(record.stage, 0) + 1
         return counts
 
     @property
@@ -111,6 +115,7 @@ def replay_graph(
     out_dir: str | Path,
     method: str = DEFAULT_METHOD,
     iterations: int | None = None,
+    robust: str | None = None,
     repair_information: bool = False,
     progress: ProgressCallback | None = None,
 ) -> GraphReplayResult:
@@ -136,7 +141,7 @@ def replay_graph(
     loaded = time.perf_counter()
     outputs = ReplayOutputs.for_input(out_dir, path)
     with staged_outputs_in(out_dir, *outputs.as_tuple()) as (g2o_temporary, json_temporary, rrd_temporary):
-        run = _optimize_and_record(graph_file, rrd_temporary, method, iterations, progress)
+        run = _optimize_and_record(graph_file, rrd_temporary, method, iterations, progress, robust)
         optimized = time.perf_counter()
         write_g2o(g2o_temporary, graph_file.graph, run.final_poses)
         finished = time.perf_counter()
@@ -184,6 +189,7 @@ def _optimize_and_record(
     method: str,
     iterations: int | None,
     progress: ProgressCallback | None,
+    robust: str | None = None,
 ) -> _RecordedRun:
     """Run the optimizer and log every iteration to a recording saved at `rrd_path`."""
     graph = graph_file.graph
@@ -204,7 +210,7 @@ def _optimize_and_record(
         recording.log_initial_trajectory(stream, graph.poses)
         loops = ~graph.is_odometry
         recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops])
-        optimization = optimize(graph, method=method, iterations=iterations)
+        optimization = optimize(graph, method=method, iterations=iterations, robust=robust)
         iterator = iter(optimization)
         while True:
             step_started = time.perf_counter()
@@ -214,7 +220,8 @@ def _optimize_and_record(
             stage_seconds = time.perf_counter() - step_started
             optimize_time[iteration.stage] = optimize_time.get(iteration.stage, 0.0) + stage_seconds
             step = recorder.add(iteration)
-            trace.append(IterationRecord(step, iteration.stage, iteration.index, float(iteration.chi2)))
+            trace.append(IterationRecord(step, iteration.stage, iteration.index, float(iteration.chi2),
+                                         iteration.start))
             final_poses = iteration.poses
             if progress is not None:
                 progress(iteration)
@@ -245,7 +252,8 @@ def summary(result: GraphReplayResult) -> dict[str, Any]:
         "chi2_final": result.final_chi2,
         **optimization_summary(result.optimization),
         "chi2_per_iteration": [
-            {"step": record.step, "stage": record.stage, "index": record.index, "chi2": record.chi2}
+            {"step": record.step, "start": record.start, "stage": record.stage, "index": record.index,
+             "chi2": record.chi2}
             for record in result.iterations
         ],
         "wall_time_s": dict(result.wall_time),

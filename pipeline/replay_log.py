@@ -99,6 +99,7 @@ def replay_log(
     odometry_topic: str | None = None,
     method: str = DEFAULT_METHOD,
     iterations: int | None = None,
+    robust: str | None = None,
     config: Slam2DConfig | None = None,
     on_scan: ScanCallback | None = None,
     on_iteration: IterationCallback | None = None,
@@ -139,6 +140,7 @@ def replay_log(
                     method,
                     iterations,
                     on_iteration,
+                    robust=robust,
                 )
                 trace, keyframe_poses = optimized.trace, optimized.poses
                 timings["record_iterations"] = optimized.record_seconds

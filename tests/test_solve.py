@@ -28,14 +28,20 @@ def test_every_method_starts_from_the_initial_estimate_and_lowers_chi2(method: s
     assert len(steps) > 1
     assert steps[-1].chi2 < 0.1 * steps[0].chi2
     for previous, step in itertools.pairwise(steps):
-        assert step.index == (previous.index + 1 if step.stage == previous.stage else 1)
+        if step.stage in ("initial", "selected"):  # the next candidate's start, or the winner repeated
+            assert (step.index == 0 and step.start != previous.start) or step.stage == "selected"
+        else:
+            assert step.index == (previous.index + 1 if step.stage == previous.stage else 1)
 
 
 def test_stages_come_in_order() -> None:
     graph, _ = _square_loop(noise=0.05, seed=4)
-    stages = [s.stage for s in optimize(graph, "sgd+gn", iterations=7)]
-    assert stages[:8] == ["initial"] + ["sgd"] * 7
-    assert set(stages[8:]) == {"gauss-newton"}
+    run = list(optimize(graph, "sgd+gn", iterations=7))
+    stages = [s.stage for s in run if s.start == "estimate" and s.stage != "selected"]
+    assert stages[:15] == ["initial"] + ["sgd"] * 7 + ["sgd-tree"] * 7
+    assert set(stages[15:]) == {"gauss-newton"}
+    assert [s.stage for s in run if s.start == "chordal"][:2] == ["initial", "gauss-newton"]
+    assert run[-1].stage == "selected"
     assert [s.stage for s in optimize(graph, "sgd", iterations=3)] == ["initial", "sgd", "sgd", "sgd"]
 
 
@@ -149,3 +155,14 @@ def test_bad_arguments_raise_our_error() -> None:
         optimize(graph, starts={"bad": np.full(graph.poses.shape, np.nan)})
     with pytest.raises(OptimizerError, match="not run to its end"):
         _ = optimize(graph).result
+
+
+def test_a_robust_kernel_goes_with_the_sgd_methods_only() -> None:
+    graph = _poor_start_world(0).graph
+    with pytest.raises(OptimizerError, match="unknown|kernel"):
+        optimize(graph, robust="huber")
+    with pytest.raises(OptimizerError, match="works with the methods"):
+        optimize(graph, "gn", robust="dcs")
+    run = optimize(graph, "sgd+gn", iterations=5, robust="cauchy")
+    starts = {iteration.start for iteration in run}
+    assert starts == {"estimate"}  # no chordal candidate: the robust objective is another problem
