@@ -159,7 +159,7 @@ def test_bad_arguments_raise_our_error() -> None:
 
 def test_a_robust_kernel_goes_with_the_sgd_methods_only() -> None:
     graph = _poor_start_world(0).graph
-    with pytest.raises(OptimizerError, match="unknown|kernel"):
+    with pytest.raises(OptimizerError, match=r"unknown|kernel"):
         optimize(graph, robust="huber")
     with pytest.raises(OptimizerError, match="works with the methods"):
         optimize(graph, "gn", robust="dcs")
