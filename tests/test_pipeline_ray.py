@@ -184,10 +184,8 @@ def test_an_interrupt_cancels_the_outstanding_tasks_and_leaves_no_partial_file(t
                          replay_one=write_forever)
     assert [outcome.input_path.name for outcome in finished] == ["good.g2o"]
     assert sorted(path.name for path in out.iterdir()) == ["good.g2o", "good.json", "good.rrd"]
-    # A task that had started was interrupted (and removed its staged outputs itself) or cancelled before it
-    # reached its `try`; which of the two, and whether any had started, depends on the machine's load.
-    started = [events_file(path).read_text() for path in inputs[1:] if events_file(path).exists()]
-    assert all(text in ("started\n", "started\ninterrupted\n") for text in started)
+    # Whether a slow task had started, was interrupted, cancelled or killed depends on the machine's load;
+    # whatever happened, it left nothing behind.
     assert not [path.name for path in out.iterdir() if path.name.startswith(".")]
 
 

@@ -331,8 +331,8 @@ def test_failure_during_optimization_leaves_no_partial_files(tmp_path: Path, mon
     (out / "loop.json").write_text("previous run\n")
     graph_path = write_loop_graph(tmp_path / "loop.g2o")
 
-    def failing_optimize(graph, method, iterations):  # type: ignore[no-untyped-def]
-        yielded = iter(optimize(graph, method=method, iterations=iterations))
+    def failing_optimize(graph, method, iterations, **options):  # type: ignore[no-untyped-def]
+        yielded = iter(optimize(graph, method=method, iterations=iterations, **options))
         for _ in range(3):
             yield next(yielded)
         raise failure("stopped")
@@ -345,7 +345,7 @@ def test_failure_during_optimization_leaves_no_partial_files(tmp_path: Path, mon
 
 
 def test_failure_removes_an_output_folder_it_created(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    def failing_optimize(graph, method, iterations):  # type: ignore[no-untyped-def]
+    def failing_optimize(graph, method, iterations, **options):  # type: ignore[no-untyped-def]
         raise GraphError("stopped")
         yield  # a generator, like the real one
 
