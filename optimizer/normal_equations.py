@@ -185,6 +185,20 @@ def scaled_upper(hessian: FloatArray, indices: IntArray, indptr: IntArray, scale
         out[indptr[column + 1] - 1] += damping
 
 
+@njit(cache=True, inline="always")
+def _edge_times(jac_a: FloatArray, jac_b: FloatArray, a: int, b: int, vector: FloatArray,
+                moved: FloatArray) -> None:
+    """moved = J·v for one edge: how v over the free variables (pose 0 anchored) changes its error."""
+    for i in range(3):
+        total = 0.0
+        for p in range(3):
+            if a > 0:
+                total += jac_a[i, p] * vector[3 * (a - 1) + p]
+            if b > 0:
+                total += jac_b[i, p] * vector[3 * (b - 1) + p]
+        moved[i] = total
+
+
 @njit(cache=True)
 def hessian_product(poses: FloatArray, edge_from: IntArray, edge_to: IntArray, measurements: FloatArray,
                     information: FloatArray, vector: FloatArray, out: FloatArray) -> None:
@@ -197,14 +211,7 @@ def hessian_product(poses: FloatArray, edge_from: IntArray, edge_to: IntArray, m
     for k in range(edge_from.shape[0]):
         a, b = edge_from[k], edge_to[k]
         edge_linearisation(poses, a, b, measurements[k], e, jac_a, jac_b)
-        for i in range(3):
-            total = 0.0
-            for p in range(3):
-                if a > 0:
-                    total += jac_a[i, p] * vector[3 * (a - 1) + p]
-                if b > 0:
-                    total += jac_b[i, p] * vector[3 * (b - 1) + p]
-            moved[i] = total
+        _edge_times(jac_a, jac_b, a, b, vector, moved)
         info = information[k]
         for i in range(3):
             weighted = info[i, 0] * moved[0] + info[i, 1] * moved[1] + info[i, 2] * moved[2]
@@ -227,14 +234,7 @@ def quadratic_form(poses: FloatArray, edge_from: IntArray, edge_to: IntArray, me
     for k in range(edge_from.shape[0]):
         a, b = edge_from[k], edge_to[k]
         edge_linearisation(poses, a, b, measurements[k], e, jac_a, jac_b)
-        for i in range(3):
-            value = 0.0
-            for p in range(3):
-                if a > 0:
-                    value += jac_a[i, p] * vector[3 * (a - 1) + p]
-                if b > 0:
-                    value += jac_b[i, p] * vector[3 * (b - 1) + p]
-            moved[i] = value
+        _edge_times(jac_a, jac_b, a, b, vector, moved)
         info = information[k]
         for i in range(3):
             for j in range(3):
