@@ -598,6 +598,8 @@ def report_scale(results: list[dict]) -> str:
 def bench_figure(graph: PoseGraph, budget: float) -> list[Trace]:
     traces = [
         trace_iterations("SGD (paper)", lambda: optimize(graph, "sgd", iterations=100_000), budget),
+        trace_iterations("SGD on a spanning tree (sgd-tree)",
+                         lambda: optimize(graph, "sgd-tree", iterations=100_000), budget),
         trace_iterations("Gauss-Seidel", lambda: optimize(graph, "gauss-seidel", iterations=100_000), budget),
         trace_iterations("GN/LM (ours, from initial)", lambda: optimize(graph, "gn", iterations=200), budget),
         trace_iterations("SGD + GN (ours, default)", lambda: optimize(graph), budget),
