@@ -35,7 +35,7 @@ from optimizer.cost import edge_chi2
 from optimizer.errors import OptimizerError
 from optimizer.graph import PoseGraph
 from optimizer.iteration import Iteration
-from optimizer.polish import PolishStatus, gauss_newton
+from optimizer.polish import PolishStatus, _starting_poses, gauss_newton
 from optimizer.sgd import sgd
 
 FloatArray = NDArray[np.float64]
@@ -221,13 +221,6 @@ def robust_sgd(
         current = step.poses
         yield Iteration("sgd", offset + 1, step.poses,
                         robust_cost(graph, current, kernel, scale, protect_odometry=protect_odometry))
-
-
-def _starting_poses(graph: PoseGraph, poses: FloatArray | None) -> FloatArray:
-    start = np.array(graph.poses if poses is None else poses, dtype=np.float64, copy=True)
-    if start.shape != graph.poses.shape:
-        raise OptimizerError(f"expected poses of shape {graph.poses.shape}, got {start.shape}")
-    return start
 
 
 def robust_polish(

@@ -10,17 +10,10 @@ need no special case. Poses are summed exactly from the root at every visit, nev
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
-TWO_PI = 2.0 * math.pi
-
-
-@njit(cache=True, inline="always")
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % TWO_PI - math.pi
+from optimizer.sgd_kernels import _clamped_step, _rotated_information, _weighted_residual, _wrap
 
 
 @njit(cache=True)
@@ -96,16 +89,6 @@ def _pose_of(node: int, params: np.ndarray, parent: np.ndarray, root: int, out: 
     out[2] += params[root, 2]
 
 
-@njit(cache=True, inline="always")
-def _global_information_diagonal(theta: float, info: np.ndarray, out: np.ndarray) -> None:
-    """diag(R Ω Rᵀ) with R = Rot(θ): the constraint's information expressed in the global frame."""
-    c = math.cos(theta)
-    s = math.sin(theta)
-    out[0] = c * c * info[0, 0] - 2.0 * c * s * info[0, 1] + s * s * info[1, 1]
-    out[1] = s * s * info[0, 0] + 2.0 * c * s * info[0, 1] + c * c * info[1, 1]
-    out[2] = info[2, 2]
-
-
 @njit(cache=True)
 def tree_stiffness(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, top: np.ndarray,
                    information: np.ndarray, parent: np.ndarray, stiffness: np.ndarray,
@@ -117,16 +100,16 @@ def tree_stiffness(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
     """
     stiffness[:] = 0.0
     gamma[:] = np.inf
-    w = np.empty(3)
+    w = np.empty((3, 3))
     for k in range(edge_from.shape[0]):
-        _global_information_diagonal(poses[edge_from[k], 2], information[k], w)
+        _rotated_information(poses[edge_from[k], 2], information[k], w)
         for j in range(3):
-            gamma[j] = min(gamma[j], w[j])
+            gamma[j] = min(gamma[j], w[j, j])
         for side in range(2):
             node = edge_from[k] if side == 0 else edge_to[k]
             while node != top[k]:
                 for j in range(3):
-                    stiffness[node, j] += w[j]
+                    stiffness[node, j] += w[j, j]
                 node = parent[node]
 
 
@@ -147,28 +130,14 @@ def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.nd
     d = np.empty(3)
     total_weight = np.empty(3)
     beta = np.empty(3)
+    w = np.empty((3, 3))
     for position in range(visit_order.shape[0]):
         k = visit_order[position]
         a = edge_from[k]
         b = edge_to[k]
         _pose_of(a, params, parent, root, pa)
         _pose_of(b, params, parent, root, pb)
-        z = measurements[k]
-        c = math.cos(pa[2])
-        s = math.sin(pa[2])
-        r[0] = pa[0] + c * z[0] - s * z[1] - pb[0]
-        r[1] = pa[1] + s * z[0] + c * z[1] - pb[1]
-        r[2] = _wrap(pa[2] + z[2] - pb[2])
-        info = information[k]
-        # W = R Ω Rᵀ, applied as R (Ω (Rᵀ r)).
-        lx = c * r[0] + s * r[1]
-        ly = -s * r[0] + c * r[1]
-        ox = info[0, 0] * lx + info[0, 1] * ly + info[0, 2] * r[2]
-        oy = info[1, 0] * lx + info[1, 1] * ly + info[1, 2] * r[2]
-        d[0] = 2.0 * (c * ox - s * oy)
-        d[1] = 2.0 * (s * ox + c * oy)
-        d[2] = 2.0 * (info[2, 0] * lx + info[2, 1] * ly + info[2, 2] * r[2])
-
+        _weighted_residual(pa, pb, measurements[k], information[k], w, r, d)
         length = 0
         total_weight[:] = 0.0
         for side in range(2):
@@ -179,10 +148,7 @@ def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.nd
                     total_weight[j] += 1.0 / stiffness[node, j]
                 node = parent[node]
         for j in range(3):
-            step = length * d[j] / (learning_rate_scale * gamma[j] * t)
-            if abs(step) > abs(r[j]):
-                step = r[j]
-            beta[j] = step / total_weight[j]
+            beta[j] = _clamped_step(length, d[j], r[j], learning_rate_scale * gamma[j], t) / total_weight[j]
         for side in range(2):
             node = a if side == 0 else b
             sign = -1.0 if side == 0 else 1.0
