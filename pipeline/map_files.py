@@ -77,6 +77,7 @@ def picture_with_scale_bar(grid: OccupancyGrid) -> NDArray[np.uint8]:
     text_width = int(math.ceil(draw.textlength(label)))
     box_right = margin + max(bar_pixels, text_width) + 2 * margin
     draw.rectangle((margin, height - 24 - margin, box_right, height - margin), fill=255)
-    draw.rectangle((2 * margin, height - 2 * margin - 3, 2 * margin + bar_pixels, height - 2 * margin), fill=0)
+    bar_bottom = height - 2 * margin
+    draw.rectangle((2 * margin, bar_bottom - 3, 2 * margin + bar_pixels, bar_bottom), fill=0)
     draw.text((2 * margin, height - 22 - margin), label, fill=0)
     return np.asarray(image, dtype=np.uint8)
