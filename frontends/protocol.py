@@ -86,8 +86,8 @@ class LogFrontend(Protocol):
         """Every measurement's pose given optimized keyframe poses: (S, 3), or (S, 4, 4) in 3D."""
         ...
 
-    def map_export(self, planar_poses: FloatArray) -> NDArray[Any]:
-        """The map at optimized keyframe poses: an occupancy image (2D) or points (3D)."""
+    def map_export(self, planar_poses: FloatArray) -> Any:
+        """The map at optimized keyframe poses: an occupancy grid (2D) or points (3D)."""
         ...
 
     def counts(self) -> dict[str, int]:

@@ -120,7 +120,8 @@ class ReplayResult:
     """Sensor stamp of each scan of a log; None for a pose-graph file."""
     stats: ReplayStats
     outputs: Mapping[str, Path]
-    """The files written, by kind: "g2o", "json", "rrd", and for a log also "tum" and "map_png"."""
+    """The files written, by kind: "g2o", "json", "rrd", and for a log also "tum" and "map_png" (scans)
+    or "ply" (clouds)."""
     summary: Mapping[str, Any]
     """The machine-readable summary, as written to `<stem>.json`."""
     detail: LogReplayResult | GraphReplayResult
@@ -139,12 +140,14 @@ def replay(
     on_scan: ScanCallback | None = None,
     on_iteration: IterationCallback | None = None,
 ) -> ReplayResult:
-    """Replay a log (2D laser SLAM, then the optimizer) or optimize a pose-graph file, recording every
-    iteration, and write `<stem>.{tum,g2o,json,rrd}` to `out_dir`.
+    """Replay a log (2D laser or 3D LiDAR SLAM, then the optimizer) or optimize a pose-graph file,
+    recording every iteration, and write `<stem>.{g2o,json,rrd}` to `out_dir` (for a log also `.tum` and
+    the map, `_map.png` or `.ply`).
 
     `config` is a `ReplayConfig`, the path of a TOML configuration file, or None for the defaults.
-    `on_scan` is called with every scan's `ScanEstimate` as the frontend processes it (logs only);
-    `on_iteration` with every optimizer `Iteration`, the initial estimate first.
+    `on_scan` is called with every scan's or cloud's estimate (`frontends.protocol.Estimate`) as the
+    frontend processes it (logs only); `on_iteration` with every optimizer `Iteration`, the initial
+    estimate first. A log's warnings are raised as `LogWarning`s once the replay is done.
     """
     path = Path(path)
     if config is None:

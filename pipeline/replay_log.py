@@ -71,7 +71,7 @@ class FrontendRecording(Protocol):
 
     def iteration_sink(self) -> IterationSink | None: ...
 
-    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: NDArray[Any]) -> None: ...
+    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: Any) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -79,14 +79,16 @@ class _Sensor:
     """What a sensor kind chooses: its frontend, its recording, its map file."""
 
     frontend: Callable[[LogReader, str, Any, FrontendOptions], LogFrontend]
-    recording: Callable[[Any, Any], FrontendRecording]
+    recording: type[ScanReplayRecording] | type[CloudReplayRecording]
+    """A `FrontendRecording` of the frontend (`recording(stream, frontend)`)."""
     map_output: str
     map_suffix: str
     write_map: Callable[[Path, Any], None]
 
 
 _SENSORS = {
-    "scan": _Sensor(LaserFrontend, ScanReplayRecording, "map_png", "_map.png", write_png),
+    "scan": _Sensor(LaserFrontend, ScanReplayRecording, "map_png", "_map.png",
+                    lambda path, grid: write_png(path, grid.image())),
     "cloud": _Sensor(LidarFrontend, CloudReplayRecording, "ply", ".ply", write_ply),
 }
 
@@ -187,7 +189,8 @@ class _Optimized:
     optimization: OptimizationResult
     keyframe_poses: FloatArray
     poses: FloatArray
-    map_export: NDArray[Any]
+    map_export: Any
+    """What the frontend's `map_export` gave: an occupancy grid (scans) or points (clouds)."""
 
 
 @dataclass(frozen=True)
@@ -211,9 +214,10 @@ class _Run:
             frontend = sensor.frontend(log, topic, configs[kind], options)
             timings = {"read_odometry_tf": time.perf_counter() - started}
             stream = recording.create_recording(staged["rrd"], name=self.path.name,
-                                                with_map=sensor.recording.with_map)  # type: ignore[attr-defined]
+                                                with_map=sensor.recording.with_map)
             try:
-                result = self.through(frontend, topic, sensor.recording(stream, frontend), stream, timings)
+                recorder: FrontendRecording = sensor.recording(stream, frontend)  # type: ignore[arg-type]
+                result = self.through(frontend, topic, recorder, stream, timings)
             finally:
                 close_started = time.perf_counter()
                 recording.close_recording(stream)

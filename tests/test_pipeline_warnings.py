@@ -19,7 +19,7 @@ from frontends.slam2d import LaserFrontend
 from pipeline import replay
 from pipeline.cli import app
 from pipeline.warning_tally import WarningTally, tallied_warnings
-from tests.test_pipeline_log import write_drive
+from tests.pipeline_fixtures import write_drive
 
 SCANS = 10
 DROPPED_EVERY = 3

@@ -8,14 +8,13 @@ from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
 from frontends.logs import LogReader, Scan2D, Transform
 from frontends.protocol import FloatArray, FrontendOptions, IntArray, default_base_frame
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.log_input import OdometryTrack, read_odometry, scans_in_base_frame
-from frontends.slam2d.occupancy import occupancy_grid
+from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
 from optimizer.graph import PoseGraph
 
@@ -102,8 +101,8 @@ class LaserFrontend:
     def estimates(self, planar_poses: FloatArray) -> FloatArray:
         return self.result.scan_poses(planar_poses)
 
-    def map_export(self, planar_poses: FloatArray) -> NDArray[np.uint8]:
-        return occupancy_grid(self.result.keyframe_scans, planar_poses).image()
+    def map_export(self, planar_poses: FloatArray) -> OccupancyGrid:
+        return occupancy_grid(self.result.keyframe_scans, planar_poses)
 
     def counts(self) -> dict[str, int]:
         result = self.result

@@ -10,13 +10,11 @@ a replay.
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import rerun as rr
 from numpy.typing import NDArray
 
-from frontends.slam2d import LaserFrontend, ScanEstimate, ScanInBase, place
+from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, place
 from optimizer import se2
 from pipeline.keyframe_optimization import IterationSink
 from pipeline.recording import log_final_map
@@ -162,7 +160,7 @@ class ScanReplayRecording:
     def iteration_sink(self) -> IterationSink | None:
         return None
 
-    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: NDArray[Any]) -> None:
+    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
         log_final_map(self._recording, self._frontend.result.keyframe_scans, planar_poses)
         log_final_trajectory(self._recording, estimates)
-        log_occupancy(self._recording, map_export)
+        log_occupancy(self._recording, map_export.image())
