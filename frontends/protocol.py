@@ -1,5 +1,6 @@
 """What a log replay needs of a SLAM frontend, whatever its sensor: the interface both `frontends.slam2d`
-(laser scans) and `frontends.slam3d` (point clouds) implement, so that one replay drives either.
+(laser scans) and `frontends.slam3d` (point clouds) implement, so that one replay drives either, and the
+part of it both implementations share (`LogFrontendBase`).
 
 A frontend is built on an open log and its sensor topic; the replay streams `measurements()` through
 `add`, each giving an `Estimate` (for progress and the recording), then calls `finish` once. After that
@@ -8,14 +9,16 @@ the keyframe graph, every measurement's final pose and the map follow from optim
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Generic, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.logs import TransformTree
+from frontends.errors import FrontendError
+from frontends.logs import LogReader, TransformTree
 from optimizer.graph import PoseGraph
 
 FloatArray = NDArray[np.float64]
@@ -101,3 +104,42 @@ class LogFrontend(Protocol):
     def settings(self) -> dict[str, Any]:
         """The frontend's configuration, as plain data."""
         ...
+
+
+class _SlamResult(Protocol):
+    @property
+    def odometry_chain(self) -> FloatArray: ...
+
+
+ConfigT = TypeVar("ConfigT")
+ResultT = TypeVar("ResultT", bound=_SlamResult)
+
+
+class LogFrontendBase(Generic[ConfigT, ResultT]):
+    """What both `LogFrontend`s hold: the log and topic, its tf, the odometry topic chosen, the frames
+    (`base_frame` the one requested until the first measurement tells), and the SLAM's result once
+    `finish` set `_result`."""
+
+    def __init__(self, log: LogReader, topic: str, config: ConfigT, options: FrontendOptions | None) -> None:
+        options = options or FrontendOptions()
+        self.config = config
+        self._log = log
+        self._topic = topic
+        self.odometry_topic = log.odometry_topic(options.odometry_topic)
+        self._tree = log.transform_tree()
+        self.sensor_frame = ""
+        self.base_frame: str | None = options.base_frame
+        self._result: ResultT | None = None
+
+    @property
+    def result(self) -> ResultT:
+        if self._result is None:
+            raise FrontendError("the frontend has not finished")
+        return self._result
+
+    @property
+    def odometry_chain(self) -> FloatArray:
+        return self.result.odometry_chain
+
+    def settings(self) -> dict[str, Any]:
+        return dataclasses.asdict(self.config)  # type: ignore[call-overload, no-any-return]

@@ -3,7 +3,6 @@ odometry in, the keyframe graph, every scan's pose and an occupancy map out."""
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterator
 from typing import Any
 
@@ -11,7 +10,7 @@ import numpy as np
 
 from frontends.errors import FrontendError
 from frontends.logs import LogReader, Scan2D, Transform
-from frontends.protocol import FloatArray, FrontendOptions, IntArray, default_base_frame
+from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, default_base_frame
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.log_input import OdometryTrack, read_odometry, scans_in_base_frame
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
@@ -22,31 +21,24 @@ ScanInBase = tuple[Scan2D, Transform | None]
 """A scan with its points in the base frame, and the mount tf gave (None: left in the sensor frame)."""
 
 
-class LaserFrontend:
+class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
     """`LaserSlam2D` on the scans of `topic` in an open log; see `frontends.protocol.LogFrontend`."""
 
     def __init__(self, log: LogReader, topic: str, config: Slam2DConfig | None = None,
                  options: FrontendOptions | None = None) -> None:
-        self.config = config or Slam2DConfig()
-        options = options or FrontendOptions()
-        self._log = log
-        self._topic = topic
+        super().__init__(log, topic, config or Slam2DConfig(), options)
         self._input_counts: dict[str, int] = {}  # what the input checks dropped, skipped or reordered
-        self.odometry_topic = log.odometry_topic(options.odometry_topic)
-        self.odometry: OdometryTrack | None = read_odometry(log, options.odometry_topic,
+        self.odometry: OdometryTrack | None = read_odometry(log, self.odometry_topic,
                                                             counts=self._input_counts)
-        self._tree = log.transform_tree()
-        self._requested_base = options.base_frame or (self.odometry.child_frame if self.odometry else None)
-        self.sensor_frame = ""
-        self.base_frame: str | None = None
+        if self.base_frame is None and self.odometry is not None:  # the odometry's poses are of that frame
+            self.base_frame = self.odometry.child_frame
         self._slam = LaserSlam2D(self.config)
         self._counts = {"scans": 0, "scans_with_tf_mount": 0, "scans_with_odometry": 0}
         self.odometry_poses: list[FloatArray] = []
         """The wheel-odometry pose at every scan that had one (for the recording)."""
-        self._result: Slam2DGraph | None = None
 
     def measurements(self) -> Iterator[ScanInBase]:
-        base = self._requested_base
+        base = self.base_frame
         for scan, mount in scans_in_base_frame(self._log, self._topic, self._tree, base,
                                                min_points=self.config.matching.min_points,
                                                counts=self._input_counts):
@@ -80,19 +72,9 @@ class LaserFrontend:
             self.base_frame = None
         self._result = self._slam.finish()
 
-    @property
-    def result(self) -> Slam2DGraph:
-        if self._result is None:
-            raise FrontendError("the frontend has not finished")
-        return self._result
-
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         graph = self.result.graph
         return graph if planar_poses is None else graph.with_poses(planar_poses)
-
-    @property
-    def odometry_chain(self) -> FloatArray:
-        return self.result.odometry_chain
 
     @property
     def stamps_ns(self) -> IntArray:
@@ -114,6 +96,3 @@ class LaserFrontend:
         return {"accepted": result.loop_closures_accepted, "rejected": result.loop_closures_rejected,
                 "candidates": {"accepted": result.loop_closures_accepted + result.loop_closures_rejected,
                                "unconfirmed": result.loop_closures_unconfirmed}}
-
-    def settings(self) -> dict[str, Any]:
-        return dataclasses.asdict(self.config)

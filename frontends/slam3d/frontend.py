@@ -3,7 +3,6 @@ graph, every cloud's 3D pose and a point map out."""
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterator
 from typing import Any
 
@@ -12,7 +11,7 @@ from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
 from frontends.logs import Cloud3D, LogReader
-from frontends.protocol import FloatArray, FrontendOptions, IntArray, default_base_frame
+from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, default_base_frame
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
 from optimizer.graph import PoseGraph
@@ -21,7 +20,7 @@ MAP_VOXEL = 0.2
 """The map keeps one point per voxel of this size (m)."""
 
 
-class LidarFrontend:
+class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
     """`LidarSlam3D` on the clouds of `topic` in an open log; see `frontends.protocol.LogFrontend`.
 
     The odometry topic is chosen here (`odometry_topic`) for the odometry prior of the 3D frontend; the
@@ -29,20 +28,11 @@ class LidarFrontend:
 
     def __init__(self, log: LogReader, topic: str, config: Slam3DConfig | None = None,
                  options: FrontendOptions | None = None) -> None:
-        self.config = config or Slam3DConfig()
-        options = options or FrontendOptions()
-        self._log = log
-        self._topic = topic
-        self.odometry_topic = log.odometry_topic(options.odometry_topic)
-        self._tree = log.transform_tree()
-        self._requested_base = options.base_frame
-        self.sensor_frame = ""
-        self.base_frame: str | None = None
+        super().__init__(log, topic, config or Slam3DConfig(), options)
         self._slam: LidarSlam3D | None = None
         self._clouds = 0
         self._points = 0
         self._map_points: int | None = None
-        self._result: Slam3DGraph | None = None
 
     def measurements(self) -> Iterator[Cloud3D]:
         return self._log.clouds(self._topic)
@@ -50,7 +40,7 @@ class LidarFrontend:
     def add(self, measurement: Cloud3D) -> CloudEstimate:
         if self._slam is None:
             self.sensor_frame = measurement.frame_id
-            base = self._requested_base or default_base_frame(self._tree, measurement.frame_id)
+            base = self.base_frame or default_base_frame(self._tree, measurement.frame_id)
             mount = self._tree.sensor_mount(base, measurement.frame_id, measurement.stamp_ns)
             self.base_frame = base if mount is not None or measurement.frame_id == base else None
             self._slam = LidarSlam3D(self.config, sensor_to_base=None if mount is None else mount.matrix())
@@ -63,18 +53,8 @@ class LidarFrontend:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no point clouds")
         self._result = self._slam.finish()
 
-    @property
-    def result(self) -> Slam3DGraph:
-        if self._result is None:
-            raise FrontendError("the frontend has not finished")
-        return self._result
-
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         return self.result.planar_graph(planar_poses)
-
-    @property
-    def odometry_chain(self) -> FloatArray:
-        return self.result.odometry_chain
 
     @property
     def stamps_ns(self) -> IntArray:
@@ -102,6 +82,3 @@ class LidarFrontend:
         result = self.result
         return {"accepted": result.loop_closures_accepted, "rejected": result.loop_closures_rejected,
                 "candidates": dict(result.loop_candidates)}
-
-    def settings(self) -> dict[str, Any]:
-        return dataclasses.asdict(self.config)
