@@ -25,7 +25,7 @@ from threadpoolctl import threadpool_limits
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from frontends.log import open_log  # noqa: E402
+from frontends.logs import open_log  # noqa: E402
 from pipeline.evaluation import evaluate_files  # noqa: E402
 from pipeline.replay_log import LogReplayResult, replay_log  # noqa: E402
 

@@ -33,7 +33,7 @@ sys.path.insert(0, str(REPO))
 from kiss_icp.config import load_config  # noqa: E402
 from kiss_icp.kiss_icp import KissICP  # noqa: E402
 
-from frontends.log import open_log  # noqa: E402
+from frontends.logs import open_log  # noqa: E402
 from frontends.slam3d import se3  # noqa: E402
 from pipeline.replay_cloud import CloudReplayResult, replay_cloud  # noqa: E402
 from tests.lidar_world import Lidar, drive, planar_to_matrix, town_loop, write_cloud_log  # noqa: E402

@@ -27,7 +27,7 @@ from pipeline.config import ReplayConfig, load_config
 from pipeline.errors import PipelineError
 
 if TYPE_CHECKING:
-    from frontends.slam2d.slam import ScanEstimate
+    from frontends.slam2d import ScanEstimate
     from optimizer.graph import PoseGraph
     from optimizer.iteration import Iteration
     from pipeline.replay_cloud import CloudReplayResult
@@ -166,7 +166,7 @@ def replay(
 
 def _sensor_kind(path: Path, topic: str | None) -> str:
     """ "scan" or "cloud": what the log's sensor topic carries (from its channels, not its messages)."""
-    from frontends.log import open_log
+    from frontends.logs import open_log
 
     with open_log(path) as log:
         return log.sensor_topic(topic)[1]
@@ -270,7 +270,7 @@ def _outputs(outputs: Any) -> dict[str, Path]:
 def expected_scans(path: str | Path, scan_topic: str | None = None) -> int | None:
     """How many scans a replay of the log at `path` will read, from the log's summary (for a progress
     bar); None when that cannot be told (the replay itself then reports why)."""
-    from frontends.log import open_log
+    from frontends.logs import open_log
 
     try:
         with open_log(path) as log:

@@ -39,7 +39,7 @@ if TYPE_CHECKING:
     from rich.console import Console
     from rich.progress import Progress, TaskID
 
-    from frontends.slam2d.slam import ScanEstimate
+    from frontends.slam2d import ScanEstimate
     from optimizer.iteration import Iteration
     from pipeline.batch import BatchOutcome, RayOptions
     from pipeline.config import ReplayConfig
@@ -571,7 +571,7 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object on stdout.")] = False,
 ) -> None:
     """Show a log's topics, message types, counts, rates and time span."""
-    from frontends.log import open_log
+    from frontends.logs import open_log
 
     try:
         with open_log(log) as reader:

@@ -37,7 +37,7 @@ from pydantic import (
     model_validator,
 )
 
-from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d import Slam2DConfig
 from optimizer.file_input import read_bytes_bounded
 from optimizer.robust import KERNELS
 from optimizer.solve import (

@@ -25,11 +25,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.log import open_log
-from frontends.slam2d.log_input import laser_mount
-from frontends.slam3d.config import Slam3DConfig
-from frontends.slam3d.odometry import downsample
-from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
+from frontends.logs import open_log
+from frontends.slam3d import CloudEstimate, LidarSlam3D, Slam3DConfig, Slam3DGraph, downsample
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
@@ -131,7 +128,7 @@ def replay_cloud(
         for cloud in log.clouds(topic):
             if slam is None:
                 sensor_frame = cloud.frame_id
-                mount = laser_mount(tree, base_frame, cloud.frame_id, cloud.stamp_ns)
+                mount = tree.sensor_mount(base_frame, cloud.frame_id, cloud.stamp_ns)
                 mounted_on = base_frame if mount is not None or cloud.frame_id == base_frame else None
                 slam = LidarSlam3D(config, sensor_to_base=None if mount is None else mount.matrix())
             estimate = slam.add_cloud(cloud)

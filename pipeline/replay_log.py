@@ -23,13 +23,18 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.log import LogReader, open_log
-from frontends.slam2d.config import Slam2DConfig
-from frontends.slam2d.local_map import place
-from frontends.slam2d.log_input import OdometryTrack, read_odometry, scans_in_base_frame
-from frontends.slam2d.occupancy import occupancy_grid
-from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
-from frontends.transforms import TransformTree
+from frontends.logs import LogReader, TransformTree, open_log
+from frontends.slam2d import (
+    LaserSlam2D,
+    OdometryTrack,
+    ScanEstimate,
+    Slam2DConfig,
+    Slam2DGraph,
+    occupancy_grid,
+    place,
+    read_odometry,
+    scans_in_base_frame,
+)
 from optimizer import se2
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration

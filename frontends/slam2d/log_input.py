@@ -14,11 +14,11 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from frontends.errors import TransformLookupError, UnusableLogError
-from frontends.log import LogReader
+from frontends.errors import UnusableLogError
+from frontends.logs.log import LogReader
+from frontends.logs.transforms import TransformTree
+from frontends.logs.types import Scan2D, Transform
 from frontends.slam2d.config import DataChecksConfig, MatchingConfig
-from frontends.transforms import TransformTree
-from frontends.types import Scan2D, Transform
 from optimizer import se2
 
 FloatArray = NDArray[np.float64]
@@ -164,17 +164,6 @@ def _reachable(
     return distance <= max_speed * seconds and turn <= max_turn_rate * seconds
 
 
-def laser_mount(tree: TransformTree, base_frame: str, laser_frame: str, stamp_ns: int) -> Transform | None:
-    """The transform placing laser points in the base frame, None when tf does not link the two frames
-    (the laser is then taken to sit at the base's origin)."""
-    if not laser_frame or laser_frame == base_frame:
-        return None
-    try:
-        return tree.lookup(base_frame, laser_frame, stamp_ns)
-    except TransformLookupError:
-        return None
-
-
 def scans_in_base_frame(
     log: LogReader,
     topic: str,
@@ -205,7 +194,7 @@ def scans_in_base_frame(
             continue
         if scan.frame_id != looked_up_for:
             looked_up_for = scan.frame_id
-            mount = laser_mount(tree, base_frame, scan.frame_id, scan.stamp_ns)
+            mount = tree.sensor_mount(base_frame, scan.frame_id, scan.stamp_ns)
         yield (scan.transformed(mount) if mount is not None else scan), mount is not None
     if read and usable < checks.min_usable_scan_share * read:
         raise UnusableLogError(

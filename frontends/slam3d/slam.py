@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from frontends.errors import FrontendError
+from frontends.logs.types import Cloud3D
 from frontends.loop_closing import Constraints, HypothesisPool, path_lengths
 from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
@@ -40,7 +41,6 @@ from frontends.slam3d.loop_closure import (
     verify_loop,
 )
 from frontends.slam3d.odometry import KissOdometry, Odometry, downsample
-from frontends.types import Cloud3D
 from optimizer import se2
 from optimizer.cost import edge_chi2
 from optimizer.graph import PoseGraph
