@@ -12,16 +12,19 @@ Two trees, each with the constraint order and schedule measured best for it (ben
   it shares a constraint with, so a pose that revisits a place hangs from the first visit. Constraints are
   visited by the depth of their path's top node, shallowest first, and the learning rate's counter starts
   at 2, all as TORO does (its `propagateErrors` increments the counter before the first pass). On M3500 this
-  is TORO's 248.8 after 100 iterations (the breadth-first tree: 309).
+  is TORO's 248.8 after 100 iterations (the breadth-first tree: 309). Unlike TORO, poses are summed
+  exactly from the root at every visit (TORO reads the top's cached pose, which may be stale), and M is
+  recomputed on the paper's schedule rather than every iteration (no difference on M3500).
 - "breadth-first": shortest paths to pose 0 in constraint hops; constraints visited by path length,
   shortest first, so each loop is closed over local structure that is already consistent. Far better
-  than the incremental tree where loop closures are much less certain than odometry or the information
-  spans many orders of magnitude (FR079: 136 against 485; INTEL: 1.1e3 against 1.3e5).
+  than the incremental tree on FR079 (136 against 485 after 100 iterations), INTEL (1.1e3 against 1.3e5)
+  and generated worlds whose loop closures are less certain than their odometry (1.7e4 against 1.0e5).
 - "auto" (default) takes the incremental tree only where its paths are shorter in total (TORO's
   "complexity of an iteration", the parameters one pass moves) and, in every dimension, carry less
   variance relative to their constraints' own (`path_variance`): the incremental tree hangs revisits from
-  loop closures, which hurts where those are less certain than odometry (generated grid worlds, FR079).
-  Breadth-first otherwise, and on ties.
+  loop closures, which hurts where those are less certain than odometry. Breadth-first otherwise, and on
+  ties. Neither rule alone separates the graphs measured (path length alone picks the incremental tree
+  on generated worlds, path variance alone on INTEL).
 """
 
 from __future__ import annotations

@@ -177,12 +177,14 @@ def path_variance_ratios(parent: np.ndarray, edge_from: np.ndarray, edge_to: np.
         child = b if parent[b] == a else (a if parent[a] == b else -1)
         if child >= 0 and child != parent[child]:
             for j in range(3):
-                variance[child, j] = min(variance[child, j], 1.0 / information[k, j, j])
+                if information[k, j, j] > 0.0:  # a direction without information adds no certainty
+                    variance[child, j] = min(variance[child, j], 1.0 / information[k, j, j])
     out[:] = 0.0
     for k in range(edge_from.shape[0]):
         for side in range(2):
             node = edge_from[k] if side == 0 else edge_to[k]
             while node != top[k]:
                 for j in range(3):
-                    out[j] += variance[node, j] * information[k, j, j]
+                    if information[k, j, j] > 0.0:
+                        out[j] += variance[node, j] * information[k, j, j]
                 node = parent[node]
