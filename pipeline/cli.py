@@ -585,9 +585,12 @@ def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None = N
     table = Table(title=f"{len(outcomes)} inputs, {len(outcomes) - failed} done, {failed} failed",
                   title_justify="left", caption=None if summary_path is None else f"table: {summary_path}",
                   caption_justify="left")
-    for column, justify in (("input", "left"), ("result", "left"), ("poses", "right"), ("loops", "right"),
-                            ("chi2 initial -> final", "right"), ("time s", "right")):
-        table.add_column(column, justify=justify)  # type: ignore[arg-type]
+    # A path cut short ("…") cannot be found again: the input column always holds whole paths, the
+    # other columns fold instead.
+    table.add_column("input", no_wrap=True, min_width=max(len(str(o.input_path)) for o in outcomes))
+    table.add_column("result", overflow="fold")
+    for column in ("poses", "loops", "chi2 initial -> final", "time s"):
+        table.add_column(column, justify="right")
     for outcome in outcomes:
         stats = outcome.stats
         if stats is None:
