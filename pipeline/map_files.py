@@ -72,6 +72,7 @@ def picture_with_scale_bar(grid: OccupancyGrid) -> NDArray[np.uint8]:
     bar_pixels = max(int(round(length_m / grid.resolution)), 1)
     image = Image.fromarray(picture, mode="L")
     draw = ImageDraw.Draw(image)
+    draw.fontmode = "1"  # no anti-aliasing: the picture keeps its three values (occupied, unknown, free)
     label = f"{length_m:g} m"
     margin = 4
     text_width = int(math.ceil(draw.textlength(label)))

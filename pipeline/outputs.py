@@ -230,6 +230,14 @@ def write_text(path: Path, text: str) -> None:
         raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
 
 
+def write_bytes(path: Path, data: bytes) -> None:
+    """Write `data`, turning OS errors into an OutputError that names the file."""
+    try:
+        path.write_bytes(data)
+    except OSError as error:
+        raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
+
+
 def write_png(path: Path, image: Any) -> None:
     """Write a uint8 grey or RGB image (rows top to bottom) as PNG."""
     from PIL import Image

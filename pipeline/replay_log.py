@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from frontends.logs import LogReader, open_log
 from frontends.protocol import Estimate, FrontendOptions, LogFrontend
-from frontends.slam2d import LaserFrontend, Slam2DConfig
+from frontends.slam2d import LaserFrontend, OccupancyGrid, Slam2DConfig
 from frontends.slam3d import LidarFrontend, Slam3DConfig, planar
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
@@ -38,11 +38,13 @@ from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
 from pipeline import recording
 from pipeline.errors import PipelineError
 from pipeline.keyframe_optimization import IterationSink, optimize_keyframes
+from pipeline.map_files import map_server_pgm, map_server_yaml, picture_with_scale_bar
 from pipeline.outputs import (
     json_text,
     optimization_summary,
     output_stem,
     staged_outputs_in,
+    write_bytes,
     write_png,
     write_text,
 )
@@ -75,21 +77,39 @@ class FrontendRecording(Protocol):
 
 
 @dataclass(frozen=True)
+class _MapFile:
+    """One map output: its `ReplayOutputs` field, its name after the stem, and how it is written."""
+
+    output: str
+    suffix: str
+    write: Callable[[Path, Any, ReplayOutputs], None]
+    """(staged path, the frontend's map export, the outputs' published paths)."""
+
+
+@dataclass(frozen=True)
 class _Sensor:
-    """What a sensor kind chooses: its frontend, its recording, its map file."""
+    """What a sensor kind chooses: its frontend, its recording, its map files."""
 
     frontend: Callable[[LogReader, str, Any, FrontendOptions], LogFrontend]
     recording: type[ScanReplayRecording] | type[CloudReplayRecording]
     """A `FrontendRecording` of the frontend (`recording(stream, frontend)`)."""
-    map_output: str
-    map_suffix: str
-    write_map: Callable[[Path, Any], None]
+    map_files: tuple[_MapFile, ...]
+
+
+def _write_map_yaml(path: Path, grid: OccupancyGrid, outputs: ReplayOutputs) -> None:
+    assert outputs.map_pgm is not None
+    write_text(path, map_server_yaml(grid, outputs.map_pgm.name))
 
 
 _SENSORS = {
-    "scan": _Sensor(LaserFrontend, ScanReplayRecording, "map_png", "_map.png",
-                    lambda path, grid: write_png(path, grid.image())),
-    "cloud": _Sensor(LidarFrontend, CloudReplayRecording, "ply", ".ply", write_ply),
+    "scan": _Sensor(LaserFrontend, ScanReplayRecording, (
+        _MapFile("map_png", "_map.png", lambda path, grid, _: write_png(path, picture_with_scale_bar(grid))),
+        _MapFile("map_pgm", "_map.pgm", lambda path, grid, _: write_bytes(path, map_server_pgm(grid))),
+        _MapFile("map_yaml", "_map.yaml", _write_map_yaml),
+    )),
+    "cloud": _Sensor(LidarFrontend, CloudReplayRecording, (
+        _MapFile("ply", ".ply", lambda path, points, _: write_ply(path, points)),
+    )),
 }
 
 
@@ -100,7 +120,10 @@ class ReplayOutputs:
     json: Path
     rrd: Path
     map_png: Path | None = None
-    """The occupancy grid (scans)."""
+    """The occupancy grid (scans), north up, with a scale bar."""
+    map_pgm: Path | None = None
+    """The occupancy grid for ROS map_server (scans), with `map_yaml`."""
+    map_yaml: Path | None = None
     ply: Path | None = None
     """The point map (clouds)."""
 
@@ -109,11 +132,12 @@ class ReplayOutputs:
         stem = output_stem(input_path)
         chosen = _SENSORS[sensor]
         files = {suffix: out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd")}
-        return cls(**files, **{chosen.map_output: out_dir / f"{stem}{chosen.map_suffix}"})
+        return cls(**files, **{map_file.output: out_dir / f"{stem}{map_file.suffix}"
+                               for map_file in chosen.map_files})
 
     def paths(self) -> dict[str, Path]:
         """Kind → path of every output written ("tum", "g2o", "json", "rrd" and the map's)."""
-        names = ("tum", "g2o", "json", "rrd", "map_png", "ply")
+        names = ("tum", "g2o", "json", "rrd", "map_png", "map_pgm", "map_yaml", "ply")
         return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
 
 
@@ -225,7 +249,8 @@ class _Run:
             write_started = time.perf_counter()
             write_tum(staged["tum"], frontend.stamps_ns, result.poses)
             write_g2o(staged["g2o"], frontend.keyframe_graph(), result.keyframe_poses)
-            sensor.write_map(staged[sensor.map_output], result.map_export)
+            for map_file in sensor.map_files:
+                map_file.write(staged[map_file.output], result.map_export, outputs)
             timings["write"] = time.perf_counter() - write_started
             timings["total"] = time.perf_counter() - started
             replayed = LogReplayResult(

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from mcap.writer import Writer as McapWriter
 from PIL import Image
 from typer.testing import CliRunner
@@ -51,8 +52,13 @@ def test_replay_of_a_log_writes_a_trajectory_per_scan_that_follows_the_truth(
         "drive.json",
         "drive.rrd",
         "drive.tum",
+        "drive_map.pgm",
         "drive_map.png",
+        "drive_map.yaml",
     ]
+    map_yaml = yaml.safe_load((out / "drive_map.yaml").read_text())
+    assert map_yaml["image"] == "drive_map.pgm" and map_yaml["mode"] == "trinary"
+    assert (out / "drive_map.pgm").read_bytes().startswith(b"P5")
 
     trajectory = read_tum(out / "drive.tum")
     np.testing.assert_array_equal(trajectory.stamps_ns, START_NS + np.arange(len(truth)) * SCAN_PERIOD_NS)
