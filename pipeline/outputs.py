@@ -97,7 +97,7 @@ def _publish(staging: Path, temporaries: tuple[Path, ...], targets: tuple[Path, 
         _fsync_path(staging)
     except OSError as error:
         raise _folder_error(targets[0].parent, error) from error
-    with _signals_held():
+    with stop_signals_held():
         for temporary, target in zip(temporaries, targets, strict=True):
             try:
                 os.replace(temporary, target)
@@ -108,10 +108,11 @@ def _publish(staging: Path, temporaries: tuple[Path, ...], targets: tuple[Path, 
 
 
 @contextmanager
-def _signals_held() -> Iterator[None]:
-    """Hold SIGINT and SIGTERM back while the block runs, then deliver them. Python runs signal handlers
-    in the main thread whichever thread the kernel picks, so the main thread's handlers are swapped (a
-    thread mask would not do); elsewhere signals cannot interrupt this thread anyway."""
+def stop_signals_held(*, redeliver: bool = True) -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back while the block runs, then deliver them (or, with `redeliver=False`,
+    drop them: the block is itself the reaction to one). Python runs signal handlers in the main thread
+    whichever thread the kernel picks, so the main thread's handlers are swapped (a thread mask would not
+    do); elsewhere signals cannot interrupt this thread anyway."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -124,7 +125,7 @@ def _signals_held() -> Iterator[None]:
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-        for number in received:
+        for number in received if redeliver else ():
             signal.raise_signal(number)
 
 
