@@ -15,14 +15,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from frontends import FrontendError, LogFileError, LogWarning, open_log
-from frontends.containers.detect import split_bag_files
-from frontends.errors import MapExtentError, UnusableLogError
+from frontends.errors import FrontendError, LogFileError, LogWarning, MapExtentError, UnusableLogError
+from frontends.logs import TransformTree, open_log
+from frontends.logs.containers.detect import split_bag_files
 from frontends.slam2d.config import DataChecksConfig
 from frontends.slam2d.grid import MAX_LIKELIHOOD_CELLS, build_likelihood_grid
 from frontends.slam2d.log_input import read_odometry, scans_in_base_frame
 from frontends.slam2d.occupancy import MAX_MAP_CELLS, occupancy_grid
-from frontends.transforms import TransformTree
 from tests._frontends_fixtures import write_mcap_ros, write_rosbag1
 from tests.hostile_fixtures import (
     CLOUD_LAYOUTS,

@@ -17,7 +17,7 @@ from optimizer.graph_files import write_g2o
 from optimizer.gridworld import generate_grid_world
 from pipeline import api
 from pipeline.errors import OutputError
-from tests.test_pipeline_replay import write_loop_graph
+from tests.pipeline_fixtures import write_loop_graph
 
 OUTPUTS = ("city.g2o", "city.json", "city.rrd")
 

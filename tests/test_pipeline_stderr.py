@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from tests.hostile_fixtures import scan_log, walls
-from tests.test_pipeline_log import write_drive
+from tests.pipeline_fixtures import write_drive
 
 FOREIGN_MARKS = ("\x1b[", "WARN", "ERROR", "Warning", "Traceback", "warnings.warn", ".py:")
 
