@@ -119,10 +119,13 @@ def test_replay_writes_graph_summary_and_recording(tmp_path: Path, method: str) 
     assert len(yielded) == len(trace)
     entities = read_recording(out / "loop.rrd")
     per_iteration = ["/" + path for path in (recording.TRAJECTORY_ENTITY, recording.LOOP_CLOSURES_ENTITY,
-                                              recording.CHI2_ENTITY, recording.STAGE_ENTITY)]
+                                              recording.CHI2_ENTITY)]
     for path in per_iteration:
         assert entities[path].timelines == {"iteration"}, path
         assert entities[path].steps == list(range(len(yielded))), path
+    stages = entities["/" + recording.STAGE_ENTITY]  # repeats of a converged stage are left out
+    assert stages.timelines == {"iteration"} and stages.steps[0] == 0
+    assert set(stages.steps) <= set(range(len(yielded)))
 
     trajectories = entities["/world/trajectory"].columns["LineStrips2D:strips"]
     for step in (0, len(yielded) - 1):

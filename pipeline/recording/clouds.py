@@ -22,13 +22,13 @@ import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
 from pipeline.recording import (
-    CHI2_ENTITY,
     INITIAL_TRAJECTORY_COLOR,
     ITERATION_TIMELINE,
+    LEGEND_ENTITY,
     LOG10_CHI2_ENTITY,
     STAGE_ENTITY,
     TRAJECTORY_COLOR,
-    WORLD_ENTITY,
+    map_view,
 )
 
 WORLD3D_ENTITY = "world3d"
@@ -50,21 +50,25 @@ def keyframe_entity(index: int) -> str:
 
 
 def cloud_blueprint() -> rrb.Blueprint:
-    """The 3D scene, the planar pose graph, χ² and the stage log; the time panel on `iteration`."""
+    """The 3D scene (the static final map off by default: the keyframe clouds already are the map, moving
+    with the iterations), the planar pose graph (y up), χ² on a log scale, the stage log and the legend;
+    the time panel on `iteration`."""
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin=WORLD3D_ENTITY, name="keyframes and map (3D)"),
+            rrb.Spatial3DView(origin=WORLD3D_ENTITY, name="keyframes and map (3D)",
+                              overrides={f"/{MAP3D_ENTITY}": rrb.EntityBehavior(visible=False)}),
             rrb.Vertical(
-                rrb.Spatial2DView(origin=WORLD_ENTITY, name="pose graph (x, y)"),
-                rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="log10 χ²"),
-                rrb.TimeSeriesView(origin=CHI2_ENTITY, name="χ²"),
+                map_view(),
+                rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
                 rrb.TextLogView(origin=STAGE_ENTITY, name="stages"),
+                rrb.TextDocumentView(origin=LEGEND_ENTITY, name="legend"),
                 row_shares=[3, 2, 2, 1],
             ),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(timeline=ITERATION_TIMELINE),
-        collapse_panels=False,
+        rrb.TimePanel(timeline=ITERATION_TIMELINE, state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
     )
 
 
