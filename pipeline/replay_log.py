@@ -41,7 +41,7 @@ from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
 from pipeline import recording
 from pipeline.errors import PipelineError
-from pipeline.keyframe_optimization import optimize_keyframes
+from pipeline.keyframe_optimization import optimize_keyframes, wheel_odometry_start
 from pipeline.outputs import (
     json_text,
     optimization_summary,
@@ -50,6 +50,7 @@ from pipeline.outputs import (
     write_png,
     write_text,
 )
+from pipeline.recording import map2d
 from pipeline.recording import scans as scan_recording
 from pipeline.trajectory_io import write_tum
 
@@ -132,12 +133,15 @@ def replay_log(
         staged = staged_outputs_in(out_dir, *outputs.as_tuple())
         with staged as (tum_tmp, g2o_tmp, json_tmp, rrd_tmp, png_tmp):
             stream = recording.create_recording(rrd_tmp, name=path.name, with_map=True)
+            recording.log_run_properties(stream, {"input": str(path), "scan_topic": topic,
+                                                  "odometry_topic": chosen_odometry or "", "method": method})
             run: _FrontendRun | None = None
             try:
                 run = _run_frontend(log, topic, odometry, tree, config, stream, on_scan, data_counts)
                 timings["frontend"] = run.seconds - run.record_seconds
                 frontend = run.frontend
                 optimize_started = time.perf_counter()
+                first_scans = np.unique(frontend.scan_keyframes, return_index=True)[1]
                 optimized = optimize_keyframes(
                     stream,
                     frontend.graph.with_poses(frontend.odometry_chain),
@@ -146,18 +150,22 @@ def replay_log(
                     iterations,
                     on_iteration,
                     robust=robust,
+                    keyframe_scans=frontend.keyframe_scans,
+                    wheel_odometry=None if odometry is None else wheel_odometry_start(
+                        odometry.interpolate(frontend.scan_stamps_ns[first_scans])[0],
+                        frontend.odometry_chain[0]),
                 )
                 trace, keyframe_poses = optimized.trace, optimized.poses
                 timings["record_iterations"] = optimized.record_seconds
                 timings["optimize_and_record"] = time.perf_counter() - optimize_started
                 poses = frontend.scan_poses(keyframe_poses)
                 map_started = time.perf_counter()
-                picture = occupancy_grid(frontend.keyframe_scans, keyframe_poses).image()
+                grid = occupancy_grid(frontend.keyframe_scans, keyframe_poses)
+                picture = grid.image()
                 timings["occupancy_grid"] = time.perf_counter() - map_started
                 record_started = time.perf_counter()
-                recording.log_final_map(stream, frontend.keyframe_scans, keyframe_poses)
                 scan_recording.log_final_trajectory(stream, poses)
-                scan_recording.log_occupancy(stream, picture)
+                map2d.log_occupancy(stream, picture, grid.origin, grid.resolution)
                 timings["record_maps"] = time.perf_counter() - record_started
             finally:
                 close_started = time.perf_counter()

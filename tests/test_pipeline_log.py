@@ -72,8 +72,8 @@ def test_replay_of_a_log_writes_a_trajectory_per_scan_that_follows_the_truth(
     trajectory_entity = entities["/world/trajectory"]
     assert "iteration" in trajectory_entity.timelines
     assert trajectory_entity.steps == list(range(len(summary["chi2_per_iteration"])))
-    assert entities["/world/map"].static_rows == 1
-    for static in ("/world/final_trajectory", "/world/odometry_trajectory", "/occupancy/grid"):
+    assert entities["/world/keyframes/k000000"].steps == list(range(len(summary["chi2_per_iteration"])))
+    for static in ("/world/final_trajectory", "/world/odometry_trajectory", "/world/occupancy/grid"):
         assert entities[static].static_rows == 1, static
     scans_entity = read_recording(out / "drive.rrd", timeline="scan")["/world/scan"]
     assert {"scan", "time"} <= scans_entity.timelines
