@@ -2,9 +2,11 @@
 
 - `world/keyframes/kNNNNNN/scan`: each keyframe's scan, logged once (at the first recorded iteration), in
   the keyframe's own frame, thinned to one point per `SCAN_CELL`;
-- `world/keyframes/kNNNNNN`: the keyframe's pose as a `Transform3D` on `iteration`, one row per iteration
-  sent in columns: the walls straighten as the optimizer iterates while each iteration costs 28 bytes per
-  keyframe instead of the whole map;
+- `world/keyframes/kNNNNNN`: the keyframe's pose as a `Transform3D` on `iteration`, sent in columns: the
+  walls straighten as the optimizer iterates while an iteration costs 28 bytes per keyframe instead of the
+  whole map, and only for keyframes that moved by more than `SHOWN_MOVE` / `SHOWN_TURN` since their last
+  row (the viewer keeps the latest row; late SGD iterations move most keyframes by far less than a
+  pixel). The final iteration is sent whole, so its transforms are the written poses exactly;
 - `world/occupancy/grid` (static): the occupancy grid of the final map, an image placed in world metres by
   the static transform of `world/occupancy` (north up, like `<stem>_map.png`), in dark tones under the
   walls: free space dark grey, walls mid grey, unknown transparent.
@@ -12,10 +14,13 @@
 
 from __future__ import annotations
 
+import io
+import math
 from collections.abc import Sequence
 
 import numpy as np
 import rerun as rr
+from numba import njit
 from numpy.typing import NDArray
 
 from optimizer.iteration import Iteration
@@ -44,6 +49,11 @@ OCCUPANCY_VIEW_COLORS = {
 }
 
 DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
+
+SHOWN_MOVE = 0.05
+"""A keyframe's transform gets a new row once it moved this far (m) from its last row …"""
+SHOWN_TURN = 0.0025
+"""… or turned this much (rad: 5 cm at 20 m range): about a pixel of a building-sized map framed whole."""
 
 FloatArray = NDArray[np.float64]
 
@@ -93,10 +103,14 @@ def log_occupancy(recording: rr.RecordingStream, image: NDArray[np.uint8], origi
                   resolution: float) -> None:
     """The grey occupancy picture (north up, row 0 the northern edge; cell (0, 0) of the grid starts at
     `origin`, cells of `resolution` m) as a static image in world metres under the walls."""
+    from PIL import Image  # as pipeline.outputs.write_png: only when a map is recorded
+
     height = image.shape[0]
     colored = np.zeros((*image.shape, 4), dtype=np.uint8)
     for grey, rgba in OCCUPANCY_VIEW_COLORS.items():
         colored[image == grey] = rgba
+    png = io.BytesIO()
+    Image.fromarray(colored, mode="RGBA").save(png, format="PNG")  # a few % of the raw RGBA
     # Pixel (u, v) covers x = origin_x + u·res, y = top − v·res: image rows run south.
     recording.log(
         OCCUPANCY_ENTITY,
@@ -104,8 +118,8 @@ def log_occupancy(recording: rr.RecordingStream, image: NDArray[np.uint8], origi
                        scale=[resolution, -resolution, 1.0]),
         static=True,
     )
-    recording.log(OCCUPANCY_IMAGE_ENTITY, rr.Image(colored, color_model="RGBA",
-                                                   draw_order=OCCUPANCY_DRAW_ORDER), static=True)
+    recording.log(OCCUPANCY_IMAGE_ENTITY, rr.EncodedImage(contents=png.getvalue(), media_type="image/png",
+                                                          draw_order=OCCUPANCY_DRAW_ORDER), static=True)
 
 
 class KeyframeMapRecorder:
@@ -123,6 +137,7 @@ class KeyframeMapRecorder:
         self._poses: list[NDArray[np.float32]] = []
         self._buffered_bytes = 0
         self._scans_logged = False
+        self._last_sent: NDArray[np.float64] = np.full((len(scans), 3), np.nan)
 
     def add(self, step: int, iteration: Iteration) -> None:
         """Buffer the keyframe poses of the iteration logged at `step`."""
@@ -132,7 +147,7 @@ class KeyframeMapRecorder:
         self._poses.append(np.asarray(iteration.poses, dtype=np.float32))
         self._buffered_bytes += self._poses[-1].nbytes
         if self._buffered_bytes >= self._batch_bytes:
-            self.flush()
+            self._send(final=False)
 
     def _log_scans(self, step: int) -> None:
         # On `iteration` (not static): on the `scan` and `time` timelines the keyframes have no pose, and
@@ -148,20 +163,45 @@ class KeyframeMapRecorder:
         self._scans_logged = True
 
     def flush(self) -> None:
-        """Send what is buffered."""
+        """Send what is buffered, the latest iteration whole (call it once the run is over)."""
+        self._send(final=True)
+
+    def _send(self, *, final: bool) -> None:
         if not self._steps:
             return
-        steps = rr.TimeColumn(ITERATION_TIMELINE, sequence=np.asarray(self._steps, dtype=np.int64))
+        steps = np.asarray(self._steps, dtype=np.int64)
         poses = np.stack(self._poses)  # (T, K, 3)
+        sent = rows_to_send(poses.astype(np.float64), self._last_sent, SHOWN_MOVE, SHOWN_TURN, final)
         translations = np.zeros((*poses.shape[:2], 3), dtype=np.float32)
         translations[..., :2] = poses[..., :2]
         quaternions = yaw_quaternions(poses[..., 2])
-        for index in range(poses.shape[1]):
+        for index in np.flatnonzero(sent.any(axis=0)):
+            rows = sent[:, index]
             self._recording.send_columns(
-                keyframe_entity(index),
-                indexes=[steps],
-                columns=rr.Transform3D.columns(translation=translations[:, index],
-                                               quaternion=quaternions[:, index]),
+                keyframe_entity(int(index)),
+                indexes=[rr.TimeColumn(ITERATION_TIMELINE, sequence=steps[rows])],
+                columns=rr.Transform3D.columns(translation=translations[rows, index],
+                                               quaternion=quaternions[rows, index]),
             )
         self._steps, self._poses = [], []
         self._buffered_bytes = 0
+
+
+@njit(cache=True)
+def rows_to_send(poses: FloatArray, last_sent: FloatArray, move: float, turn: float,
+                 keep_last: bool) -> NDArray[np.bool_]:
+    """(T, K) which of the (T, K, 3) poses differ from their keyframe's last sent pose by more than
+    `move` (m) or `turn` (rad); `last_sent` (K, 3, NaN for never) is updated. With `keep_last` the last
+    row is sent whole."""
+    count, keyframes = poses.shape[0], poses.shape[1]
+    sent = np.zeros((count, keyframes), dtype=np.bool_)
+    for k in range(keyframes):
+        for t in range(count):
+            turned = (poses[t, k, 2] - last_sent[k, 2] + math.pi) % (2.0 * math.pi) - math.pi
+            moved = math.hypot(poses[t, k, 0] - last_sent[k, 0], poses[t, k, 1] - last_sent[k, 1])
+            # NaN compares false: a keyframe never sent is sent.
+            if not (moved <= move and abs(turned) <= turn) or (keep_last and t == count - 1):
+                sent[t, k] = True
+                for axis in range(3):
+                    last_sent[k, axis] = poses[t, k, axis]
+    return sent
