@@ -150,10 +150,10 @@ def map_view(
 
 def default_blueprint(
     *, bounds: Bounds | None = None, hidden: Sequence[str] = (), extra_tabs: Sequence[rrb.View] = (),
-    excluded: Sequence[str] = (),
+    excluded: Sequence[str] = (), timeline: str = ITERATION_TIMELINE,
 ) -> rrb.Blueprint:
     """The map and graph in 2D (tabs: `extra_tabs` beside it) beside the χ² plot, the stage log and the
-    legend; the time panel on `iteration`, the side panels collapsed so the map has the room."""
+    legend; the time panel on `timeline`, the side panels collapsed so the map has the room."""
     main: rrb.View | rrb.Tabs = map_view(bounds=bounds, hidden=hidden, excluded=excluded)
     if extra_tabs:
         main = rrb.Tabs(main, *extra_tabs)
@@ -168,7 +168,8 @@ def default_blueprint(
             ),
             column_shares=[3, 1],
         ),
-        rrb.TimePanel(timeline=ITERATION_TIMELINE, state="collapsed"),
+        # Following: the viewer opens on the final (straight) map; play restarts from iteration 0.
+        rrb.TimePanel(timeline=timeline, state="collapsed", play_state="following"),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
     )

@@ -66,7 +66,7 @@ def cloud_blueprint() -> rrb.Blueprint:
             ),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(timeline=ITERATION_TIMELINE, state="collapsed"),
+        rrb.TimePanel(timeline=ITERATION_TIMELINE, state="collapsed", play_state="following"),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
     )

@@ -9,7 +9,7 @@
   pixel). The final iteration is sent whole, so its transforms are the written poses exactly;
 - `world/occupancy/grid` (static): the occupancy grid of the final map, an image placed in world metres by
   the static transform of `world/occupancy` (north up, like `<stem>_map.png`), in dark tones under the
-  walls: free space dark grey, walls mid grey, unknown transparent.
+  walls: free space dark grey, walls mid grey, unknown the view's background.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from pipeline.recording import (
     MAP_DRAW_ORDER,
     MAP_POINT_RADIUS,
     OCCUPANCY_DRAW_ORDER,
+    VIEWER_BACKGROUND,
     Bounds,
 )
 
@@ -45,7 +46,7 @@ GRID_OCCUPIED, GRID_FREE, GRID_UNKNOWN = 0, 255, 205
 OCCUPANCY_VIEW_COLORS = {
     GRID_OCCUPIED: (120, 120, 120, 255),
     GRID_FREE: (40, 40, 48, 255),
-    GRID_UNKNOWN: (0, 0, 0, 0),
+    GRID_UNKNOWN: (*VIEWER_BACKGROUND, 255),  # the viewer draws transparent image pixels black
 }
 
 DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
