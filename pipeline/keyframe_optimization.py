@@ -83,8 +83,10 @@ def optimize_keyframes(
         "constraints": from_odometry.num_edges,
         "loop_closures": int(loops.sum()),
     }, name=recording.OPTIMIZATION_PROPERTY)
+    # Log replays draw the trajectory only when it moved as much as the walls must to be redrawn.
     recorder = recording.IterationRecorder(
-        stream, from_odometry.edge_from[loops], from_odometry.edge_to[loops]
+        stream, from_odometry.edge_from[loops], from_odometry.edge_to[loops],
+        still_move=map2d.SHOWN_MOVE if keyframe_scans is not None else None,
     )
     sinks: list[IterationSink] = [] if sink is None else [sink]
     if keyframe_scans is not None:

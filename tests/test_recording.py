@@ -197,6 +197,17 @@ def test_the_walls_move_with_every_iteration_and_end_at_the_written_poses(tmp_pa
         np.testing.assert_allclose(translations[-1, :2], optimized.poses[index, :2], atol=1e-5)
         assert se2.wrap_angle(yaws[-1] - optimized.poses[index, 2]) == pytest.approx(0.0, abs=1e-5)
     assert rows_sent < len(seen) * graph.num_poses  # still keyframes are not repeated
+    # The trajectory likewise: a row when some pose moved more than the threshold, the last one whole.
+    trajectory = entities["/world/trajectory"]
+    assert trajectory.steps[0] == 0 and trajectory.steps[-1] == last_step
+    strips = trajectory.columns["LineStrips2D:strips"]
+    latest = np.searchsorted(trajectory.steps, np.arange(len(seen)), side="right") - 1
+    for step, row in enumerate(latest):
+        drawn = np.asarray(strips[row], dtype=float).reshape(-1, 2)
+        assert np.max(np.abs(drawn - seen[step][:, :2])) <= map2d.SHOWN_MOVE + 1e-5
+    np.testing.assert_allclose(np.asarray(strips[-1], dtype=float).reshape(-1, 2), optimized.poses[:, :2],
+                               atol=1e-5)
+    assert entities["/optimizer/chi2"].steps == list(range(len(seen)))
     assert properties(path, "optimization") == {"method": "sgd", "keyframes": graph.num_poses,
                                                 "constraints": graph.num_edges, "loop_closures": 2}
 

@@ -341,6 +341,9 @@ class IterationRecorder:
     keeps it to `max_points` points; when it has more than `max_points` / 2 loop closures, every k-th loop
     closure is drawn, likewise. The most recent iteration (the final one, once `flush` is called at the
     end) is always sent whole. Graphs within both limits are recorded in full at every iteration.
+
+    With `still_move` (m), an iteration whose poses all lie within it of the last drawn iteration's gets
+    no geometry row (χ² and stage only): the viewer keeps showing the last row, which is that close.
     """
 
     def __init__(
@@ -351,6 +354,7 @@ class IterationRecorder:
         *,
         batch_bytes: int = DEFAULT_BATCH_BYTES,
         max_points: int = DEFAULT_MAX_POINTS_PER_ITERATION,
+        still_move: float | None = None,
     ) -> None:
         if max_points < 2:
             raise PipelineError(f"max_points must be at least 2, got {max_points}")
@@ -360,8 +364,11 @@ class IterationRecorder:
         self._loop_shown = _every_kth(len(self._loop_from), max_points // 2, keep_last=False)
         self._max_points = max_points
         self._batch_bytes = batch_bytes
-        self._trajectories: list[NDArray[np.float32]] = []
-        self._loop_segments: list[NDArray[np.float32]] = []
+        self._still_move = still_move
+        self._last_drawn: NDArray[np.float64] | None = None
+        # None where an iteration's geometry is not sent (see `still_move`).
+        self._trajectories: list[NDArray[np.float32] | None] = []
+        self._loop_segments: list[NDArray[np.float32] | None] = []
         self._stages: list[str | None] = []
         """Per buffered iteration its stage-log line, None for a repeat (same stage, same χ² shown)."""
         self._chi2: list[float] = []
@@ -402,6 +409,13 @@ class IterationRecorder:
         self._send(len(self._trajectories))
 
     def _buffer_geometry(self, poses: NDArray[np.float64], *, thin: bool) -> None:
+        if (thin and self._still_move is not None and self._last_drawn is not None
+                and np.max(np.abs(poses[:, :2] - self._last_drawn), initial=0.0) <= self._still_move):
+            self._trajectories.append(None)
+            self._loop_segments.append(None)
+            return
+        if self._still_move is not None:
+            self._last_drawn = np.array(poses[:, :2])
         trajectory, segments = self._geometry(poses, thin=thin)
         self._trajectories.append(trajectory)
         self._loop_segments.append(segments)
@@ -424,27 +438,34 @@ class IterationRecorder:
 
     def _send(self, count: int) -> None:
         """Send the first `count` buffered iterations (the latest has no geometry until the next `add` or
-        `flush`): runs of equally thinned ones as one column batch each."""
+        `flush`): χ² and stage lines of all, the geometry of those that have it, runs of equally thinned
+        ones as one column batch each."""
+        steps = np.arange(self._first_step, self._first_step + count, dtype=np.int64)
+        send_chi2(self._recording, steps, np.asarray(self._chi2[:count], dtype=np.float64))
+        lines = self._stages[:count]
+        shown = np.array([line is not None for line in lines], dtype=bool)
+        send_stages(self._recording, steps[shown], [line for line in lines if line is not None])
+        drawn = [k for k in range(count) if self._trajectories[k] is not None]
         sent = 0
-        while sent < count:
+        while sent < len(drawn):
             end = sent + 1
-            shape = (self._trajectories[sent].shape, self._loop_segments[sent].shape)
-            while end < count and (self._trajectories[end].shape, self._loop_segments[end].shape) == shape:
+            shape = self._geometry_shape(drawn[sent])
+            while end < len(drawn) and self._geometry_shape(drawn[end]) == shape:
                 end += 1
-            steps = np.arange(self._first_step + sent, self._first_step + end, dtype=np.int64)
-            chi2 = np.asarray(self._chi2[sent:end], dtype=np.float64)
-            send_trajectories(self._recording, steps, np.stack(self._trajectories[sent:end]))
-            send_loop_segments(self._recording, steps, np.stack(self._loop_segments[sent:end]))
-            send_chi2(self._recording, steps, chi2)
-            lines = self._stages[sent:end]
-            shown = np.array([line is not None for line in lines], dtype=bool)
-            send_stages(self._recording, steps[shown], [line for line in lines if line is not None])
+            run = drawn[sent:end]
+            send_trajectories(self._recording, steps[run], np.stack([self._trajectories[k] for k in run]))
+            send_loop_segments(self._recording, steps[run], np.stack([self._loop_segments[k] for k in run]))
             sent = end
         self._first_step += count
         for buffer in (self._trajectories, self._loop_segments, self._stages, self._chi2):
             del buffer[:count]
         self._buffered_bytes = sum(trajectory.nbytes + segments.nbytes for trajectory, segments
-                                   in zip(self._trajectories, self._loop_segments, strict=True))
+                                   in zip(self._trajectories, self._loop_segments, strict=True)
+                                   if trajectory is not None and segments is not None)
+
+    def _geometry_shape(self, k: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        trajectory, segments = self._trajectories[k], self._loop_segments[k]
+        return (() if trajectory is None else trajectory.shape), (() if segments is None else segments.shape)
 
 
 def _every_kth(count: int, limit: int, *, keep_last: bool) -> IntArray | None:

@@ -7,7 +7,9 @@ optimizes, and the χ² plots):
   graph converges;
 - `world3d/trajectory` on `iteration`: the 3D keyframe trajectory after every iteration;
 - `world3d/initial_trajectory` (static) and `world3d/map` (static): the starting trajectory and the final
-  map (all keyframe clouds at their optimized poses, one point per voxel).
+  map (all keyframe clouds at their optimized poses, one point per voxel; off by default in the
+  blueprint: the keyframe clouds are that map already, and they move);
+- each keyframe entity also draws its axes (`TransformAxes3D`).
 
 The blueprint shows the 3D scene beside the 2D graph and the χ² plots, with the time panel on `iteration`.
 """
@@ -41,6 +43,8 @@ MAP3D_COLOR = (60, 60, 60, 255)
 POINT_RADIUS = rr.Radius.ui_points(1.5)
 LINE_WIDTH = rr.Radius.ui_points(2.0)
 DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
+KEYFRAME_AXIS_LENGTH = 1.5
+"""Length (m) of the axes drawn at every keyframe pose."""
 
 FloatArray = NDArray[np.float64]
 
@@ -84,7 +88,8 @@ def _colour(index: int, count: int) -> tuple[int, int, int, int]:
 
 
 def log_keyframe_clouds(recording: rr.RecordingStream, clouds: Sequence[NDArray[np.floating]]) -> None:
-    """Each keyframe's cloud, static, in its keyframe's frame (its pose comes per iteration)."""
+    """Each keyframe's cloud, static, in its keyframe's frame (its pose comes per iteration), with the
+    keyframe's axes, so the poses the optimizer moves stand out of the clouds."""
     for index, points in enumerate(clouds):
         recording.log(
             keyframe_entity(index),
@@ -93,6 +98,7 @@ def log_keyframe_clouds(recording: rr.RecordingStream, clouds: Sequence[NDArray[
                 colors=[_colour(index, len(clouds))],
                 radii=[POINT_RADIUS],
             ),
+            rr.TransformAxes3D(KEYFRAME_AXIS_LENGTH),
             static=True,
         )
 
