@@ -9,9 +9,9 @@ screen's corner so that no hover tooltip covers the view.
 
 For each input it runs the replay (the bundled sample and ACES through `replay_log`, M3500 through
 `replay_graph`, the KITTI log through `replay_cloud`), then:
-- at a few iterations k, cuts the recording to iterations ≤ k (`rerun rrd split --timeline iteration`,
-  which keeps the recording's own blueprint; it opens following the last iteration) and screenshots it
-  with `rerun FILE --window-size 1400x900 --screenshot-to PNG` into `<out>/screenshots/`;
+- at a few iterations k, copies the recording's static data and its iterations ≤ k with the blueprint
+  the replay wrote (rebuilt from the same functions; it opens following the last iteration) and
+  screenshots it with `rerun FILE --window-size 1400x900 --screenshot-to PNG` into `<out>/screenshots/`;
 - for log replays, at a few scans s, the scan-time data up to s with a blueprint showing only the scan
   playback tab on the `scan` timeline;
 - per screenshot, the fraction of the main view's pixels that differ from the view's background by more
@@ -48,8 +48,9 @@ import rerun.blueprint as rrb  # noqa: E402
 from PIL import Image  # noqa: E402
 from rerun.chunk import Chunk, RrdReader  # noqa: E402
 
-from pipeline.recording import APPLICATION_ID, VIEWER_BACKGROUND  # noqa: E402
-from pipeline.recording.scans import SCAN_TIMELINE, playback_views  # noqa: E402
+from pipeline.recording import APPLICATION_ID, VIEWER_BACKGROUND, default_blueprint, world_bounds  # noqa: E402
+from pipeline.recording.clouds import cloud_blueprint  # noqa: E402
+from pipeline.recording.scans import SCAN_TIMELINE, log_replay_blueprint, playback_views  # noqa: E402
 
 WINDOW = "1400x900"
 DISPLAY = ":99"
@@ -79,6 +80,7 @@ def ensure_display() -> subprocess.Popen[bytes] | None:
 
 
 def _pointer_to_corner() -> None:
+    """Onto the empty top bar: the viewer's window (HiDPI, 2× the requested size) covers the screen."""
     library = ctypes.util.find_library("X11")
     if library is None:
         return
@@ -91,7 +93,7 @@ def _pointer_to_corner() -> None:
     x11.XFlush.argtypes = [ctypes.c_void_p]
     display = x11.XOpenDisplay(os.environ["DISPLAY"].encode())
     if display:
-        x11.XWarpPointer(display, 0, x11.XDefaultRootWindow(display), 0, 0, 0, 0, 1595, 995)
+        x11.XWarpPointer(display, 0, x11.XDefaultRootWindow(display), 0, 0, 0, 0, 700, 20)
         x11.XFlush(display)
 
 
@@ -99,7 +101,8 @@ def screenshot(rrd: Path, png: Path) -> float:
     """Screenshot `rrd` in the viewer; returns the main view's drawn fraction."""
     png.parent.mkdir(parents=True, exist_ok=True)
     _pointer_to_corner()  # the server puts it back in the middle now and then
-    subprocess.run([str(RERUN), str(rrd), "--window-size", WINDOW, "--screenshot-to", str(png)],
+    # --new: never stream into a viewer another run (or a user) has open on the default port.
+    subprocess.run([str(RERUN), str(rrd), "--new", "--window-size", WINDOW, "--screenshot-to", str(png)],
                    check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=600)
     return drawn_fraction(png)
 
@@ -114,33 +117,19 @@ def drawn_fraction(png: Path, region: tuple[float, float, float, float] = MAIN_V
     return float(np.mean(difference > DRAWN_ABOVE))
 
 
-def cut_at_iteration(rrd: Path, last: int, folder: Path) -> Path:
-    """The recording up to iteration `last` (its blueprint kept)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    for stale in folder.glob("*.rrd"):
-        stale.unlink()
-    subprocess.run([str(RERUN), "rrd", "split", "--output-dir", str(folder), "--timeline", "iteration",
-                    "-t", str(last + 1), str(rrd)], check=True, stdout=subprocess.DEVNULL,
-                   stderr=subprocess.DEVNULL)
-    # Two splits: [−∞, last + 1) and [last + 1, ∞), named <stem>_<start>__<end>.rrd.
-    return next(path for path in folder.glob("*.rrd") if not path.stem.startswith(f"{rrd.stem}_{last + 1}_"))
+def cut(rrd: Path, timeline: str, last: int, target: Path, blueprint: rrb.Blueprint) -> Path:
+    """Static data and the `timeline` data up to `last` of the recording at `rrd`, with `blueprint`.
 
-
-def cut_at_scan(rrd: Path, last: int, target: Path, bounds: tuple[float, float, float, float]) -> Path:
-    """Static data and the `scan`-timeline data up to scan `last`, with the scan playback tab alone."""
-    blueprint = rrb.Blueprint(
-        *playback_views(bounds),
-        rrb.TimePanel(timeline=SCAN_TIMELINE, state="collapsed", play_state="following"),
-        rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
-    )
+    (`rerun rrd split` would keep the file's own blueprint but puts each static chunk into one split
+    only: cuts lost the mirror of `world` or the grid's placement.)"""
     stream = rr.RecordingStream(APPLICATION_ID)
     stream.save(target, default_blueprint=blueprint)
     for chunk in RrdReader(rrd).stream():
         if chunk.is_static:
             stream.send_chunks(chunk)
-        elif SCAN_TIMELINE in chunk.timeline_names:
+        elif timeline in chunk.timeline_names:
             batch = chunk.to_record_batch()
-            kept = batch.filter(pc.less_equal(batch.column(SCAN_TIMELINE), pa.scalar(last, pa.int64())))
+            kept = batch.filter(pc.less_equal(batch.column(timeline), pa.scalar(last, pa.int64())))
             if kept.num_rows:
                 stream.send_chunks(Chunk.from_record_batch(kept, entity_path=chunk.entity_path))
     stream.flush()
@@ -148,14 +137,27 @@ def cut_at_scan(rrd: Path, last: int, target: Path, bounds: tuple[float, float, 
     return target
 
 
-def shoot_iterations(name: str, rrd: Path, count: int, out: Path) -> dict[str, float]:
+def playback_blueprint(bounds: tuple[float, float, float, float]) -> rrb.Blueprint:
+    """The scan playback tab alone, on the `scan` timeline."""
+    return rrb.Blueprint(
+        *playback_views(bounds),
+        rrb.TimePanel(timeline=SCAN_TIMELINE, state="collapsed", play_state="following"),
+        rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+    )
+
+
+def shoot_iterations(name: str, rrd: Path, count: int, out: Path,
+                     blueprint: rrb.Blueprint) -> dict[str, float]:
+    """Screenshots at a few iterations; `blueprint` is the one the replay wrote (the cuts need it again)."""
     steps = sorted({0, min(10, count - 1), count // 3, count - 1})
     fractions = {}
     with tempfile.TemporaryDirectory() as scratch:
         for step in steps:
-            cut = cut_at_iteration(rrd, step, Path(scratch) / str(step)) if step < count - 1 else rrd
+            cut_file = rrd
+            if step < count - 1:
+                cut_file = cut(rrd, "iteration", step, Path(scratch) / f"{step}.rrd", blueprint)
             png = f"{name}_iteration{step:04d}.png"
-            fractions[png] = screenshot(cut, out / png)
+            fractions[png] = screenshot(cut_file, out / png)
     return fractions
 
 
@@ -164,9 +166,10 @@ def shoot_scans(name: str, rrd: Path, scans: int, bounds: tuple[float, float, fl
     fractions = {}
     with tempfile.TemporaryDirectory() as scratch:
         for scan in sorted({scans // 4, scans // 2, scans - 1}):
-            cut = cut_at_scan(rrd, scan, Path(scratch) / f"scan{scan}.rrd", bounds)
+            cut_file = cut(rrd, SCAN_TIMELINE, scan, Path(scratch) / f"scan{scan}.rrd",
+                           playback_blueprint(bounds))
             png = f"{name}_scan{scan:05d}.png"
-            fractions[png] = screenshot(cut, out / png)
+            fractions[png] = screenshot(cut_file, out / png)
     return fractions
 
 
@@ -178,7 +181,8 @@ def log_replay(name: str, log: Path, out: Path, shots: Path) -> dict[str, Any]:
     times = result.wall_time
     recording_seconds = sum(times[stage] for stage in RECORDING_STAGES)
     bounds = placed_bounds(result.frontend.keyframe_scans, result.keyframe_poses)
-    fractions = shoot_iterations(name, result.outputs.rrd, len(result.chi2_per_iteration), shots)
+    fractions = shoot_iterations(name, result.outputs.rrd, len(result.chi2_per_iteration), shots,
+                                 log_replay_blueprint(bounds))
     fractions |= shoot_scans(name, result.outputs.rrd, int(result.counts["scans"]), bounds, shots)
     return {"rrd_mb": result.outputs.rrd.stat().st_size / 1e6, "recording_share": recording_seconds /
             times["total"], "recording_s": recording_seconds, "total_s": times["total"],
@@ -192,7 +196,9 @@ def graph_replay(name: str, graph: Path, out: Path, shots: Path | None, **option
     figures: dict[str, Any] = {"rrd_mb": result.outputs.rrd.stat().st_size / 1e6,
                                   "iterations": len(result.iterations), "poses": result.graph.num_poses}
     if shots is not None:
-        figures["drawn_fraction"] = shoot_iterations(name, result.outputs.rrd, len(result.iterations), shots)
+        blueprint = default_blueprint(bounds=world_bounds(result.poses))
+        figures["drawn_fraction"] = shoot_iterations(name, result.outputs.rrd, len(result.iterations), shots,
+                                                     blueprint)
     return figures
 
 
@@ -200,7 +206,8 @@ def cloud_replay(name: str, log: Path, out: Path, shots: Path) -> dict[str, Any]
     from pipeline.replay_cloud import replay_cloud
 
     result = replay_cloud(log, out_dir=out / name)
-    fractions = shoot_iterations(name, result.outputs.rrd, len(result.chi2_per_iteration), shots)
+    fractions = shoot_iterations(name, result.outputs.rrd, len(result.chi2_per_iteration), shots,
+                                 cloud_blueprint())
     return {"rrd_mb": result.outputs.rrd.stat().st_size / 1e6, "drawn_fraction": fractions}
 
 

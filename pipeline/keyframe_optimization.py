@@ -118,9 +118,7 @@ def optimize_keyframes(
         each.flush()
     if keyframe_scans is not None:
         bounds = map2d.placed_bounds(keyframe_scans, np.asarray(final))
-        recording.send_blueprint(stream, recording.default_blueprint(
-            bounds=bounds, hidden=scans.HIDDEN_BY_DEFAULT, extra_tabs=scans.playback_views(bounds),
-            excluded=scans.PLAYBACK_ENTITIES))
+        recording.send_blueprint(stream, scans.log_replay_blueprint(bounds))
     record_seconds += time.perf_counter() - record_started
     return KeyframeOptimization(tuple(trace), np.array(final), optimization.result, record_seconds)
 

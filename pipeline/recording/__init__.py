@@ -97,8 +97,7 @@ def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.Rec
     if with_map:
         from pipeline.recording import scans  # the scans module builds on this one
 
-        blueprint = default_blueprint(hidden=scans.HIDDEN_BY_DEFAULT, extra_tabs=scans.playback_views(),
-                                      excluded=scans.PLAYBACK_ENTITIES)
+        blueprint = scans.log_replay_blueprint()
     else:
         blueprint = default_blueprint()
     try:

@@ -16,7 +16,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
-from pipeline.recording import VIEWER_BACKGROUND, Bounds, visual_bounds
+from pipeline.recording import VIEWER_BACKGROUND, Bounds, default_blueprint, visual_bounds
 
 SCAN_TIMELINE = "scan"
 TIME_TIMELINE = "time"
@@ -48,6 +48,13 @@ LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
     "scan playback": (SCAN_COLOR, "tab: scans up to the cursor on `scan`/`time`, robot trail "
                                   "(green), loop closures found (magenta)"),
 }
+
+
+def log_replay_blueprint(bounds: Bounds | None = None) -> rrb.Blueprint:
+    """A log replay's blueprint: the map view (static trajectories off, scan-time data left to the
+    playback tab) framing `bounds`, the scan playback tab beside it, χ², stages and legend."""
+    return default_blueprint(bounds=bounds, hidden=HIDDEN_BY_DEFAULT, extra_tabs=playback_views(bounds),
+                             excluded=PLAYBACK_ENTITIES)
 
 
 def playback_views(bounds: Bounds | None = None) -> list[rrb.Spatial2DView]:
