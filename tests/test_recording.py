@@ -233,3 +233,10 @@ def test_the_occupancy_grid_lies_in_world_metres_north_up(tmp_path: Path) -> Non
     assert (rows.tolist(), cols.tolist()) == ([0], [3])
     centre = translation[:2] + scale[:2] * (np.array([cols[0], rows[0]]) + 0.5)
     np.testing.assert_allclose(centre, [11.75, 21.25])
+
+
+def test_thin_scan_keeps_the_first_point_of_each_cell_in_scan_order() -> None:
+    points = np.array([[0.01, 0.01], [0.02, 0.03], [0.5, -0.01], [-0.01, 0.0], [0.04, 0.0], [np.nan, 0.0]])
+    # Cells of 0.05 m: (0, 0) twice then again, (10, −1), (−1, 0); the NaN point is dropped.
+    np.testing.assert_allclose(map2d.thin_scan(points), [[0.01, 0.01], [0.5, -0.01], [-0.01, 0.0]], atol=1e-7)
+    assert map2d.thin_scan(np.zeros((0, 2))).shape == (0, 2)

@@ -72,7 +72,8 @@ def thin_scan(points: NDArray[np.floating], cell: float = SCAN_CELL) -> NDArray[
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     points = points[np.all(np.isfinite(points), axis=1)]
     cells = np.floor(points / cell).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
+    # One integer per cell (np.unique over rows is ten times slower): maps span far less than 2³¹ cells.
+    _, first = np.unique(cells[:, 0] * 4_294_967_296 + cells[:, 1], return_index=True)
     return points[np.sort(first)].astype(np.float32)
 
 

@@ -17,6 +17,7 @@ import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
 from pipeline.recording import VIEWER_BACKGROUND, Bounds, default_blueprint, visual_bounds
+from pipeline.recording.map2d import thin_scan
 
 SCAN_TIMELINE = "scan"
 TIME_TIMELINE = "time"
@@ -76,6 +77,9 @@ def playback_views(bounds: Bounds | None = None) -> list[rrb.Spatial2DView]:
 
 SCAN_BATCH_POINTS = 2_000_000
 """Scan points buffered before a column batch is sent."""
+PLAYBACK_CELL = 0.1
+"""Each played-back scan keeps one point per cell of this size (m): the accumulated scans are drawn over
+the whole map, where a pixel is several centimetres, and they were the recording's largest part."""
 
 FloatArray = NDArray[np.float64]
 
@@ -139,9 +143,9 @@ class ScanRecorder:
     def add(self, index: int, stamp_ns: int, points: FloatArray, pose: FloatArray) -> None:
         self._indices.append(index)
         self._stamps.append(int(stamp_ns))
-        self._points.append(np.asarray(points, dtype=np.float32).reshape(-1, 2))
+        self._points.append(thin_scan(points, PLAYBACK_CELL))
         self._poses.append(np.asarray(pose[:2], dtype=np.float32))
-        self._buffered += len(points)
+        self._buffered += len(self._points[-1])
         if self._buffered >= SCAN_BATCH_POINTS:
             self.flush()
 
