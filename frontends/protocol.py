@@ -85,6 +85,11 @@ class LogFrontend(Protocol):
         """The stamp of every measurement with a pose (`estimates`)."""
         ...
 
+    def keyframe_wheel_odometry(self) -> FloatArray | None:
+        """(K, 3) the wheel-odometry pose (in the odometry's own frame) at each keyframe's first
+        measurement, or None without odometry covering every keyframe: the paper's poor start."""
+        ...
+
     def estimates(self, planar_poses: FloatArray) -> FloatArray:
         """Every measurement's pose given optimized keyframe poses: (S, 3), or (S, 4, 4) in 3D."""
         ...
@@ -140,6 +145,9 @@ class LogFrontendBase(Generic[ConfigT, ResultT]):
     @property
     def odometry_chain(self) -> FloatArray:
         return self.result.odometry_chain
+
+    def keyframe_wheel_odometry(self) -> FloatArray | None:
+        return None
 
     def settings(self) -> dict[str, Any]:
         return dataclasses.asdict(self.config)  # type: ignore[call-overload, no-any-return]

@@ -1,35 +1,33 @@
 """The final optimization of a frontend's keyframe graph, recorded iteration by iteration.
 
-The chosen method optimizes the graph from two starts, both recorded: the odometry-only estimate (what the
-robot believed before any loop closure), so the recording shows the map straightening out, and the online
-estimate (loop closures applied as they came). The lower final χ² wins; the written poses are the recorded
-last iteration.
+The chosen method optimizes the graph from two or three starts, all recorded: the wheel-odometry chain
+when the log has wheel odometry (the paper's setting: a poor initial estimate, so what a person sees
+straighten out is real), the odometry-only estimate (the scan-matched chain, what the robot believed before
+any loop closure) and the online estimate (loop closures applied as they came). The lowest final χ² wins;
+the written poses are the recorded last iteration.
+
+With the keyframe scans (2D), the recording draws the walls moving with every iteration
+(`pipeline.recording.map2d`) and frames the final map in its blueprint.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from optimizer import se2
 from optimizer.graph import PoseGraph
 from optimizer.iteration import Iteration
 from optimizer.solve import OptimizationResult, optimize
 from pipeline import recording
+from pipeline.recording import IterationSink, map2d, scans
 
 IterationCallback = Callable[[Iteration], None]
-
-
-class IterationSink(Protocol):
-    """More per-iteration recording beside the 2D trajectory (e.g. 3D keyframe poses)."""
-
-    def add(self, step: int, iteration: Iteration) -> None: ...
-
-    def flush(self) -> None: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,6 +42,10 @@ class KeyframeOptimization:
     """Of the time spent here, the part spent writing to the recording."""
 
 
+WHEEL_ODOMETRY_START = "wheel odometry"
+"""The name of the wheel-odometry start (`optimize_keyframes`' `wheel_odometry`)."""
+
+
 def optimize_keyframes(
     stream: Any,
     from_odometry: PoseGraph,
@@ -53,27 +55,50 @@ def optimize_keyframes(
     on_iteration: IterationCallback | None = None,
     sink: IterationSink | None = None,
     robust: str | None = None,
+    keyframe_scans: Sequence[NDArray[np.float64]] | None = None,
+    wheel_odometry: NDArray[np.float64] | None = None,
 ) -> KeyframeOptimization:
-    """Optimize `from_odometry`'s constraints with `method` from the odometry and the online estimates,
-    logging every iteration of both to `stream`; the lower final χ² wins. The two graphs hold the same
-    constraints around different estimates."""
+    """Optimize `from_odometry`'s constraints with `method` from the odometry and the online estimates
+    (and first from `wheel_odometry`, (K, 3) keyframe poses, when given), logging every iteration of each
+    to `stream`; the lowest final χ² wins. The graphs hold the same constraints around different
+    estimates. With `keyframe_scans` (each keyframe's 2D points in its own frame) the walls are recorded
+    moving with the keyframes, and the blueprint frames the final map."""
     record_started = time.perf_counter()
     loops = ~from_odometry.is_odometry
     recording.log_styles(stream)
-    recording.log_initial_trajectory(stream, from_odometry.poses)
+    recording.log_legend(stream, scans.LEGEND_ROWS if keyframe_scans is not None else {})
+    first_start = from_odometry.poses if wheel_odometry is None else wheel_odometry
+    recording.log_initial_trajectory(stream, first_start)
+    recording.log_run_properties(stream, {
+        "method": method,
+        "keyframes": from_odometry.num_poses,
+        "constraints": from_odometry.num_edges,
+        "loop_closures": int(loops.sum()),
+    }, name=recording.OPTIMIZATION_PROPERTY)
+    # Log replays draw the trajectory only when it moved as much as the walls must to be redrawn.
     recorder = recording.IterationRecorder(
-        stream, from_odometry.edge_from[loops], from_odometry.edge_to[loops]
+        stream, from_odometry.edge_from[loops], from_odometry.edge_to[loops],
+        still_move=map2d.SHOWN_MOVE if keyframe_scans is not None else None,
     )
+    sinks: list[IterationSink] = [] if sink is None else [sink]
+    if keyframe_scans is not None:
+        sinks.append(map2d.KeyframeMapRecorder(stream, keyframe_scans))
+    if not loops.any():
+        recording.log_note(stream, "no loop closures: the odometry chain is already consistent, so χ² "
+                                   "starts (near) zero and nothing moves")
     record_seconds = time.perf_counter() - record_started
     trace: list[tuple[str, int, float]] = []
     final = from_odometry.poses
-    optimization = optimize(from_odometry, method=method, iterations=iterations,
-                            starts={"odometry": from_odometry.poses, "online": online.poses}, robust=robust)
+    starts = {"odometry": from_odometry.poses, "online": online.poses}
+    if wheel_odometry is not None:
+        starts = {WHEEL_ODOMETRY_START: np.asarray(wheel_odometry, dtype=np.float64), **starts}
+    optimization = optimize(from_odometry, method=method, iterations=iterations, starts=starts,
+                            robust=robust)
     for iteration in optimization:
         record_started = time.perf_counter()
         step = recorder.add(iteration)
-        if sink is not None:
-            sink.add(step, iteration)
+        for each in sinks:
+            each.add(step, iteration)
         record_seconds += time.perf_counter() - record_started
         trace.append((iteration.stage, iteration.index, float(iteration.chi2)))
         final = iteration.poses
@@ -81,7 +106,23 @@ def optimize_keyframes(
             on_iteration(iteration)
     record_started = time.perf_counter()
     recorder.flush()
-    if sink is not None:
-        sink.flush()
+    for each in sinks:
+        each.flush()
+    if keyframe_scans is not None:
+        bounds = map2d.placed_bounds(keyframe_scans, np.asarray(final))
+        recording.send_blueprint(stream, scans.log_replay_blueprint(bounds))
     record_seconds += time.perf_counter() - record_started
     return KeyframeOptimization(tuple(trace), np.array(final), optimization.result, record_seconds)
+
+
+def wheel_odometry_start(
+    keyframe_odometry: NDArray[np.float64], first_pose: NDArray[np.float64]
+) -> NDArray[np.float64] | None:
+    """The keyframe poses wheel odometry alone gives, (K, 3), from the wheel-odometry pose at each
+    keyframe's first scan (NaN where odometry did not cover it), anchored at `first_pose` (the first
+    keyframe's pose in the map frame); None when odometry misses a keyframe."""
+    keyframe_odometry = np.asarray(keyframe_odometry, dtype=np.float64)
+    if len(keyframe_odometry) == 0 or not np.all(np.isfinite(keyframe_odometry)):
+        return None
+    return se2.compose(np.asarray(first_pose, dtype=np.float64),
+                       se2.relative(keyframe_odometry[0], keyframe_odometry))

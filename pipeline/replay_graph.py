@@ -207,6 +207,7 @@ def _optimize_and_record(
             "constraints": graph.num_edges,
         })
         recording.log_styles(stream)
+        recording.log_legend(stream)
         recording.log_initial_trajectory(stream, graph.poses)
         loops = ~graph.is_odometry
         recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops])
@@ -226,6 +227,9 @@ def _optimize_and_record(
             if progress is not None:
                 progress(iteration)
         recorder.flush()
+        # The default view frames the final graph (the starting estimate may sprawl far beyond it).
+        bounds = recording.world_bounds(final_poses)
+        recording.send_blueprint(stream, recording.default_blueprint(bounds=bounds))
     finally:
         recording.close_recording(stream)
     record_seconds = time.perf_counter() - started - sum(optimize_time.values())

@@ -20,7 +20,7 @@ each afterwards. Library code: raises `FrontendError`, `OptimizerError` or `Pipe
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -37,7 +37,7 @@ from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
 from pipeline import recording
 from pipeline.errors import PipelineError
-from pipeline.keyframe_optimization import IterationSink, optimize_keyframes
+from pipeline.keyframe_optimization import optimize_keyframes, wheel_odometry_start
 from pipeline.map_files import map_server_pgm, map_server_yaml, picture_with_scale_bar
 from pipeline.outputs import (
     json_text,
@@ -49,6 +49,7 @@ from pipeline.outputs import (
     write_text,
 )
 from pipeline.ply import write_ply
+from pipeline.recording import IterationSink
 from pipeline.recording.clouds import CloudReplayRecording
 from pipeline.recording.scans import ScanReplayRecording
 from pipeline.trajectory_io import write_tum
@@ -72,6 +73,10 @@ class FrontendRecording(Protocol):
     def frontend_done(self) -> None: ...
 
     def iteration_sink(self) -> IterationSink | None: ...
+
+    def keyframe_scans(self) -> Sequence[FloatArray] | None:
+        """Each keyframe's 2D points in its own frame, to record the walls moving (None: not drawn)."""
+        ...
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: Any) -> None: ...
 
@@ -291,9 +296,13 @@ class _Run:
         recording.log_run_properties(stream, {"input": str(self.path), "topic": topic,
                                               "method": self.method, "measurements": count,
                                               "keyframes": graph.num_poses})
-        optimized = optimize_keyframes(stream, frontend.keyframe_graph(frontend.odometry_chain), graph,
-                                       self.method, self.iterations, self.on_iteration,
-                                       recorder.iteration_sink(), robust=self.robust)
+        wheel_odometry = frontend.keyframe_wheel_odometry()
+        optimized = optimize_keyframes(
+            stream, frontend.keyframe_graph(frontend.odometry_chain), graph, self.method, self.iterations,
+            self.on_iteration, recorder.iteration_sink(), robust=self.robust,
+            keyframe_scans=recorder.keyframe_scans(),
+            wheel_odometry=None if wheel_odometry is None else wheel_odometry_start(
+                wheel_odometry, frontend.odometry_chain[0]))
         timings["record_iterations"] = optimized.record_seconds
         timings["optimize_and_record"] = time.perf_counter() - optimize_started
         map_started = time.perf_counter()

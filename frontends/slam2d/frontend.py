@@ -83,6 +83,13 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
     def estimates(self, planar_poses: FloatArray) -> FloatArray:
         return self.result.scan_poses(planar_poses)
 
+    def keyframe_wheel_odometry(self) -> FloatArray | None:
+        if self.odometry is None:
+            return None
+        first_scans = np.unique(self.result.scan_keyframes, return_index=True)[1]
+        poses = self.odometry.interpolate(self.result.scan_stamps_ns[first_scans])[0]
+        return poses if np.all(np.isfinite(poses)) else None
+
     def map_export(self, planar_poses: FloatArray) -> OccupancyGrid:
         return occupancy_grid(self.result.keyframe_scans, planar_poses)
 

@@ -4,14 +4,21 @@ In the style of evo's rerun_bridge: names of timelines and entities are constant
 `send_*` function per concept, and the recording stream is always passed explicitly (never rerun's global
 one), so several recordings can be written side by side.
 
-Layout of a recording:
-- `world/initial_trajectory` (static): the trajectory before optimization;
+Layout of a recording (the 2D view looks at `/`, where `world` is mirrored in y so that the world is
+drawn y up, north up, like `<stem>_map.png`):
+- `world` (static): that mirror;
+- `world/initial_trajectory` (static, faint): the trajectory before optimization;
 - `world/trajectory` and `world/loop_closures` on the timeline `iteration`: the trajectory and the
-  loop-closure constraints (|b − a| > 1) after every iteration (thinned on huge graphs, except the final
-  iteration: see `IterationRecorder`);
-- `optimizer/chi2` and `optimizer/log10_chi2` on `iteration`: χ² as scalar series (the log is what shows
-  the SGD's progress; χ² falls by orders of magnitude);
-- `optimizer/stage` on `iteration`: a text log naming the stage and its iteration number.
+  loop-closure constraints (|b − a| > 1) after every iteration, drawn on top of everything else (thinned
+  on huge graphs, except the final iteration: see `IterationRecorder`);
+- log replays add `world/keyframes/kNNNNNN/scan` and the occupancy grid (`pipeline.recording.map2d`);
+- `optimizer/log10_chi2` on `iteration`: the one χ² plot, on a log scale (Rerun 0.41 plots have no log
+  axis, so the series is log10 χ²); `optimizer/chi2` keeps the plain values for readers of the data;
+- `optimizer/stage` on `iteration`: a text log naming the stage and its iteration number, without the
+  repeats of an iteration that did not change χ²;
+- `legend` (static): what each colour is.
+
+Recordings hold only our own timelines: the SDK's automatic `log_time` and `log_tick` are switched off.
 
 The timeline `iteration` is one counter across all stages: 0 is the initial estimate, then 1, 2, … for
 every iteration the optimizer yields (SGD, then the polish). Per-iteration data is sent in columns
@@ -24,6 +31,7 @@ import contextlib
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Protocol
 
 # rerun's Rust side logs straight to stderr, in colour (a WARN when an encoder cannot finish, an ERROR when
 # the disk fills); what matters of it reaches us as exceptions, which we word ourselves in one line. Set
@@ -48,20 +56,30 @@ WORLD_ENTITY = "world"
 INITIAL_TRAJECTORY_ENTITY = "world/initial_trajectory"
 TRAJECTORY_ENTITY = "world/trajectory"
 LOOP_CLOSURES_ENTITY = "world/loop_closures"
+KEYFRAMES_ENTITY = "world/keyframes"
 CHI2_ENTITY = "optimizer/chi2"
 LOG10_CHI2_ENTITY = "optimizer/log10_chi2"
 STAGE_ENTITY = "optimizer/stage"
-MAP_ENTITY = "world/map"
+LEGEND_ENTITY = "legend"
 RUN_PROPERTY = "replay"
+OPTIMIZATION_PROPERTY = "optimization"
 
-TRAJECTORY_COLOR = (31, 119, 180, 255)
-INITIAL_TRAJECTORY_COLOR = (150, 150, 150, 110)
-LOOP_CLOSURE_COLOR = (230, 85, 13, 140)
-MAP_COLOR = (20, 20, 20, 255)
-LINE_WIDTH = rr.Radius.ui_points(0.75)
-MAP_POINT_RADIUS = rr.Radius.ui_points(1.0)
-MAP_CELL = 0.05
-"""The final map keeps one point per cell of this size (m): what the viewer draws smoothly."""
+VIEWER_BACKGROUND = (13, 13, 13)
+"""The 2D view's background, set in the blueprint (the viewer's own dark grey, made explicit so that the
+colours below keep their contrast against it)."""
+TRAJECTORY_COLOR = (64, 170, 255, 255)
+INITIAL_TRAJECTORY_COLOR = (150, 150, 150, 90)
+LOOP_CLOSURE_COLOR = (255, 80, 220, 200)
+MAP_COLOR = (235, 235, 225, 255)
+LINE_WIDTH = rr.Radius.ui_points(1.25)
+MAP_POINT_RADIUS = rr.Radius.ui_points(1.25)
+
+# 2D draw order (higher on top): the occupancy grid under the walls, the animated estimate above all.
+OCCUPANCY_DRAW_ORDER = -20.0
+INITIAL_TRAJECTORY_DRAW_ORDER = 10.0
+MAP_DRAW_ORDER = 20.0
+LOOP_CLOSURE_DRAW_ORDER = 30.0
+TRAJECTORY_DRAW_ORDER = 40.0
 
 DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
 """How much per-iteration geometry `IterationRecorder` buffers before sending it as one column batch."""
@@ -70,26 +88,52 @@ DEFAULT_MAX_POINTS_PER_ITERATION = 100_000
 """Above this many poses (or half as many loop closures) `IterationRecorder` thins each iteration's
 geometry, except the final iteration's."""
 
+VIEW_MARGIN = 0.05
+"""The default 2D view frames the final map with this fraction of its extent around it."""
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+Bounds = tuple[float, float, float, float]
+"""(x_min, y_min, x_max, y_max) in world metres."""
+
+
+class IterationSink(Protocol):
+    """More per-iteration recording beside the 2D trajectory (e.g. 3D keyframe poses)."""
+
+    def add(self, step: int, iteration: Iteration) -> None: ...
+
+    def flush(self) -> None: ...
 
 
 def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.RecordingStream:
     """A new recording stream that saves to `path` (with the default blueprint; `with_map` adds the views
-    of a log replay: the occupancy grid, the time panel on the scans). Raises `OutputError` naming `path`
-    and why when it cannot be written there."""
+    of a log replay: the scan playback tab), the world mirrored to y up, and no automatic timelines.
+    Once the final map is known, `send_blueprint` replaces the blueprint by one that frames it. Raises
+    `OutputError` naming `path` and why when it cannot be written there."""
     # rerun's save() never returns when its file writer fails on the first bytes (seen with a full disk):
     # make sure there is room for them first.
     reason = _write_probe_failure(path, sync=False)
     if reason is not None:
         raise OutputError(f"{path}: cannot write the recording: {reason}")
     recording = rr.RecordingStream(APPLICATION_ID)
+    if with_map:
+        from pipeline.recording import scans  # the scans module builds on this one
+
+        blueprint = scans.log_replay_blueprint()
+    else:
+        blueprint = default_blueprint()
     try:
-        recording.save(path, default_blueprint=default_blueprint(with_map=with_map))
+        recording.save(path, default_blueprint=blueprint)
     except (OSError, RuntimeError) as error:
         raise OutputError(f"{path}: cannot write the recording: {_write_failure(path, error)}") from error
     _saved_to[id(recording)] = path
+    # Only our timelines (`iteration`, `scan`, `time`): the SDK would add `log_time`/`log_tick` to every
+    # temporal `log` call, a timeline a user would pick and find nearly empty.
+    recording.set_log_time_enabled(False)
+    recording.set_log_tick_enabled(False)
     recording.send_recording_name(name)
+    # Rerun's 2D views point y down (image rows); mirroring `world` once draws every map y up.
+    recording.log(WORLD_ENTITY, rr.Transform3D(mat3x3=np.diag([1.0, -1.0, 1.0])), static=True)
     return recording
 
 
@@ -156,45 +200,123 @@ def _write_probe_failure(path: Path, *, sync: bool) -> str | None:
     return None
 
 
-def default_blueprint(*, with_map: bool = False) -> rrb.Blueprint:
-    """The map and graph in 2D beside the χ² plots and the stage log, the time panel on `iteration`; with
-    `with_map`, the occupancy grid as a second tab beside the map."""
-    graph_view = rrb.Spatial2DView(origin=WORLD_ENTITY, name="map and pose graph")
-    main = (
-        rrb.Tabs(graph_view, rrb.Spatial2DView(origin="occupancy", name="occupancy grid"))
-        if with_map
-        else graph_view
+def visual_bounds(bounds: Bounds | None) -> rrb.VisualBounds2D | None:
+    """What a 2D view looking at `/` shows to frame `bounds` (world metres) with a margin."""
+    if bounds is None:
+        return None
+    x_min, y_min, x_max, y_max = bounds
+    margin = VIEW_MARGIN * max(x_max - x_min, y_max - y_min, 1.0)
+    # In the view's space y is mirrored: world y ∈ [y_min, y_max] is drawn at −y.
+    return rrb.VisualBounds2D(x_range=[x_min - margin, x_max + margin],
+                              y_range=[-y_max - margin, -y_min + margin])
+
+
+def map_view(
+    *, bounds: Bounds | None = None, hidden: Sequence[str] = (), excluded: Sequence[str] = ()
+) -> rrb.Spatial2DView:
+    """The world seen from `/` (so the y mirror of `world` applies), framing `bounds` with a margin;
+    the entities in `hidden` start switched off (a user turns them on in the blueprint tree), those in
+    `excluded` belong to other views."""
+    return rrb.Spatial2DView(
+        origin="/",
+        contents=[f"/{WORLD_ENTITY}/**", *(f"- /{path}" for path in excluded)],
+        name="map and pose graph",
+        background=VIEWER_BACKGROUND,
+        visual_bounds=visual_bounds(bounds),
+        overrides={f"/{path}": rrb.EntityBehavior(visible=False) for path in hidden},
     )
+
+
+def default_blueprint(
+    *, bounds: Bounds | None = None, hidden: Sequence[str] = (), extra_tabs: Sequence[rrb.View] = (),
+    excluded: Sequence[str] = (), timeline: str = ITERATION_TIMELINE,
+) -> rrb.Blueprint:
+    """The map and graph in 2D (tabs: `extra_tabs` beside it) beside the χ² plot, the stage log and the
+    legend; the time panel on `timeline`, the side panels collapsed so the map has the room."""
+    main: rrb.View | rrb.Tabs = map_view(bounds=bounds, hidden=hidden, excluded=excluded)
+    if extra_tabs:
+        main = rrb.Tabs(main, *extra_tabs)
     return rrb.Blueprint(
         rrb.Horizontal(
             main,
             rrb.Vertical(
-                rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="log10 χ²"),
-                rrb.TimeSeriesView(origin=CHI2_ENTITY, name="χ²"),
+                rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
                 rrb.TextLogView(origin=STAGE_ENTITY, name="stages"),
+                rrb.TextDocumentView(origin=LEGEND_ENTITY, name="legend"),
+                row_shares=[2, 2, 1],
             ),
-            column_shares=[3, 2],
+            column_shares=[3, 1],
         ),
-        rrb.TimePanel(timeline=ITERATION_TIMELINE),
-        collapse_panels=False,
+        # Following: the viewer opens on the final (straight) map; play restarts from iteration 0.
+        rrb.TimePanel(timeline=timeline, state="collapsed", play_state="following"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
     )
 
 
-def log_run_properties(recording: rr.RecordingStream, properties: Mapping[str, str | int | float]) -> None:
-    """What was replayed and how (input file, method, counts), as a recording property."""
-    recording.send_property(RUN_PROPERTY, rr.AnyValues(**{key: [value] for key, value in properties.items()}))
+def send_blueprint(recording: rr.RecordingStream, blueprint: rrb.Blueprint) -> None:
+    """Replace the recording's default blueprint (once the final map, hence the framing, is known)."""
+    recording.send_blueprint(blueprint, make_active=True, make_default=True)
+
+
+def world_bounds(*point_sets: NDArray[np.floating]) -> Bounds:
+    """The (x_min, y_min, x_max, y_max) of the finite 2D points in all `point_sets`."""
+    points = np.concatenate([np.asarray(s, dtype=np.float64).reshape(len(s), -1)[:, :2] for s in point_sets]
+                            + [np.zeros((0, 2))])
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if len(points) == 0:
+        points = np.zeros((1, 2))
+    low, high = points.min(axis=0), points.max(axis=0)
+    return float(low[0]), float(low[1]), float(high[0]), float(high[1])
+
+
+def log_run_properties(recording: rr.RecordingStream, properties: Mapping[str, str | int | float], *,
+                       name: str = RUN_PROPERTY) -> None:
+    """What was replayed and how (input file, method, counts), as a recording property `name`."""
+    recording.send_property(name, rr.AnyValues(**{key: [value] for key, value in properties.items()}))
+
+
+def log_note(recording: rr.RecordingStream, text: str) -> None:
+    """A warning at the top of the stage log (at iteration 0): what a reader must know about the plot."""
+    recording.set_time(ITERATION_TIMELINE, sequence=0)
+    recording.log(STAGE_ENTITY, rr.TextLog(text, level="WARN"))
+    recording.reset_time()
+
+
+LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
+    "estimate": (TRAJECTORY_COLOR, "the trajectory at the selected iteration (drawn on top)"),
+    "loop closures": (LOOP_CLOSURE_COLOR, "loop-closure constraints at that iteration"),
+    "start": (INITIAL_TRAJECTORY_COLOR, "the starting estimate (faint)"),
+    "map": (MAP_COLOR, "each keyframe's scan at its pose of that iteration (log replays)"),
+}
+
+
+def log_legend(recording: rr.RecordingStream, extra: Mapping[str, tuple[tuple[int, ...], str]] = ()) -> None:
+    """A static markdown table naming every colour of the map view (Rerun's spatial views have no
+    legend of their own)."""
+    rows = {**LEGEND_ROWS, **dict(extra)}
+    lines = ["| colour | what |", "|---|---|"]
+    lines += [f"| {name} `#{color[0]:02x}{color[1]:02x}{color[2]:02x}` | {text} |"
+              for name, (color, text) in rows.items()]
+    lines.append("\nThe time panel's `iteration` is one counter over every optimized start; "
+                 "the final trajectory and wheel odometry are off by default (blueprint tree).")
+    recording.log(LEGEND_ENTITY, rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN),
+                  static=True)
 
 
 def log_styles(recording: rr.RecordingStream) -> None:
-    """Static colours, widths and series names; the per-iteration columns then carry geometry only."""
+    """Static colours, widths, draw order, labels and series names; the per-iteration columns then carry
+    geometry only."""
     recording.log(
         TRAJECTORY_ENTITY,
-        rr.LineStrips2D.from_fields(colors=[TRAJECTORY_COLOR], radii=[LINE_WIDTH]),
+        rr.LineStrips2D.from_fields(colors=[TRAJECTORY_COLOR], radii=[LINE_WIDTH],
+                                    draw_order=TRAJECTORY_DRAW_ORDER),
         static=True,
     )
     recording.log(
         LOOP_CLOSURES_ENTITY,
-        rr.LineStrips2D.from_fields(colors=[LOOP_CLOSURE_COLOR], radii=[LINE_WIDTH]),
+        rr.LineStrips2D.from_fields(colors=[LOOP_CLOSURE_COLOR], radii=[LINE_WIDTH],
+                                    draw_order=LOOP_CLOSURE_DRAW_ORDER),
         static=True,
     )
     recording.log(CHI2_ENTITY, rr.SeriesLines(names="χ²"), static=True)
@@ -209,34 +331,10 @@ def log_initial_trajectory(recording: rr.RecordingStream, poses: FloatArray) -> 
             [np.asarray(poses[:, :2], dtype=np.float32)],
             colors=[INITIAL_TRAJECTORY_COLOR],
             radii=[LINE_WIDTH],
+            draw_order=INITIAL_TRAJECTORY_DRAW_ORDER,
         ),
         static=True,
     )
-
-
-def log_final_map(
-    recording: rr.RecordingStream, keyframe_scans: Sequence[FloatArray], keyframe_poses: FloatArray
-) -> None:
-    """All keyframe scans at their optimized poses, static, thinned to one point per `MAP_CELL`."""
-    placed = [
-        scan @ _rotation(pose[2]) + pose[:2]
-        for scan, pose in zip(keyframe_scans, keyframe_poses, strict=True)
-    ]
-    if not placed:
-        return
-    points = np.concatenate(placed)
-    cells = np.floor(points / MAP_CELL).astype(np.int64)
-    _, first = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_index=True)
-    recording.log(
-        MAP_ENTITY,
-        rr.Points2D(points[np.sort(first)].astype(np.float32), colors=[MAP_COLOR], radii=[MAP_POINT_RADIUS]),
-        static=True,
-    )
-
-
-def _rotation(theta: float) -> FloatArray:
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, s], [-s, c]])
 
 
 def send_trajectories(recording: rr.RecordingStream, steps: IntArray, positions: NDArray[np.float32]) -> None:
@@ -275,18 +373,19 @@ def send_chi2(recording: rr.RecordingStream, steps: IntArray, chi2: FloatArray) 
         )
 
 
-def send_stages(
-    recording: rr.RecordingStream, steps: IntArray, stages: Sequence[str], indices: IntArray, chi2: FloatArray
-) -> None:
-    """A text line per iteration naming its stage and its number within the stage."""
-    text = [
-        f"{stage} {index}: χ² = {value:.6g}"
-        for stage, index, value in zip(stages, indices.tolist(), chi2.tolist(), strict=True)
-    ]
+def stage_line(stage: str, index: int, chi2: float) -> str:
+    """The stage log's line for one iteration."""
+    return f"{stage} {index}: χ² = {chi2:.6g}"
+
+
+def send_stages(recording: rr.RecordingStream, steps: IntArray, lines: Sequence[str]) -> None:
+    """A text line per iteration in `steps` (those the stage log shows)."""
+    if len(lines) == 0:
+        return
     recording.send_columns(
         STAGE_ENTITY,
         indexes=[_iteration_column(steps)],
-        columns=rr.TextLog.columns(text=text, level=["INFO"] * len(text)),
+        columns=rr.TextLog.columns(text=list(lines), level=["INFO"] * len(lines)),
     )
 
 
@@ -321,6 +420,9 @@ class IterationRecorder:
     keeps it to `max_points` points; when it has more than `max_points` / 2 loop closures, every k-th loop
     closure is drawn, likewise. The most recent iteration (the final one, once `flush` is called at the
     end) is always sent whole. Graphs within both limits are recorded in full at every iteration.
+
+    With `still_move` (m), an iteration whose poses all lie within it of the last drawn iteration's gets
+    no geometry row (χ² and stage only): the viewer keeps showing the last row, which is that close.
     """
 
     def __init__(
@@ -331,6 +433,7 @@ class IterationRecorder:
         *,
         batch_bytes: int = DEFAULT_BATCH_BYTES,
         max_points: int = DEFAULT_MAX_POINTS_PER_ITERATION,
+        still_move: float | None = None,
     ) -> None:
         if max_points < 2:
             raise PipelineError(f"max_points must be at least 2, got {max_points}")
@@ -340,11 +443,15 @@ class IterationRecorder:
         self._loop_shown = _every_kth(len(self._loop_from), max_points // 2, keep_last=False)
         self._max_points = max_points
         self._batch_bytes = batch_bytes
-        self._trajectories: list[NDArray[np.float32]] = []
-        self._loop_segments: list[NDArray[np.float32]] = []
-        self._stages: list[str] = []
-        self._indices: list[int] = []
+        self._still_move = still_move
+        self._last_drawn: NDArray[np.float64] | None = None
+        # None where an iteration's geometry is not sent (see `still_move`).
+        self._trajectories: list[NDArray[np.float32] | None] = []
+        self._loop_segments: list[NDArray[np.float32] | None] = []
+        self._stages: list[str | None] = []
+        """Per buffered iteration its stage-log line, None for a repeat (same stage, same χ² shown)."""
         self._chi2: list[float] = []
+        self._previous_line: tuple[str, str] | None = None
         self._latest_poses: NDArray[np.float64] | None = None
         self._first_step = 0
         self._buffered_bytes = 0
@@ -361,10 +468,14 @@ class IterationRecorder:
             self._buffer_geometry(self._latest_poses, thin=True)
         self._latest_poses = iteration.poses  # read-only by the optimizers' contract: no copy
         # Several starts are optimized one after another: name the start unless it is the graph's own.
-        self._stages.append(iteration.stage if iteration.start == ESTIMATE else
-                            f"{iteration.start}: {iteration.stage}")
-        self._indices.append(iteration.index)
-        self._chi2.append(float(iteration.chi2))
+        stage = iteration.stage if iteration.start == ESTIMATE else f"{iteration.start}: {iteration.stage}"
+        chi2 = float(iteration.chi2)
+        # A converged stage keeps yielding the same χ²: the log shows the first such line only.
+        shown = (stage, f"{chi2:.6g}")
+        repeat = shown == self._previous_line
+        self._stages.append(None if repeat else stage_line(stage, iteration.index, chi2))
+        self._previous_line = shown
+        self._chi2.append(chi2)
         if self._buffered_bytes >= self._batch_bytes:
             self._send(len(self._trajectories))
         return step
@@ -377,6 +488,13 @@ class IterationRecorder:
         self._send(len(self._trajectories))
 
     def _buffer_geometry(self, poses: NDArray[np.float64], *, thin: bool) -> None:
+        if (thin and self._still_move is not None and self._last_drawn is not None
+                and np.max(np.abs(poses[:, :2] - self._last_drawn), initial=0.0) <= self._still_move):
+            self._trajectories.append(None)
+            self._loop_segments.append(None)
+            return
+        if self._still_move is not None:
+            self._last_drawn = np.array(poses[:, :2])
         trajectory, segments = self._geometry(poses, thin=thin)
         self._trajectories.append(trajectory)
         self._loop_segments.append(segments)
@@ -399,26 +517,34 @@ class IterationRecorder:
 
     def _send(self, count: int) -> None:
         """Send the first `count` buffered iterations (the latest has no geometry until the next `add` or
-        `flush`): runs of equally thinned ones as one column batch each."""
+        `flush`): χ² and stage lines of all, the geometry of those that have it, runs of equally thinned
+        ones as one column batch each."""
+        steps = np.arange(self._first_step, self._first_step + count, dtype=np.int64)
+        send_chi2(self._recording, steps, np.asarray(self._chi2[:count], dtype=np.float64))
+        lines = self._stages[:count]
+        shown = np.array([line is not None for line in lines], dtype=bool)
+        send_stages(self._recording, steps[shown], [line for line in lines if line is not None])
+        drawn = [k for k in range(count) if self._trajectories[k] is not None]
         sent = 0
-        while sent < count:
+        while sent < len(drawn):
             end = sent + 1
-            shape = (self._trajectories[sent].shape, self._loop_segments[sent].shape)
-            while end < count and (self._trajectories[end].shape, self._loop_segments[end].shape) == shape:
+            shape = self._geometry_shape(drawn[sent])
+            while end < len(drawn) and self._geometry_shape(drawn[end]) == shape:
                 end += 1
-            steps = np.arange(self._first_step + sent, self._first_step + end, dtype=np.int64)
-            chi2 = np.asarray(self._chi2[sent:end], dtype=np.float64)
-            send_trajectories(self._recording, steps, np.stack(self._trajectories[sent:end]))
-            send_loop_segments(self._recording, steps, np.stack(self._loop_segments[sent:end]))
-            send_chi2(self._recording, steps, chi2)
-            send_stages(self._recording, steps, self._stages[sent:end],
-                        np.asarray(self._indices[sent:end], dtype=np.int64), chi2)
+            run = drawn[sent:end]
+            send_trajectories(self._recording, steps[run], np.stack([self._trajectories[k] for k in run]))
+            send_loop_segments(self._recording, steps[run], np.stack([self._loop_segments[k] for k in run]))
             sent = end
         self._first_step += count
-        for buffer in (self._trajectories, self._loop_segments, self._stages, self._indices, self._chi2):
+        for buffer in (self._trajectories, self._loop_segments, self._stages, self._chi2):
             del buffer[:count]
         self._buffered_bytes = sum(trajectory.nbytes + segments.nbytes for trajectory, segments
-                                   in zip(self._trajectories, self._loop_segments, strict=True))
+                                   in zip(self._trajectories, self._loop_segments, strict=True)
+                                   if trajectory is not None and segments is not None)
+
+    def _geometry_shape(self, k: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        trajectory, segments = self._trajectories[k], self._loop_segments[k]
+        return (() if trajectory is None else trajectory.shape), (() if segments is None else segments.shape)
 
 
 def _every_kth(count: int, limit: int, *, keep_last: bool) -> IntArray | None:

@@ -7,7 +7,9 @@ optimizes, and the χ² plots):
   graph converges;
 - `world3d/trajectory` on `iteration`: the 3D keyframe trajectory after every iteration;
 - `world3d/initial_trajectory` (static) and `world3d/map` (static): the starting trajectory and the final
-  map (all keyframe clouds at their optimized poses, one point per voxel).
+  map (all keyframe clouds at their optimized poses, one point per voxel; off by default in the
+  blueprint: the keyframe clouds are that map already, and they move);
+- each keyframe entity also draws its axes (`TransformAxes3D`).
 
 The blueprint shows the 3D scene beside the 2D graph and the χ² plots, with the time panel on `iteration`.
 """
@@ -26,13 +28,13 @@ from frontends.logs import Cloud3D
 from frontends.slam3d import CloudEstimate, LidarFrontend, Slam3DGraph, downsample
 from optimizer.iteration import Iteration
 from pipeline.recording import (
-    CHI2_ENTITY,
     INITIAL_TRAJECTORY_COLOR,
     ITERATION_TIMELINE,
+    LEGEND_ENTITY,
     LOG10_CHI2_ENTITY,
     STAGE_ENTITY,
     TRAJECTORY_COLOR,
-    WORLD_ENTITY,
+    map_view,
 )
 
 WORLD3D_ENTITY = "world3d"
@@ -47,6 +49,8 @@ LINE_WIDTH = rr.Radius.ui_points(2.0)
 DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
 RECORDING_KEYFRAME_VOXEL = 0.5
 """Keyframe clouds in the recording are thinned to this voxel (m): hundreds of them stay light to view."""
+KEYFRAME_AXIS_LENGTH = 1.5
+"""Length (m) of the axes drawn at every keyframe pose."""
 
 FloatArray = NDArray[np.float64]
 
@@ -56,21 +60,25 @@ def keyframe_entity(index: int) -> str:
 
 
 def cloud_blueprint() -> rrb.Blueprint:
-    """The 3D scene, the planar pose graph, χ² and the stage log; the time panel on `iteration`."""
+    """The 3D scene (the static final map off by default: the keyframe clouds already are the map, moving
+    with the iterations), the planar pose graph (y up), χ² on a log scale, the stage log and the legend;
+    the time panel on `iteration`."""
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin=WORLD3D_ENTITY, name="keyframes and map (3D)"),
+            rrb.Spatial3DView(origin=WORLD3D_ENTITY, name="keyframes and map (3D)",
+                              overrides={f"/{MAP3D_ENTITY}": rrb.EntityBehavior(visible=False)}),
             rrb.Vertical(
-                rrb.Spatial2DView(origin=WORLD_ENTITY, name="pose graph (x, y)"),
-                rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="log10 χ²"),
-                rrb.TimeSeriesView(origin=CHI2_ENTITY, name="χ²"),
+                map_view(),
+                rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
                 rrb.TextLogView(origin=STAGE_ENTITY, name="stages"),
+                rrb.TextDocumentView(origin=LEGEND_ENTITY, name="legend"),
                 row_shares=[3, 2, 2, 1],
             ),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(timeline=ITERATION_TIMELINE),
-        collapse_panels=False,
+        rrb.TimePanel(timeline=ITERATION_TIMELINE, state="collapsed", play_state="following"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
     )
 
 
@@ -86,7 +94,8 @@ def _colour(index: int, count: int) -> tuple[int, int, int, int]:
 
 
 def log_keyframe_clouds(recording: rr.RecordingStream, clouds: Sequence[NDArray[np.floating]]) -> None:
-    """Each keyframe's cloud, static, in its keyframe's frame (its pose comes per iteration)."""
+    """Each keyframe's cloud, static, in its keyframe's frame (its pose comes per iteration), with the
+    keyframe's axes, so the poses the optimizer moves stand out of the clouds."""
     for index, points in enumerate(clouds):
         recording.log(
             keyframe_entity(index),
@@ -95,6 +104,7 @@ def log_keyframe_clouds(recording: rr.RecordingStream, clouds: Sequence[NDArray[
                 colors=[_colour(index, len(clouds))],
                 radii=[POINT_RADIUS],
             ),
+            rr.TransformAxes3D(KEYFRAME_AXIS_LENGTH),
             static=True,
         )
 
@@ -191,6 +201,10 @@ class CloudReplayRecording:
 
     def iteration_sink(self) -> _LiftedPoses:
         return _LiftedPoses(self._frontend.result, KeyframePoseRecorder(self._recording))
+
+
+    def keyframe_scans(self) -> None:
+        return None  # the clouds are recorded by the iteration sink, moving with their keyframes
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: NDArray[Any]) -> None:
         log_map(self._recording, map_export)

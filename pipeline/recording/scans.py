@@ -1,23 +1,34 @@
-"""What a log replay adds to the recording: the scans as they were processed, and the final map.
+"""What a log replay adds to the recording: the scans as they were processed, and the final trajectory.
 
 Timelines: `scan` (the scan's index) and `time` (its sensor stamp) carry, per scan, its points placed at
 the pose estimated when it was processed (`world/scan`) and that pose (`world/robot`); loop closures are
-logged when they are found (`world/loop_closures_found`). Static: the odometry-only trajectory, the
-final trajectory of every scan, the occupancy grid (`occupancy/grid`, an image of its own view).
-Per-scan data is buffered and sent in column batches, which keeps the cost of recording a small part of
-a replay.
+logged when they are found (`world/loop_closures_found`). The blueprint's "scan playback" tab shows them
+with a visible time range from the start to the cursor, so the scans build up the map, the robot leaves
+a trail and the loop closures found stay drawn. Static: the wheel-odometry trajectory and the final
+trajectory of every scan (both off by default in the map view). Per-scan data is buffered and sent in
+column batches, which keeps the cost of recording a small part of a replay.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
 from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, place
 from optimizer import se2
-from pipeline.keyframe_optimization import IterationSink
-from pipeline.recording import log_final_map
+from pipeline.recording import (
+    VIEWER_BACKGROUND,
+    Bounds,
+    IterationSink,
+    default_blueprint,
+    map2d,
+    visual_bounds,
+)
+from pipeline.recording.map2d import thin_scan
 
 SCAN_TIMELINE = "scan"
 TIME_TIMELINE = "time"
@@ -27,29 +38,71 @@ ROBOT_ENTITY = "world/robot"
 FOUND_LOOP_CLOSURES_ENTITY = "world/loop_closures_found"
 ODOMETRY_TRAJECTORY_ENTITY = "world/odometry_trajectory"
 FINAL_TRAJECTORY_ENTITY = "world/final_trajectory"
-OCCUPANCY_ENTITY = "occupancy/grid"
 
-SCAN_COLOR = (214, 39, 40, 255)
-ROBOT_COLOR = (44, 160, 44, 255)
-ODOMETRY_COLOR = (148, 103, 189, 160)
-FINAL_TRAJECTORY_COLOR = (255, 127, 14, 255)
-FOUND_LOOP_COLOR = (230, 85, 13, 200)
-SCAN_POINT_RADIUS = rr.Radius.ui_points(1.5)
-ROBOT_RADIUS = rr.Radius.ui_points(4.0)
-LINE_WIDTH = rr.Radius.ui_points(0.75)
+SCAN_COLOR = (255, 210, 90, 255)
+ROBOT_COLOR = (90, 230, 120, 255)
+ODOMETRY_COLOR = (190, 150, 255, 200)
+FINAL_TRAJECTORY_COLOR = (255, 140, 30, 255)
+FOUND_LOOP_COLOR = (255, 80, 220, 255)
+SCAN_POINT_RADIUS = rr.Radius.ui_points(1.0)
+ROBOT_RADIUS = rr.Radius.ui_points(2.0)
+LINE_WIDTH = rr.Radius.ui_points(1.25)
+FOUND_LOOP_WIDTH = rr.Radius.ui_points(2.5)
+
+HIDDEN_BY_DEFAULT = ("world/final_trajectory", "world/odometry_trajectory")
+"""Static trajectories the map view starts with switched off: drawn over the animated estimate they
+would hide it."""
+PLAYBACK_ENTITIES = (SCAN_ENTITY, ROBOT_ENTITY, FOUND_LOOP_CLOSURES_ENTITY)
+
+LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
+    "final trajectory": (FINAL_TRAJECTORY_COLOR, "every scan's final pose (off by default)"),
+    "wheel odometry": (ODOMETRY_COLOR, "what wheel odometry alone believed (off by default)"),
+    "scan playback": (SCAN_COLOR, "tab: scans up to the cursor on `scan`/`time`, robot trail "
+                                  "(green), loop closures found (magenta)"),
+}
+
+
+def log_replay_blueprint(bounds: Bounds | None = None) -> rrb.Blueprint:
+    """A log replay's blueprint: the map view (static trajectories off, scan-time data left to the
+    playback tab) framing `bounds`, the scan playback tab beside it, χ², stages and legend."""
+    return default_blueprint(bounds=bounds, hidden=HIDDEN_BY_DEFAULT, extra_tabs=playback_views(bounds),
+                             excluded=PLAYBACK_ENTITIES)
+
+
+def playback_views(bounds: Bounds | None = None) -> list[rrb.Spatial2DView]:
+    """The scan playback tab: everything up to the cursor of `scan` or `time` stays drawn (the scans
+    build the map, the robot leaves a trail), over the same framing as the map view."""
+    up_to_cursor = [
+        rrb.VisibleTimeRange(timeline, start=rrb.TimeRangeBoundary.infinite(),
+                             end=rrb.TimeRangeBoundary.cursor_relative())
+        for timeline in (SCAN_TIMELINE, TIME_TIMELINE)
+    ]
+    return [rrb.Spatial2DView(
+        origin="/",
+        contents=[f"/{entity}" for entity in PLAYBACK_ENTITIES],
+        name="scan playback (timeline scan)",
+        background=VIEWER_BACKGROUND,
+        visual_bounds=visual_bounds(bounds),
+        time_ranges=up_to_cursor,
+    )]
 
 SCAN_BATCH_POINTS = 2_000_000
 """Scan points buffered before a column batch is sent."""
+PLAYBACK_CELL = 0.1
+"""Each played-back scan keeps one point per cell of this size (m): the accumulated scans are drawn over
+the whole map, where a pixel is several centimetres, and they were the recording's largest part."""
 
 FloatArray = NDArray[np.float64]
 
 
 def log_scan_styles(recording: rr.RecordingStream) -> None:
     recording.log(
-        SCAN_ENTITY, rr.Points2D.from_fields(colors=[SCAN_COLOR], radii=[SCAN_POINT_RADIUS]), static=True
+        SCAN_ENTITY, rr.Points2D.from_fields(colors=[SCAN_COLOR], radii=[SCAN_POINT_RADIUS], draw_order=20.0),
+        static=True,
     )
     recording.log(
-        ROBOT_ENTITY, rr.Points2D.from_fields(colors=[ROBOT_COLOR], radii=[ROBOT_RADIUS]), static=True
+        ROBOT_ENTITY, rr.Points2D.from_fields(colors=[ROBOT_COLOR], radii=[ROBOT_RADIUS], draw_order=40.0),
+        static=True,
     )
 
 
@@ -73,11 +126,6 @@ def log_final_trajectory(recording: rr.RecordingStream, poses: FloatArray) -> No
     )
 
 
-def log_occupancy(recording: rr.RecordingStream, image: NDArray[np.uint8]) -> None:
-    """The occupancy grid as a grey image (north up), static."""
-    recording.log(OCCUPANCY_ENTITY, rr.Image(image, color_model="L"), static=True)
-
-
 def log_loop_closures_found(
     recording: rr.RecordingStream, scan_index: int, stamp_ns: int, segments: FloatArray
 ) -> None:
@@ -86,7 +134,8 @@ def log_loop_closures_found(
     recording.set_time(TIME_TIMELINE, timestamp=np.datetime64(int(stamp_ns), "ns"))
     recording.log(
         FOUND_LOOP_CLOSURES_ENTITY,
-        rr.LineStrips2D(segments.astype(np.float32), colors=[FOUND_LOOP_COLOR], radii=[LINE_WIDTH]),
+        rr.LineStrips2D(segments.astype(np.float32), colors=[FOUND_LOOP_COLOR], radii=[FOUND_LOOP_WIDTH],
+                        draw_order=45.0),
     )
     recording.reset_time()
 
@@ -105,9 +154,9 @@ class ScanRecorder:
     def add(self, index: int, stamp_ns: int, points: FloatArray, pose: FloatArray) -> None:
         self._indices.append(index)
         self._stamps.append(int(stamp_ns))
-        self._points.append(np.asarray(points, dtype=np.float32).reshape(-1, 2))
+        self._points.append(thin_scan(points, PLAYBACK_CELL))
         self._poses.append(np.asarray(pose[:2], dtype=np.float32))
-        self._buffered += len(points)
+        self._buffered += len(self._points[-1])
         if self._buffered >= SCAN_BATCH_POINTS:
             self.flush()
 
@@ -160,7 +209,9 @@ class ScanReplayRecording:
     def iteration_sink(self) -> IterationSink | None:
         return None
 
+    def keyframe_scans(self) -> Sequence[FloatArray]:
+        return self._frontend.result.keyframe_scans
+
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
-        log_final_map(self._recording, self._frontend.result.keyframe_scans, planar_poses)
         log_final_trajectory(self._recording, estimates)
-        log_occupancy(self._recording, map_export.image())
+        map2d.log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)

@@ -1,0 +1,209 @@
+"""The map of a 2D log replay in the recording: walls that move with the optimizer, over the final grid.
+
+- `world/keyframes/kNNNNNN/scan`: each keyframe's scan, logged once (at the first recorded iteration), in
+  the keyframe's own frame, thinned to one point per `SCAN_CELL`;
+- `world/keyframes/kNNNNNN`: the keyframe's pose as a `Transform3D` on `iteration`, sent in columns: the
+  walls straighten as the optimizer iterates while an iteration costs 28 bytes per keyframe instead of the
+  whole map, and only for keyframes that moved by more than `SHOWN_MOVE` / `SHOWN_TURN` since their last
+  row (the viewer keeps the latest row; late SGD iterations move most keyframes by far less than a
+  pixel). The final iteration is sent whole, so its transforms are the written poses exactly;
+- `world/occupancy/grid` (static): the occupancy grid of the final map, an image placed in world metres by
+  the static transform of `world/occupancy` (north up, like `<stem>_map.png`), in dark tones under the
+  walls: free space dark grey, walls mid grey, unknown the view's background.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import rerun as rr
+from numba import njit
+from numpy.typing import NDArray
+
+from optimizer.iteration import Iteration
+from pipeline.recording import (
+    ITERATION_TIMELINE,
+    KEYFRAMES_ENTITY,
+    MAP_COLOR,
+    MAP_DRAW_ORDER,
+    MAP_POINT_RADIUS,
+    OCCUPANCY_DRAW_ORDER,
+    VIEWER_BACKGROUND,
+    Bounds,
+)
+
+OCCUPANCY_ENTITY = "world/occupancy"
+OCCUPANCY_IMAGE_ENTITY = "world/occupancy/grid"
+
+SCAN_CELL = 0.05
+"""Each keyframe scan keeps one point per cell of this size (m) of its own frame."""
+
+# The grey levels of `frontends.slam2d.OccupancyGrid.image` and what the viewer draws for them (RGBA).
+GRID_OCCUPIED, GRID_FREE, GRID_UNKNOWN = 0, 255, 205
+OCCUPANCY_VIEW_COLORS = {
+    GRID_OCCUPIED: (120, 120, 120, 255),
+    GRID_FREE: (40, 40, 48, 255),
+    GRID_UNKNOWN: (*VIEWER_BACKGROUND, 255),  # the viewer draws transparent image pixels black
+}
+
+DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
+
+SHOWN_MOVE = 0.05
+"""A keyframe's transform gets a new row once it moved this far (m) from its last row …"""
+SHOWN_TURN = 0.0025
+"""… or turned this much (rad: 5 cm at 20 m range): about a pixel of a building-sized map framed whole."""
+
+FloatArray = NDArray[np.float64]
+
+
+def keyframe_entity(index: int) -> str:
+    return f"{KEYFRAMES_ENTITY}/k{index:06d}"
+
+
+def keyframe_scan_entity(index: int) -> str:
+    return f"{keyframe_entity(index)}/scan"
+
+
+def thin_scan(points: NDArray[np.floating], cell: float = SCAN_CELL) -> NDArray[np.float32]:
+    """One point (the first) per `cell` × `cell` square, in the scan's order."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    cells = np.floor(points / cell).astype(np.int64)
+    # One integer per cell (np.unique over rows is ten times slower): maps span far less than 2³¹ cells.
+    _, first = np.unique(cells[:, 0] * 4_294_967_296 + cells[:, 1], return_index=True)
+    return points[np.sort(first)].astype(np.float32)
+
+
+def placed_bounds(scans: Sequence[FloatArray], poses: FloatArray) -> Bounds:
+    """The extent of all `scans` (keyframe-frame points) placed at `poses`, and of the poses."""
+    low = np.min(poses[:, :2], axis=0) if len(poses) else np.zeros(2)
+    high = np.max(poses[:, :2], axis=0) if len(poses) else np.zeros(2)
+    for scan, pose in zip(scans, poses, strict=True):
+        if len(scan):
+            placed = scan @ _rotation(float(pose[2])) + pose[:2]
+            low, high = np.minimum(low, placed.min(axis=0)), np.maximum(high, placed.max(axis=0))
+    return float(low[0]), float(low[1]), float(high[0]), float(high[1])
+
+
+def _rotation(theta: float) -> FloatArray:
+    """The matrix R with `points @ R` rotating row vectors by `theta`."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, s], [-s, c]])
+
+
+def yaw_quaternions(theta: NDArray[np.floating]) -> NDArray[np.float32]:
+    """(…, 4) quaternions (x, y, z, w) of rotations by `theta` about z."""
+    half = 0.5 * np.asarray(theta, dtype=np.float64)
+    zeros = np.zeros_like(half)
+    return np.stack([zeros, zeros, np.sin(half), np.cos(half)], axis=-1).astype(np.float32)
+
+
+def log_occupancy(recording: rr.RecordingStream, image: NDArray[np.uint8], origin: FloatArray,
+                  resolution: float) -> None:
+    """The grey occupancy picture (north up, row 0 the northern edge; cell (0, 0) of the grid starts at
+    `origin`, cells of `resolution` m) as a static image in world metres under the walls."""
+    from PIL import Image  # as pipeline.outputs.write_png: only when a map is recorded
+
+    height = image.shape[0]
+    colored = np.zeros((*image.shape, 4), dtype=np.uint8)
+    for grey, rgba in OCCUPANCY_VIEW_COLORS.items():
+        colored[image == grey] = rgba
+    png = io.BytesIO()
+    Image.fromarray(colored, mode="RGBA").save(png, format="PNG")  # a few % of the raw RGBA
+    # Pixel (u, v) covers x = origin_x + u·res, y = top − v·res: image rows run south.
+    recording.log(
+        OCCUPANCY_ENTITY,
+        rr.Transform3D(translation=[float(origin[0]), float(origin[1]) + height * resolution, 0.0],
+                       scale=[resolution, -resolution, 1.0]),
+        static=True,
+    )
+    recording.log(OCCUPANCY_IMAGE_ENTITY, rr.EncodedImage(contents=png.getvalue(), media_type="image/png",
+                                                          draw_order=OCCUPANCY_DRAW_ORDER), static=True)
+
+
+class KeyframeMapRecorder:
+    """The walls that move: each keyframe's scan once, then every iteration's keyframe poses as one
+    `Transform3D` per keyframe entity, buffered and sent in column batches of about `batch_bytes`.
+
+    Used as the `IterationSink` of `pipeline.keyframe_optimization.optimize_keyframes`."""
+
+    def __init__(self, recording: rr.RecordingStream, scans: Sequence[FloatArray], *,
+                 batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
+        self._recording = recording
+        self._scans = scans
+        self._batch_bytes = batch_bytes
+        self._steps: list[int] = []
+        self._poses: list[NDArray[np.float32]] = []
+        self._buffered_bytes = 0
+        self._scans_logged = False
+        self._last_sent: NDArray[np.float64] = np.full((len(scans), 3), np.nan)
+
+    def add(self, step: int, iteration: Iteration) -> None:
+        """Buffer the keyframe poses of the iteration logged at `step`."""
+        if not self._scans_logged:
+            self._log_scans(step)
+        self._steps.append(step)
+        self._poses.append(np.asarray(iteration.poses, dtype=np.float32))
+        self._buffered_bytes += self._poses[-1].nbytes
+        if self._buffered_bytes >= self._batch_bytes:
+            self._send(final=False)
+
+    def _log_scans(self, step: int) -> None:
+        # On `iteration` (not static): on the `scan` and `time` timelines the keyframes have no pose, and
+        # static points would be drawn piled up at the origin there.
+        self._recording.set_time(ITERATION_TIMELINE, sequence=step)
+        for index, scan in enumerate(self._scans):
+            self._recording.log(
+                keyframe_scan_entity(index),
+                rr.Points2D(thin_scan(scan), colors=[MAP_COLOR], radii=[MAP_POINT_RADIUS],
+                            draw_order=MAP_DRAW_ORDER),
+            )
+        self._recording.reset_time()
+        self._scans_logged = True
+
+    def flush(self) -> None:
+        """Send what is buffered, the latest iteration whole (call it once the run is over)."""
+        self._send(final=True)
+
+    def _send(self, *, final: bool) -> None:
+        if not self._steps:
+            return
+        steps = np.asarray(self._steps, dtype=np.int64)
+        poses = np.stack(self._poses)  # (T, K, 3)
+        sent = rows_to_send(poses.astype(np.float64), self._last_sent, SHOWN_MOVE, SHOWN_TURN, final)
+        translations = np.zeros((*poses.shape[:2], 3), dtype=np.float32)
+        translations[..., :2] = poses[..., :2]
+        quaternions = yaw_quaternions(poses[..., 2])
+        for index in np.flatnonzero(sent.any(axis=0)):
+            rows = sent[:, index]
+            self._recording.send_columns(
+                keyframe_entity(int(index)),
+                indexes=[rr.TimeColumn(ITERATION_TIMELINE, sequence=steps[rows])],
+                columns=rr.Transform3D.columns(translation=translations[rows, index],
+                                               quaternion=quaternions[rows, index]),
+            )
+        self._steps, self._poses = [], []
+        self._buffered_bytes = 0
+
+
+@njit(cache=True)
+def rows_to_send(poses: FloatArray, last_sent: FloatArray, move: float, turn: float,
+                 keep_last: bool) -> NDArray[np.bool_]:
+    """(T, K) which of the (T, K, 3) poses differ from their keyframe's last sent pose by more than
+    `move` (m) or `turn` (rad); `last_sent` (K, 3, NaN for never) is updated. With `keep_last` the last
+    row is sent whole."""
+    count, keyframes = poses.shape[0], poses.shape[1]
+    sent = np.zeros((count, keyframes), dtype=np.bool_)
+    for k in range(keyframes):
+        for t in range(count):
+            turned = (poses[t, k, 2] - last_sent[k, 2] + math.pi) % (2.0 * math.pi) - math.pi
+            moved = math.hypot(poses[t, k, 0] - last_sent[k, 0], poses[t, k, 1] - last_sent[k, 1])
+            # NaN compares false: a keyframe never sent is sent.
+            if not (moved <= move and abs(turned) <= turn) or (keep_last and t == count - 1):
+                sent[t, k] = True
+                for axis in range(3):
+                    last_sent[k, axis] = poses[t, k, axis]
+    return sent

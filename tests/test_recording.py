@@ -1,0 +1,242 @@
+"""The recording's content, read back from the .rrd: entities, timelines, per-iteration keyframe transforms,
+colours (contrast against the view's background), and that the last iteration is the written result."""
+
+from __future__ import annotations
+
+import io
+import itertools
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from rerun.chunk import RrdReader
+
+from optimizer import se2
+from optimizer.graph_files import read_graph
+from optimizer.iteration import Iteration
+from pipeline import recording
+from pipeline.keyframe_optimization import optimize_keyframes, wheel_odometry_start
+from pipeline.recording import map2d
+from pipeline.replay_graph import replay_graph
+from tests.pipeline_fixtures import LOOP_POSES, read_recording, write_loop_graph
+
+OUR_TIMELINES = {"iteration", "scan", "time"}
+
+
+def relative_luminance(rgb: tuple[int, ...]) -> float:
+    """WCAG 2 relative luminance of an sRGB colour."""
+    channels = np.asarray(rgb[:3], dtype=np.float64) / 255.0
+    linear = np.where(channels <= 0.04045, channels / 12.92, ((channels + 0.055) / 1.055) ** 2.4)
+    return float(linear @ np.array([0.2126, 0.7152, 0.0722]))
+
+
+def contrast(a: tuple[int, ...], b: tuple[int, ...]) -> float:
+    light, dark = sorted((relative_luminance(a), relative_luminance(b)), reverse=True)
+    return (light + 0.05) / (dark + 0.05)
+
+
+def properties(path: Path, name: str) -> dict[str, object]:
+    """The recording property `name` of the .rrd at `path` (its fields carry no archetype prefix)."""
+    found: dict[str, object] = {}
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == f"/__properties/{name}":
+            for row in chunk.to_record_batch().to_pylist():
+                found.update({key: value[0] for key, value in row.items() if key != "rerun.controls.RowId"})
+    return found
+
+
+def rgba(packed: int) -> tuple[int, int, int, int]:
+    """Rerun's packed 0xRRGGBBAA colour as a tuple."""
+    return (packed >> 24) & 255, (packed >> 16) & 255, (packed >> 8) & 255, packed & 255
+
+
+def test_contrast_formula_matches_the_wcag_extremes() -> None:
+    assert contrast((255, 255, 255), (0, 0, 0)) == pytest.approx(21.0)
+    assert contrast((119, 119, 119), (255, 255, 255)) == pytest.approx(4.48, abs=0.01)
+
+
+@pytest.fixture(scope="module")
+def graph_recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    folder = tmp_path_factory.mktemp("graph")
+    result = replay_graph(write_loop_graph(folder / "loop.g2o"), out_dir=folder / "out", method="sgd",
+                          iterations=8)
+    return folder / "out", {"result": result, "entities": read_recording(folder / "out" / "loop.rrd")}
+
+
+def test_a_graph_recording_has_only_our_timelines_and_its_properties(
+    graph_recording: tuple[Path, dict],
+) -> None:
+    out, content = graph_recording
+    entities = content["entities"]
+    timelines = set().union(*(entity.timelines for entity in entities.values()))
+    assert timelines == {"iteration"}  # no log_time / log_tick
+    replay = properties(out / "loop.rrd", "replay")
+    assert str(replay["input"]).endswith("loop.g2o")
+    assert replay["method"] == "sgd" and replay["poses"] == LOOP_POSES
+
+
+def test_the_world_is_mirrored_once_so_y_points_up(graph_recording: tuple[Path, dict]) -> None:
+    _, content = graph_recording
+    world = content["entities"]["/world"]
+    assert world.static_rows == 1
+    matrix = np.asarray(world.static_columns["Transform3D:mat3x3"][0], dtype=float).reshape(3, 3)
+    np.testing.assert_allclose(np.abs(matrix), np.eye(3))
+    assert np.linalg.det(matrix) == pytest.approx(-1.0) and matrix[1, 1] == -1.0
+
+
+def test_the_estimate_is_drawn_on_top_in_colours_that_read_against_the_background(
+    graph_recording: tuple[Path, dict],
+) -> None:
+    _, content = graph_recording
+    entities = content["entities"]
+    background = recording.VIEWER_BACKGROUND
+
+    def style(path: str, column: str) -> object:
+        return entities[path].static_columns[column][0]
+
+    trajectory_color = rgba(style("/world/trajectory", "LineStrips2D:colors")[0])
+    loops_color = rgba(style("/world/loop_closures", "LineStrips2D:colors")[0])
+    assert contrast(trajectory_color, background) >= 4.0
+    assert contrast(loops_color, background) >= 4.0
+    assert contrast(recording.MAP_COLOR, background) >= 4.0
+    assert contrast(recording.MAP_COLOR, map2d.OCCUPANCY_VIEW_COLORS[map2d.GRID_FREE]) >= 4.0
+    assert trajectory_color != loops_color
+    on_top = style("/world/trajectory", "LineStrips2D:draw_order")
+    assert on_top > style("/world/loop_closures", "LineStrips2D:draw_order")
+    assert on_top > style("/world/initial_trajectory", "LineStrips2D:draw_order")
+    assert entities["/legend"].static_rows == 1
+
+
+def test_the_stage_log_leaves_out_repeated_converged_iterations(graph_recording: tuple[Path, dict]) -> None:
+    _, content = graph_recording
+    result = content["result"]
+    stages = content["entities"]["/optimizer/stage"]
+    lines = [row[0] for row in stages.columns["TextLog:text"]]
+    # Independent expectation: a line for an iteration exactly when (stage, χ² to 6 digits) differs from
+    # the previous iteration's.
+    expected_steps, previous = [], None
+    for record in result.iterations:
+        shown = (record.stage if record.start == "estimate" else f"{record.start}: {record.stage}",
+                 f"{record.chi2:.6g}")
+        if shown != previous:
+            expected_steps.append(record.step)
+        previous = shown
+    assert stages.steps == expected_steps
+    assert all("χ² = " in line for line in lines)
+    assert len(set(itertools.pairwise(lines))) == len(lines) - 1
+
+
+def test_rows_to_send_skips_moves_below_the_threshold_and_sends_the_last_row() -> None:
+    poses = np.zeros((5, 2, 3))
+    poses[:, 0, 0] = [0.0, 0.01, 0.02, 0.2, 0.21]  # keyframe 0 creeps, jumps, creeps
+    poses[:, 1, 2] = [0.0, 0.1, 0.1, 0.1, 0.1]  # keyframe 1 turns once
+    last = np.full((2, 3), np.nan)
+    sent = map2d.rows_to_send(poses, last, 0.05, 0.01, True)
+    np.testing.assert_array_equal(sent[:, 0], [True, False, False, True, True])
+    np.testing.assert_array_equal(sent[:, 1], [True, True, False, False, True])
+    np.testing.assert_allclose(last, poses[-1])
+    later = map2d.rows_to_send(poses[-1:] + np.array([0.01, 0.0, 0.0]), last, 0.05, 0.01, False)
+    assert not later.any()
+
+
+def test_wheel_odometry_start_is_the_odometry_chain_anchored_at_the_first_keyframe() -> None:
+    odometry = np.array([[10.0, 5.0, np.pi / 2], [10.0, 6.0, np.pi / 2], [9.0, 6.0, np.pi]])
+    start = wheel_odometry_start(odometry, np.zeros(3))
+    # Seen from the first odometry pose (facing +y): 1 m ahead, then 1 m ahead and 1 m to the left.
+    np.testing.assert_allclose(start, [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, np.pi / 2]], atol=1e-12)
+    assert wheel_odometry_start(np.array([[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0]]), np.zeros(3)) is None
+
+
+def _keyframe_scans(count: int) -> list[np.ndarray]:
+    """A short wall ahead of every keyframe, different per keyframe."""
+    along = np.linspace(-1.0, 1.0, 41)
+    return [np.stack([np.full_like(along, 2.0 + 0.01 * k), along], axis=1) for k in range(count)]
+
+
+def test_the_walls_move_with_every_iteration_and_end_at_the_written_poses(tmp_path: Path) -> None:
+    graph = read_graph(write_loop_graph(tmp_path / "loop.g2o")).graph
+    keyframe_scans = _keyframe_scans(graph.num_poses)
+    path = tmp_path / "keyframes.rrd"
+    stream = recording.create_recording(path, name="keyframes", with_map=True)
+    seen: list[np.ndarray] = []
+
+    def keep(iteration: Iteration) -> None:
+        seen.append(np.array(iteration.poses))
+
+    wheel = se2.compose_chain(se2.relative(graph.poses[:-1], graph.poses[1:]) + np.array([0.0, 0.0, 0.01]))
+    optimized = optimize_keyframes(stream, graph, graph, "sgd", 20, keep, keyframe_scans=keyframe_scans,
+                                   wheel_odometry=wheel)
+    recording.close_recording(stream)
+    entities = read_recording(path)
+    assert len(seen) == len(optimized.trace)
+    assert "wheel odometry" in [candidate.start for candidate in optimized.result.candidates]
+    timelines = set().union(*(entity.timelines for entity in entities.values()))
+    assert timelines <= OUR_TIMELINES and "iteration" in timelines
+    assert "/world/map" not in entities  # the walls are the keyframe scans, no static copy
+
+    last_step = len(seen) - 1
+    rows_sent = 0
+    for index in range(graph.num_poses):
+        scan = entities[f"/world/keyframes/k{index:06d}/scan"]
+        assert scan.steps == [0] and scan.static_rows == 0  # once, in the keyframe's own frame
+        np.testing.assert_allclose(np.asarray(scan.columns["Points2D:positions"][0]), keyframe_scans[index],
+                                   atol=1e-6)
+        transform = entities[f"/world/keyframes/k{index:06d}"]
+        assert transform.steps[0] == 0 and transform.steps[-1] == last_step
+        rows_sent += len(transform.steps)
+        translations = np.asarray(transform.columns["Transform3D:translation"], dtype=float).reshape(-1, 3)
+        quaternions = np.asarray(transform.columns["Transform3D:quaternion"], dtype=float).reshape(-1, 4)
+        yaws = 2.0 * np.arctan2(quaternions[:, 2], quaternions[:, 3])
+        # At every step the viewer shows the latest row: within the threshold of that iteration's pose.
+        latest = np.searchsorted(transform.steps, np.arange(len(seen)), side="right") - 1
+        truth = np.array([poses[index] for poses in seen])
+        assert np.all(np.hypot(*(translations[latest, :2] - truth[:, :2]).T) <= map2d.SHOWN_MOVE + 1e-5)
+        assert np.all(np.abs(se2.wrap_angle(yaws[latest] - truth[:, 2])) <= map2d.SHOWN_TURN + 1e-5)
+        # The last row is the written result exactly (float32).
+        np.testing.assert_allclose(translations[-1, :2], optimized.poses[index, :2], atol=1e-5)
+        assert se2.wrap_angle(yaws[-1] - optimized.poses[index, 2]) == pytest.approx(0.0, abs=1e-5)
+    assert rows_sent < len(seen) * graph.num_poses  # still keyframes are not repeated
+    # The trajectory likewise: a row when some pose moved more than the threshold, the last one whole.
+    trajectory = entities["/world/trajectory"]
+    assert trajectory.steps[0] == 0 and trajectory.steps[-1] == last_step
+    strips = trajectory.columns["LineStrips2D:strips"]
+    latest = np.searchsorted(trajectory.steps, np.arange(len(seen)), side="right") - 1
+    for step, row in enumerate(latest):
+        drawn = np.asarray(strips[row], dtype=float).reshape(-1, 2)
+        assert np.max(np.abs(drawn - seen[step][:, :2])) <= map2d.SHOWN_MOVE + 1e-5
+    np.testing.assert_allclose(np.asarray(strips[-1], dtype=float).reshape(-1, 2), optimized.poses[:, :2],
+                               atol=1e-5)
+    assert entities["/optimizer/chi2"].steps == list(range(len(seen)))
+    assert properties(path, "optimization") == {"method": "sgd", "keyframes": graph.num_poses,
+                                                "constraints": graph.num_edges, "loop_closures": 2}
+
+
+def test_the_occupancy_grid_lies_in_world_metres_north_up(tmp_path: Path) -> None:
+    # A 4 × 3-cell grid of 0.5 m cells from (10, 20): the occupied cell is ix = 3, iy = 2, the north-east
+    # corner, so its centre is at (10 + 3.5·0.5, 20 + 2.5·0.5) = (11.75, 21.25).
+    origin, resolution = np.array([10.0, 20.0]), 0.5
+    picture = np.full((3, 4), map2d.GRID_FREE, dtype=np.uint8)
+    picture[0, 3] = map2d.GRID_OCCUPIED  # image row 0 is the northern edge
+    path = tmp_path / "grid.rrd"
+    stream = recording.create_recording(path, name="grid")
+    map2d.log_occupancy(stream, picture, origin, resolution)
+    recording.close_recording(stream)
+    entities = read_recording(path)
+    placement = entities["/world/occupancy"].static_columns
+    translation = np.asarray(placement["Transform3D:translation"][0], dtype=float).reshape(3)
+    scale = np.asarray(placement["Transform3D:scale"][0], dtype=float).reshape(3)
+    image_row = entities["/world/occupancy/grid"].static_columns
+    blob = np.asarray(image_row["EncodedImage:blob"][0], dtype=np.uint8).tobytes()
+    decoded = np.asarray(Image.open(io.BytesIO(blob)))
+    rows, cols = np.nonzero(np.all(decoded == map2d.OCCUPANCY_VIEW_COLORS[map2d.GRID_OCCUPIED], axis=-1))
+    assert (rows.tolist(), cols.tolist()) == ([0], [3])
+    centre = translation[:2] + scale[:2] * (np.array([cols[0], rows[0]]) + 0.5)
+    np.testing.assert_allclose(centre, [11.75, 21.25])
+
+
+def test_thin_scan_keeps_the_first_point_of_each_cell_in_scan_order() -> None:
+    points = np.array([[0.01, 0.01], [0.02, 0.03], [0.5, -0.01], [-0.01, 0.0], [0.04, 0.0], [np.nan, 0.0]])
+    # Cells of 0.05 m: (0, 0) twice then again, (10, −1), (−1, 0); the NaN point is dropped.
+    np.testing.assert_allclose(map2d.thin_scan(points), [[0.01, 0.01], [0.5, -0.01], [-0.01, 0.0]], atol=1e-7)
+    assert map2d.thin_scan(np.zeros((0, 2))).shape == (0, 2)
