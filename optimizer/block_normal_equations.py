@@ -132,14 +132,19 @@ def block_diagonal(blocks: FloatArray, diagonal_block: IntArray) -> FloatArray:
 
 
 @njit(cache=True)
-def scaled_blocks(blocks: FloatArray, indptr: Int32Array, indices: Int32Array, diagonal_block: IntArray,
-                  scale: FloatArray, damping: float, out: FloatArray) -> None:
-    """out = blocks of S·H·S + λ·I, S = diag(scale)."""
+def scale_blocks(blocks: FloatArray, indptr: Int32Array, indices: Int32Array, scale: FloatArray) -> None:
+    """In place: blocks of H become those of S·H·S, S = diag(scale)."""
     for row in range(indptr.shape[0] - 1):
         for position in range(indptr[row], indptr[row + 1]):
             column = indices[position]
             for p in range(3):
                 for q in range(3):
-                    out[position, p, q] = blocks[position, p, q] * scale[3 * row + p] * scale[3 * column + q]
+                    blocks[position, p, q] *= scale[3 * row + p] * scale[3 * column + q]
+
+
+@njit(cache=True)
+def add_to_diagonal(blocks: FloatArray, diagonal_block: IntArray, amount: float) -> None:
+    """In place: blocks of A become those of A + amount·I."""
+    for row in range(diagonal_block.shape[0]):
         for p in range(3):
-            out[diagonal_block[row], p, p] += damping
+            blocks[diagonal_block[row], p, p] += amount
