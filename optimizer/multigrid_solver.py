@@ -5,10 +5,11 @@ The normal equations of a pose graph are a weighted graph Laplacian in 3×3 bloc
 world the chain preconditioner of `optimizer.damped_solvers` needs 300–500 CG iterations per step once the
 loops matter, while one multigrid V-cycle per iteration brings a relative residual of 10⁻⁴ in about 16.
 The hierarchy (aggregation of poses, prolongation, coarse operators) costs about as much as 10–20 CG
-iterations to build, so it is built once and kept while it stays good: it is rebuilt for the next step
-when a solve needed more than `rebuild_growth` times the iterations of the first solve after the last
-build (the linearisation has moved too far). A stale hierarchy only slows CG, it never changes the step CG
-converges to. pyamg is imported with this module, which `optimizer.polish` loads only when it needs it.
+iterations to build, so it is built once and kept while it stays good: CG with the kept hierarchy gets
+`rebuild_growth` times the iterations the first solve after the last build needed (at least 20); past
+them the linearisation has moved too far, the hierarchy is rebuilt and CG starts again. A stale
+hierarchy only slows CG, it never changes the step CG converges to. pyamg is imported with this module,
+which `optimizer.polish` loads only when it needs it.
 """
 
 from __future__ import annotations
@@ -46,7 +47,6 @@ class MultigridPCGSolver:
         self._damping = 0.0
         self._preconditioner: sp.linalg.LinearOperator | None = None
         self._iterations_after_build = 0
-        self._rebuild = True
         self.forcing = 1e-2
         self.last_iterations = 0
         self.last_converged = True
@@ -65,26 +65,33 @@ class MultigridPCGSolver:
         self._damping = damping
         size = 3 * pattern.free
         matrix = sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(size, size))
-        fresh = self._rebuild or self._preconditioner is None
-        if fresh:
+        rhs = -linearisation.scale * linearisation.gradient
+        iterations = 0
+        if self._preconditioner is not None:
+            # The kept hierarchy gets the budget a good one needs; past it, it is rebuilt and CG restarts.
+            budget = min(self._max_iterations, max(_MIN_ITERATIONS_FOR_REBUILD,
+                                                   int(self._rebuild_growth * self._iterations_after_build)))
+            solution, iterations, converged = self._solve(matrix, rhs, budget)
+            if not converged and iterations == budget < self._max_iterations:
+                self._preconditioner = None
+        if self._preconditioner is None:
             self._preconditioner = _hierarchy(matrix.copy(), linearisation).aspreconditioner(cycle="V")
             self.builds += 1
-            self._rebuild = False
+            solution, fresh_iterations, converged = self._solve(matrix, rhs, self._max_iterations)
+            self._iterations_after_build = fresh_iterations
+            iterations += fresh_iterations
+        self.last_iterations, self.last_converged = iterations, converged
+        return solution if np.all(np.isfinite(solution)) and iterations > 0 else None
+
+    def _solve(self, matrix: sp.bsr_matrix, rhs: FloatArray,
+               max_iterations: int) -> tuple[FloatArray, int, bool]:
         preconditioner = self._preconditioner
+        assert preconditioner is not None
 
         def precondition(residual: FloatArray, out: FloatArray) -> None:
             out[:] = preconditioner @ residual
 
-        rhs = -linearisation.scale * linearisation.gradient
-        solution, iterations, converged = preconditioned_cg(
-            matrix.dot, precondition, rhs, self.forcing, self._max_iterations)
-        if fresh:
-            self._iterations_after_build = iterations
-        elif iterations >= max(_MIN_ITERATIONS_FOR_REBUILD,
-                               self._rebuild_growth * self._iterations_after_build):
-            self._rebuild = True
-        self.last_iterations, self.last_converged = iterations, converged
-        return solution if np.all(np.isfinite(solution)) and iterations > 0 else None
+        return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations)
 
 
 def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation) -> pyamg.MultilevelSolver:

@@ -62,7 +62,8 @@ def test_scaled_blocks_are_the_jacobi_scaled_damped_matrix() -> None:
 
 
 def test_multigrid_steps_match_the_direct_steps_for_every_damping() -> None:
-    # A second damping on the same linearisation re-uses the blocks scaled in place: λ alone changes.
+    # A second damping on the same linearisation re-uses the blocks scaled in place: λ alone changes
+    # (the hierarchy may be rebuilt when the kept one needs too many iterations for forcing 1e-10).
     graph = generate_grid_world(600, seed=7).graph
     upper = UpperPattern.of(graph)
     direct_solver = DirectSolver(upper)
@@ -74,7 +75,7 @@ def test_multigrid_steps_match_the_direct_steps_for_every_damping() -> None:
         direct = direct_solver.step(_linearise(graph, upper, graph.poses), damping)
         step = solver.step(linearisation, damping)
         assert direct is not None and step is not None
-        assert solver.last_converged and solver.builds == 1
+        assert solver.last_converged
         np.testing.assert_allclose(step, direct, rtol=1e-6, atol=1e-8 * np.abs(direct).max())
 
 
