@@ -29,9 +29,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # runnable from a checkout without installing the package
     sys.path.insert(0, str(REPO))
 
-from frontends import open_log  # noqa: E402
-from frontends.converters import ros_point_cloud2  # noqa: E402
-from frontends.decoding.ros_wire import point_cloud2  # noqa: E402
+from frontends.logs import open_log  # noqa: E402
+from frontends.logs.converters import ros_point_cloud2  # noqa: E402
+from frontends.logs.decoding.ros_wire import point_cloud2  # noqa: E402
 
 LASER_TYPE = "sensor_msgs/msg/LaserScan"
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"

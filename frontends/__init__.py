@@ -1,8 +1,10 @@
-"""Frontends: read laser and LiDAR logs (MCAP, ROS 1 bags, ROS 2 bags) into typed, time-ordered streams.
+"""Frontends: read robot logs and turn their scans into pose-graph constraints.
 
-`open_log(path)` picks the container from the path and its contents and returns a `LogReader`; its
-`info()` reads the summary / index, and its iterators (`scans`, `clouds`, `odometry`, `transforms`,
-`messages`) stream `Scan2D`, `Cloud3D`, `OdometryPose` and `Transform` in sensor-time order.
+Three packages, each exporting its public names:
+- `frontends.logs`: MCAP, ROS 1 and ROS 2 bags into typed, time-ordered streams (`open_log`).
+- `frontends.slam2d`: 2D laser SLAM (scan matching, keyframes, loop closures) into a pose graph.
+- `frontends.slam3d`: 3D LiDAR SLAM (KISS-ICP odometry, keyframes, loop closures) into a pose graph.
+`frontends.errors` holds the exceptions all three raise.
 
 The names below are imported on first use: `import frontends.errors` (what the CLI needs to report
 errors) must not pay for the container readers and their decoders.
@@ -23,15 +25,6 @@ _EXPORTS = {
     "TransformLookupError": "frontends.errors",
     "UnusableLogError": "frontends.errors",
     "MapExtentError": "frontends.errors",
-    "LogReader": "frontends.log",
-    "open_log": "frontends.log",
-    "TransformTree": "frontends.transforms",
-    "Cloud3D": "frontends.types",
-    "LogInfo": "frontends.types",
-    "OdometryPose": "frontends.types",
-    "Scan2D": "frontends.types",
-    "TopicInfo": "frontends.types",
-    "Transform": "frontends.types",
 }
 
 __all__ = sorted(_EXPORTS)

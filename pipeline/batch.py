@@ -3,19 +3,33 @@ as tasks on a Ray cluster (`RayOptions`; `pipeline.ray_batch`).
 
 A failing input never stops the others: every input ends as a `BatchOutcome`, its summary or its error.
 Library code: nothing is printed; callers report the outcomes.
+
+A pool interrupted in the calling process (Ctrl-C, or SIGTERM turned into `KeyboardInterrupt` as the
+command does) stops its workers before the interrupt propagates: each gets SIGTERM, which in a worker
+raises `KeyboardInterrupt` so its staged outputs are removed, then it exits; one still running after
+`STOP_GRACE_S` is killed and what it left is cleaned up here. No worker publishes outputs afterwards, and
+with the workers gone the forkserver and the resource tracker (which live as long as some process holds
+their pipes) exit too.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import multiprocessing
+import os
+import signal
 import socket
+import sys
+import time
 import traceback
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from multiprocessing.context import BaseContext
+from multiprocessing.process import BaseProcess
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from pipeline.api import (
@@ -30,7 +44,8 @@ from pipeline.api import (
     replay,
 )
 from pipeline.config import ReplayConfig
-from pipeline.errors import PipelineError
+from pipeline.errors import OutputError, PipelineError
+from pipeline.outputs import recover_outputs, stop_signals_held
 
 OutcomeCallback = Callable[["BatchOutcome"], None]
 
@@ -189,14 +204,17 @@ def run_batch(
     return _run_in_pool(inputs, config, Path(out_dir), min(jobs, len(inputs)), on_done)
 
 
+STOP_GRACE_S = 5.0
+"""How long an interrupted pool's workers have to clean up after SIGTERM before they are killed."""
+
+
 def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, workers: int,
                  on_done: OutcomeCallback | None) -> list[BatchOutcome]:
     outcomes: list[BatchOutcome | None] = [None] * len(inputs)
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=pool_context(), initializer=_init_worker)
     try:
         futures: dict[Future[BatchOutcome], int] = {
-            pool.submit(run_one_on_this_host, path, config, out_dir=out_dir): index
-            for index, path in enumerate(inputs)
+            pool.submit(_run_in_worker, path, config, out_dir): index for index, path in enumerate(inputs)
         }
         for future in as_completed(futures):
             index = futures[future]
@@ -208,11 +226,43 @@ def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, worker
             outcomes[index] = outcome
             if on_done is not None:
                 on_done(outcome)
-    except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)  # Ctrl-C: do not start the inputs still queued
+    except BaseException:  # Ctrl-C or SIGTERM here: stop every worker before the interrupt goes on
+        with stop_signals_held(redeliver=False):  # a second Ctrl-C must not cut the clean-up short
+            _stop_pool(pool, inputs, out_dir)
         raise
     pool.shutdown(wait=True)
     return [outcome for outcome in outcomes if outcome is not None]
+
+
+def _stop_pool(pool: ProcessPoolExecutor, inputs: list[Path], out_dir: Path) -> None:
+    """SIGTERM every worker, wait up to `STOP_GRACE_S` for them to clean up and exit, kill the rest and
+    clean up after them."""
+    workers = _pool_processes(pool)
+    pool.shutdown(wait=False, cancel_futures=True)
+    for worker in workers:
+        with contextlib.suppress(OSError, ValueError):
+            worker.terminate()
+    deadline = time.monotonic() + STOP_GRACE_S
+    for worker in workers:
+        worker.join(max(0.0, deadline - time.monotonic()))
+    killed = [worker for worker in workers if worker.is_alive()]
+    for worker in killed:
+        with contextlib.suppress(OSError, ValueError):
+            worker.kill()
+        worker.join(1.0)
+    if killed:
+        for path in inputs:
+            with contextlib.suppress(OutputError):  # a live run elsewhere holds the lock: not ours to clean
+                recover_outputs(out_dir, output_stem(path))
+
+
+def _pool_processes(pool: ProcessPoolExecutor) -> list[BaseProcess]:
+    """The pool's worker processes: the executor's own table where it has one, else this process's
+    children started by multiprocessing (the pool's workers are among them)."""
+    processes = getattr(pool, "_processes", None)
+    if isinstance(processes, dict):
+        return list(processes.values())
+    return multiprocessing.active_children()
 
 
 def pool_context() -> BaseContext:
@@ -222,6 +272,12 @@ def pool_context() -> BaseContext:
 
 
 _worker_limits: object | None = None
+_worker_replaying = False
+"""Whether this worker is replaying an input now: a stop signal then unwinds it (staged outputs removed)
+rather than ending the process at once."""
+_worker_stopping = False
+"""Whether a stop signal is unwinding the replay: later ones (Ctrl-C to the group, then the parent's
+SIGTERM) must not interrupt that clean-up."""
 
 
 def _init_worker() -> None:
@@ -231,3 +287,58 @@ def _init_worker() -> None:
     from threadpoolctl import threadpool_limits
 
     _worker_limits = threadpool_limits(limits=1, user_api="blas")
+    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
+        signal.signal(number, _on_worker_stop_signal)
+    _stop_with_parent()
+
+
+PR_SET_PDEATHSIG = 1
+
+
+def _stop_with_parent() -> None:
+    """Ask Linux to send SIGTERM when the parent dies: a parent killed with SIGKILL cannot stop its pool,
+    and workers left behind would go on publishing outputs nobody waits for."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    if os.getppid() == 1:  # the parent died before the request took effect
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def _on_worker_stop_signal(signum: int, frame: FrameType | None) -> None:
+    """SIGTERM from the parent stopping the pool, or Ctrl-C to the whole process group."""
+    global _worker_stopping
+    if not _worker_replaying:
+        os._exit(128 + signum)  # idle between inputs: nothing to clean up, and no traceback to print
+    if _worker_stopping and signum != signal.SIGALRM:
+        return
+    _worker_stopping = True
+    if _in_finaliser(frame):
+        # An exception raised in a __del__ is printed and dropped: try again once the finaliser returned.
+        signal.setitimer(signal.ITIMER_REAL, 0.05)
+        return
+    raise KeyboardInterrupt
+
+
+def _in_finaliser(frame: FrameType | None) -> bool:
+    while frame is not None:
+        if frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _run_in_worker(path: Path, config: ReplayConfig, out_dir: Path) -> BatchOutcome:
+    """`run_one_on_this_host` in a pool's worker: a stop signal unwinds the replay, which removes its staged
+    outputs, and then ends the worker instead of letting it take the next input."""
+    global _worker_replaying
+    _worker_replaying = True
+    try:
+        return run_one_on_this_host(path, config, out_dir=out_dir)
+    except KeyboardInterrupt:
+        os._exit(128 + signal.SIGTERM)
+    finally:
+        _worker_replaying = False

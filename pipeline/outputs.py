@@ -27,6 +27,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from optimizer.errors import OptimizerError
 from pipeline.errors import OutputError
 
 if TYPE_CHECKING:
@@ -77,14 +78,31 @@ def staged_outputs(*targets: Path) -> Iterator[tuple[Path, ...]]:
         try:
             try:
                 yield temporaries
-            except OutputError as error:  # name the output the user asked for, not the hidden copy
-                raise OutputError(str(error).replace(str(staging), str(directory))) from error
+            except Exception as error:
+                renamed = _naming_the_outputs(error, staging, directory)
+                if renamed is None:
+                    raise
+                raise renamed from error
             for temporary, target in zip(temporaries, targets, strict=True):
                 if not temporary.is_file():
                     raise OutputError(f"{target}: was not written")
             _publish(staging, temporaries, targets)
         finally:
             shutil.rmtree(staging, ignore_errors=True)
+
+
+def _naming_the_outputs(error: Exception, staging: Path, directory: Path) -> OutputError | None:
+    """A failure to write a staged file (ours, or the OS's: disk full, read-only) as an `OutputError`
+    naming the output the user asked for, not its hidden copy; None for any other error."""
+    hidden = str(staging)
+    if isinstance(error, OSError):
+        if error.filename is None or hidden not in str(error.filename):
+            return None
+        name = str(error.filename).replace(hidden, str(directory))
+        return OutputError(f"{name}: cannot write the file: {error.strerror or error}")
+    if isinstance(error, OutputError | OptimizerError) and hidden in str(error):
+        return OutputError(str(error).replace(hidden, str(directory)))
+    return None
 
 
 def _publish(staging: Path, temporaries: tuple[Path, ...], targets: tuple[Path, ...]) -> None:
@@ -97,7 +115,7 @@ def _publish(staging: Path, temporaries: tuple[Path, ...], targets: tuple[Path, 
         _fsync_path(staging)
     except OSError as error:
         raise _folder_error(targets[0].parent, error) from error
-    with _signals_held():
+    with stop_signals_held():
         for temporary, target in zip(temporaries, targets, strict=True):
             try:
                 os.replace(temporary, target)
@@ -108,10 +126,11 @@ def _publish(staging: Path, temporaries: tuple[Path, ...], targets: tuple[Path, 
 
 
 @contextmanager
-def _signals_held() -> Iterator[None]:
-    """Hold SIGINT and SIGTERM back while the block runs, then deliver them. Python runs signal handlers
-    in the main thread whichever thread the kernel picks, so the main thread's handlers are swapped (a
-    thread mask would not do); elsewhere signals cannot interrupt this thread anyway."""
+def stop_signals_held(*, redeliver: bool = True) -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back while the block runs, then deliver them (or, with `redeliver=False`,
+    drop them: the block is itself the reaction to one). Python runs signal handlers in the main thread
+    whichever thread the kernel picks, so the main thread's handlers are swapped (a thread mask would not
+    do); elsewhere signals cannot interrupt this thread anyway."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -124,7 +143,7 @@ def _signals_held() -> Iterator[None]:
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-        for number in received:
+        for number in received if redeliver else ():
             signal.raise_signal(number)
 
 
@@ -209,9 +228,11 @@ def staged_outputs_in(directory: Path, *targets: Path) -> Iterator[tuple[Path, .
         raise
 
 
-def output_stem(path: Path) -> str:
-    """What a replay names its outputs after: a file's stem, a folder's name (a ROS 2 bag)."""
-    return path.stem if path.is_file() else path.name
+def output_stem(path: str | Path) -> str:
+    """What a replay names its outputs after (`<stem>.rrd`, …): a folder's name (a ROS 2 bag), otherwise
+    the file's stem (whether or not it exists yet)."""
+    path = Path(path)
+    return path.name if path.is_dir() else path.stem
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -224,6 +245,14 @@ def write_text(path: Path, text: str) -> None:
     """Write `text` as UTF-8, turning OS errors into an OutputError that names the file."""
     try:
         path.write_text(text, encoding="utf-8")
+    except OSError as error:
+        raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
+
+
+def write_bytes(path: Path, data: bytes) -> None:
+    """Write `data`, turning OS errors into an OutputError that names the file."""
+    try:
+        path.write_bytes(data)
     except OSError as error:
         raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
 

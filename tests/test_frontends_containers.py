@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from frontends import LogInfo, TopicSelectionError, open_log
+from frontends.errors import TopicSelectionError
+from frontends.logs import LogInfo, open_log
 from tests._frontends_fixtures import (
     ANGLE_INCREMENT,
     ANGLE_MIN,

@@ -10,10 +10,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from frontends import converters
-from frontends.converters import BearingTable, RangeLimits
-from frontends.decoding import ros_wire
-from frontends.decoding.ros_wire import WireError
+from frontends.logs import converters
+from frontends.logs.converters import BearingTable, RangeLimits
+from frontends.logs.decoding import ros_wire
+from frontends.logs.decoding.ros_wire import WireError
 from tests._frontends_fixtures import ros_typestore
 
 STORE2 = ros_typestore(ros1=False)

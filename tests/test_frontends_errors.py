@@ -15,7 +15,8 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from rosbags.rosbag2 import Writer as Rosbag2Writer
 
-from frontends import FrontendError, LogFileError, LogWarning, TopicSelectionError, open_log
+from frontends.errors import FrontendError, LogFileError, LogWarning, TopicSelectionError
+from frontends.logs import open_log
 from tests._frontends_fixtures import RosMessages, ScanTruth, write_mcap_ros, write_rosbag1, write_rosbag2
 
 

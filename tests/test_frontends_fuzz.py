@@ -12,9 +12,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from frontends import FrontendError, LogWarning, open_log
+from frontends.errors import FrontendError, LogWarning
+from frontends.logs import TransformTree, open_log
 from frontends.slam2d.log_input import read_odometry, scans_in_base_frame
-from frontends.transforms import TransformTree
 from tests._frontends_fixtures import write_mcap_ros, write_rosbag1, write_rosbag2
 
 MEMORY_BOUND = 64 << 20

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frontends import Scan2D, open_log
+from frontends.logs import Scan2D, open_log
 from tests.conftest import shared_file
 
 CSAIL = (

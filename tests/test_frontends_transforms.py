@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from frontends import LogWarning, Scan2D, Transform, TransformLookupError, TransformTree, rotations
-from frontends.ordering import by_stamp
-from frontends.types import OdometryPose
+from frontends.errors import LogWarning, TransformLookupError
+from frontends.logs import OdometryPose, Scan2D, Transform, TransformTree, rotations
+from frontends.logs.ordering import by_stamp
 
 
 def planar(

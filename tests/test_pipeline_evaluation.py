@@ -309,7 +309,7 @@ def test_cli_bad_input_is_one_line_naming_file_and_line(tmp_path: Path, broken: 
 
 
 def test_aces_relations_pair_exactly_with_its_scans() -> None:
-    from frontends.log import open_log
+    from frontends.logs import open_log
 
     relations = read_relations(shared_file("logs/aces/aces.relations"))
     with open_log(shared_file("logs/aces/aces.mcap")) as log:

@@ -3,12 +3,15 @@ nothing else (after SIGKILL: once the next run into the folder has cleaned up)."
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -71,3 +74,131 @@ def test_a_stopped_replay_leaves_old_or_new_outputs(city: Path, tmp_path: Path, 
         third = _replay(city, out, iterations=1)
         assert third.wait(timeout=120) == 0
     assert _state(city, out) in ("old", "new")
+
+
+# --- a batch's workers stop with their parent ------------------------------------------------------------
+
+BATCH_STEMS = ("north", "south")
+
+
+def _descendants(pid: int) -> dict[int, float]:
+    """The processes under `pid` (workers, forkserver, resource tracker): pid → start time, which tells a
+    reused pid from the same process."""
+    try:
+        import psutil
+    except ImportError:
+        found: dict[int, float] = {}
+        parents = {pid}
+        grew = True
+        while grew:
+            grew = False
+            for entry in Path("/proc").iterdir():
+                if entry.name.isdigit() and int(entry.name) not in found | {pid: 0.0}:
+                    stat = _proc_stat(int(entry.name))
+                    if stat is not None and int(stat[1]) in parents:
+                        found[int(entry.name)] = float(stat[19])
+                        parents.add(int(entry.name))
+                        grew = True
+        return found
+    with contextlib.suppress(psutil.NoSuchProcess):
+        return {child.pid: child.create_time() for child in psutil.Process(pid).children(recursive=True)}
+    return {}
+
+
+def _proc_stat(pid: int) -> list[str] | None:
+    """/proc/PID/stat after the command name: state, ppid, …, start time at index 19."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return text[text.rindex(")") + 2:].split()
+
+
+def _alive(pid: int, started: float) -> bool:
+    """Whether that process still runs (a zombie awaiting its parent's wait does not count)."""
+    try:
+        import psutil
+    except ImportError:
+        stat = _proc_stat(pid)
+        return stat is not None and float(stat[19]) == started and stat[0] != "Z"
+    try:
+        process = psutil.Process(pid)
+        return process.create_time() == started and process.status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+
+
+def _wait_for(condition: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
+
+
+def _batch_state(out: Path) -> dict[str, object]:
+    """Per stem: the method and SGD iterations its summary names, after checking the folder holds complete
+    sets of outputs and nothing else (no staging folder, no lock); and the batch table's bytes."""
+    names = {path.name for path in out.iterdir()}
+    outputs = {f"{stem}.{suffix}" for stem in BATCH_STEMS for suffix in ("g2o", "json", "rrd")}
+    assert names == outputs | {"batch_summary.parquet"}
+    state: dict[str, object] = {"batch_summary": (out / "batch_summary.parquet").read_bytes()}
+    for stem in BATCH_STEMS:
+        summary = json.loads((out / f"{stem}.json").read_text())
+        assert (out / f"{stem}.rrd").stat().st_size > 0 and (out / f"{stem}.g2o").stat().st_size > 0
+        state[stem] = (summary["method"], summary["iterations"]["sgd"])
+    return state
+
+
+@pytest.fixture(scope="module")
+def batch(tmp_path_factory: pytest.TempPathFactory) -> tuple[list[Path], Path]:
+    """Two graphs, and a folder of their outputs from a one-iteration run (the 'old' outputs)."""
+    folder = tmp_path_factory.mktemp("batch")
+    graphs = []
+    for seed, stem in enumerate(BATCH_STEMS):
+        graphs.append(folder / f"{stem}.g2o")
+        write_g2o(graphs[-1], generate_grid_world(1500, seed=seed).graph)
+    old = folder / "old"
+    done = subprocess.run(
+        [sys.executable, "-m", "pipeline.launcher", *map(str, graphs), "--out", str(old), "--quiet",
+         "--method", "sgd", "--iterations", "1", "--allow-unconverged"],
+        capture_output=True, text=True, timeout=300, env={**os.environ, "NUMBA_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr
+    return graphs, old
+
+
+@pytest.mark.parametrize("whom", ["parent-SIGINT", "parent-SIGTERM", "group-SIGINT", "parent-SIGKILL"])
+def test_an_interrupted_batch_stops_its_workers_and_publishes_nothing(
+        batch: tuple[list[Path], Path], tmp_path: Path, whom: str) -> None:
+    graphs, old = batch
+    out = tmp_path / "out"
+    shutil.copytree(old, out)
+    expected = _batch_state(out)
+    # Enough iterations that neither input can finish: whatever the folder holds later was there before.
+    parent = subprocess.Popen(
+        [sys.executable, "-m", "pipeline.launcher", *map(str, graphs), "--jobs", "2", "--out", str(out),
+         "--quiet", "--method", "sgd", "--iterations", "1000000", "--allow-unconverged"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        env={**os.environ, "NUMBA_NUM_THREADS": "1"})
+    try:
+        # Both workers replaying: each input's staging folder exists.
+        _wait_for(lambda: all(any(out.glob(f".{stem}.staging-*")) for stem in BATCH_STEMS), 180,
+                  "both workers to start replaying")
+        helpers = _descendants(parent.pid)
+        assert len(helpers) >= 3  # two workers and the forkserver (and the resource tracker)
+        if whom == "group-SIGINT":
+            os.killpg(parent.pid, signal.SIGINT)
+        else:
+            numbers = {"parent-SIGINT": signal.SIGINT, "parent-SIGTERM": signal.SIGTERM}
+            parent.send_signal(numbers.get(whom, signal.SIGKILL))
+        code = parent.wait(timeout=60)
+        stderr = parent.stderr.read() if parent.stderr else ""
+        # Killed, the parent cannot stop its pool: the workers learn of it from the kernel (parent-death
+        # signal, through the forkserver) and stop as if interrupted.
+        assert code == {"parent-SIGTERM": 143, "parent-SIGKILL": -signal.SIGKILL}.get(whom, 130), stderr
+        assert "Traceback" not in stderr
+        _wait_for(lambda: not any(_alive(pid, started) for pid, started in helpers.items()), 20,
+                  f"the workers, the forkserver and the resource tracker to exit ({sorted(helpers)})")
+        assert _batch_state(out) == expected
+    finally:
+        with contextlib.suppress(ProcessLookupError):  # whatever a failure left running
+            os.killpg(parent.pid, signal.SIGKILL)

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from frontends.errors import FrontendError
+from frontends.logs import Cloud3D
 from frontends.slam3d import planar, se3
 from frontends.slam3d.config import OdometryConfig, Slam3DConfig
 from frontends.slam3d.odometry import KissOdometry, OdometryStep
 from frontends.slam3d.slam import LidarSlam3D, Slam3DGraph
-from frontends.types import Cloud3D
 from optimizer import se2
 from optimizer.cost import chi2
 from tests.lidar_world import Drive, Lidar, drive, homogeneous, loop_drive, rotation_z, town_loop

@@ -14,11 +14,12 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from frontends.errors import TransformLookupError, UnusableLogError
-from frontends.log import LogReader
+from frontends.errors import UnusableLogError
+from frontends.logs.log import LogReader
+from frontends.logs.transforms import TransformTree
+from frontends.logs.types import Scan2D, Transform
+from frontends.protocol import default_base_frame
 from frontends.slam2d.config import DataChecksConfig, MatchingConfig
-from frontends.transforms import TransformTree
-from frontends.types import Scan2D, Transform
 from optimizer import se2
 
 FloatArray = NDArray[np.float64]
@@ -160,33 +161,23 @@ def _reachable(
 ) -> bool:
     seconds = max((stamps_ns[b] - stamps_ns[a]) * 1e-9, 1e-3)
     distance = math.hypot(poses[b, 0] - poses[a, 0], poses[b, 1] - poses[a, 1])
-    turn = abs((poses[b, 2] - poses[a, 2] + math.pi) % (2.0 * math.pi) - math.pi)
+    turn = abs(se2.wrap_angle(poses[b, 2] - poses[a, 2]))
     return distance <= max_speed * seconds and turn <= max_turn_rate * seconds
-
-
-def laser_mount(tree: TransformTree, base_frame: str, laser_frame: str, stamp_ns: int) -> Transform | None:
-    """The transform placing laser points in the base frame, None when tf does not link the two frames
-    (the laser is then taken to sit at the base's origin)."""
-    if not laser_frame or laser_frame == base_frame:
-        return None
-    try:
-        return tree.lookup(base_frame, laser_frame, stamp_ns)
-    except TransformLookupError:
-        return None
 
 
 def scans_in_base_frame(
     log: LogReader,
     topic: str,
     tree: TransformTree,
-    base_frame: str,
+    base_frame: str | None,
     *,
     min_points: int = MatchingConfig.min_points,
     checks: DataChecksConfig | None = None,
     counts: MutableMapping[str, int] | None = None,
-) -> Iterator[tuple[Scan2D, bool]]:
-    """Every scan of `topic` with a valid return, its points moved into `base_frame`, and whether tf gave
-    the mount.
+) -> Iterator[tuple[Scan2D, Transform | None]]:
+    """Every scan of `topic` with a valid return, its points moved into `base_frame` (None: the frame the
+    first scan's sensor is mounted on, `frontends.protocol.default_base_frame`), and the mount tf gave
+    (None: the scan is left in its sensor frame).
 
     Scans without any valid return (all NaN, inf, negative, out of range, or angles that are not a sweep)
     are skipped and counted (`scans_without_returns`); once the log is read, an `UnusableLogError` says so
@@ -205,8 +196,9 @@ def scans_in_base_frame(
             continue
         if scan.frame_id != looked_up_for:
             looked_up_for = scan.frame_id
-            mount = laser_mount(tree, base_frame, scan.frame_id, scan.stamp_ns)
-        yield (scan.transformed(mount) if mount is not None else scan), mount is not None
+            base_frame = base_frame or default_base_frame(tree, scan.frame_id)
+            mount = tree.sensor_mount(base_frame, scan.frame_id, scan.stamp_ns)
+        yield (scan.transformed(mount) if mount is not None else scan), mount
     if read and usable < checks.min_usable_scan_share * read:
         raise UnusableLogError(
             log.path,

@@ -20,8 +20,15 @@ every iteration the optimizer yields (SGD, then the polish). Per-iteration data 
 
 from __future__ import annotations
 
+import contextlib
+import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+
+# rerun's Rust side logs straight to stderr, in colour (a WARN when an encoder cannot finish, an ERROR when
+# the disk fills); what matters of it reaches us as exceptions, which we word ourselves in one line. Set
+# before rerun is first imported, since that is when it reads the filter; RUST_LOG set by the user wins.
+os.environ.setdefault("RUST_LOG", "off")
 
 import numpy as np
 import pyarrow as pa
@@ -69,20 +76,84 @@ IntArray = NDArray[np.int64]
 
 def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.RecordingStream:
     """A new recording stream that saves to `path` (with the default blueprint; `with_map` adds the views
-    of a log replay: the occupancy grid, the time panel on the scans)."""
+    of a log replay: the occupancy grid, the time panel on the scans). Raises `OutputError` naming `path`
+    and why when it cannot be written there."""
+    # rerun's save() never returns when its file writer fails on the first bytes (seen with a full disk):
+    # make sure there is room for them first.
+    reason = _write_probe_failure(path, sync=False)
+    if reason is not None:
+        raise OutputError(f"{path}: cannot write the recording: {reason}")
     recording = rr.RecordingStream(APPLICATION_ID)
     try:
         recording.save(path, default_blueprint=default_blueprint(with_map=with_map))
     except (OSError, RuntimeError) as error:
-        raise OutputError(f"{path}: cannot write the recording: {error}") from error
+        raise OutputError(f"{path}: cannot write the recording: {_write_failure(path, error)}") from error
+    _saved_to[id(recording)] = path
     recording.send_recording_name(name)
     return recording
 
 
+_saved_to: dict[int, Path] = {}
+"""The file each open recording saves to (by the stream's id), to name it when closing it fails."""
+
+
+_FLUSH_WAIT_S = 2.0
+"""How long `close_recording` waits for the flush before it checks the disk is still writable."""
+
+
 def close_recording(recording: rr.RecordingStream) -> None:
-    """Flush everything to the file and close it (the file is complete only after this)."""
-    recording.flush()
-    recording.disconnect()
+    """Flush everything to the file and close it (the file is complete only after this). Raises
+    `OutputError` naming the file, and why (disk full, read-only …), when it could not be written."""
+    path = _saved_to.pop(id(recording), None)
+    where = "the recording" if path is None else str(path)
+    try:
+        while True:
+            try:
+                recording.flush(timeout_sec=_FLUSH_WAIT_S)
+                break
+            except RuntimeError as error:
+                if path is None or "timed out" not in str(error):
+                    raise
+                # When its file writer dies on a full disk, rerun's flush sometimes waits for ever rather
+                # than failing: a flush that takes long is only waited for while the disk takes data.
+                reason = _write_probe_failure(path, sync=True)
+                if reason is not None:
+                    raise OutputError(f"{where}: cannot write the recording: {reason}") from error
+        recording.disconnect()
+    except RuntimeError as error:  # rerun's file writer stopped; it says only that, not why
+        reason = " ".join(str(error).split()) if path is None else _write_failure(path, error)
+        raise OutputError(f"{where}: cannot write the recording: {reason}") from error
+
+
+_PROBE_BYTES = 64 * 1024
+"""What a write probe writes: more than the recording's header and blueprint."""
+
+
+def _write_failure(path: Path, error: BaseException) -> str:
+    """Why `path` could not be written: the OS's reason (disk full, read-only, quota), found by writing a
+    probe beside it; rerun's own message when the probe goes through."""
+    if isinstance(error, OSError) and error.strerror:
+        return error.strerror
+    return _write_probe_failure(path, sync=True) or " ".join(str(error).split())
+
+
+def _write_probe_failure(path: Path, *, sync: bool) -> str | None:
+    """The OS's reason a file of `_PROBE_BYTES` cannot be written beside `path` now, None when it can."""
+    probe = path.with_name(f".{path.name}.probe")
+    try:
+        descriptor = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.write(descriptor, bytes(_PROBE_BYTES))
+            if sync:
+                os.fsync(descriptor)
+        finally:
+            os.close(descriptor)
+    except OSError as error:
+        return error.strerror or str(error)
+    finally:
+        with contextlib.suppress(OSError):
+            probe.unlink()
+    return None
 
 
 def default_blueprint(*, with_map: bool = False) -> rrb.Blueprint:

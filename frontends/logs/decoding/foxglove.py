@@ -17,7 +17,7 @@ from mcap.exceptions import McapError
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
-from frontends.containers.base import Channel
+from frontends.logs.containers.base import Channel
 
 
 class FoxgloveDecodeError(ValueError):

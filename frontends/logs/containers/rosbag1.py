@@ -21,7 +21,8 @@ from typing import BinaryIO
 
 import lz4.frame
 
-from frontends.containers.base import (
+from frontends.errors import LogFileError, LogWarning
+from frontends.logs.containers.base import (
     MAX_CHUNK_BYTES,
     Channel,
     RawMessage,
@@ -29,9 +30,14 @@ from frontends.containers.base import (
     ros2_type_name,
     topic_table,
 )
-from frontends.containers.chunk_merge import ChunkMessage, ChunkRef, Unpacked, lost_in_cut_chunk, merge_chunks
-from frontends.errors import LogFileError, LogWarning
-from frontends.types import LogInfo
+from frontends.logs.containers.chunk_merge import (
+    ChunkMessage,
+    ChunkRef,
+    Unpacked,
+    lost_in_cut_chunk,
+    merge_chunks,
+)
+from frontends.logs.types import LogInfo
 
 MAGIC = b"#ROSBAG V2.0\n"
 

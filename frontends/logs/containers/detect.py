@@ -7,14 +7,14 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from frontends.containers.base import Container
-from frontends.containers.mcap_file import MAGIC as MCAP_MAGIC
-from frontends.containers.mcap_file import McapContainer
-from frontends.containers.rosbag1 import MAGIC as ROSBAG1_MAGIC
-from frontends.containers.rosbag1 import Rosbag1Container
-from frontends.containers.rosbag2 import SQLITE_MAGIC, Rosbag2Container
 from frontends.errors import FrontendError, LogFileError, LogWarning
-from frontends.guard import DATA_ERRORS, check_is_regular, check_readable_file, guarded_call
+from frontends.logs.containers.base import Container
+from frontends.logs.containers.mcap_file import MAGIC as MCAP_MAGIC
+from frontends.logs.containers.mcap_file import McapContainer
+from frontends.logs.containers.rosbag1 import MAGIC as ROSBAG1_MAGIC
+from frontends.logs.containers.rosbag1 import Rosbag1Container
+from frontends.logs.containers.rosbag2 import SQLITE_MAGIC, Rosbag2Container
+from frontends.logs.guard import DATA_ERRORS, check_is_regular, check_readable_file, guarded_call
 
 _SPLIT_BAG = re.compile(r"^(?P<prefix>.*)_(?P<number>\d+)\.bag$")
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"

@@ -13,12 +13,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from frontends import converters
-from frontends.containers.base import Channel, RawMessage
-from frontends.converters import BearingTable, RangeLimits
-from frontends.decoding import foxglove, ros_wire
 from frontends.errors import LogFileError
-from frontends.types import Cloud3D, OdometryPose, Scan2D, Transform
+from frontends.logs import converters
+from frontends.logs.containers.base import Channel, RawMessage
+from frontends.logs.converters import BearingTable, RangeLimits
+from frontends.logs.decoding import foxglove, ros_wire
+from frontends.logs.types import Cloud3D, OdometryPose, Scan2D, Transform
 
 Kind = Literal["scan", "cloud", "odometry", "transform"]
 Item = Scan2D | Cloud3D | OdometryPose | Transform
@@ -58,10 +58,6 @@ def message_kind(channel: Channel) -> Kind | None:
 def is_static_topic(topic: str) -> bool:
     """Transforms on `/tf_static` (or a namespaced `…/tf_static`) hold at all times."""
     return topic.rstrip("/").endswith("tf_static")
-
-
-def supported_types() -> tuple[str, ...]:
-    return (*ROS_TYPES, *FOXGLOVE_TYPES)
 
 
 @dataclass(frozen=True, slots=True)

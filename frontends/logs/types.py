@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends import rotations
+from frontends.logs import rotations
 
 
 def _frozen(array: NDArray[Any]) -> NDArray[Any]:

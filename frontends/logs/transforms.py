@@ -14,9 +14,9 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from frontends import rotations
 from frontends.errors import TransformLookupError
-from frontends.types import Transform
+from frontends.logs import rotations
+from frontends.logs.types import Transform
 
 FloatArray = NDArray[np.float64]
 
@@ -197,6 +197,16 @@ class TransformTree:
         stamps = np.array([stamp_ns], dtype=np.int64)
         translation, rotation, static = self._lookup(target_frame, source_frame, stamps, tolerance_ns)
         return Transform(target_frame, source_frame, stamp_ns, stamp_ns, translation[0], rotation[0], static)
+
+    def sensor_mount(self, base_frame: str, sensor_frame: str, stamp_ns: int) -> Transform | None:
+        """The transform placing a sensor's points in the base frame, None when tf does not link the two
+        frames (the sensor is then taken to sit at the base's origin)."""
+        if not sensor_frame or sensor_frame == base_frame:
+            return None
+        try:
+            return self.lookup(base_frame, sensor_frame, stamp_ns)
+        except TransformLookupError:
+            return None
 
     def can_transform(
         self, target_frame: str, source_frame: str, stamp_ns: int, *, tolerance_ns: int = 0

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO, NamedTuple, Protocol
 
-from frontends.types import LogInfo, TopicInfo
+from frontends.logs.types import LogInfo, TopicInfo
 
 
 @dataclass(frozen=True, slots=True)

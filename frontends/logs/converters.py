@@ -14,16 +14,16 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from frontends import rotations
-from frontends.decoding import foxglove
-from frontends.decoding.ros_wire import (
+from frontends.logs import rotations
+from frontends.logs.decoding import foxglove
+from frontends.logs.decoding.ros_wire import (
     LaserScanFields,
     OdometryFields,
     PointCloud2Fields,
     TransformStampedFields,
     WireError,
 )
-from frontends.types import Cloud3D, OdometryPose, Scan2D, Transform
+from frontends.logs.types import Cloud3D, OdometryPose, Scan2D, Transform
 
 # sensor_msgs/PointField datatypes and foxglove.PackedElementField numeric types → numpy type codes.
 ROS_POINT_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}

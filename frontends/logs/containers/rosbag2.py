@@ -23,10 +23,10 @@ from typing import Any
 import yaml
 import zstandard
 
-from frontends.containers.base import Channel, RawMessage, topic_table
-from frontends.containers.mcap_file import McapContainer
 from frontends.errors import LogFileError, LogWarning
-from frontends.types import LogInfo
+from frontends.logs.containers.base import Channel, RawMessage, topic_table
+from frontends.logs.containers.mcap_file import McapContainer
+from frontends.logs.types import LogInfo
 
 SQLITE_MAGIC = b"SQLite format 3\x00"
 

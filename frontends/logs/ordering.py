@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Protocol, TypeVar
 
 from frontends.errors import LogWarning
-from frontends.types import Transform
+from frontends.logs.types import Transform
 
 DEFAULT_WINDOW_NS = 2_000_000_000
 DEFAULT_IDLE_NS = 5_000_000_000

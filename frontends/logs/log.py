@@ -19,15 +19,15 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import TracebackType
 
-from frontends.containers.base import Channel, Container
-from frontends.containers.detect import open_container
-from frontends.converters import RangeLimits
-from frontends.dispatch import DecodeOptions, Item, Kind, build_decoders, decode, message_kind
 from frontends.errors import TopicSelectionError
-from frontends.guard import guarded_call, guarded_iter
-from frontends.ordering import DEFAULT_MAX_ITEMS, DEFAULT_WINDOW_NS, by_stamp
-from frontends.transforms import TransformTree
-from frontends.types import Cloud3D, LogInfo, OdometryPose, Scan2D, Transform
+from frontends.logs.containers.base import Channel, Container
+from frontends.logs.containers.detect import open_container
+from frontends.logs.converters import RangeLimits
+from frontends.logs.dispatch import DecodeOptions, Item, Kind, build_decoders, decode, message_kind
+from frontends.logs.guard import guarded_call, guarded_iter
+from frontends.logs.ordering import DEFAULT_MAX_ITEMS, DEFAULT_WINDOW_NS, by_stamp
+from frontends.logs.transforms import TransformTree
+from frontends.logs.types import Cloud3D, LogInfo, OdometryPose, Scan2D, Transform
 
 SCAN_TOPIC_OPTION = "--scan-topic"
 ODOMETRY_TOPIC_OPTION = "--odom-topic"

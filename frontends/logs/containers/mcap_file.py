@@ -24,7 +24,8 @@ from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.summary import Summary
 
-from frontends.containers.base import (
+from frontends.errors import LogFileError, LogWarning
+from frontends.logs.containers.base import (
     MAX_CHUNK_BYTES,
     Channel,
     RawMessage,
@@ -32,9 +33,14 @@ from frontends.containers.base import (
     ros2_type_name,
     topic_table,
 )
-from frontends.containers.chunk_merge import ChunkMessage, ChunkRef, Unpacked, lost_in_cut_chunk, merge_chunks
-from frontends.errors import LogFileError, LogWarning
-from frontends.types import LogInfo
+from frontends.logs.containers.chunk_merge import (
+    ChunkMessage,
+    ChunkRef,
+    Unpacked,
+    lost_in_cut_chunk,
+    merge_chunks,
+)
+from frontends.logs.types import LogInfo
 
 MAGIC = b"\x89MCAP0\r\n"
 
