@@ -54,7 +54,7 @@ def _release_free_heap() -> None:
 
 def _warm_up() -> None:
     graph = generate_grid_world(200, seed=1).graph
-    for solver in ("direct", "cg"):
+    for solver in ("direct", "multigrid", "cg"):
         for _ in gauss_newton(graph, linear_solver=solver, max_iterations=2):
             pass
     for _ in sgd(graph, 2):

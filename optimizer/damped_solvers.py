@@ -13,6 +13,7 @@ Two interchangeable solvers behind one interface:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -103,34 +104,49 @@ class ChainPCGSolver:
                             graph.information, scale * vector, product)
             return scale * product + damping * vector
 
-        solution = np.zeros_like(rhs)
-        residual = rhs.copy()
-        preconditioned = np.empty_like(rhs)
-        _block_tridiagonal_solve(diagonal_blocks, chain_blocks, residual, preconditioned)
-        direction = preconditioned.copy()
-        rho = float(residual @ preconditioned)
-        target = self.forcing * float(np.linalg.norm(rhs))
-        self.last_converged = False
-        iterations = 0
-        while iterations < self._max_iterations:
-            iterations += 1
-            moved = apply(direction)
-            curvature = float(direction @ moved)
-            if not curvature > 0.0:
-                break
-            alpha = rho / curvature
-            solution += alpha * direction
-            residual -= alpha * moved
-            if float(np.linalg.norm(residual)) <= target:
-                self.last_converged = True
-                break
-            _block_tridiagonal_solve(diagonal_blocks, chain_blocks, residual, preconditioned)
-            rho_next = float(residual @ preconditioned)
-            direction *= rho_next / rho
-            direction += preconditioned
-            rho = rho_next
-        self.last_iterations = iterations
-        return solution if np.all(np.isfinite(solution)) and iterations > 0 else None
+        def precondition(residual: FloatArray, out: FloatArray) -> None:
+            _block_tridiagonal_solve(diagonal_blocks, chain_blocks, residual, out)
+
+        solution, self.last_iterations, self.last_converged = preconditioned_cg(
+            apply, precondition, rhs, self.forcing, self._max_iterations)
+        return solution if np.all(np.isfinite(solution)) and self.last_iterations > 0 else None
+
+
+def preconditioned_cg(apply: Callable[[FloatArray], FloatArray],
+                      precondition: Callable[[FloatArray, FloatArray], None], rhs: FloatArray,
+                      forcing: float, max_iterations: int) -> tuple[FloatArray, int, bool]:
+    """Conjugate gradients on A·x = rhs from x = 0: (x, iterations, whether ‖r‖ ≤ `forcing`·‖rhs‖ held).
+
+    `apply(v)` returns A·v; `precondition(r, out)` writes M⁻¹·r into `out`. It stops early, not converged,
+    when a direction has no positive curvature (A is then not positive definite to rounding).
+    """
+    solution = np.zeros_like(rhs)
+    residual = rhs.copy()
+    preconditioned = np.empty_like(rhs)
+    precondition(residual, preconditioned)
+    direction = preconditioned.copy()
+    rho = float(residual @ preconditioned)
+    target = forcing * float(np.linalg.norm(rhs))
+    converged = False
+    iterations = 0
+    while iterations < max_iterations:
+        iterations += 1
+        moved = apply(direction)
+        curvature = float(direction @ moved)
+        if not curvature > 0.0:
+            break
+        alpha = rho / curvature
+        solution += alpha * direction
+        residual -= alpha * moved
+        if float(np.linalg.norm(residual)) <= target:
+            converged = True
+            break
+        precondition(residual, preconditioned)
+        rho_next = float(residual @ preconditioned)
+        direction *= rho_next / rho
+        direction += preconditioned
+        rho = rho_next
+    return solution, iterations, converged
 
 
 @njit(cache=True)

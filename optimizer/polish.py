@@ -8,7 +8,9 @@ up to 2e11 — so the damped system is solved in Jacobi-scaled form: with S = di
 (S H S + λ·I) y = −S g, Δ = S y. This is exactly Marquardt's λ·diag(H) damping, but the matrix handed to
 the factorisation has a unit diagonal. H and g are assembled edge by edge by the compiled kernels of
 `optimizer.normal_equations`; the damped system is solved by `optimizer.damped_solvers` (qdldl's exact
-LDLᵀ, or chain-preconditioned conjugate gradients on graphs too large to factorise).
+LDLᵀ), or on graphs too large to factorise by conjugate gradients preconditioned with algebraic multigrid
+(`optimizer.multigrid_solver`, on H in 3×3 blocks from `optimizer.block_normal_equations`) or, on request,
+with the pose chain.
 
 The generator's return value says whether it converged (`PolishStatus`): it never stops silently.
 """
@@ -17,18 +19,22 @@ from __future__ import annotations
 
 from collections.abc import Generator
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from optimizer import se2
+from optimizer.block_normal_equations import BlockPattern, assemble_blocks, block_diagonal
 from optimizer.cost import chi2, edge_errors
 from optimizer.damped_solvers import ChainPCGSolver, DirectSolver, Linearisation
 from optimizer.errors import GraphError, OptimizerError
 from optimizer.graph import PoseGraph
 from optimizer.iteration import Iteration
 from optimizer.normal_equations import UpperPattern, assemble, diagonal_of, hessian_diagonal, quadratic_form
+
+if TYPE_CHECKING:
+    from optimizer.multigrid_solver import MultigridPCGSolver
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -38,9 +44,14 @@ DEFAULT_MAX_ITERATIONS = 5000
 """Far above what the benchmark graphs need: INTEL, the worst, takes 270–840 steps (from paper-SGD after
 100/10 iterations); M3500, CSAIL, FR079 and 10⁵-pose grid worlds 10–20."""
 DIRECT_SOLVER_MAX_POSES = 200_000
-"""Above this the factorisation's fill outgrows the machine: conjugate gradients instead."""
+"""Above this the factorisation's fill outgrows the machine: multigrid-preconditioned CG instead."""
 _INITIAL_LAMBDA = 1e-5
 _MIN_LAMBDA = 1e-12
+_MIN_SHRINK = 0.01
+"""Smallest factor λ shrinks by after a step the linear model predicted well (Nielsen's rule caps it at
+1/3). The slowest modes of a large graph (its global bending: eigenvalues of S·H·S near 1/N²) stay damped
+until λ falls below them; at 1/3 per step that took 16 steps on a 10⁵-pose grid world, at 0.01 it takes 9,
+to the same χ². M3500, CSAIL, FR079 from the file or SGD 30 take 6–13 steps instead of 10–16; INTEL ±2 %."""
 _MAX_LAMBDA = 1e12
 """Past this the step is a vanishing gradient-descent step: no further decrease can be found."""
 _DIAGONAL_FLOOR = 1e-12
@@ -100,7 +111,8 @@ class PolishStatus:
     """Accepted steps (the iterations yielded)."""
 
 
-LinearSolver = Literal["auto", "direct", "cg"]
+LinearSolver = Literal["auto", "direct", "multigrid", "cg"]
+LINEAR_SOLVERS: tuple[str, ...] = ("auto", "direct", "multigrid", "cg")
 
 
 def gauss_newton(
@@ -124,8 +136,9 @@ def gauss_newton(
     - the Jacobi-scaled gradient is negligible: gᵀ·diag(H)⁻¹·g ≤ `gradient_tolerance`·χ².
     It has not converged when `max_iterations` steps were taken first, or when λ grew past 1e12 without a
     decrease while the gradient test fails (a stall, not an optimum). `linear_solver` "direct" is qdldl's
-    exact LDLᵀ, "cg" the chain-preconditioned conjugate gradients; "auto" takes "direct" up to
-    `DIRECT_SOLVER_MAX_POSES` poses.
+    exact LDLᵀ, "multigrid" conjugate gradients preconditioned by smoothed-aggregation multigrid (pyamg),
+    "cg" conjugate gradients preconditioned by the pose chain; "auto" takes "direct" up to
+    `DIRECT_SOLVER_MAX_POSES` poses and "multigrid" above.
     """
     if max_iterations < 0:
         raise OptimizerError(f"max_iterations must be >= 0, got {max_iterations}")
@@ -133,19 +146,15 @@ def gauss_newton(
                         ("gradient_tolerance", gradient_tolerance)):
         if not value >= 0.0:
             raise OptimizerError(f"{name} must be >= 0, got {value}")
-    if linear_solver not in ("auto", "direct", "cg"):
-        raise OptimizerError(f"unknown linear solver {linear_solver!r}; choose auto, direct or cg")
+    if linear_solver not in LINEAR_SOLVERS:
+        raise OptimizerError(f"unknown linear solver {linear_solver!r}; choose {', '.join(LINEAR_SOLVERS)}")
     current = _starting_poses(graph, poses)
     current_chi2 = chi2(graph, current)
     if graph.num_poses < 2:
         return PolishStatus(True, "a single pose: nothing to optimize", 0)
     if current_chi2 == 0.0:
         return PolishStatus(True, "χ² is zero", 0)
-    use_direct = linear_solver == "direct" or (
-        linear_solver == "auto" and graph.num_poses <= DIRECT_SOLVER_MAX_POSES)
-    pattern = UpperPattern.of(graph) if use_direct else None
-    solver: DirectSolver | ChainPCGSolver = (
-        DirectSolver(pattern) if pattern is not None else ChainPCGSolver(graph))
+    pattern, solver = _solver_for(graph, linear_solver)
     damping = _INITIAL_LAMBDA
     growth = 2.0
     first_gradient_norm = 0.0
@@ -165,7 +174,7 @@ def gauss_newton(
         if index >= max_iterations:
             return PolishStatus(False, f"iteration cap {max_iterations} reached (last relative χ² change "
                                        f"{last_change:.1e})", index)
-        if isinstance(solver, ChainPCGSolver):
+        if not solver.exact:
             # Inexact Newton: solve more accurately as the gradient vanishes (superlinear convergence).
             gradient_norm = float(np.sqrt(gradient_measure))
             first_gradient_norm = first_gradient_norm or gradient_norm
@@ -193,7 +202,7 @@ def gauss_newton(
         predicted = -(2.0 * float(linearisation.gradient @ step) + quadratic_form(
             current, graph.edge_from, graph.edge_to, graph.measurements, graph.information, step))
         gain = (current_chi2 - trial_chi2) / predicted if predicted > 0.0 else 0.0
-        damping = max(damping * max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
+        damping = max(damping * max(_MIN_SHRINK, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
         growth = 2.0
 
         change = last_change = (current_chi2 - trial_chi2) / current_chi2
@@ -221,10 +230,35 @@ def _rounding_chi2(graph: PoseGraph, poses: FloatArray) -> float:
     return ulps**2 * float(np.trace(graph.information, axis1=1, axis2=2).sum())
 
 
-def _linearise(graph: PoseGraph, pattern: UpperPattern | None, poses: FloatArray) -> Linearisation:
+Pattern = UpperPattern | BlockPattern | None
+"""How H is assembled: upper CSC (direct), 3×3 blocks (multigrid), or not at all (matrix-free chain CG)."""
+
+
+def _solver_for(graph: PoseGraph, linear_solver: LinearSolver
+                ) -> tuple[Pattern, DirectSolver | ChainPCGSolver | MultigridPCGSolver]:
+    """The linear solver and the pattern H is assembled in (None: matrix-free)."""
+    if linear_solver == "auto":
+        linear_solver = "direct" if graph.num_poses <= DIRECT_SOLVER_MAX_POSES else "multigrid"
+    if linear_solver == "direct":
+        upper = UpperPattern.of(graph)
+        return upper, DirectSolver(upper)
+    if linear_solver == "multigrid":
+        from optimizer.multigrid_solver import MultigridPCGSolver  # pyamg only where it is used
+
+        blocks = BlockPattern.of(graph)
+        return blocks, MultigridPCGSolver(blocks)
+    return None, ChainPCGSolver(graph)
+
+
+def _linearise(graph: PoseGraph, pattern: Pattern, poses: FloatArray) -> Linearisation:
     size = 3 * (graph.num_poses - 1)
     gradient = np.empty(size)
-    if pattern is not None:
+    if isinstance(pattern, BlockPattern):
+        hessian = np.empty((pattern.num_blocks, 3, 3))
+        assemble_blocks(poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information,
+                        pattern.edge_blocks, hessian, gradient)
+        diagonal = block_diagonal(hessian, pattern.diagonal_block)
+    elif pattern is not None:
         hessian = np.empty(pattern.nnz)
         assemble(poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information,
                  pattern.edge_block, pattern.indptr, pattern.block_count, hessian, gradient)
