@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from frontends.slam2d.config import LoopClosureConfig, MatchingConfig
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound
+from frontends.slam2d.grid import LikelihoodGrid
 from frontends.slam2d.icp import IcpResult, refine_point_to_line
 from frontends.slam2d.local_map import Submap, place
 from optimizer import se2
@@ -40,15 +41,20 @@ def match_unambiguous(
     matching: MatchingConfig,
     acceptance: LoopClosureConfig,
     levels: int,
+    search_grid: LikelihoodGrid | None = None,
 ) -> VerifiedMatch | None:
     """The pose of `query` (points in its own frame) in `submap` within `window` around `center`, or None
-    when it scores below `acceptance.min_score`, has a distinct rival, or fails the ICP verification."""
-    coarse = match_branch_and_bound(query, submap.grid, center, window, acceptance.min_score, levels=levels)
+    when it scores below `acceptance.min_score`, has a distinct rival, or fails the ICP verification.
+
+    `search_grid` (default: the submap's) is the grid the branch and bound searches: a coarser one makes
+    a whole-map search affordable, ICP on the submap's points then brings the pose to its resolution."""
+    grid = submap.grid if search_grid is None else search_grid
+    coarse = match_branch_and_bound(query, grid, center, window, acceptance.min_score, levels=levels)
     if coarse is None:
         return None
     rival = match_branch_and_bound(
         query,
-        submap.grid,
+        grid,
         center,
         window,
         acceptance.ambiguity_ratio * coarse.score,

@@ -25,6 +25,7 @@ from frontends.errors import FrontendError
 from frontends.slam2d.config import LoopClosureConfig, Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import VerifiedMatch, match_unambiguous, thinned_query
+from frontends.slam2d.grid import build_likelihood_grid
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from frontends.slam2d.slam import BRANCH_AND_BOUND_LEVELS, ODOMETRY_BRANCH_AND_BOUND_LEVELS, LaserSlam2D
@@ -42,15 +43,27 @@ class EmptyMapError(FrontendError):
 class LocalizationConfig:
     global_levels: int = BRANCH_AND_BOUND_LEVELS
     """Branch-and-bound pyramid levels of the whole-map search (the loop closures': one compiled kernel)."""
-    global_angular_step: float = math.radians(0.75)
+    global_resolution: float = 0.15
+    """Cell size (m) of the grid the whole-map search runs on (its likelihood σ at least this): a building
+    at 5 cm cells and 0.75° steps takes seconds per attempt, at 15 cm and 1° a fraction of one; ICP on the
+    full-resolution map then refines the match."""
+    global_angular_step: float = math.radians(1.0)
     global_margin: float = 2.0
     """The search covers the saved keyframes' bounding box plus this (m): the robot is where the mapping
     robot was, give or take a corridor's width."""
     min_query_keyframes: int = 4
     """Global localization waits until the scans since it started span this many keyframes (~1 m)."""
+    retry_every_keyframes: int = 3
+    """After a failed attempt, the next one waits this many keyframes: an attempt over a whole building
+    costs tenths of a second to seconds, and the next keyframe mostly sees the same place."""
     lost_after_unmatched: int = 5
     """Tracking is lost after this many scans in a row matched nothing, or matched with a score below
     `min_tracking_score`: localize globally again."""
+    max_dead_reckoning: float = 30.0
+    """With wheel odometry, scans that match nothing (the robot drove out of the saved map, or people hide
+    the walls) keep the odometry's pose; tracking is declared lost only once it moved this far (m) since
+    the last match: back in the map, the tracking window finds the walls again, which a global search in a
+    place the map does not show never would (and it costs seconds)."""
     min_tracking_score: float = 0.5
     """A well-tracked scan scores 0.8–1 on its map; a robot carried elsewhere without its odometry saying so
     can still match a look-alike corridor at 0.55–0.7 (simulated building): the lost test catches only
@@ -122,6 +135,10 @@ class MapLocalizer:
             margin=self.settings.global_margin + 1.0,
             pairing_distance=matching.icp_max_distance,
         )
+        resolution = max(self.settings.global_resolution, matching.resolution)
+        self._search_grid = build_likelihood_grid(self.map.points, resolution,
+                                                  max(matching.likelihood_sigma, resolution),
+                                                  self.settings.global_margin + 1.0)
         low, high = kept[:, :2].min(axis=0), kept[:, :2].max(axis=0)
         self._search_center = np.array([*(0.5 * (low + high)), 0.0])
         self._search_window = SearchWindow(
@@ -134,6 +151,7 @@ class MapLocalizer:
         self._last_odometry: FloatArray | None = None
         self._last_motion = np.zeros(3)
         self._misses = 0
+        self._unmatched_distance = 0.0
         self._tracker: LaserSlam2D | None = None
         self._tracked: list[int] = []
         self._last_tracker_keyframe = -1
@@ -165,11 +183,16 @@ class MapLocalizer:
         result = self._track(index, int(stamp_ns), points, odometry, odometry_interval)
         self._last_odometry = odometry
         fits = result.matched and result.score >= self.settings.min_tracking_score
-        if fits or len(points) < matching.min_points:
-            self._misses = 0 if fits else self._misses
+        if fits:
+            self._misses = 0
+            self._unmatched_distance = 0.0
+            return result
+        self._unmatched_distance += float(np.hypot(self._last_motion[0], self._last_motion[1]))
+        if len(points) < matching.min_points:
             return result
         self._misses += 1
-        if self._misses >= self.settings.lost_after_unmatched:
+        dead_reckoning = odometry is not None and self._unmatched_distance <= self.settings.max_dead_reckoning
+        if self._misses >= self.settings.lost_after_unmatched and not dead_reckoning:
             self._lose()
         return result
 
@@ -234,6 +257,7 @@ class MapLocalizer:
     def _lose(self) -> None:
         self._pose = None
         self._misses = 0
+        self._unmatched_distance = 0.0
         self._tracker = None
 
     def _search(self, index: int, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
@@ -252,7 +276,8 @@ class MapLocalizer:
             return nothing
         self._last_tracker_keyframe = estimate.keyframe
         keyframe_poses = self._tracker.keyframe_poses()
-        if len(keyframe_poses) < self.settings.min_query_keyframes:
+        due = len(keyframe_poses) - self.settings.min_query_keyframes
+        if due < 0 or due % self.settings.retry_every_keyframes:
             return nothing
         found = self._global_match(keyframe_poses)
         if found is None:
@@ -277,10 +302,11 @@ class MapLocalizer:
         assert self._tracker is not None
         acceptance = self.settings.acceptance
         recent = slice(max(0, len(keyframe_poses) - 1 - acceptance.query_keyframes), None)
+        thinning = max(acceptance.query_thinning, self._search_grid.resolution)
         query = thinned_query(self._tracker.keyframe_scans()[recent], keyframe_poses[recent],
-                              keyframe_poses[-1], acceptance.query_thinning)
+                              keyframe_poses[-1], thinning)
         if len(query) < self.config.matching.min_points:
             return None
         return match_unambiguous(query, self.map, self._search_center, self._search_window,
                                  matching=self.config.matching, acceptance=acceptance,
-                                 levels=self.settings.global_levels)
+                                 levels=self.settings.global_levels, search_grid=self._search_grid)
