@@ -14,7 +14,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,6 +28,9 @@ from frontends.slam2d.icp import refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, place
 from optimizer import se2
 from optimizer.graph import PoseGraph
+
+if TYPE_CHECKING:
+    from frontends.slam2d.resume import ResumedSlam2D, SavedConstraints, SavedScans
 
 FloatArray = NDArray[np.float64]
 
@@ -105,6 +110,23 @@ class LaserSlam2D:
         self._hypotheses = HypothesisPool(settings.small_correction_linear, settings.small_correction_angular)
         self._rejected = 0
         self._unmatched = 0
+
+    @classmethod
+    def resume(
+        cls,
+        keyframe_scans: Sequence[FloatArray],
+        keyframe_poses: FloatArray,
+        constraints: SavedConstraints,
+        config: Slam2DConfig | None = None,
+        *,
+        scans: SavedScans | None = None,
+    ) -> ResumedSlam2D:
+        """Continue mapping from a saved keyframe graph (`frontends.slam2d.resume`): the new run is placed
+        in the old map by global localization, its keyframes get indices after the old ones, loop closures
+        search old and new keyframes alike, and `finish` returns the joint graph."""
+        from frontends.slam2d.resume import ResumedSlam2D  # the subclass imports this module
+
+        return ResumedSlam2D(keyframe_scans, keyframe_poses, constraints, config, scans=scans)
 
     # ------------------------------------------------------------------------------------------ scans
 
@@ -389,6 +411,14 @@ class LaserSlam2D:
         self._keyframe_poses = [np.array(p) for p in poses]
         self._last_pose = se2.compose(self._keyframe_poses[-1], offset)
         self._rebuild_local_map()
+
+    def keyframe_poses(self) -> FloatArray:
+        """(K, 3) the current estimate of every keyframe's pose in the map frame."""
+        return np.array(self._keyframe_poses).reshape(-1, 3)
+
+    def keyframe_scans(self) -> list[FloatArray]:
+        """Every keyframe's points (N, 2) in its own frame."""
+        return [k.points for k in self._keyframes]
 
     def keyframe_position(self, keyframe: int) -> FloatArray:
         """The current estimate of a keyframe's position (x, y) in the map frame."""

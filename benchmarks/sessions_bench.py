@@ -1,0 +1,216 @@
+"""Benchmark of sessions (issue 13): localization in a saved map, and mapping continued from one.
+
+    python benchmarks/sessions_bench.py [--shared ../shared] [--logs ACES CSAIL]
+
+(a) Localization. Each log is cut in two at its middle scan. The first half is mapped (LaserSlam2D, then
+    the default optimizer from the odometry and the online estimates, as `replay` does); the second half is
+    localized in that map with no initial pose and its odometry origin dropped (re-expressed from its own
+    first pose). Reference: the whole log mapped in one run, its frame moved onto the first-half map's
+    frame by the least-squares rigid transform between the two runs' poses of the first-half scans (the
+    same scans, two estimates). Reported: median / 95 % translational error of the localized scans against
+    that reference, the share of the second half's scans localized when processed among those more than
+    10 s after its start, and scans per second of `MapLocalizer.localize` (global search included).
+(b) Continue (ACES). The second half goes to `LaserSlam2D.resume` on the first half's saved graph (odometry
+    origin dropped); the joint graph is optimized once, and every scan of both halves is scored against
+    aces.relations; the single run's figure is the reference (target: within 10 %).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from frontends.logs import open_log  # noqa: E402
+from frontends.slam2d import read_odometry, scans_in_base_frame  # noqa: E402
+from frontends.slam2d.localization import MapLocalizer  # noqa: E402
+from frontends.slam2d.resume import SavedConstraints, SavedScans  # noqa: E402
+from frontends.slam2d.slam import LaserSlam2D, Slam2DGraph  # noqa: E402
+from optimizer import se2  # noqa: E402
+from optimizer.solve import DEFAULT_METHOD, optimize  # noqa: E402
+from pipeline.evaluation import read_relations, relations_error  # noqa: E402
+
+FloatArray = NDArray[np.float64]
+
+LOGS = {"ACES": "data/logs/aces/aces.mcap", "CSAIL": "data/logs/csail/csail.mcap"}
+ACES_RELATIONS = "data/logs/aces/aces.relations"
+SETTLE_SECONDS = 10.0
+
+
+@dataclass(frozen=True)
+class LogScan:
+    stamp_ns: int
+    points: FloatArray
+    odometry: FloatArray | None
+    interval: float
+
+
+def read_scans(path: Path) -> list[LogScan]:
+    """The scans in the base frame with their interpolated wheel odometry, as the replay feeds them."""
+    out = []
+    with open_log(path) as log:
+        topic, _ = log.sensor_topic(None)
+        odometry = read_odometry(log)
+        tree = log.transform_tree()
+        base = odometry.child_frame if odometry is not None else "base_link"
+        for scan, _ in scans_in_base_frame(log, topic, tree, base):
+            prediction, interval = None, 0.0
+            if odometry is not None:
+                at, intervals = odometry.interpolate(np.array([scan.stamp_ns]))
+                prediction = None if np.isnan(at[0, 0]) else at[0]
+                interval = float(intervals[0]) * 1e-9
+            out.append(LogScan(scan.stamp_ns, scan.points, prediction, interval))
+    return out
+
+
+def without_origin(scans: list[LogScan]) -> list[LogScan]:
+    """The odometry seen from its first pose: a second recording knows nothing of the first's frame."""
+    origin = next((s.odometry for s in scans if s.odometry is not None), None)
+    if origin is None:
+        return scans
+    return [LogScan(s.stamp_ns, s.points, None if s.odometry is None else se2.relative(origin, s.odometry),
+                    s.interval) for s in scans]
+
+
+def optimized(frontend: Slam2DGraph) -> FloatArray:
+    """The keyframe poses after the default optimization from both starts (what `replay` writes)."""
+    chain = frontend.odometry_chain
+    run = optimize(frontend.graph.with_poses(chain), method=DEFAULT_METHOD,
+                   starts={"odometry": chain, "online": frontend.graph.poses})
+    poses = chain
+    for iteration in run:
+        poses = iteration.poses
+    return np.array(poses)
+
+
+def map_scans(slam: LaserSlam2D, scans: list[LogScan]) -> tuple[Slam2DGraph, FloatArray]:
+    for s in scans:
+        slam.add_scan(s.stamp_ns, s.points, s.odometry, s.interval)
+    frontend = slam.finish()
+    return frontend, optimized(frontend)
+
+
+def rigid_alignment(source: FloatArray, target: FloatArray) -> FloatArray:
+    """The SE(2) transform T minimising Σ |T·source_i − target_i|² over positions (Umeyama, no scale)."""
+    mean_s, mean_t = source[:, :2].mean(axis=0), target[:, :2].mean(axis=0)
+    a, b = source[:, :2] - mean_s, target[:, :2] - mean_t
+    angle = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]),
+                       np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+    c, s = np.cos(angle), np.sin(angle)
+    shift = mean_t - np.array([c * mean_s[0] - s * mean_s[1], s * mean_s[0] + c * mean_s[1]])
+    return np.array([shift[0], shift[1], angle])
+
+
+@dataclass(frozen=True, eq=False)
+class Mapped:
+    """One log mapped whole and its first half mapped alone (shared by (a) and (b))."""
+
+    scans: list[LogScan]
+    full: Slam2DGraph
+    full_keyframes: FloatArray
+    first: Slam2DGraph
+    first_keyframes: FloatArray
+
+    @classmethod
+    def of(cls, scans: list[LogScan]) -> Mapped:
+        full, full_keyframes = map_scans(LaserSlam2D(), scans)
+        first, first_keyframes = map_scans(LaserSlam2D(), scans[: len(scans) // 2])
+        return cls(scans, full, full_keyframes, first, first_keyframes)
+
+
+def localization_row(name: str, mapped: Mapped) -> tuple[str, ...]:
+    scans, full, full_keyframes = mapped.scans, mapped.full, mapped.full_keyframes
+    first, first_keyframes = mapped.first, mapped.first_keyframes
+    half = len(scans) // 2
+    reference = full.scan_poses(full_keyframes)
+    first_poses = first.scan_poses(first_keyframes)
+    to_map = rigid_alignment(reference[:half], first_poses)
+    reference = se2.compose(to_map, reference)
+    # How far the two maps disagree where both saw the same scans: a floor under the localization error.
+    disagreement = np.hypot(*(reference[:half, :2] - first_poses[:, :2]).T)
+    localizer = MapLocalizer(first.keyframe_scans, first_keyframes)
+    second = without_origin(scans[half:])
+    started = time.perf_counter()
+    results = [localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval) for s in second]
+    seconds = time.perf_counter() - started
+    localized = np.array([r.localized for r in results])
+    poses = np.array([r.pose for r in results])
+    recovered = np.zeros(len(results), dtype=bool)
+    for r in results:
+        poses[r.recovered_indices] = r.recovered_poses
+        recovered[r.recovered_indices] = True
+    stamps = np.array([s.stamp_ns for s in second])
+    settled = stamps >= stamps[0] + int(SETTLE_SECONDS * 1e9)
+    posed = localized | recovered
+    errors = np.hypot(*(poses[posed, :2] - reference[half:][posed, :2]).T)
+    first_fix = next((r.index for r in results if r.global_fix), -1)
+    fix_seconds = (stamps[first_fix] - stamps[0]) * 1e-9 if first_fix >= 0 else float("nan")
+    return (name, f"{len(second)}", f"{fix_seconds:.1f}", f"{100 * localized[settled].mean():.1f}",
+            f"{100 * posed.mean():.1f}", f"{np.median(errors):.3f}", f"{np.percentile(errors, 95):.3f}",
+            f"{sum(r.global_fix for r in results)}", f"{len(second) / seconds:.0f}",
+            f"{np.median(disagreement):.3f} / {disagreement.max():.3f}")
+
+
+def continue_rows(mapped: Mapped, relations_path: Path) -> list[tuple[str, ...]]:
+    relations = read_relations(relations_path)
+    scans, full, full_keyframes = mapped.scans, mapped.full, mapped.full_keyframes
+    first, first_keyframes = mapped.first, mapped.first_keyframes
+    half = len(scans) // 2
+    single = relations_error(full.scan_stamps_ns, full.scan_poses(full_keyframes), relations)
+    started = time.perf_counter()
+    slam = LaserSlam2D.resume(first.keyframe_scans, first_keyframes, SavedConstraints.of(first.graph),
+                              scans=SavedScans.of(first))
+    joint, joint_keyframes = map_scans(slam, without_origin(scans[half:]))
+    seconds = time.perf_counter() - started
+    both = relations_error(joint.scan_stamps_ns, joint.scan_poses(joint_keyframes), relations)
+    old = first.graph.num_poses
+    graph = joint.graph
+    crossing = int((((graph.edge_from < old) != (graph.edge_to < old)) & ~graph.is_odometry).sum())
+    return [
+        ("single run", f"{len(full.scan_stamps_ns)}", f"{single.count}", f"{single.translation_mean:.4f}",
+         f"{single.rotation_mean_deg:.3f}", f"{full.loop_closures_accepted}", "", ""),
+        ("two halves, resumed", f"{len(joint.scan_stamps_ns)}", f"{both.count}",
+         f"{both.translation_mean:.4f}", f"{both.rotation_mean_deg:.3f}", f"{joint.loop_closures_accepted}",
+         f"{crossing}", f"{seconds:.1f}"),
+        ("ratio", "", "", f"{both.translation_mean / single.translation_mean:.3f}",
+         f"{both.rotation_mean_deg / single.rotation_mean_deg:.3f}", "", "", ""),
+    ]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--shared", type=Path, default=REPO.parent / "shared")
+    parser.add_argument("--logs", nargs="+", default=list(LOGS))
+    parser.add_argument("--skip-continue", action="store_true")
+    args = parser.parse_args()
+    with threadpool_limits(limits=1, user_api="blas"):
+        for name in args.logs:  # ACES first: both of its tables print before CSAIL is mapped
+            mapped = Mapped.of(read_scans(args.shared / LOGS[name]))
+            print(f"## {name} (a) Localization: second half in the first half's map, no initial pose, "
+                  "odometry origin dropped\n")
+            print("| log | scans | first fix after (s) | localized when processed, after 10 s (%) "
+                  "| with a pose, fix's recovered included (%) | median error (m) | 95 % error (m) "
+                  "| global fixes | scans/s | first half: full run vs half map, median / max (m) |")
+            print("|---|---|---|---|---|---|---|---|---|---|")
+            print("| " + " | ".join(localization_row(name, mapped)) + " |\n", flush=True)
+            if name == "ACES" and not args.skip_continue:
+                print("## ACES (b) Continue: two halves, the second resumed on the first's graph\n")
+                print("| run | scans | relations | translation (m) | rotation (deg) | loop closures "
+                      "| old-new loop closures | resumed half (s) |")
+                print("|---|---|---|---|---|---|---|---|")
+                for row in continue_rows(mapped, args.shared / ACES_RELATIONS):
+                    print("| " + " | ".join(row) + " |", flush=True)
+                print()
+
+
+if __name__ == "__main__":
+    main()

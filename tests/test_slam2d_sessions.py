@@ -1,0 +1,153 @@
+"""Localization in a saved map and continued mapping (issue 13) on the synthetic laser world.
+
+The saved map of the localization tests is made of simulated scans at TRUE poses (tests/laser_world.py),
+so the map frame is the world frame and every localized pose is compared with the simulation's truth.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from frontends.slam2d.localization import EmptyMapError, MapLocalizer
+from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
+from frontends.slam2d.slam import LaserSlam2D
+from optimizer.solve import optimize
+from tests.laser_world import Run, align_to_first, between, simulate_run, square_loop
+
+MAP_EVERY = 3
+"""A map keyframe every 3rd pose of the mapping drive (0.6 m apart)."""
+
+
+@pytest.fixture(scope="module")
+def mapping_run() -> Run:
+    return simulate_run(square_loop(), seed=1)
+
+
+@pytest.fixture(scope="module")
+def localizer_map(mapping_run: Run) -> tuple[list[np.ndarray], np.ndarray]:
+    keyframes = np.arange(0, len(mapping_run.truth), MAP_EVERY)
+    return [mapping_run.scans[k] for k in keyframes], mapping_run.truth[keyframes]
+
+
+@pytest.fixture(scope="module")
+def new_run() -> Run:
+    """Another drive of the same building: a different scan spacing (its poses are not the map's) and
+    different noise."""
+    return simulate_run(square_loop(), step=0.15, seed=5)
+
+
+def position_errors(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    return np.hypot(poses[:, 0] - truth[:, 0], poses[:, 1] - truth[:, 1])
+
+
+def heading_errors(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    return np.abs((poses[:, 2] - truth[:, 2] + np.pi) % (2.0 * np.pi) - np.pi)
+
+
+def test_without_an_initial_pose_the_robot_is_found_and_tracked(
+        localizer_map: tuple[list[np.ndarray], np.ndarray], new_run: Run) -> None:
+    localizer = MapLocalizer(*localizer_map)
+    start = 120  # the east corridor: nothing tells the localizer where the drive starts
+    odometry = between(new_run.odometry[start], new_run.odometry[start:])  # its origin dropped
+    results = [localizer.localize(int(stamp), scan, odo)
+               for stamp, scan, odo in zip(new_run.stamps_ns[start:], new_run.scans[start:], odometry,
+                                           strict=True)]
+    truth = new_run.truth[start:]
+    fixes = [r for r in results if r.global_fix]
+    assert len(fixes) == 1, "one global localization, then tracking without losing the robot"
+    fix = fixes[0]
+    assert fix.index < 20, f"found only after {fix.index} scans"
+    assert all(not r.localized for r in results[: fix.index])
+    assert all(r.localized and r.matched for r in results[fix.index:])
+    poses = np.array([r.pose for r in results[fix.index:]])
+    assert position_errors(poses, truth[fix.index:]).max() < 0.05
+    assert heading_errors(poses, truth[fix.index:]).max() < math.radians(1.0)
+    # The scans before the fix get their map poses back from it.
+    np.testing.assert_array_equal(fix.recovered_indices, np.arange(fix.index))
+    assert position_errors(fix.recovered_poses, truth[: fix.index]).max() < 0.05
+    assert np.all(np.linalg.eigvalsh(fix.information) > 0)
+
+
+def test_with_an_initial_pose_tracking_starts_at_once(
+        localizer_map: tuple[list[np.ndarray], np.ndarray], new_run: Run) -> None:
+    start = 30
+    guess = new_run.truth[start] + np.array([0.2, -0.15, math.radians(4.0)])  # a rough start pose
+    localizer = MapLocalizer(*localizer_map, initial_pose=guess)
+    results = [localizer.localize(int(new_run.stamps_ns[k]), new_run.scans[k], new_run.odometry[k])
+               for k in range(start, start + 60)]
+    assert all(r.localized and r.matched and not r.global_fix for r in results)
+    poses = np.array([r.pose for r in results])
+    assert position_errors(poses, new_run.truth[start:start + 60]).max() < 0.05
+
+
+def test_a_map_without_points_is_refused() -> None:
+    with pytest.raises(EmptyMapError):
+        MapLocalizer([np.zeros((3, 2))], np.zeros((1, 3)))
+
+
+# ------------------------------------------------------------------------------------ continue mapping
+
+
+FIRST_SCANS = 260
+"""The first session maps the south and east corridors and part of the north one."""
+SECOND_START = 150
+"""The second session is another drive starting in the east corridor (inside the saved map) and going
+round the rest of the loop back to the start: it ends where the first session began."""
+
+
+def test_resume_joins_a_second_session_to_the_saved_graph(mapping_run: Run) -> None:
+    first = LaserSlam2D()
+    for k in range(FIRST_SCANS):
+        first.add_scan(int(mapping_run.stamps_ns[k]), mapping_run.scans[k], mapping_run.odometry[k])
+    saved = first.finish()
+    *_, optimized = optimize(saved.graph)
+    old_keyframes = saved.graph.num_poses
+
+    second_run = simulate_run(square_loop(), seed=7)
+    stamps = second_run.stamps_ns[SECOND_START:] + 10**12  # recorded later
+    odometry = between(second_run.odometry[SECOND_START], second_run.odometry[SECOND_START:])
+    slam = LaserSlam2D.resume(saved.keyframe_scans, optimized.poses, SavedConstraints.of(saved.graph),
+                              scans=SavedScans.of(saved))
+    estimates = [slam.add_scan(int(s), scan, odo)
+                 for s, scan, odo in zip(stamps, second_run.scans[SECOND_START:], odometry, strict=True)]
+    assert slam.placement is not None and slam.scans_unplaced == 0
+    placed_at = next(i for i, e in enumerate(estimates) if e.keyframe >= 0)
+    assert placed_at < 60  # corridors look alike: a few metres of driving before it is unambiguous
+    assert all(np.isnan(e.pose).all() for e in estimates[:placed_at])
+    assert all(e.keyframe >= old_keyframes for e in estimates[placed_at:])
+    joint = slam.finish()
+
+    # Every scan of both sessions, old ones first, each hanging off a keyframe of its own session.
+    new_count = len(second_run.truth) - SECOND_START
+    assert len(joint.scan_stamps_ns) == FIRST_SCANS + new_count
+    np.testing.assert_array_equal(joint.scan_stamps_ns[FIRST_SCANS:], stamps)
+    assert np.all(joint.scan_keyframes[:FIRST_SCANS] < old_keyframes)
+    assert np.all(joint.scan_keyframes[FIRST_SCANS:] >= old_keyframes)
+    graph = joint.graph
+    crossing = ((graph.edge_from < old_keyframes) != (graph.edge_to < old_keyframes)) & ~graph.is_odometry
+    assert crossing.sum() >= 2, "the second session's return to the start closes no loop on the first"
+
+    *_, final = optimize(graph.with_poses(joint.odometry_chain),
+                         starts={"odometry": joint.odometry_chain, "online": graph.poses})
+    poses = joint.scan_poses(final.poses)
+    truth = np.concatenate([mapping_run.truth[:FIRST_SCANS], second_run.truth[SECOND_START:]])
+    aligned = align_to_first(poses, truth)
+    errors = position_errors(aligned, truth)
+    assert errors.max() < 0.15, f"max position error {errors.max():.3f} m at scan {errors.argmax()}"
+    assert heading_errors(aligned, truth).max() < math.radians(1.0)
+
+
+def test_a_second_session_that_never_matches_the_map_is_refused(mapping_run: Run) -> None:
+    first = LaserSlam2D()
+    for k in range(60):
+        first.add_scan(int(mapping_run.stamps_ns[k]), mapping_run.scans[k], mapping_run.odometry[k])
+    saved = first.finish()
+    slam = LaserSlam2D.resume(saved.keyframe_scans, saved.graph.poses, SavedConstraints.of(saved.graph))
+    for k in range(5):  # too few keyframes to search with
+        estimate = slam.add_scan(int(mapping_run.stamps_ns[k]) + 10**12, mapping_run.scans[k])
+        assert estimate.keyframe == -1 and not estimate.matched
+    with pytest.raises(MapPlacementError):
+        slam.finish()
