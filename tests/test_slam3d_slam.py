@@ -31,8 +31,13 @@ class DriftingOdometry:
         self._travel = 0.0
         self._previous: np.ndarray | None = None
 
-    def register(self, points: np.ndarray, point_times: np.ndarray | None = None) -> OdometryStep | None:
-        step = self._inner.register(points, point_times)
+    def register(
+        self,
+        points: np.ndarray,
+        point_times: np.ndarray | None = None,
+        motion_guess: np.ndarray | None = None,
+    ) -> OdometryStep | None:
+        step = self._inner.register(points, point_times, motion_guess)
         if step is None:
             return None
         if self._previous is not None:
@@ -145,7 +150,12 @@ def test_the_sensor_mount_is_taken_out_of_the_poses() -> None:
         def __init__(self) -> None:
             self.index = 0
 
-        def register(self, points: np.ndarray, point_times: np.ndarray | None = None) -> OdometryStep:
+        def register(
+            self,
+            points: np.ndarray,
+            point_times: np.ndarray | None = None,
+            motion_guess: np.ndarray | None = None,
+        ) -> OdometryStep:
             # the sensor's poses when the base moves along `poses`
             sensor = se3.inverse(mount) @ poses[self.index] @ mount
             self.index += 1

@@ -10,6 +10,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from frontends.errors import FrontendError
+
+POINT_TIME_SOURCES = ("auto", "per_point", "azimuth")
+
 
 @dataclass(frozen=True)
 class OdometryConfig:
@@ -18,7 +22,18 @@ class OdometryConfig:
     min_range: float = 0.0
     """Points nearer the sensor are dropped: the vehicle itself (m). KISSConfig.data.min_range."""
     deskew: bool = True
-    """Motion-compensate clouds that carry per-point times. KISSConfig.data.deskew."""
+    """Motion-compensate each cloud under KISS-ICP's constant-velocity model. KISSConfig.data.deskew."""
+    point_times: str = "auto"
+    """Where the deskewing takes each point's time from: "per_point" the cloud's time field only (a cloud
+    without one is not deskewed), "azimuth" the point's azimuth (a spinning LiDAR sweeps at a constant
+    rate: see `spin_clockwise`, `sweep_start_azimuth`), "auto" the time field when the cloud has one, else
+    the azimuth."""
+    spin_clockwise: bool = True
+    """Seen from above (sensor z up): Velodyne, Hesai and KITTI's HDL-64E spin clockwise, Ouster
+    counter-clockwise (in its sensor frame)."""
+    sweep_start_azimuth: float = math.pi
+    """Azimuth (rad, about the sensor's z, 0 = +x) where a sweep starts and ends: behind the sensor for
+    Velodyne/KITTI. With times from the azimuth the cloud's stamp is taken to be the sweep's start."""
     voxel_size: float | None = None
     """Voxel of the local map (m); None: max_range / 100, KISS-ICP's rule. KISSConfig.mapping.voxel_size."""
     max_points_per_voxel: int = 20
@@ -41,6 +56,13 @@ class OdometryConfig:
     min_points: int = 100
     """(Ours) a cloud with fewer points is not registered: its pose stays the previous one and the motion
     model is left alone (an empty cloud would feed KISS-ICP's threshold a zero motion)."""
+
+    def __post_init__(self) -> None:
+        if self.point_times not in POINT_TIME_SOURCES:
+            raise FrontendError(
+                f"odometry.point_times must be one of {', '.join(POINT_TIME_SOURCES)}, "
+                f"got {self.point_times!r}"
+            )
 
     @property
     def map_voxel_size(self) -> float:

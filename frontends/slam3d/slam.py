@@ -177,6 +177,7 @@ class LidarSlam3D:
         self._cloud_keyframes: list[int] = []
         self._cloud_offsets: list[FloatArray] = []
         self._last_base = np.eye(4)
+        self._last_odometry_pose: FloatArray | None = None
         self._clouds_seen = 0
         self._untracked = 0
         self._dropped = 0
@@ -190,11 +191,21 @@ class LidarSlam3D:
 
     # ------------------------------------------------------------------------------------------ clouds
 
-    def add_cloud(self, cloud: Cloud3D) -> CloudEstimate:
-        """Process one cloud (points in the sensor frame)."""
+    def add_cloud(self, cloud: Cloud3D, odometry_pose: ArrayLike | None = None) -> CloudEstimate:
+        """Process one cloud (points in the sensor frame). `odometry_pose` (4×4, optional) is the base's
+        pose at the cloud's stamp from the vehicle's own odometry (`vehicle.OdometryPrior.at`): its motion
+        since the previous registered cloud is the registration's starting guess."""
         index = self._clouds_seen
         self._clouds_seen += 1
-        step = self._odometry.register(cloud.points, cloud.point_times)
+        odometry = None if odometry_pose is None else np.asarray(odometry_pose, dtype=np.float64)
+        motion_guess = None
+        if odometry is not None and self._last_odometry_pose is not None:
+            base_motion = se3.relative(self._last_odometry_pose, odometry)
+            motion_guess = self._mount_inverse @ base_motion @ self._mount
+        step = self._odometry.register(cloud.points, cloud.point_times, motion_guess)
+        if step is not None:
+            # the guess is relative to the last registered cloud: no odometry there, no guess next time
+            self._last_odometry_pose = odometry
         if step is None:
             self._untracked += 1
             if not self._keyframe_poses:
