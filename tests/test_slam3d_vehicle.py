@@ -177,7 +177,8 @@ def _odometry_errors(corner_drive: Drive, config: OdometryConfig, with_times: bo
 
 
 def test_clouds_without_times_are_deskewed_from_their_azimuths(corner_drive: Drive) -> None:
-    spin = {"spin_clockwise": False, "sweep_start_azimuth": 0.0}
+    # the simulated sensor spins counter-clockwise from +x, stamped at the sweep's start
+    spin = {"spin_clockwise": False, "sweep_start_azimuth": 0.0, "azimuth_stamp_fraction": 0.0}
     per_point, auto = OdometryConfig(point_times="per_point"), OdometryConfig(point_times="auto", **spin)
     not_deskewed = _odometry_errors(corner_drive, per_point, with_times=False)
     from_azimuth = _odometry_errors(corner_drive, auto, with_times=False)
@@ -185,7 +186,8 @@ def test_clouds_without_times_are_deskewed_from_their_azimuths(corner_drive: Dri
     assert from_azimuth.max() < 0.6 * not_deskewed.max()
     assert from_azimuth.max() < from_field.max() + 0.1
     # the spin the wrong way round deskews the wrong way: worse than not deskewing
-    wrong_way = _odometry_errors(corner_drive, OdometryConfig(point_times="azimuth"), with_times=False)
+    wrong = OdometryConfig(point_times="azimuth", azimuth_stamp_fraction=0.0)
+    wrong_way = _odometry_errors(corner_drive, wrong, with_times=False)
     assert wrong_way.max() > from_azimuth.max()
 
 

@@ -33,7 +33,11 @@ class OdometryConfig:
     counter-clockwise (in its sensor frame)."""
     sweep_start_azimuth: float = math.pi
     """Azimuth (rad, about the sensor's z, 0 = +x) where a sweep starts and ends: behind the sensor for
-    Velodyne/KITTI. With times from the azimuth the cloud's stamp is taken to be the sweep's start."""
+    Velodyne/KITTI."""
+    azimuth_stamp_fraction: float = 1.0
+    """With times from the azimuth: where in the sweep the cloud's stamp falls, 0 at its start, 1 at its
+    end (Velodyne's ROS driver stamps a sweep with its last packet, and KISS-ICP reports that pose;
+    Ouster stamps the start)."""
     voxel_size: float | None = None
     """Voxel of the local map (m); None: max_range / 100, KISS-ICP's rule. KISSConfig.mapping.voxel_size."""
     max_points_per_voxel: int = 20
@@ -152,7 +156,17 @@ class LoopClosureConfig:
 
 
 @dataclass(frozen=True)
+class Se3PolishConfig:
+    enabled: bool = True
+    """After the planar SGD, polish the keyframe graph in full SE(3) (`frontends.slam3d.pose_graph3d`):
+    loop closures then correct height, roll and pitch drift too."""
+    max_iterations: int = 20
+    """Levenberg–Marquardt iterations (it starts at the planar optimum: a few are enough)."""
+
+
+@dataclass(frozen=True)
 class Slam3DConfig:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    se3_polish: Se3PolishConfig = field(default_factory=Se3PolishConfig)

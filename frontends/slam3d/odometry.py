@@ -11,7 +11,7 @@ cloud's stamp (moved back along the same motion model), so that every pose has t
 A cloud without a time field (KITTI, many drivers) is deskewed from its points' azimuths when
 `OdometryConfig.point_times` allows it: a spinning LiDAR sweeps at a constant rate, so a point's time in
 the sweep is the angle swept from `sweep_start_azimuth` in the spin direction (the rule KISS-ICP's own
-KITTI reader uses); the stamp is then taken to be the sweep's start.
+KITTI reader uses); `azimuth_stamp_fraction` says where in the sweep the stamp is.
 
 A motion guess (the base's motion since the previous cloud from wheel or INS odometry, as a sensor
 motion) replaces KISS-ICP's constant-velocity prediction for that cloud: the registration starts from
@@ -159,7 +159,7 @@ class KissOdometry:
         times = azimuth_point_times(
             points, clockwise=config.spin_clockwise, start_azimuth=config.sweep_start_azimuth
         )
-        return normalized_point_times(times)
+        return normalized_point_times(times - config.azimuth_stamp_fraction)
 
 
 def downsample(points: NDArray[np.floating], voxel: float) -> FloatArray:
