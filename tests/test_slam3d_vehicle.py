@@ -17,6 +17,7 @@ from tests.lidar_world import (
     Drive,
     Lidar,
     drive,
+    homogeneous,
     planar_to_matrix,
     rotation_z,
     town_loop,
@@ -105,6 +106,10 @@ def test_the_odometry_prior_interpolates_between_poses() -> None:
     assert prior.at(999) is None and prior.at(10_001) is None  # outside the odometry's span
     assert prior.at(5_000) is None  # inside a 7 µs gap, longer than the 5 µs allowed
     assert OdometryPrior.from_poses([]) is None
+    assert prior.child_frame == "base_link"
+    # the same odometry for a frame 1 m ahead of base_link: at 90° yaw it sits 1 m along odom's y
+    ahead = prior.rebase(homogeneous(np.eye(3), np.array([1.0, 0.0, 0.0])))
+    np.testing.assert_allclose(ahead.at(3_000)[:3, 3], [2.0, 5.0, 0.0], atol=1e-12)  # type: ignore[index]
 
 
 def test_wheel_odometry_guides_the_registration_through_a_jump_in_speed() -> None:

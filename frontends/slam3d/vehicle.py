@@ -84,6 +84,7 @@ class OdometryPrior:
         quaternions: ArrayLike,
         *,
         max_gap_ns: int = DEFAULT_MAX_ODOMETRY_GAP_NS,
+        child_frame: str = "",
     ) -> None:
         stamps = np.asarray(stamps_ns, dtype=np.int64)
         order = np.argsort(stamps, kind="stable")
@@ -94,6 +95,24 @@ class OdometryPrior:
         if not (len(self.stamps_ns) == len(self.translations) == len(self.quaternions)):
             raise FrontendError("odometry stamps, translations and rotations differ in number")
         self.max_gap_ns = max_gap_ns
+        self.child_frame = child_frame
+        """The frame whose poses these are (the odometry's child frame)."""
+        self.base_in_child = np.eye(4)
+        """4×4 pose of the SLAM's base frame in `child_frame` (`rebase`): `at` returns the base's pose."""
+
+    def rebase(self, base_in_child: ArrayLike) -> OdometryPrior:
+        """The same odometry as poses of another frame rigidly attached to the child frame, e.g. the
+        LiDAR mount's base frame when the odometry is of `base_footprint`: `base_in_child` is that
+        frame's pose in the child frame (tf's child → base lookup)."""
+        rebased = OdometryPrior(
+            self.stamps_ns,
+            self.translations,
+            self.quaternions,
+            max_gap_ns=self.max_gap_ns,
+            child_frame=self.child_frame,
+        )
+        rebased.base_in_child = np.asarray(base_in_child, dtype=np.float64)
+        return rebased
 
     @classmethod
     def from_poses(
@@ -109,6 +128,7 @@ class OdometryPrior:
             [p.translation for p in items],
             [p.rotation for p in items],
             max_gap_ns=max_gap_ns,
+            child_frame=items[0].child_frame_id,
         )
 
     def __len__(self) -> int:
@@ -121,9 +141,10 @@ class OdometryPrior:
         stamps = self.stamps_ns
         high = int(np.searchsorted(stamps, stamp_ns, side="left"))
         if high < len(stamps) and stamps[high] == stamp_ns:
-            return se3.from_rotation_translation(
+            pose = se3.from_rotation_translation(
                 rotations.to_matrix(self.quaternions[high]), self.translations[high]
             )
+            return pose @ self.base_in_child
         if high == 0 or high == len(stamps):
             return None
         low = high - 1
@@ -133,4 +154,5 @@ class OdometryPrior:
         fraction = (stamp_ns - int(stamps[low])) / span
         translation = (1.0 - fraction) * self.translations[low] + fraction * self.translations[high]
         rotation = rotations.slerp(self.quaternions[low], self.quaternions[high], fraction)
-        return se3.from_rotation_translation(rotations.to_matrix(rotation), translation)
+        pose = se3.from_rotation_translation(rotations.to_matrix(rotation), translation)
+        return pose @ self.base_in_child
