@@ -4,7 +4,8 @@
         [--shared ../shared] [--out benchmarks/results]
 
 kiss-slam runs in its own interpreter (`benchmarks/kiss_slam_runner.py`; its map_closures pins
-numpy < 2.3): make one with `python -m venv V && V/bin/pip install kiss-slam==0.0.2`.
+numpy < 2.3): make one with `python -m venv V && V/bin/pip install kiss-slam==0.0.2` (open3d, which it
+imports, needs the system's libusb-1.0: `apt-get install libusb-1.0-0`).
 
 1. `kitti_city.mcap` (154 real KITTI frames, read in place, never copied; no ground truth in the log):
    the final position of ours (`replay_cloud`, then the SE(3) polish), of kiss-slam and of KISS-ICP's
@@ -102,7 +103,9 @@ def run_kiss_slam(
     command = [python, str(RUNNER), str(folder / "frames.npz"), str(folder / "kiss_slam.npz")]
     if splitting is not None:
         command += ["--splitting-distance", str(splitting)]
-    subprocess.run(command, check=True, capture_output=True)
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"kiss-slam failed ({done.returncode}):\n{done.stderr[-3000:]}")
     out = np.load(folder / "kiss_slam.npz")
     return KissSlam(out["poses"], int(out["closures"]), float(out["seconds"]))
 
@@ -244,8 +247,9 @@ def _table(name: str, section: dict[str, object]) -> None:
     print("|---|---|---|---|---|")
     for key, values in section.items():
         if isinstance(values, dict):
-            cells = [values.get(k) for k in ("ours", "ours_planar_only", "kiss_slam", "kiss_icp")]
-            if all(c is None for c in cells):
+            columns = ("ours", "ours_planar_only", "kiss_slam", "kiss_icp")
+            cells = [values.get(k) for k in columns]
+            if not set(values) <= set(columns):
                 print(f"| {key} | " + ", ".join(f"{k} {_fmt(v)}" for k, v in values.items()) + " | | | |")
             else:
                 print(f"| {key} | " + " | ".join(_fmt(c) for c in cells) + " |")

@@ -86,6 +86,17 @@ def test_loop_closures_undo_the_odometry_drift(drifting_run: tuple[Slam3DGraph, 
     assert sum(len(e.new_loop_closures) for e in estimates) == graph.loop_closures_accepted
 
 
+def test_the_se3_polish_keeps_a_level_loop_level(drifting_run: tuple[Slam3DGraph, list, Drive]) -> None:
+    graph, _, loop = drifting_run
+    lifted = graph.lift(planar.planar(graph.keyframe_poses))
+    polished = graph.polish_se3(lifted)
+    assert polished.chi2_after <= polished.chi2_before
+    assert planar_errors(graph, polished.poses, loop.base_poses)[-1] < 0.3
+    # the street is level: the base stays on it (heights relative to the first keyframe)
+    heights = se3.relative(polished.poses[0], polished.poses)[:, 2, 3]
+    assert np.abs(heights).max() < 0.3
+
+
 def test_the_graph_holds_the_whole_drive(drifting_run: tuple[Slam3DGraph, list, Drive]) -> None:
     graph, estimates, loop = drifting_run
     count = len(loop.clouds)
