@@ -26,7 +26,7 @@ from tests.lidar_world import (
     town_loop,
     write_cloud_log,
 )
-from tests.test_pipeline_replay import read_recording
+from tests.pipeline_fixtures import read_recording
 
 
 @pytest.fixture(scope="module")

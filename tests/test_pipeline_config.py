@@ -26,7 +26,7 @@ from pipeline.config import (
     is_angle_field,
     load_config,
 )
-from tests.test_pipeline_replay import write_loop_graph
+from tests.pipeline_fixtures import write_loop_graph
 
 
 def write_config(tmp_path: Path, text: str, name: str = "replay.toml") -> Path:
