@@ -1,7 +1,7 @@
 """Our 3D SLAM against kiss-slam (the 3D anchor, PyPI `kiss-slam`) on the same frames (issue 12, item 4).
 
-    python benchmarks/kiss_slam_compare.py --kiss-slam-python /path/to/venv/bin/python \
-        [--shared ../shared] [--out benchmarks/results]
+    python benchmarks/kiss_slam_compare.py [--kiss-slam-python /path/to/venv/bin/python] \
+        [--shared ../shared] [--out benchmarks/results] [--splitting-distance 100 --splitting-distance 25]
 
 kiss-slam runs in its own interpreter (`benchmarks/kiss_slam_runner.py`; its map_closures pins
 numpy < 2.3): make one with `python -m venv V && V/bin/pip install kiss-slam==0.0.2` (open3d, which it
@@ -268,7 +268,11 @@ def _fmt(value: object) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--kiss-slam-python", required=True, help="an interpreter with kiss-slam installed")
+    parser.add_argument(
+        "--kiss-slam-python",
+        default=sys.executable,
+        help="an interpreter with kiss-slam installed (default: this one, when the bench extra is installed)",
+    )
     parser.add_argument("--shared", type=Path, default=REPO.parent / "shared")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     parser.add_argument(

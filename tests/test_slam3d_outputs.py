@@ -90,3 +90,15 @@ def test_kitti_poses_errors(tmp_path: Path) -> None:
     (tmp_path / "empty.txt").write_text("# nothing\n")
     with pytest.raises(TrajectoryFileError, match="no poses"):
         read_kitti_poses(tmp_path / "empty.txt")
+
+
+def test_evo_reads_our_kitti_file(tmp_path: Path) -> None:
+    file_interface = pytest.importorskip("evo.tools.file_interface", reason="evo is in the test extras")
+    rng = np.random.default_rng(6)
+    poses = np.zeros((10, 4, 4))
+    poses[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 1, (10, 3))).as_matrix()
+    poses[:, :3, 3] = rng.normal(0, 10, (10, 3))
+    poses[:, 3, 3] = 1.0
+    write_kitti_poses(tmp_path / "poses.txt", poses)
+    trajectory = file_interface.read_kitti_poses_file(str(tmp_path / "poses.txt"))
+    np.testing.assert_allclose(np.array(trajectory.poses_se3), poses, atol=1e-12)
