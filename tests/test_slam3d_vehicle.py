@@ -196,6 +196,17 @@ def test_clouds_without_times_are_deskewed_from_their_azimuths(corner_drive: Dri
     assert wrong_way.max() > from_azimuth.max()
 
 
+def test_a_narrow_field_of_view_is_not_deskewed_from_azimuths(corner_drive: Drive) -> None:
+    odometry = KissOdometry(OdometryConfig(point_times="azimuth"))
+    points = corner_drive.clouds[5]
+    azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+    front = points[np.abs(azimuth) < 35.0]  # a 70° solid-state sensor's view
+    step = odometry.register(front)
+    assert step is not None and not step.deskewed
+    full = KissOdometry(OdometryConfig(point_times="azimuth")).register(points)
+    assert full is not None and full.deskewed
+
+
 def test_an_unknown_point_time_source_is_rejected() -> None:
     with pytest.raises(FrontendError, match="point_times"):
         OdometryConfig(point_times="guess")

@@ -11,7 +11,8 @@ cloud's stamp (moved back along the same motion model), so that every pose has t
 A cloud without a time field (KITTI, many drivers) is deskewed from its points' azimuths when
 `OdometryConfig.point_times` allows it: a spinning LiDAR sweeps at a constant rate, so a point's time in
 the sweep is the angle swept from `sweep_start_azimuth` in the spin direction (the rule KISS-ICP's own
-KITTI reader uses); `azimuth_stamp_fraction` says where in the sweep the stamp is.
+KITTI reader uses); `azimuth_stamp_fraction` says where in the sweep the stamp is. Only clouds that fill
+the circle are deskewed this way (`covers_the_circle`): a narrow field of view is not a spinning sweep.
 
 A motion guess (the base's motion since the previous cloud from wheel or INS odometry, as a sensor
 motion) replaces KISS-ICP's constant-velocity prediction for that cloud: the registration starts from
@@ -67,6 +68,20 @@ def azimuth_point_times(
     azimuth = np.arctan2(points[:, 1], points[:, 0]).astype(np.float64)
     swept = (start_azimuth - azimuth) if clockwise else (azimuth - start_azimuth)
     return np.mod(swept, 2.0 * np.pi) / (2.0 * np.pi)
+
+
+AZIMUTH_BINS = 36
+MIN_AZIMUTH_COVERAGE = 0.9
+"""Times from azimuths need a full sweep: KISS-ICP stretches the times over the whole frame-to-frame
+motion, so a 70° field of view (a solid-state sensor) would be deskewed five times too much. Clouds with
+points in fewer than this fraction of 10° azimuth bins are not deskewed from azimuths."""
+
+
+def covers_the_circle(sweep_fractions: FloatArray) -> bool:
+    """Whether points at these sweep fractions (`azimuth_point_times`) fill the circle of a full sweep."""
+    bins = np.minimum((sweep_fractions * AZIMUTH_BINS).astype(np.int64), AZIMUTH_BINS - 1)
+    occupied = np.count_nonzero(np.bincount(bins, minlength=AZIMUTH_BINS))
+    return occupied >= MIN_AZIMUTH_COVERAGE * AZIMUTH_BINS
 
 
 def normalized_point_times(point_times: NDArray[np.float64] | None) -> tuple[FloatArray, float | None]:
@@ -159,6 +174,8 @@ class KissOdometry:
         times = azimuth_point_times(
             points, clockwise=config.spin_clockwise, start_azimuth=config.sweep_start_azimuth
         )
+        if not covers_the_circle(times):
+            return NO_TIMES, None
         return normalized_point_times(times - config.azimuth_stamp_fraction)
 
 
