@@ -65,7 +65,10 @@ def test_replay_of_a_log_writes_a_trajectory_per_scan_that_follows_the_truth(
     summary = json.loads((out / "drive.json").read_text())
     assert summary["counts"]["scans"] == len(truth)
     assert summary["counts"]["scans_with_tf_mount"] == len(truth)
-    assert summary["scan_topic"] == "/scan" and summary["odometry_topic"] == "/odom"
+    assert summary["topic"] == "/scan" and summary["odometry_topic"] == "/odom"
+    frames = (summary["sensor"], summary["sensor_frame"], summary["base_frame"])
+    assert frames == ("scan", "laser", "base_link")
+    assert summary["warnings"] == []
     assert summary["loop_closures"]["accepted"] >= 1
 
     entities = read_recording(out / "drive.rrd")

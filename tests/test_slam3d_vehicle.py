@@ -9,7 +9,7 @@ import pytest
 
 from frontends.errors import FrontendError
 from frontends.logs import Cloud3D, OdometryPose, Transform, TransformTree
-from frontends.slam3d import LidarSlam3D, Slam3DConfig, se3
+from frontends.slam3d import LidarSlam3D, se3
 from frontends.slam3d.config import OdometryConfig
 from frontends.slam3d.odometry import KissOdometry, azimuth_point_times, normalized_point_times
 from frontends.slam3d.vehicle import OdometryPrior, default_base_frame, lidar_mount
@@ -183,31 +183,25 @@ def _odometry_errors(corner_drive: Drive, config: OdometryConfig, with_times: bo
 
 def test_clouds_without_times_are_deskewed_from_their_azimuths(corner_drive: Drive) -> None:
     # the simulated sensor spins counter-clockwise from +x, stamped at the sweep's start
-    spin = {"spin_clockwise": False, "sweep_start_azimuth": 0.0, "azimuth_stamp_fraction": 0.0}
-    per_point, auto = OdometryConfig(point_times="per_point"), OdometryConfig(point_times="auto", **spin)
+    spin = {"spin_clockwise": False, "sweep_start_angle": 0.0, "stamp_at_sweep_end": False}
+    per_point, auto = OdometryConfig(azimuth_times=False), OdometryConfig(**spin)
     not_deskewed = _odometry_errors(corner_drive, per_point, with_times=False)
     from_azimuth = _odometry_errors(corner_drive, auto, with_times=False)
     from_field = _odometry_errors(corner_drive, per_point, with_times=True)
     assert from_azimuth.max() < 0.6 * not_deskewed.max()
     assert from_azimuth.max() < from_field.max() + 0.1
     # the spin the wrong way round deskews the wrong way: worse than not deskewing
-    wrong = OdometryConfig(point_times="azimuth", azimuth_stamp_fraction=0.0)
+    wrong = OdometryConfig(stamp_at_sweep_end=False)
     wrong_way = _odometry_errors(corner_drive, wrong, with_times=False)
     assert wrong_way.max() > from_azimuth.max()
 
 
 def test_a_narrow_field_of_view_is_not_deskewed_from_azimuths(corner_drive: Drive) -> None:
-    odometry = KissOdometry(OdometryConfig(point_times="azimuth"))
+    odometry = KissOdometry(OdometryConfig())
     points = corner_drive.clouds[5]
     azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
     front = points[np.abs(azimuth) < 35.0]  # a 70° solid-state sensor's view
     step = odometry.register(front)
     assert step is not None and not step.deskewed
-    full = KissOdometry(OdometryConfig(point_times="azimuth")).register(points)
+    full = KissOdometry(OdometryConfig()).register(points)
     assert full is not None and full.deskewed
-
-
-def test_an_unknown_point_time_source_is_rejected() -> None:
-    with pytest.raises(FrontendError, match="point_times"):
-        OdometryConfig(point_times="guess")
-    assert Slam3DConfig().odometry.point_times == "auto"

@@ -2,6 +2,7 @@
 
 from frontends.slam3d import planar
 from frontends.slam3d.config import Se3PolishConfig, Slam3DConfig
+from frontends.slam3d.frontend import LidarFrontend
 from frontends.slam3d.odometry import downsample
 from frontends.slam3d.pose_graph3d import PolishResult
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
@@ -9,6 +10,7 @@ from frontends.slam3d.vehicle import LidarMount, OdometryPrior, default_base_fra
 
 __all__ = [
     "CloudEstimate",
+    "LidarFrontend",
     "LidarMount",
     "LidarSlam3D",
     "OdometryPrior",

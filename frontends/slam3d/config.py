@@ -10,10 +10,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from frontends.errors import FrontendError
-
-POINT_TIME_SOURCES = ("auto", "per_point", "azimuth")
-
 
 @dataclass(frozen=True)
 class OdometryConfig:
@@ -23,21 +19,19 @@ class OdometryConfig:
     """Points nearer the sensor are dropped: the vehicle itself (m). KISSConfig.data.min_range."""
     deskew: bool = True
     """Motion-compensate each cloud under KISS-ICP's constant-velocity model. KISSConfig.data.deskew."""
-    point_times: str = "auto"
-    """Where the deskewing takes each point's time from: "per_point" the cloud's time field only (a cloud
-    without one is not deskewed), "azimuth" the point's azimuth (a spinning LiDAR sweeps at a constant
-    rate: see `spin_clockwise`, `sweep_start_azimuth`), "auto" the time field when the cloud has one, else
-    the azimuth."""
+    azimuth_times: bool = True
+    """A cloud without a per-point time field is deskewed with times from its points' azimuths (a
+    spinning LiDAR sweeps at a constant rate; see `spin_clockwise`, `sweep_start_angle`); False: such
+    a cloud is not deskewed. A cloud with a time field always uses it."""
     spin_clockwise: bool = True
     """Seen from above (sensor z up): Velodyne, Hesai and KITTI's HDL-64E spin clockwise, Ouster
     counter-clockwise (in its sensor frame)."""
-    sweep_start_azimuth: float = math.pi
-    """Azimuth (rad, about the sensor's z, 0 = +x) where a sweep starts and ends: behind the sensor for
-    Velodyne/KITTI."""
-    azimuth_stamp_fraction: float = 1.0
-    """With times from the azimuth: where in the sweep the cloud's stamp falls, 0 at its start, 1 at its
-    end (Velodyne's ROS driver stamps a sweep with its last packet, and KISS-ICP reports that pose;
-    Ouster stamps the start)."""
+    sweep_start_angle: float = math.pi
+    """Azimuth (rad about the sensor's z, from +x; 2π for +x itself) where a sweep starts and ends:
+    behind the sensor for Velodyne/KITTI."""
+    stamp_at_sweep_end: bool = True
+    """With times from azimuths: the cloud's stamp is the sweep's end (Velodyne's ROS driver stamps a
+    sweep with its last packet, and KISS-ICP reports that pose); False: its start (Ouster)."""
     voxel_size: float | None = None
     """Voxel of the local map (m); None: max_range / 100, KISS-ICP's rule. KISSConfig.mapping.voxel_size."""
     max_points_per_voxel: int = 20
@@ -60,13 +54,6 @@ class OdometryConfig:
     min_points: int = 100
     """(Ours) a cloud with fewer points is not registered: its pose stays the previous one and the motion
     model is left alone (an empty cloud would feed KISS-ICP's threshold a zero motion)."""
-
-    def __post_init__(self) -> None:
-        if self.point_times not in POINT_TIME_SOURCES:
-            raise FrontendError(
-                f"odometry.point_times must be one of {', '.join(POINT_TIME_SOURCES)}, "
-                f"got {self.point_times!r}"
-            )
 
     @property
     def map_voxel_size(self) -> float:

@@ -9,10 +9,10 @@ normalises them, skips deskewing when they are missing or span no time, and repo
 cloud's stamp (moved back along the same motion model), so that every pose has the time of its message.
 
 A cloud without a time field (KITTI, many drivers) is deskewed from its points' azimuths when
-`OdometryConfig.point_times` allows it: a spinning LiDAR sweeps at a constant rate, so a point's time in
-the sweep is the angle swept from `sweep_start_azimuth` in the spin direction (the rule KISS-ICP's own
-KITTI reader uses); `azimuth_stamp_fraction` says where in the sweep the stamp is. Only clouds that fill
-the circle are deskewed this way (`covers_the_circle`): a narrow field of view is not a spinning sweep.
+`OdometryConfig.azimuth_times`: a spinning LiDAR sweeps at a constant rate, so a point's time in the
+sweep is the angle swept from `sweep_start_angle` in the spin direction (the rule KISS-ICP's own KITTI
+reader uses); `stamp_at_sweep_end` says whether the stamp is the sweep's end or its start. Only clouds
+that fill the circle are deskewed this way (`covers_the_circle`): a narrow field of view is no sweep.
 
 A motion guess (the base's motion since the previous cloud from wheel or INS odometry, as a sensor
 motion) replaces KISS-ICP's constant-velocity prediction for that cloud: the registration starts from
@@ -167,16 +167,15 @@ class KissOdometry:
         config = self.config
         if not config.deskew:
             return NO_TIMES, None
-        if config.point_times != "azimuth":
-            times, stamp_fraction = normalized_point_times(point_times)
-            if stamp_fraction is not None or config.point_times == "per_point":
-                return times, stamp_fraction
+        times, stamp_fraction = normalized_point_times(point_times)
+        if point_times is not None or not config.azimuth_times:
+            return times, stamp_fraction
         times = azimuth_point_times(
-            points, clockwise=config.spin_clockwise, start_azimuth=config.sweep_start_azimuth
+            points, clockwise=config.spin_clockwise, start_azimuth=config.sweep_start_angle
         )
         if not covers_the_circle(times):
             return NO_TIMES, None
-        return normalized_point_times(times - config.azimuth_stamp_fraction)
+        return normalized_point_times(times - (1.0 if config.stamp_at_sweep_end else 0.0))
 
 
 def downsample(points: NDArray[np.floating], voxel: float) -> FloatArray:
