@@ -1,7 +1,13 @@
-"""Point clouds as binary little-endian PLY files (what CloudCompare, MeshLab, Open3D and PCL read).
+"""Point clouds as files: binary little-endian PLY (CloudCompare, MeshLab, Open3D) and binary PCD (PCL).
 
 `write_ply` writes vertices with float32 x, y, z (and optional uchar red, green, blue); `read_ply` reads
 back binary little-endian vertex-only files with scalar properties, which is what it writes.
+`write_map_pcd` writes the same map as a PCL `.pcd` (binary, float32 x y z, through `pypcd4`, the
+maintained PCD reader/writer on PyPI, so that PCL's and ROS's tools read it without surprises).
+
+Maps are written as they are given: the 3D replay passes the keyframe clouds placed at their optimized
+poses, in the map frame (the base frame of the first keyframe), one point per voxel of
+`pipeline.replay_cloud.MAP_VOXEL` (0.2 m); `write_map_pcd(..., voxel=...)` thins further when asked.
 """
 
 from __future__ import annotations
@@ -10,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from pypcd4 import PointCloud
 
 from pipeline.errors import OutputError
 from pipeline.trajectory_io import DataFileError
@@ -97,3 +104,32 @@ def read_ply(path: str | Path) -> NDArray[np.void]:
     if len(body) < count * dtype.itemsize:
         raise PlyFileError(path, f"truncated: {count} vertices need {count * dtype.itemsize} bytes")
     return np.frombuffer(body, dtype=dtype, count=count).copy()
+
+
+def write_map_pcd(
+    path: str | Path,
+    points: ArrayLike,
+    *,
+    voxel: float | None = None,
+) -> None:
+    """Write (N, 3) map points as a binary PCD (fields x y z, float32, one row: an unorganized cloud).
+
+    `voxel` (m): keep one point per voxel of this size first (None: the points as given, which the
+    replay has already thinned to its map voxel). The PCD viewpoint is the identity: the points are in
+    the map frame. Writes `path` directly; raises `OutputError` when it cannot be written, ValueError
+    on arrays of the wrong shape."""
+    points = np.asarray(points, dtype=np.float32)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {points.shape}")
+    if voxel is not None:
+        if not voxel > 0.0:
+            raise ValueError(f"voxel must be positive, got {voxel}")
+        cells = np.floor(points / voxel).astype(np.int64)
+        _, first = np.unique(cells, axis=0, return_index=True)
+        points = points[np.sort(first)]
+    cloud = PointCloud.from_xyz_points(points)
+    try:
+        with Path(path).open("wb") as stream:
+            cloud.save(stream)
+    except OSError as error:
+        raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error

@@ -54,8 +54,11 @@ class Trajectory:
 
     def __post_init__(self) -> None:
         count = len(self.stamps_ns)
-        if self.stamps_ns.shape != (count,) or self.positions.shape != (count, 3) \
-                or self.quaternions.shape != (count, 4):
+        if (
+            self.stamps_ns.shape != (count,)
+            or self.positions.shape != (count, 3)
+            or self.quaternions.shape != (count, 4)
+        ):
             raise ValueError("Trajectory needs stamps_ns (S,), positions (S,3) and quaternions (S,4)")
         for array in (self.stamps_ns, self.positions, self.quaternions):
             array.flags.writeable = False
@@ -239,3 +242,40 @@ def read_tum(path: str | Path) -> Trajectory:
     if len(zero):
         raise TrajectoryFileError(path, "the quaternion is zero", lines[zero[0]][0])
     return Trajectory(stamps, values[:, :3].copy(), values[:, 3:].copy())
+
+
+def write_kitti_poses(path: str | Path, transforms: ArrayLike) -> None:
+    """Write poses in the KITTI odometry format: one line per (S, 4, 4) transform, the top three rows
+    row-major (r11 r12 r13 tx r21 r22 r23 ty r31 r32 r33 tz), no stamps and no header (what KITTI's
+    devkit, evo's `evo_traj kitti` and KISS-ICP's `*_poses.txt` read). Writes `path` directly; raises
+    `OutputError` when it cannot be written, ValueError on arrays of the wrong shape or non-finite poses.
+    """
+    transforms = np.asarray(transforms, dtype=np.float64)
+    if transforms.ndim != 3 or transforms.shape[1:] != (4, 4):
+        raise ValueError(f"transforms must be (S, 4, 4), got {transforms.shape}")
+    if not np.isfinite(transforms).all():
+        raise ValueError("poses must be finite")
+    rows = transforms[:, :3, :].reshape(-1, 12)
+    write_text(Path(path), "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows.tolist()))
+
+
+_KITTI_FIELDS = ("r11", "r12", "r13", "tx", "r21", "r22", "r23", "ty", "r31", "r32", "r33", "tz")
+
+
+def read_kitti_poses(path: str | Path) -> FloatArray:
+    """(S, 4, 4) poses of a KITTI-format file (12 numbers a line, `#` comments tolerated). Raises
+    `TrajectoryFileError` naming `file:line` for a malformed line, and the file when it holds no pose."""
+    path = Path(path)
+    lines = read_data_lines(path, TrajectoryFileError)
+    if not lines:
+        raise TrajectoryFileError(path, "no poses (expected lines of 12 numbers: a 3×4 matrix row-major)")
+    out = np.zeros((len(lines), 4, 4))
+    out[:, 3, 3] = 1.0
+    for index, (number, fields) in enumerate(lines):
+        if len(fields) != 12:
+            raise TrajectoryFileError(path, f"expected 12 fields (a 3×4 matrix), found {len(fields)}", number)
+        try:
+            out[index, :3, :] = np.reshape(parse_floats(fields, _KITTI_FIELDS), (3, 4))
+        except ValueError as exc:
+            raise TrajectoryFileError(path, str(exc), number) from None
+    return out

@@ -56,7 +56,7 @@ def test_an_empty_file_is_the_defaults(tmp_path: Path) -> None:
 
 def test_sections_mirror_the_dataclasses() -> None:
     assert list(SLAM2D_SECTIONS) == ["matching", "odometry", "keyframes", "loop_closure"]
-    assert list(SLAM3D_SECTIONS) == ["odometry", "keyframes", "loop_closure"]
+    assert list(SLAM3D_SECTIONS) == ["odometry", "keyframes", "loop_closure", "se3_polish"]
     frontends = {"slam2d": (SLAM2D_SECTIONS, Slam2DConfig()), "slam3d": (SLAM3D_SECTIONS, Slam3DConfig())}
     for sections, defaults in frontends.values():
         for name, model in sections.items():

@@ -18,7 +18,20 @@ class OdometryConfig:
     min_range: float = 0.0
     """Points nearer the sensor are dropped: the vehicle itself (m). KISSConfig.data.min_range."""
     deskew: bool = True
-    """Motion-compensate clouds that carry per-point times. KISSConfig.data.deskew."""
+    """Motion-compensate each cloud under KISS-ICP's constant-velocity model. KISSConfig.data.deskew."""
+    azimuth_times: bool = True
+    """A cloud without a per-point time field is deskewed with times from its points' azimuths (a
+    spinning LiDAR sweeps at a constant rate; see `spin_clockwise`, `sweep_start_angle`); False: such
+    a cloud is not deskewed. A cloud with a time field always uses it."""
+    spin_clockwise: bool = True
+    """Seen from above (sensor z up): Velodyne, Hesai and KITTI's HDL-64E spin clockwise, Ouster
+    counter-clockwise (in its sensor frame)."""
+    sweep_start_angle: float = math.pi
+    """Azimuth (rad about the sensor's z, from +x; 2π for +x itself) where a sweep starts and ends:
+    behind the sensor for Velodyne/KITTI."""
+    stamp_at_sweep_end: bool = True
+    """With times from azimuths: the cloud's stamp is the sweep's end (Velodyne's ROS driver stamps a
+    sweep with its last packet, and KISS-ICP reports that pose); False: its start (Ouster)."""
     voxel_size: float | None = None
     """Voxel of the local map (m); None: max_range / 100, KISS-ICP's rule. KISSConfig.mapping.voxel_size."""
     max_points_per_voxel: int = 20
@@ -130,7 +143,17 @@ class LoopClosureConfig:
 
 
 @dataclass(frozen=True)
+class Se3PolishConfig:
+    enabled: bool = True
+    """After the planar SGD, polish the keyframe graph in full SE(3) (`frontends.slam3d.pose_graph3d`):
+    loop closures then correct height, roll and pitch drift too."""
+    max_iterations: int = 20
+    """Levenberg–Marquardt iterations (it starts at the planar optimum: a few are enough)."""
+
+
+@dataclass(frozen=True)
 class Slam3DConfig:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    se3_polish: Se3PolishConfig = field(default_factory=Se3PolishConfig)

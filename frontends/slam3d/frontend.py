@@ -11,9 +11,11 @@ from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
 from frontends.logs import Cloud3D, LogReader
-from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, default_base_frame
+from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase
 from frontends.slam3d.config import Slam3DConfig
+from frontends.slam3d.pose_graph3d import PolishResult
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
+from frontends.slam3d.vehicle import LidarMount, OdometryPrior, lidar_mount
 from optimizer.graph import PoseGraph
 
 MAP_VOXEL = 0.2
@@ -23,8 +25,11 @@ MAP_VOXEL = 0.2
 class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
     """`LidarSlam3D` on the clouds of `topic` in an open log; see `frontends.protocol.LogFrontend`.
 
-    The odometry topic is chosen here (`odometry_topic`) for the odometry prior of the 3D frontend; the
-    clouds alone drive it today."""
+    The base frame and the LiDAR's mount come from tf (`vehicle.lidar_mount`: the requested base frame,
+    else the frame that moves). The log's odometry (its odometry topic, else tf's odom edge), when it
+    has one, is read before the clouds and gives KISS-ICP its motion guess (`vehicle.OdometryPrior`).
+    Final poses: the planar optimum lifted to 3D, then polished in SE(3) when `config.se3_polish.enabled`
+    (`polish` holds how that went)."""
 
     def __init__(self, log: LogReader, topic: str, config: Slam3DConfig | None = None,
                  options: FrontendOptions | None = None) -> None:
@@ -33,6 +38,9 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         self._clouds = 0
         self._points = 0
         self._map_points: int | None = None
+        self._prior = OdometryPrior.from_poses(log.odometry(self.odometry_topic))
+        self.polish: PolishResult | None = None
+        self._polished_for: bytes | None = None
 
     def measurements(self) -> Iterator[Cloud3D]:
         return self._log.clouds(self._topic)
@@ -40,13 +48,35 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
     def add(self, measurement: Cloud3D) -> CloudEstimate:
         if self._slam is None:
             self.sensor_frame = measurement.frame_id
-            base = self.base_frame or default_base_frame(self._tree, measurement.frame_id)
-            mount = self._tree.sensor_mount(base, measurement.frame_id, measurement.stamp_ns)
-            self.base_frame = base if mount is not None or measurement.frame_id == base else None
-            self._slam = LidarSlam3D(self.config, sensor_to_base=None if mount is None else mount.matrix())
+            requested = self.base_frame
+            mount = lidar_mount(self._tree, measurement.frame_id, measurement.stamp_ns, requested)
+            self.base_frame = mount.base_frame if mount.from_tf or requested is not None else None
+            self._slam = LidarSlam3D(self.config, sensor_to_base=mount.sensor_to_base)
+            self._prior = self._prior_of_base(mount, measurement.stamp_ns)
         self._clouds += 1
         self._points += len(measurement.points)
-        return self._slam.add_cloud(measurement)
+        odometry_pose = None if self._prior is None else self._prior.at(measurement.stamp_ns)
+        return self._slam.add_cloud(measurement, odometry_pose)
+
+    def _prior_of_base(self, mount: LidarMount, stamp_ns: int) -> OdometryPrior | None:
+        """The odometry as poses of the mount's base frame; None when tf cannot relate the two."""
+        prior = self._prior
+        if prior is None or not prior.child_frame or prior.child_frame == mount.base_frame:
+            return prior
+        link = self._tree.sensor_mount(prior.child_frame, mount.base_frame, stamp_ns)
+        return None if link is None else prior.rebase(link.matrix())
+
+    def _keyframe_poses(self, planar_poses: FloatArray) -> FloatArray:
+        """3D keyframe poses of a planar optimum: lifted, then polished in SE(3) (computed once)."""
+        lifted = self.result.lift(planar_poses)
+        settings = self.config.se3_polish
+        if not settings.enabled:
+            return lifted
+        key = np.ascontiguousarray(planar_poses, dtype=np.float64).tobytes()
+        if self.polish is None or self._polished_for != key:
+            self.polish = self.result.polish_se3(lifted, settings.max_iterations)
+            self._polished_for = key
+        return self.polish.poses
 
     def finish(self) -> None:
         if self._slam is None:
@@ -61,10 +91,10 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         return self.result.cloud_stamps_ns
 
     def estimates(self, planar_poses: FloatArray) -> FloatArray:
-        return self.result.cloud_poses(self.result.lift(planar_poses))
+        return self.result.cloud_poses(self._keyframe_poses(planar_poses))
 
     def map_export(self, planar_poses: FloatArray) -> NDArray[np.float32]:
-        points = self.result.map_points(self.result.lift(planar_poses), MAP_VOXEL)
+        points = self.result.map_points(self._keyframe_poses(planar_poses), MAP_VOXEL)
         self._map_points = len(points)
         return points
 

@@ -7,6 +7,17 @@ previous frame-to-frame motion, so the deskewed cloud and the registered pose ar
 the *last* point's time. Our clouds carry times in seconds relative to their stamp (or none): the wrapper
 normalises them, skips deskewing when they are missing or span no time, and reports the pose at the
 cloud's stamp (moved back along the same motion model), so that every pose has the time of its message.
+
+A cloud without a time field (KITTI, many drivers) is deskewed from its points' azimuths when
+`OdometryConfig.azimuth_times`: a spinning LiDAR sweeps at a constant rate, so a point's time in the
+sweep is the angle swept from `sweep_start_angle` in the spin direction (the rule KISS-ICP's own KITTI
+reader uses); `stamp_at_sweep_end` says whether the stamp is the sweep's end or its start. Only clouds
+that fill the circle are deskewed this way (`covers_the_circle`): a narrow field of view is no sweep.
+
+A motion guess (the base's motion since the previous cloud from wheel or INS odometry, as a sensor
+motion) replaces KISS-ICP's constant-velocity prediction for that cloud: the registration starts from
+it and the deskewing uses it. KISS-ICP 1.3 has no argument for this; its `register_frame` predicts with
+`last_pose @ last_delta`, so the wrapper sets `last_delta` (pinned: kiss-icp < 1.4 in pyproject.toml).
 """
 
 from __future__ import annotations
@@ -49,6 +60,30 @@ def kiss_config(config: OdometryConfig) -> KISSConfig:
     )
 
 
+def azimuth_point_times(
+    points: NDArray[np.floating], *, clockwise: bool = True, start_azimuth: float = np.pi
+) -> FloatArray:
+    """(N,) each point's time as a fraction of the sweep (0 at `start_azimuth`, → 1 a full turn later)
+    from its azimuth about the sensor's z axis, for a sensor spinning `clockwise` seen from above."""
+    azimuth = np.arctan2(points[:, 1], points[:, 0]).astype(np.float64)
+    swept = (start_azimuth - azimuth) if clockwise else (azimuth - start_azimuth)
+    return np.mod(swept, 2.0 * np.pi) / (2.0 * np.pi)
+
+
+AZIMUTH_BINS = 36
+MIN_AZIMUTH_COVERAGE = 0.9
+"""Times from azimuths need a full sweep: KISS-ICP stretches the times over the whole frame-to-frame
+motion, so a 70° field of view (a solid-state sensor) would be deskewed five times too much. Clouds with
+points in fewer than this fraction of 10° azimuth bins are not deskewed from azimuths."""
+
+
+def covers_the_circle(sweep_fractions: FloatArray) -> bool:
+    """Whether points at these sweep fractions (`azimuth_point_times`) fill the circle of a full sweep."""
+    bins = np.minimum((sweep_fractions * AZIMUTH_BINS).astype(np.int64), AZIMUTH_BINS - 1)
+    occupied = np.count_nonzero(np.bincount(bins, minlength=AZIMUTH_BINS))
+    return occupied >= MIN_AZIMUTH_COVERAGE * AZIMUTH_BINS
+
+
 def normalized_point_times(point_times: NDArray[np.float64] | None) -> tuple[FloatArray, float | None]:
     """KISS-ICP's per-point times (0 at the first point, 1 at the last), and where the cloud's stamp
     (relative time 0) falls on that scale; (empty, None) when the cloud cannot be deskewed: no times, a
@@ -79,7 +114,10 @@ class Odometry(Protocol):
     """What the SLAM needs of an odometry: register a cloud, or decline one with too few points."""
 
     def register(
-        self, points: NDArray[np.floating], point_times: NDArray[np.float64] | None = None
+        self,
+        points: NDArray[np.floating],
+        point_times: NDArray[np.float64] | None = None,
+        motion_guess: NDArray[np.float64] | None = None,
     ) -> OdometryStep | None: ...
 
 
@@ -97,15 +135,20 @@ class KissOdometry:
         return self._pose.copy()
 
     def register(
-        self, points: NDArray[np.floating], point_times: NDArray[np.float64] | None = None
+        self,
+        points: NDArray[np.floating],
+        point_times: NDArray[np.float64] | None = None,
+        motion_guess: NDArray[np.float64] | None = None,
     ) -> OdometryStep | None:
         """Register one cloud, (N, 3) points in the sensor frame with optional times (s, relative to the
-        stamp); None (and nothing changes) when it has fewer than `min_points` points."""
+        stamp); None (and nothing changes) when it has fewer than `min_points` points. `motion_guess`
+        (4×4, the sensor's motion since the previous registered cloud, stamp to stamp) replaces the
+        constant-velocity prediction."""
         if len(points) < self.config.min_points:
             return None
-        times, stamp_fraction = (
-            normalized_point_times(point_times) if self.config.deskew else (NO_TIMES, None)
-        )
+        times, stamp_fraction = self._sweep_times(points, point_times)
+        if motion_guess is not None:
+            self._kiss.last_delta = np.array(motion_guess, dtype=np.float64)
         # The motion the deskewing assumes: read before registering replaces it.
         motion = np.array(self._kiss.last_delta, dtype=np.float64)
         frame = np.ascontiguousarray(points, dtype=np.float64)
@@ -116,6 +159,23 @@ class KissOdometry:
             pose = end_pose @ se3.exp((stamp_fraction - 1.0) * se3.log(motion))
         self._pose = pose
         return OdometryStep(pose, np.asarray(deskewed), end_pose, stamp_fraction is not None)
+
+    def _sweep_times(
+        self, points: NDArray[np.floating], point_times: NDArray[np.float64] | None
+    ) -> tuple[FloatArray, float | None]:
+        """KISS-ICP's normalised times and the stamp's place among them; (empty, None): no deskewing."""
+        config = self.config
+        if not config.deskew:
+            return NO_TIMES, None
+        times, stamp_fraction = normalized_point_times(point_times)
+        if point_times is not None or not config.azimuth_times:
+            return times, stamp_fraction
+        times = azimuth_point_times(
+            points, clockwise=config.spin_clockwise, start_azimuth=config.sweep_start_angle
+        )
+        if not covers_the_circle(times):
+            return NO_TIMES, None
+        return normalized_point_times(times - (1.0 if config.stamp_at_sweep_end else 0.0))
 
 
 def downsample(points: NDArray[np.floating], voxel: float) -> FloatArray:

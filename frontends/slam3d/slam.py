@@ -13,12 +13,11 @@
 4. Every few loop closures the planar graph is re-optimized (Gauss–Newton) and loop closures whose χ²
    stays large at the optimum are removed; the map ← odometry correction follows the last keyframe.
 
-Ground-vehicle assumption. The graph is kept in 3D (4×4 keyframe poses, relative 4×4 constraints with
-6×6 information) but optimized in SE(2): x, y and yaw, through `frontends.slam3d.planar`. Height, roll
-and pitch of every keyframe stay those of the odometry, which sees the ground in every cloud and drifts
-little in them; planar loop closures cannot correct height drift (ramps, several storeys). A full SE(3)
-backend can replace the projection later (`Slam3DGraph` already holds everything it needs) without
-touching this frontend.
+Ground-vehicle assumption online. The graph is kept in 3D (4×4 keyframe poses, relative 4×4 constraints
+with 6×6 information) but optimized online in SE(2): x, y and yaw, through `frontends.slam3d.planar`;
+height, roll and pitch of every keyframe stay those of the odometry. After the final planar (SGD)
+optimization, `Slam3DGraph.polish_se3` runs Levenberg–Marquardt on SE(3) over the same constraints
+(`frontends.slam3d.pose_graph3d`), so loop closures correct height drift too (ramps, several storeys).
 """
 
 from __future__ import annotations
@@ -31,7 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from frontends.errors import FrontendError
 from frontends.logs.types import Cloud3D
 from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune, path_lengths
-from frontends.slam3d import planar, se3
+from frontends.slam3d import planar, pose_graph3d, se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.loop_closure import (
     LoopMatch,
@@ -41,6 +40,7 @@ from frontends.slam3d.loop_closure import (
     verify_loop,
 )
 from frontends.slam3d.odometry import KissOdometry, Odometry, downsample
+from frontends.slam3d.pose_graph3d import PolishResult
 from optimizer import se2
 from optimizer.graph import PoseGraph
 
@@ -120,6 +120,18 @@ class Slam3DGraph:
         """(K, 4, 4) keyframe poses from optimized planar ones, height, roll and pitch from odometry."""
         return planar.lift(planar_poses, self.keyframe_odometry)
 
+    def polish_se3(self, keyframe_poses: ArrayLike, max_iterations: int = 20) -> PolishResult:
+        """Full SE(3) polish of (K, 4, 4) keyframe poses (the lifted planar optimum) over this graph's
+        constraints: loop closures then correct height, roll and pitch as well."""
+        return pose_graph3d.polish(
+            keyframe_poses,
+            self.edge_from,
+            self.edge_to,
+            self.relative,
+            self.information,
+            max_iterations=max_iterations,
+        )
+
     def cloud_poses(self, keyframe_poses: ArrayLike) -> FloatArray:
         """(S, 4, 4) every cloud's pose given (optimized) 4×4 keyframe poses."""
         return np.asarray(keyframe_poses, dtype=np.float64)[self.cloud_keyframes] @ self.cloud_offsets
@@ -175,6 +187,7 @@ class LidarSlam3D:
         self._cloud_keyframes: list[int] = []
         self._cloud_offsets: list[FloatArray] = []
         self._last_base = np.eye(4)
+        self._last_odometry_pose: FloatArray | None = None
         self._clouds_seen = 0
         self._untracked = 0
         self._dropped = 0
@@ -188,11 +201,21 @@ class LidarSlam3D:
 
     # ------------------------------------------------------------------------------------------ clouds
 
-    def add_cloud(self, cloud: Cloud3D) -> CloudEstimate:
-        """Process one cloud (points in the sensor frame)."""
+    def add_cloud(self, cloud: Cloud3D, odometry_pose: ArrayLike | None = None) -> CloudEstimate:
+        """Process one cloud (points in the sensor frame). `odometry_pose` (4×4, optional) is the base's
+        pose at the cloud's stamp from the vehicle's own odometry (`vehicle.OdometryPrior.at`): its motion
+        since the previous registered cloud is the registration's starting guess."""
         index = self._clouds_seen
         self._clouds_seen += 1
-        step = self._odometry.register(cloud.points, cloud.point_times)
+        odometry = None if odometry_pose is None else np.asarray(odometry_pose, dtype=np.float64)
+        motion_guess = None
+        if odometry is not None and self._last_odometry_pose is not None:
+            base_motion = se3.relative(self._last_odometry_pose, odometry)
+            motion_guess = self._mount_inverse @ base_motion @ self._mount
+        step = self._odometry.register(cloud.points, cloud.point_times, motion_guess)
+        if step is not None:
+            # the guess is relative to the last registered cloud: no odometry there, no guess next time
+            self._last_odometry_pose = odometry
         if step is None:
             self._untracked += 1
             if not self._keyframe_poses:

@@ -1,0 +1,368 @@
+"""Our 3D SLAM against kiss-slam (the 3D anchor, PyPI `kiss-slam`) on the same frames (issue 12, item 4).
+
+    python benchmarks/kiss_slam_compare.py [--kiss-slam-python /path/to/venv/bin/python] \
+        [--shared ../shared] [--out benchmarks/results] [--splitting-distance 100 --splitting-distance 25]
+
+kiss-slam runs in its own interpreter (`benchmarks/kiss_slam_runner.py`; its map_closures pins
+numpy < 2.3): make one with `python -m venv V && V/bin/pip install kiss-slam==0.0.2` (open3d, which it
+imports, needs the system's libusb-1.0: `apt-get install libusb-1.0-0`).
+
+1. `kitti_city.mcap` (154 real KITTI frames, read in place, never copied; no ground truth in the log):
+   the final position of ours (`replay_log`: SGD, then the SE(3) polish), of kiss-slam and of KISS-ICP's
+   odometry alone, each against the others, as m and % of the path; the final height of each (the
+   start is 0: the street is nearly level); frames/s.
+2. The synthetic town loop of the tests (`tests.lidar_world.loop_drive`: 163 sweeps once around the
+   block and 12 m further, 32 × 720 LiDAR pitched 2° on a 1.8 m mount, per-point times) with ground
+   truth: ATE RMSE of both (positions rigidly aligned to the truth, Kabsch, no scale), the height error
+   before and after the SE(3) polish, loop closures found by both, frames/s.
+3. Height drift: the same town loop with KISS-ICP's poses made to climb 1 cm per metre driven (1.25 m
+   over the loop; the street is level), ours only: heights before and after the SE(3) polish.
+
+Every run gets the same frames and the same per-point times: KITTI's from the azimuths (clockwise from
+behind, KISS-ICP's KITTI rule, which our default `azimuth_times=True` applies), the town's from its time
+field. kiss-slam's poses are the sensor's at each sweep's end (KISS-ICP's convention): on the town they
+are moved to the base with the mount and compared with the truth at that time. Frames/s: ours end to end
+(reading, odometry, loop closures, SGD, SE(3) polish, recording, map, files) and our frontend alone;
+kiss-slam's processing loop alone (frames in memory, no outputs). Timings depend on the machine's load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from kiss_icp.config import load_config  # noqa: E402
+from kiss_icp.kiss_icp import KissICP  # noqa: E402
+
+from frontends.logs import Cloud3D, open_log  # noqa: E402
+from frontends.slam3d import LidarSlam3D, Slam3DConfig, planar, se3  # noqa: E402
+from frontends.slam3d.odometry import (  # noqa: E402
+    KissOdometry,
+    OdometryStep,
+    azimuth_point_times,
+    normalized_point_times,
+)
+from pipeline.replay_log import LogReplayResult, replay_log  # noqa: E402
+from tests.lidar_world import (  # noqa: E402
+    SWEEP_PERIOD,
+    loop_drive,
+    planar_to_matrix,
+    town_loop,
+    write_cloud_log,
+)
+
+KITTI = "data/logs/kitti/kitti_city.mcap"
+RUNNER = REPO / "benchmarks" / "kiss_slam_runner.py"
+HEIGHT_DRIFT_RATE = 0.01
+
+
+@dataclass
+class Ours:
+    result: LogReplayResult
+    lifted: np.ndarray
+    """(S, 4, 4) every cloud's pose from the planar optimum (height, roll, pitch from odometry)."""
+    polished: np.ndarray
+    """(S, 4, 4) after the SE(3) polish."""
+    seconds: float
+    polish_seconds: float
+
+
+def run_ours(log: Path, out_dir: Path, config: Slam3DConfig) -> Ours:
+    """`replay_log` (the SE(3) polish included: `result.poses`), and the poses without the polish."""
+    started = time.perf_counter()
+    result = replay_log(log, out_dir=out_dir, slam3d=config)
+    seconds = time.perf_counter() - started
+    graph = result.frontend.result
+    lifted = graph.lift(result.keyframe_poses)
+    polish_started = time.perf_counter()  # timed again alone: the replay's total includes it once
+    graph.polish_se3(lifted, config.se3_polish.max_iterations)
+    polish_seconds = time.perf_counter() - polish_started
+    return Ours(result, graph.cloud_poses(lifted), result.poses, seconds, polish_seconds)
+
+
+@dataclass
+class KissSlam:
+    poses: np.ndarray
+    closures: int
+    seconds: float
+
+
+def run_kiss_slam(
+    python: str, frames: list[np.ndarray], times: list[np.ndarray], folder: Path, splitting: float | None
+) -> KissSlam:
+    arrays = {"count": np.array(len(frames))}
+    for k, (points, stamps) in enumerate(zip(frames, times, strict=True)):
+        arrays[f"points_{k}"] = points
+        arrays[f"times_{k}"] = stamps
+    np.savez(folder / "frames.npz", **arrays)
+    command = [python, str(RUNNER), str(folder / "frames.npz"), str(folder / "kiss_slam.npz")]
+    if splitting is not None:
+        command += ["--splitting-distance", str(splitting)]
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"kiss-slam failed ({done.returncode}):\n{done.stderr[-3000:]}")
+    out = np.load(folder / "kiss_slam.npz")
+    return KissSlam(out["poses"], int(out["closures"]), float(out["seconds"]))
+
+
+def kiss_icp_alone(frames: list[np.ndarray], times: list[np.ndarray]) -> tuple[np.ndarray, float]:
+    odometry = KissICP(load_config(None))
+    poses = []
+    started = time.perf_counter()
+    for points, stamps in zip(frames, times, strict=True):
+        odometry.register_frame(points, stamps)
+        poses.append(odometry.last_pose.copy())
+    return np.array(poses), time.perf_counter() - started
+
+
+def path_length(poses: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+
+
+def ate_rmse(estimated: np.ndarray, truth: np.ndarray) -> float:
+    """RMSE of positions after the rigid (rotation + translation, no scale) alignment that minimises it."""
+    a, b = estimated - estimated.mean(axis=0), truth - truth.mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(u @ vt))
+    rotation = (u @ np.diag([1.0, 1.0, d]) @ vt).T
+    return float(np.sqrt(np.mean(np.sum((a @ rotation.T - b) ** 2, axis=1))))
+
+
+def relative_to_first(poses: np.ndarray) -> np.ndarray:
+    return se3.relative(poses[0], poses)
+
+
+# ----------------------------------------------------------------------------------------------- KITTI
+
+
+def kitti_section(shared: Path, python: str) -> dict[str, object]:
+    path = shared / KITTI
+    with open_log(path) as log:
+        frames = [c.points.astype(np.float64) for c in log.clouds()]
+    times = [normalized_point_times(azimuth_point_times(f))[0] for f in frames]  # KISS-ICP's KITTI rule
+    reference, kiss_icp_seconds = kiss_icp_alone(frames, times)
+    config = Slam3DConfig()
+    with tempfile.TemporaryDirectory() as folder:
+        ours = run_ours(path, Path(folder) / "out", config)
+        slam = run_kiss_slam(python, frames, times, Path(folder), None)
+    length = path_length(reference)
+    finals = {
+        "ours": relative_to_first(ours.polished)[-1],
+        "ours_planar_only": relative_to_first(ours.lifted)[-1],
+        "kiss_slam": relative_to_first(slam.poses)[-1],
+        "kiss_icp": relative_to_first(reference)[-1],
+    }
+
+    def gap(a: str, b: str) -> float:
+        return float(np.linalg.norm(finals[a][:3, 3] - finals[b][:3, 3]))
+
+    count = len(frames)
+    return {
+        "frames": count,
+        "path_length_m": length,
+        "final_position_difference_m": {
+            "ours_vs_kiss_icp": gap("ours", "kiss_icp"),
+            "kiss_slam_vs_kiss_icp": gap("kiss_slam", "kiss_icp"),
+            "ours_vs_kiss_slam": gap("ours", "kiss_slam"),
+        },
+        "final_height_m": {name: float(final[2, 3]) for name, final in finals.items()},
+        "loop_closures": {"ours": ours.result.loop_closures["accepted"], "kiss_slam": slam.closures},
+        "fps": {
+            "ours_end_to_end": count / ours.seconds,
+            "ours_frontend": count / ours.result.wall_time["frontend"],
+            "kiss_slam": count / slam.seconds,
+            "kiss_icp_alone": count / kiss_icp_seconds,
+        },
+    }
+
+
+# ------------------------------------------------------------------------------------------ town loop
+
+
+def town_section(python: str, splitting: float | None) -> dict[str, object]:
+    run = loop_drive()
+    route = town_loop().route
+    columns_fraction = 1.0 - 1.0 / 720  # the last column fires one column short of the full sweep
+    truth_at_stamps = planar_to_matrix(run.base_poses)
+    truth_at_ends = planar_to_matrix(route.pose(run.distances + columns_fraction * run.speeds))
+    config = Slam3DConfig()
+    with tempfile.TemporaryDirectory() as folder:
+        log = Path(folder) / "town.mcap"
+        write_cloud_log(log, run)
+        frames = [c.astype(np.float64) for c in run.clouds]
+        times = [normalized_point_times(t.astype(np.float64))[0] for t in run.times]
+        ours = run_ours(log, Path(folder) / "out", config)
+        slam = run_kiss_slam(python, frames, times, Path(folder), splitting)
+    # ours: base poses at the stamps, for the clouds in the trajectory (from the first keyframe on)
+    stamps = ours.result.stamps_ns
+    first_index = len(run.clouds) - len(stamps)
+    truth = truth_at_stamps[first_index:]
+    mount = run.mount
+    slam_base = mount @ slam.poses @ se3.inverse(mount)
+
+    def heights(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """Height error in the first truth pose's frame (the ground is level: truth z = 0)."""
+        aligned = reference[0] @ relative_to_first(poses)
+        return aligned[:, 2, 3] - reference[:, 2, 3]
+
+    count = len(run.clouds)
+    return {
+        "frames": count,
+        "path_length_m": float(run.distances[-1] - run.distances[0]),
+        "ate_rmse_m": {
+            "ours": ate_rmse(ours.polished[:, :3, 3], truth[:, :3, 3]),
+            "ours_planar_only": ate_rmse(ours.lifted[:, :3, 3], truth[:, :3, 3]),
+            "kiss_slam": ate_rmse(slam_base[:, :3, 3], truth_at_ends[: len(slam_base), :3, 3]),
+        },
+        "max_height_error_m": {
+            "ours": float(np.abs(heights(ours.polished, truth)).max()),
+            "ours_planar_only": float(np.abs(heights(ours.lifted, truth)).max()),
+            "kiss_slam": float(np.abs(heights(slam_base, truth_at_ends[: len(slam_base)])).max()),
+        },
+        "final_height_error_m": {
+            "ours": float(heights(ours.polished, truth)[-1]),
+            "ours_planar_only": float(heights(ours.lifted, truth)[-1]),
+            "kiss_slam": float(heights(slam_base, truth_at_ends[: len(slam_base)])[-1]),
+        },
+        "loop_closures": {"ours": ours.result.loop_closures["accepted"], "kiss_slam": slam.closures},
+        "kiss_slam_splitting_distance_m": splitting if splitting is not None else 100.0,
+        "fps": {
+            "ours_end_to_end": count / ours.seconds,
+            "ours_frontend": count / ours.result.wall_time["frontend"],
+            "kiss_slam": count / slam.seconds,
+        },
+        "polish_seconds": ours.polish_seconds,
+        "sweep_period_s": SWEEP_PERIOD,
+    }
+
+
+class ClimbingOdometry:
+    """KISS-ICP whose sensor climbs `rate` metres per metre driven: the height drift of a LiDAR odometry
+    on a slightly mis-estimated pitch, which loop closures (and only the SE(3) polish) can take out."""
+
+    def __init__(self, rate: float, config: Slam3DConfig) -> None:
+        self._inner = KissOdometry(config.odometry)
+        self._rate = rate
+        self._travel = 0.0
+        self._previous: np.ndarray | None = None
+
+    def register(
+        self,
+        points: np.ndarray,
+        point_times: np.ndarray | None = None,
+        motion_guess: np.ndarray | None = None,
+    ) -> OdometryStep | None:
+        step = self._inner.register(points, point_times, motion_guess)
+        if step is None:
+            return None
+        if self._previous is not None:
+            self._travel += float(np.linalg.norm(step.pose[:3, 3] - self._previous[:3, 3]))
+        self._previous = step.pose
+        lift = np.eye(4)
+        lift[2, 3] = self._rate * self._travel
+        return OdometryStep(lift @ step.pose, step.points, lift @ step.points_pose, step.deskewed)
+
+
+def height_drift_section(rate: float) -> dict[str, object]:
+    """The town loop with odometry climbing `rate` m/m: heights after the planar optimum (online,
+    lifted) and after the SE(3) polish, against the level truth."""
+    run = loop_drive()
+    config = Slam3DConfig()
+    slam = LidarSlam3D(config, sensor_to_base=run.mount, odometry=ClimbingOdometry(rate, config))
+    for k, (points, times) in enumerate(zip(run.clouds, run.times, strict=True)):
+        slam.add_cloud(Cloud3D(k, k, "lidar", points, times.astype(np.float64)))
+    graph = slam.finish()
+    lifted = graph.lift(planar.planar(graph.keyframe_poses))
+    started = time.perf_counter()
+    polished = graph.polish_se3(lifted, config.se3_polish.max_iterations)
+    seconds = time.perf_counter() - started
+
+    def heights(keyframe_poses: np.ndarray) -> np.ndarray:
+        return relative_to_first(graph.cloud_poses(keyframe_poses))[:, 2, 3]
+
+    before, after = heights(lifted), heights(polished.poses)
+    return {
+        "climb_m_per_m": rate,
+        "loop_closures": {"ours": graph.loop_closures_accepted},
+        "final_height_error_m": {"ours": float(after[-1]), "ours_planar_only": float(before[-1])},
+        "max_height_error_m": {
+            "ours": float(np.abs(after).max()),
+            "ours_planar_only": float(np.abs(before).max()),
+        },
+        "chi2": {"before_polish": polished.chi2_before, "after_polish": polished.chi2_after},
+        "polish_iterations": polished.iterations,
+        "polish_seconds": seconds,
+    }
+
+
+def _table(name: str, section: dict[str, object]) -> None:
+    print(f"### {name}\n")
+    print("| measure | ours | ours, planar only | kiss-slam | KISS-ICP alone |")
+    print("|---|---|---|---|---|")
+    for key, values in section.items():
+        if isinstance(values, dict):
+            columns = ("ours", "ours_planar_only", "kiss_slam", "kiss_icp")
+            cells = [values.get(k) for k in columns]
+            if not set(values) <= set(columns):
+                print(f"| {key} | " + ", ".join(f"{k} {_fmt(v)}" for k, v in values.items()) + " | | | |")
+            else:
+                print(f"| {key} | " + " | ".join(_fmt(c) for c in cells) + " |")
+        else:
+            print(f"| {key} | {_fmt(values)} | | | |")
+    print()
+
+
+def _fmt(value: object) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.3f}"
+    return str(value)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--kiss-slam-python",
+        default=sys.executable,
+        help="an interpreter with kiss-slam installed (default: this one, when the bench extra is installed)",
+    )
+    parser.add_argument("--shared", type=Path, default=REPO.parent / "shared")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
+    parser.add_argument(
+        "--splitting-distance",
+        type=float,
+        action="append",
+        help="kiss-slam local-map length on the town loop (m; repeat for several runs; default its 100)",
+    )
+    args = parser.parse_args()
+    results: dict[str, object] = {}
+    print("## Ours against kiss-slam\n")
+    if (args.shared / KITTI).is_file():
+        results["kitti_city"] = kitti_section(args.shared, args.kiss_slam_python)
+        _table("kitti_city.mcap (no ground truth: against each other)", results["kitti_city"])  # type: ignore[arg-type]
+    else:
+        print(f"(skipped kitti_city: {args.shared / KITTI} not found)\n")
+    results["height_drift"] = height_drift_section(HEIGHT_DRIFT_RATE)
+    _table(f"town loop, odometry climbing {HEIGHT_DRIFT_RATE} m/m (ours only)", results["height_drift"])  # type: ignore[arg-type]
+    for splitting in args.splitting_distance or [None]:
+        key = "town_loop" if splitting is None else f"town_loop_split_{splitting:g}"
+        results[key] = town_section(args.kiss_slam_python, splitting)
+        _table(f"synthetic town loop ({key})", results[key])  # type: ignore[arg-type]
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "kiss_slam_compare.json").write_text(json.dumps(results, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,207 @@
+"""The LiDAR's mount from tf, the vehicle's odometry as a registration prior, deskewing from azimuths."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from frontends.errors import FrontendError
+from frontends.logs import Cloud3D, OdometryPose, Transform, TransformTree
+from frontends.slam3d import LidarSlam3D, se3
+from frontends.slam3d.config import OdometryConfig
+from frontends.slam3d.odometry import KissOdometry, azimuth_point_times, normalized_point_times
+from frontends.slam3d.vehicle import OdometryPrior, default_base_frame, lidar_mount
+from tests.lidar_world import (
+    Drive,
+    Lidar,
+    drive,
+    homogeneous,
+    planar_to_matrix,
+    rotation_z,
+    town_loop,
+)
+
+IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def _q_yaw(theta: float) -> np.ndarray:
+    return np.array([0.0, 0.0, math.sin(theta / 2), math.cos(theta / 2)])
+
+
+def _edge(parent: str, child: str, xyz: tuple[float, float, float], q: np.ndarray, static: bool) -> Transform:
+    return Transform(parent, child, 0, 0, np.array(xyz, dtype=np.float64), q, static)
+
+
+def _tree(*edges: Transform) -> TransformTree:
+    return TransformTree().extend(edges)
+
+
+# ------------------------------------------------------------------------------------------ the mount
+
+
+def test_the_base_is_the_frame_that_moves() -> None:
+    tree = _tree(
+        _edge("odom", "base_footprint", (5.0, 0.0, 0.0), IDENTITY_Q, static=False),
+        _edge("base_footprint", "base_link", (0.0, 0.0, 0.3), IDENTITY_Q, static=True),
+        _edge("base_link", "velodyne", (0.5, 0.0, 1.5), _q_yaw(math.pi / 2), static=True),
+    )
+    assert default_base_frame(tree, "velodyne") == "base_footprint"
+    mount = lidar_mount(tree, "velodyne", 0)
+    assert mount.base_frame == "base_footprint" and mount.from_tf
+    # the sensor's origin is 0.5 m ahead and 0.3 + 1.5 m up; its x axis points along the base's y
+    np.testing.assert_allclose(mount.sensor_to_base[:3, 3], [0.5, 0.0, 1.8], atol=1e-12)
+    np.testing.assert_allclose(mount.sensor_to_base[:3, 0], [0.0, 1.0, 0.0], atol=1e-12)
+    # overridden: the mount on base_link leaves out the footprint's 0.3 m
+    override = lidar_mount(tree, "velodyne", 0, base_frame="base_link")
+    np.testing.assert_allclose(override.sensor_to_base[:3, 3], [0.5, 0.0, 1.5], atol=1e-12)
+
+
+def test_a_static_only_tree_ends_at_base_link_or_its_root() -> None:
+    with_base_link = _tree(
+        _edge("map", "base_link", (0.0, 0.0, 0.0), IDENTITY_Q, static=True),
+        _edge("base_link", "lidar", (0.0, 0.0, 2.0), IDENTITY_Q, static=True),
+    )
+    assert default_base_frame(with_base_link, "lidar") == "base_link"
+    rig = _tree(
+        _edge("vehicle", "rig", (1.0, 0.0, 0.0), IDENTITY_Q, static=True),
+        _edge("rig", "lidar", (0.0, 0.0, 2.0), IDENTITY_Q, static=True),
+    )
+    mount = lidar_mount(rig, "lidar", 0)
+    assert mount.base_frame == "vehicle"
+    np.testing.assert_allclose(mount.sensor_to_base[:3, 3], [1.0, 0.0, 2.0])
+
+
+def test_a_sensor_frame_tf_does_not_know_is_its_own_base() -> None:
+    tree = _tree(_edge("base_link", "camera", (0.0, 0.0, 1.0), IDENTITY_Q, static=True))
+    mount = lidar_mount(tree, "velodyne", 0)
+    assert mount.base_frame == "velodyne" and not mount.from_tf
+    np.testing.assert_array_equal(mount.sensor_to_base, np.eye(4))
+    assert default_base_frame(TransformTree(), "velodyne") == "velodyne"
+
+
+def test_a_base_frame_tf_does_not_link_is_an_error() -> None:
+    tree = _tree(_edge("base_link", "lidar", (0.0, 0.0, 1.0), IDENTITY_Q, static=True))
+    with pytest.raises(FrontendError, match="base_footprint"):
+        lidar_mount(tree, "lidar", 0, base_frame="base_footprint")
+
+
+# ------------------------------------------------------------------------------------ odometry prior
+
+
+def test_the_odometry_prior_interpolates_between_poses() -> None:
+    poses = [
+        OdometryPose(1_000, 1_000, "odom", "base_link", np.array([0.0, 0.0, 0.0]), IDENTITY_Q),
+        OdometryPose(3_000, 3_000, "odom", "base_link", np.array([2.0, 4.0, 0.0]), _q_yaw(math.pi / 2)),
+        OdometryPose(10_000, 10_000, "odom", "base_link", np.array([9.0, 4.0, 0.0]), _q_yaw(math.pi / 2)),
+    ]
+    prior = OdometryPrior.from_poses(poses, max_gap_ns=5_000)
+    assert prior is not None and len(prior) == 3
+    halfway = prior.at(2_000)
+    assert halfway is not None
+    np.testing.assert_allclose(halfway[:3, 3], [1.0, 2.0, 0.0])
+    np.testing.assert_allclose(halfway[:3, :3], rotation_z(math.pi / 4), atol=1e-12)
+    np.testing.assert_allclose(prior.at(3_000)[:3, 3], [2.0, 4.0, 0.0])  # type: ignore[index]
+    assert prior.at(999) is None and prior.at(10_001) is None  # outside the odometry's span
+    assert prior.at(5_000) is None  # inside a 7 µs gap, longer than the 5 µs allowed
+    assert OdometryPrior.from_poses([]) is None
+    assert prior.child_frame == "base_link"
+    # the same odometry for a frame 1 m ahead of base_link: at 90° yaw it sits 1 m along odom's y
+    ahead = prior.rebase(homogeneous(np.eye(3), np.array([1.0, 0.0, 0.0])))
+    np.testing.assert_allclose(ahead.at(3_000)[:3, 3], [2.0, 5.0, 0.0], atol=1e-12)  # type: ignore[index]
+
+
+def test_wheel_odometry_guides_the_registration_through_a_jump_in_speed() -> None:
+    # 8 m/s, then only every 4th sweep arrives (a dropped-message burst): 3.2 m between clouds, which
+    # KISS-ICP's constant-velocity prediction (0.8 m) does not expect
+    run = drive(town_loop(), sweeps=40, step=0.8, ramp=5, lidar=Lidar(columns=360))
+    kept = [*range(12), *range(15, 40, 4)]
+    truth = planar_to_matrix(run.base_poses)[kept]
+    wheel = truth.copy()
+    wheel[:, :3, 3] *= 1.03  # wheel odometry 3 % long: a prior, not the truth
+    expected = se3.relative(truth[0], truth)[:, :2, 3]
+
+    def errors(with_prior: bool) -> np.ndarray:
+        slam = LidarSlam3D(sensor_to_base=run.mount)
+        poses = []
+        for n, k in enumerate(kept):
+            cloud = Cloud3D(k, k, "lidar", run.clouds[k], run.times[k].astype(np.float64))
+            poses.append(slam.add_cloud(cloud, wheel[n] if with_prior else None).pose)
+        estimated = se3.relative(poses[0], np.array(poses))[:, :2, 3]
+        return np.linalg.norm(estimated - expected, axis=1)
+
+    guided, unguided = errors(True), errors(False)
+    assert guided.max() < 0.5 * unguided.max()
+    assert guided[-1] < 0.1 * np.linalg.norm(expected[-1])
+
+
+# ------------------------------------------------------------------------------------------ deskewing
+
+
+def test_azimuth_times_follow_the_sweep() -> None:
+    # clockwise seen from above, from behind (Velodyne): behind … left … front … right … behind
+    behind_left, left, front, right, behind_right = (
+        [-1.0, 1e-6, 0],
+        [0, 1.0, 0],
+        [1.0, 0, 0],
+        [0, -1.0, 0],
+        [-1.0, -1e-6, 0],
+    )
+    points = np.array([behind_left, left, front, right, behind_right], dtype=np.float64)
+    np.testing.assert_allclose(azimuth_point_times(points), [0.0, 0.25, 0.5, 0.75, 1.0], atol=1e-6)
+    counter = azimuth_point_times(points, clockwise=False, start_azimuth=0.0)
+    np.testing.assert_allclose(counter, [0.5, 0.25, 0.0, 0.75, 0.5], atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def corner_drive() -> Drive:
+    """Into the loop's first turn at 8 m/s (6.5° per sweep): the motion distorts each sweep."""
+    return drive(town_loop(), sweeps=32, step=0.8, start=4.0, lidar=Lidar(columns=720), mount=np.eye(4))
+
+
+def test_azimuths_give_the_sweep_times_a_spinning_sensor_has(corner_drive: Drive) -> None:
+    # the simulated sensor spins counter-clockwise from +x and fires its columns at a constant rate
+    for points, recorded in zip(corner_drive.clouds[:3], corner_drive.times[:3], strict=True):
+        swept = azimuth_point_times(points, clockwise=False, start_azimuth=0.0)
+        from_azimuth, _ = normalized_point_times(swept)
+        from_field, _ = normalized_point_times(recorded.astype(np.float64))
+        assert np.abs(from_azimuth - from_field).max() < 2.0 / 720
+
+
+def _odometry_errors(corner_drive: Drive, config: OdometryConfig, with_times: bool) -> np.ndarray:
+    odometry = KissOdometry(config)
+    poses = []
+    for points, times in zip(corner_drive.clouds, corner_drive.times, strict=True):
+        step = odometry.register(points, times.astype(np.float64) if with_times else None)
+        assert step is not None
+        poses.append(step.pose)
+    truth = planar_to_matrix(corner_drive.base_poses)
+    estimated = se3.relative(poses[0], np.array(poses))[:, :2, 3]
+    return np.linalg.norm(estimated - se3.relative(truth[0], truth)[:, :2, 3], axis=1)
+
+
+def test_clouds_without_times_are_deskewed_from_their_azimuths(corner_drive: Drive) -> None:
+    # the simulated sensor spins counter-clockwise from +x, stamped at the sweep's start
+    spin = {"spin_clockwise": False, "sweep_start_angle": 0.0, "stamp_at_sweep_end": False}
+    per_point, auto = OdometryConfig(azimuth_times=False), OdometryConfig(**spin)
+    not_deskewed = _odometry_errors(corner_drive, per_point, with_times=False)
+    from_azimuth = _odometry_errors(corner_drive, auto, with_times=False)
+    from_field = _odometry_errors(corner_drive, per_point, with_times=True)
+    assert from_azimuth.max() < 0.6 * not_deskewed.max()
+    assert from_azimuth.max() < from_field.max() + 0.1
+    # the spin the wrong way round deskews the wrong way: worse than not deskewing
+    wrong = OdometryConfig(stamp_at_sweep_end=False)
+    wrong_way = _odometry_errors(corner_drive, wrong, with_times=False)
+    assert wrong_way.max() > from_azimuth.max()
+
+
+def test_a_narrow_field_of_view_is_not_deskewed_from_azimuths(corner_drive: Drive) -> None:
+    odometry = KissOdometry(OdometryConfig())
+    points = corner_drive.clouds[5]
+    azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+    front = points[np.abs(azimuth) < 35.0]  # a 70° solid-state sensor's view
+    step = odometry.register(front)
+    assert step is not None and not step.deskewed
+    full = KissOdometry(OdometryConfig()).register(points)
+    assert full is not None and full.deskewed
