@@ -125,6 +125,7 @@ _BOUNDS: dict[tuple[str, str], dict[str, float]] = {
     ("slam3d.loop_closure", "small_correction_angular"): _NON_NEGATIVE,
     ("slam3d.loop_closure", "min_inlier_fraction"): _FRACTION,
     ("slam3d.loop_closure", "ambiguity_ratio"): _POSITIVE_FRACTION,
+    ("slam3d.odometry", "sweep_start_angle"): _NON_NEGATIVE,
 }
 """Bounds of the numbers that need not be strictly positive (every other number must be)."""
 
@@ -145,6 +146,7 @@ _CEILINGS: dict[tuple[str, str], float] = {
     ("slam2d.keyframes", "max_turn_rate"): 3600.0,
     ("slam3d.odometry", "max_range"): 1000.0,
     ("slam3d.odometry", "min_range"): 1000.0,
+    ("slam3d.se3_polish", "max_iterations"): 1000.0,
 }
 _MAX_NUMBER = 10_000.0
 """Every other number's upper bound (metres, counts, scales): far above any use, and low enough that no

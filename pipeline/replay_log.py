@@ -48,11 +48,11 @@ from pipeline.outputs import (
     write_png,
     write_text,
 )
-from pipeline.ply import write_ply
+from pipeline.ply import write_map_pcd, write_ply
 from pipeline.recording import IterationSink
 from pipeline.recording.clouds import CloudReplayRecording
 from pipeline.recording.scans import ScanReplayRecording
-from pipeline.trajectory_io import write_tum
+from pipeline.trajectory_io import write_kitti_poses, write_tum
 from pipeline.warning_tally import WarningTally, reissue, tallied_warnings
 
 FloatArray = NDArray[np.float64]
@@ -99,6 +99,8 @@ class _Sensor:
     recording: type[ScanReplayRecording] | type[CloudReplayRecording]
     """A `FrontendRecording` of the frontend (`recording(stream, frontend)`)."""
     map_files: tuple[_MapFile, ...]
+    kitti_poses: bool = False
+    """Also write the trajectory as KITTI poses (`<stem>.kitti`: 3×4 matrices, one line per measurement)."""
 
 
 def _write_map_yaml(path: Path, grid: OccupancyGrid, outputs: ReplayOutputs) -> None:
@@ -114,7 +116,8 @@ _SENSORS = {
     )),
     "cloud": _Sensor(LidarFrontend, CloudReplayRecording, (
         _MapFile("ply", ".ply", lambda path, points, _: write_ply(path, points)),
-    )),
+        _MapFile("pcd", ".pcd", lambda path, points, _: write_map_pcd(path, points)),
+    ), kitti_poses=True),
 }
 
 
@@ -131,18 +134,24 @@ class ReplayOutputs:
     map_yaml: Path | None = None
     ply: Path | None = None
     """The point map (clouds)."""
+    pcd: Path | None = None
+    """The same point map as a binary PCD (clouds)."""
+    kitti: Path | None = None
+    """The trajectory as KITTI poses (clouds)."""
 
     @classmethod
     def for_input(cls, out_dir: Path, input_path: Path, sensor: str = "scan") -> ReplayOutputs:
         stem = output_stem(input_path)
         chosen = _SENSORS[sensor]
         files = {suffix: out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd")}
+        if chosen.kitti_poses:
+            files["kitti"] = out_dir / f"{stem}.kitti"
         return cls(**files, **{map_file.output: out_dir / f"{stem}{map_file.suffix}"
                                for map_file in chosen.map_files})
 
     def paths(self) -> dict[str, Path]:
         """Kind → path of every output written ("tum", "g2o", "json", "rrd" and the map's)."""
-        names = ("tum", "g2o", "json", "rrd", "map_png", "map_pgm", "map_yaml", "ply")
+        names = ("tum", "g2o", "json", "rrd", "map_png", "map_pgm", "map_yaml", "ply", "pcd", "kitti")
         return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
 
 
@@ -254,6 +263,8 @@ class _Run:
             write_started = time.perf_counter()
             write_tum(staged["tum"], frontend.stamps_ns, result.poses)
             write_g2o(staged["g2o"], frontend.keyframe_graph(), result.keyframe_poses)
+            if outputs.kitti is not None:
+                write_kitti_poses(staged["kitti"], result.poses)
             for map_file in sensor.map_files:
                 map_file.write(staged[map_file.output], result.map_export, outputs)
             timings["write"] = time.perf_counter() - write_started

@@ -15,7 +15,7 @@ from frontends.errors import TopicSelectionError
 from frontends.slam3d import se3
 from pipeline.ply import PlyFileError, read_ply, write_ply
 from pipeline.replay_log import LogReplayResult, replay_log
-from pipeline.trajectory_io import read_tum
+from pipeline.trajectory_io import read_kitti_poses, read_tum
 from tests._frontends_fixtures import write_mcap_ros
 from tests.conftest import shared_file
 from tests.lidar_world import (
@@ -45,11 +45,22 @@ def test_outputs_are_written_and_the_trajectory_follows_the_truth(
     assert sorted(p.name for p in out.iterdir()) == [
         "town.g2o",
         "town.json",
+        "town.kitti",
+        "town.pcd",
         "town.ply",
         "town.rrd",
         "town.tum",
     ]
     trajectory = read_tum(out / "town.tum")
+    # The KITTI file holds the same poses as the TUM file (both of base_link, in the map frame).
+    kitti = read_kitti_poses(out / "town.kitti")
+    assert len(kitti) == len(trajectory.stamps_ns)
+    np.testing.assert_allclose(kitti[:, :2, 3], trajectory.planar()[:, :2], atol=1e-6)
+    # The PCD map holds the PLY map's points.
+    from pypcd4 import PointCloud
+
+    pcd_points = PointCloud.from_path(out / "town.pcd").numpy(("x", "y", "z"))
+    assert len(pcd_points) == len(read_ply(out / "town.ply"))
     np.testing.assert_array_equal(trajectory.stamps_ns, stamps)
     # poses are those of base_link (tf's mount taken out), from the first one; the truth likewise
     truth = loop_drive().base_poses
@@ -178,7 +189,7 @@ def test_the_replay_command_routes_a_point_cloud_log_to_the_3d_replay(tmp_path: 
     result = CliRunner().invoke(app, [str(path), "--out", str(out), "--iterations", "5"])
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in out.iterdir()) == [
-        "street.g2o", "street.json", "street.ply", "street.rrd", "street.tum"]
+        "street.g2o", "street.json", "street.kitti", "street.pcd", "street.ply", "street.rrd", "street.tum"]
     assert "point clouds on /points" in result.stderr
     assert len(read_tum(out / "street.tum")) == 12
 
