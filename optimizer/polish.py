@@ -17,6 +17,7 @@ The generator's return value says whether it converged (`PolishStatus`): it neve
 
 from __future__ import annotations
 
+import math
 from collections.abc import Generator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
@@ -115,6 +116,23 @@ LinearSolver = Literal["auto", "direct", "multigrid", "cg"]
 LINEAR_SOLVERS: tuple[str, ...] = ("auto", "direct", "multigrid", "cg")
 
 
+def _predicted_decrease(graph: PoseGraph, poses: FloatArray, linearisation: Linearisation,
+                        step: FloatArray) -> float:
+    """The decrease of χ² the linearised model predicts for `step`."""
+    return -(2.0 * float(linearisation.gradient @ step) + quadratic_form(
+        poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information, step))
+
+
+def _near_newton_gain(graph: PoseGraph, poses: FloatArray, current_chi2: float,
+                      linearisation: Linearisation,
+                      solver: DirectSolver | ChainPCGSolver | MultigridPCGSolver) -> float:
+    """The relative decrease of χ² the least-damped step promises (NaN when it cannot be solved)."""
+    scaled_step = solver.step(linearisation, _MIN_LAMBDA)
+    if scaled_step is None:
+        return math.nan
+    return _predicted_decrease(graph, poses, linearisation, linearisation.scale * scaled_step) / current_chi2
+
+
 def gauss_newton(
     graph: PoseGraph,
     poses: FloatArray | None = None,
@@ -193,14 +211,19 @@ def gauss_newton(
             damping *= growth
             growth *= 2.0
             if damping > _MAX_LAMBDA:
+                near_newton_gain = _near_newton_gain(graph, current, current_chi2, linearisation, solver)
+                if 0.0 <= near_newton_gain < relative_tolerance:  # (negative: a broken step, no optimum)
+                    # At the optimum up to rounding: the Gauss–Newton model promises less than the χ² test
+                    # asks for, and the evaluated χ² cannot show even that.
+                    return PolishStatus(True, f"no step can lower χ² by a relative {relative_tolerance:.0e} "
+                                              f"(Gauss–Newton predicts {near_newton_gain:.1e})", index)
                 return PolishStatus(False, f"no decreasing step (λ > {_MAX_LAMBDA:.0e}) with scaled gradient "
                                            f"gᵀdiag(H)⁻¹g/χ² {gradient_measure:.1e} > "
                                            f"{gradient_tolerance:.0e}", index)
         step_damping = damping
 
         # Nielsen's update: shrink λ the more the linear model predicted the actual decrease.
-        predicted = -(2.0 * float(linearisation.gradient @ step) + quadratic_form(
-            current, graph.edge_from, graph.edge_to, graph.measurements, graph.information, step))
+        predicted = _predicted_decrease(graph, current, linearisation, step)
         gain = (current_chi2 - trial_chi2) / predicted if predicted > 0.0 else 0.0
         damping = max(damping * max(_MIN_SHRINK, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
         growth = 2.0
