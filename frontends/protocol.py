@@ -10,7 +10,7 @@ the keyframe graph, every measurement's final pose and the map follow from optim
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar
 
@@ -25,6 +25,10 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 DEFAULT_BASE_FRAME = "base_link"
+
+
+SessionArrays = tuple[dict[str, NDArray[Any]], Sequence[NDArray[Any]]]
+"""Named arrays and each keyframe's points, what a session file keeps (`LogFrontend.session_content`)."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +87,12 @@ class LogFrontend(Protocol):
     @property
     def stamps_ns(self) -> IntArray:
         """The stamp of every measurement with a pose (`estimates`)."""
+        ...
+
+    def session_content(self, planar_poses: FloatArray) -> SessionArrays:
+        """What a session file keeps to localize in this map or continue it later: named arrays (keyframe
+        poses at `planar_poses`, constraints, how every measurement hangs off its keyframe) and each
+        keyframe's points in its own frame."""
         ...
 
     def keyframe_wheel_odometry(self) -> FloatArray | None:

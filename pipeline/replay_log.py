@@ -19,6 +19,7 @@ each afterwards. Library code: raises `FrontendError`, `OptimizerError` or `Pipe
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -52,6 +53,7 @@ from pipeline.ply import write_map_pcd, write_ply
 from pipeline.recording import IterationSink
 from pipeline.recording.clouds import CloudReplayRecording
 from pipeline.recording.scans import ScanReplayRecording
+from pipeline.session_file import source_description, write_session_file
 from pipeline.trajectory_io import write_kitti_poses, write_tum
 from pipeline.warning_tally import WarningTally, reissue, tallied_warnings
 
@@ -138,12 +140,14 @@ class ReplayOutputs:
     """The same point map as a binary PCD (clouds)."""
     kitti: Path | None = None
     """The trajectory as KITTI poses (clouds)."""
+    session: Path | None = None
+    """Everything needed to localize in the map or continue it (`pipeline.session_file`)."""
 
     @classmethod
     def for_input(cls, out_dir: Path, input_path: Path, sensor: str = "scan") -> ReplayOutputs:
         stem = output_stem(input_path)
         chosen = _SENSORS[sensor]
-        files = {suffix: out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd")}
+        files = {suffix: out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd", "session")}
         if chosen.kitti_poses:
             files["kitti"] = out_dir / f"{stem}.kitti"
         return cls(**files, **{map_file.output: out_dir / f"{stem}{map_file.suffix}"
@@ -151,7 +155,7 @@ class ReplayOutputs:
 
     def paths(self) -> dict[str, Path]:
         """Kind → path of every output written ("tum", "g2o", "json", "rrd" and the map's)."""
-        names = ("tum", "g2o", "json", "rrd", "map_png", "map_pgm", "map_yaml", "ply", "pcd", "kitti")
+        names = [field.name for field in dataclasses.fields(self)]
         return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
 
 
@@ -267,6 +271,12 @@ class _Run:
                 write_kitti_poses(staged["kitti"], result.poses)
             for map_file in sensor.map_files:
                 map_file.write(staged[map_file.output], result.map_export, outputs)
+            arrays, keyframe_points = frontend.session_content(result.keyframe_poses)
+            write_session_file(staged["session"], {
+                "sensor_kind": kind, "topic": topic, "sensor_frame": frontend.sensor_frame,
+                "base_frame": frontend.base_frame, "settings": frontend.settings(),
+                "source": source_description(log.info().files),
+            }, arrays, keyframe_points)
             timings["write"] = time.perf_counter() - write_started
             timings["total"] = time.perf_counter() - started
             replayed = LogReplayResult(

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError, LogWarning
-from pipeline.errors import PipelineError
+from pipeline.errors import OutputError, PipelineError
 
 SESSION_FORMAT = "sgdslam.session"
 SESSION_VERSION = 1
@@ -81,6 +81,23 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+def source_description(files: Sequence[Path]) -> dict[str, Any]:
+    """The source log's files (several for split bags or a ROS 2 bag folder): path, size and SHA-256, so
+    a later run can tell whether it is given the same log."""
+    return {"files": [{"path": str(Path(path).resolve()), "bytes": Path(path).stat().st_size,
+                       "sha256": file_sha256(Path(path))} for path in files]}
+
+
+def write_session_file(path: Path, header: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]],
+                       keyframe_points: Sequence[NDArray[Any]]) -> None:
+    """`write_session` into a new file at `path` (a staged output); OS errors become `OutputError`."""
+    try:
+        with path.open("wb") as stream:
+            write_session(stream, header, arrays, keyframe_points)
+    except OSError as error:
+        raise OutputError(f"{path}: cannot write the session: {error.strerror or error}") from error
+
+
 def write_session(stream: BinaryIO, header: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]],
                   keyframe_points: Sequence[NDArray[Any]]) -> None:
     """Write a session to an open binary stream (the caller stages and publishes the file)."""
@@ -93,7 +110,7 @@ def write_session(stream: BinaryIO, header: Mapping[str, Any], arrays: Mapping[s
     header_schema = writer.register_schema("sgdslam.session.Header", "jsonschema",
                                            json.dumps(HEADER_SCHEMA).encode())
     header_channel = writer.register_channel(HEADER_TOPIC, "json", header_schema)
-    writer.add_message(header_channel, 0, json.dumps(full_header).encode(), 0, 0)
+    writer.add_message(header_channel, 0, json.dumps(full_header, default=_json_value).encode(), 0, 0)
     for name, array in arrays.items():
         channel = writer.register_channel(ARRAY_TOPIC_PREFIX + name, ARRAY_ENCODING, 0)
         writer.add_message(channel, 0, _npy(array), 0, 0)
@@ -156,6 +173,15 @@ def _header(path: Path, data: bytes) -> dict[str, Any]:
                            f"session format {version}); this version ({software_version()}) reads format "
                            f"{SESSION_VERSION}: upgrade sgdslam")
     return header
+
+
+def _json_value(value: Any) -> Any:
+    """Settings hold numpy scalars and tuples of them: plain JSON numbers and lists."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"cannot store {type(value).__name__} in a session header")
 
 
 def _npy(array: NDArray[Any]) -> bytes:

@@ -49,6 +49,7 @@ def test_outputs_are_written_and_the_trajectory_follows_the_truth(
         "town.pcd",
         "town.ply",
         "town.rrd",
+        "town.session",
         "town.tum",
     ]
     trajectory = read_tum(out / "town.tum")
@@ -189,7 +190,8 @@ def test_the_replay_command_routes_a_point_cloud_log_to_the_3d_replay(tmp_path: 
     result = CliRunner().invoke(app, [str(path), "--out", str(out), "--iterations", "5"])
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in out.iterdir()) == [
-        "street.g2o", "street.json", "street.kitti", "street.pcd", "street.ply", "street.rrd", "street.tum"]
+        "street.g2o", "street.json", "street.kitti", "street.pcd", "street.ply", "street.rrd",
+        "street.session", "street.tum"]
     assert "point clouds on /points" in result.stderr
     assert len(read_tum(out / "street.tum")) == 12
 

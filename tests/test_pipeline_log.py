@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 import subprocess
@@ -15,7 +16,9 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from optimizer import se2
+from optimizer.graph_files import read_graph
 from pipeline.cli import app
+from pipeline.session_file import read_session
 from pipeline.trajectory_io import read_tum
 from tests._frontends_fixtures import RosMessages
 from tests.laser_world import wheel_odometry
@@ -51,11 +54,21 @@ def test_replay_of_a_log_writes_a_trajectory_per_scan_that_follows_the_truth(
         "drive.g2o",
         "drive.json",
         "drive.rrd",
+        "drive.session",
         "drive.tum",
         "drive_map.pgm",
         "drive_map.png",
         "drive_map.yaml",
     ]
+    # The session holds the written keyframe graph, every scan's place on it, and names its source log.
+    session = read_session(out / "drive.session")
+    keyframes = read_graph(out / "drive.g2o").graph
+    np.testing.assert_allclose(session.arrays["keyframe_poses"], keyframes.poses, atol=1e-9)
+    np.testing.assert_array_equal(session.arrays["edge_from"], keyframes.edge_from)
+    assert len(session.keyframe_points) == keyframes.num_poses
+    np.testing.assert_array_equal(session.arrays["scan_stamps_ns"], read_tum(out / "drive.tum").stamps_ns)
+    assert session.header["sensor_kind"] == "scan" and session.header["base_frame"] == "base_link"
+    assert session.header["source"]["files"][0]["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
     map_yaml = yaml.safe_load((out / "drive_map.yaml").read_text())
     assert map_yaml["image"] == "drive_map.pgm" and map_yaml["mode"] == "trinary"
     assert (out / "drive_map.pgm").read_bytes().startswith(b"P5")

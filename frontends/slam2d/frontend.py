@@ -10,7 +10,14 @@ import numpy as np
 
 from frontends.errors import FrontendError
 from frontends.logs import LogReader, Scan2D, Transform
-from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, default_base_frame
+from frontends.protocol import (
+    FloatArray,
+    FrontendOptions,
+    IntArray,
+    LogFrontendBase,
+    SessionArrays,
+    default_base_frame,
+)
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.log_input import OdometryTrack, read_odometry, scans_in_base_frame
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
@@ -82,6 +89,15 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
 
     def estimates(self, planar_poses: FloatArray) -> FloatArray:
         return self.result.scan_poses(planar_poses)
+
+    def session_content(self, planar_poses: FloatArray) -> SessionArrays:
+        result = self.result
+        graph = result.graph
+        arrays = {"keyframe_poses": planar_poses, "edge_from": graph.edge_from, "edge_to": graph.edge_to,
+                  "measurements": graph.measurements, "information": graph.information,
+                  "is_loop": ~graph.is_odometry, "scan_stamps_ns": result.scan_stamps_ns,
+                  "scan_keyframes": result.scan_keyframes, "scan_offsets": result.scan_offsets}
+        return arrays, result.keyframe_scans
 
     def keyframe_wheel_odometry(self) -> FloatArray | None:
         if self.odometry is None:

@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
 from frontends.logs import Cloud3D, LogReader
-from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase
+from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, SessionArrays
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.pose_graph3d import PolishResult
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
@@ -92,6 +92,15 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
 
     def estimates(self, planar_poses: FloatArray) -> FloatArray:
         return self.result.cloud_poses(self._keyframe_poses(planar_poses))
+
+    def session_content(self, planar_poses: FloatArray) -> SessionArrays:
+        result = self.result
+        arrays = {"keyframe_poses": self._keyframe_poses(planar_poses), "keyframe_planar_poses": planar_poses,
+                  "keyframe_stamps_ns": result.keyframe_stamps_ns, "edge_from": result.edge_from,
+                  "edge_to": result.edge_to, "relative": result.relative, "information": result.information,
+                  "is_loop": result.is_loop, "cloud_stamps_ns": result.cloud_stamps_ns,
+                  "cloud_keyframes": result.cloud_keyframes, "cloud_offsets": result.cloud_offsets}
+        return arrays, result.keyframe_clouds
 
     def map_export(self, planar_poses: FloatArray) -> NDArray[np.float32]:
         points = self.result.map_points(self._keyframe_poses(planar_poses), MAP_VOXEL)
