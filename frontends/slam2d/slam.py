@@ -14,7 +14,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +24,7 @@ from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, place
+from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
 from optimizer.cost import edge_chi2
 from optimizer.graph import PoseGraph
@@ -69,6 +70,9 @@ class Slam2DGraph:
     loop_closures_accepted: int
     loop_closures_rejected: int
     scans_unmatched: int
+    stage_times: StageTimes = field(default_factory=StageTimes)
+    """Where the frontend spent its time (matching, keyframes, loop search, verification, online
+    optimization)."""
 
     def scan_poses(self, keyframe_poses: FloatArray) -> FloatArray:
         """Every scan's pose given (optimized) keyframe poses."""
@@ -105,6 +109,7 @@ class LaserSlam2D:
         self._hypotheses = HypothesisPool(settings.small_correction_linear, settings.small_correction_angular)
         self._rejected = 0
         self._unmatched = 0
+        self.stage_times = StageTimes()
 
     # ------------------------------------------------------------------------------------------ scans
 
@@ -127,10 +132,12 @@ class LaserSlam2D:
             self._add_keyframe(pose, points, None, information)
         else:
             reliable = odometry_interval <= self.config.odometry.reliable_interval
-            prior, prior_information = self._predict(odometry, reliable)
-            pose, matched, information = self._match(
-                points, prior, prior_information, 1.0 if reliable else self.config.odometry.unreliable_scale
-            )
+            with self.stage_times.stage("matching"):
+                prior, prior_information = self._predict(odometry, reliable)
+                pose, matched, information = self._match(
+                    points, prior, prior_information,
+                    1.0 if reliable else self.config.odometry.unreliable_scale,
+                )
             last_keyframe = self._keyframe_poses[-1]
             step = se2.relative(last_keyframe, pose)
             keyframes = self.config.keyframes
@@ -142,7 +149,8 @@ class LaserSlam2D:
                 self._local_map is None and len(points) >= matching.min_points
             ):
                 self._add_keyframe(pose, points, step, information)
-                new_loops = self._close_loops()
+                with self.stage_times.stage("loop_search"):
+                    new_loops = self._close_loops()
                 pose = self._last_pose  # the loop closures may have moved it
         self._last_odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
         keyframe = len(self._keyframe_poses) - 1
@@ -220,6 +228,12 @@ class LaserSlam2D:
     def _add_keyframe(
         self, pose: FloatArray, points: FloatArray, step: FloatArray | None, information: FloatArray
     ) -> None:
+        with self.stage_times.stage("keyframes"):
+            self._add_keyframe_untimed(pose, points, step, information)
+
+    def _add_keyframe_untimed(
+        self, pose: FloatArray, points: FloatArray, step: FloatArray | None, information: FloatArray
+    ) -> None:
         self._keyframe_poses.append(np.array(pose, dtype=np.float64))
         self._keyframes.append(Keyframe(points, scan_normals(points)))
         self._last_pose = np.array(pose, dtype=np.float64)
@@ -277,7 +291,8 @@ class LaserSlam2D:
         found = []
         self._hypotheses.expire(current, settings.hypothesis_keyframes)
         for candidate in candidates:
-            hypothesis = self._verify_loop(candidate, current, float(radius[candidate]))
+            with self.stage_times.stage("verification"):
+                hypothesis = self._verify_loop(candidate, current, float(radius[candidate]))
             if hypothesis is None:
                 continue
             for accepted in self._hypotheses.confirm(hypothesis):
@@ -374,6 +389,10 @@ class LaserSlam2D:
 
     def optimize_online(self) -> None:
         """Re-optimize the keyframe graph from the current estimate, dropping inconsistent loop closures."""
+        with self.stage_times.stage("online_optimization"):
+            self._optimize_online_untimed()
+
+    def _optimize_online_untimed(self) -> None:
         self._pending_loops = 0
         settings = self.config.loop_closure
         self._hypotheses = HypothesisPool(settings.small_correction_linear, settings.small_correction_angular)
@@ -425,5 +444,6 @@ class LaserSlam2D:
             loop_closures_accepted=int(sum(self._edges.is_loop)),
             loop_closures_rejected=self._rejected,
             scans_unmatched=self._unmatched,
+            stage_times=self.stage_times,
         )
 
