@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from frontends.slam2d.grid import LikelihoodGrid, max_pyramid
+from frontends.slam2d.grid import LikelihoodGrid
 
 FloatArray = NDArray[np.float64]
 
@@ -106,13 +106,40 @@ def _score(
 def _exhaustive(
     values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y: NDArray[np.int64], reach: int
 ) -> tuple[int, int, int, float]:
+    """The best (angle, tx, ty, score) of every translation within ±`reach` cells, as `_score` with span 1.
+
+    Point by point, each adding its (2·reach + 1)² patch of the grid to the totals of all translations:
+    rows read contiguously instead of one random cell per point and candidate. Each total sums the points
+    in the same order as `_score`, so the scores, and the first best in (angle, ty, tx) order, are equal.
+    """
+    height, width = values.shape
+    side = 2 * reach + 1
+    count = cells_x.shape[1]
+    totals = np.empty((side, side))
     best = (0, 0, 0, -1.0)
     for a in range(cells_x.shape[0]):
-        for ty in range(-reach, reach + 1):
-            for tx in range(-reach, reach + 1):
-                score = _score(values, cells_x[a], cells_y[a], tx, ty, 1)
+        totals[:] = 0.0
+        for i in range(count):
+            left = cells_x[a, i] - reach
+            bottom = cells_y[a, i] - reach
+            if left >= 0 and bottom >= 0 and left + side <= width and bottom + side <= height:
+                for j in range(side):
+                    for k in range(side):
+                        totals[j, k] += values[bottom + j, left + k]
+            else:
+                for j in range(side):
+                    cy = bottom + j
+                    if cy < 0 or cy >= height:
+                        continue
+                    for k in range(side):
+                        cx = left + k
+                        if 0 <= cx < width:
+                            totals[j, k] += values[cy, cx]
+        for j in range(side):
+            for k in range(side):
+                score = totals[j, k] / max(count, 1)
                 if score > best[3]:
-                    best = (a, tx, ty, score)
+                    best = (a, k - reach, j - reach, score)
     return best
 
 
@@ -239,7 +266,7 @@ def match_branch_and_bound(
         points, float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
     )
     reach = _reach(window, grid)
-    pyramid = tuple(max_pyramid(grid.values, levels))
+    pyramid = tuple(grid.pyramid(levels))
     exclude_x = exclude_y = 0
     exclude_radius = -1
     if exclude is not None:
