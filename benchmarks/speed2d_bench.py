@@ -214,7 +214,11 @@ def main() -> None:
     runs: list[LogRun] = []
     aces: dict[str, float] | None = None
     with threadpool_limits(limits=1, user_api="blas"):
-        replay_log(BUNDLED_SAMPLE, out_dir=args.out / "warmup")  # compile (or load) the numba kernels
+        # Compile (or load) the numba kernels: the sample has odometry, mumble's straight run has none
+        # (the matcher then runs branch and bound on the local map).
+        for warmup in (BUNDLED_SAMPLE, args.shared / LOGS["mumble straight"]):
+            if warmup.exists():
+                replay_log(warmup, out_dir=args.out / "warmup")
         for name, relative in chosen.items():
             path = args.shared / relative
             if not path.exists():

@@ -254,19 +254,37 @@ def match_branch_and_bound(
     min_score: float,
     levels: int = 4,
     exclude: tuple[FloatArray, float] | None = None,
+    crop_pyramid: bool = False,
 ) -> Match | None:
     """The best pose within a wide `window`, or None when no candidate scores above `min_score`.
 
     Equal to `match_exhaustive` on the same window (same optimum), in a fraction of the evaluations.
     `exclude` = (x, y, radius): translations within the radius of (x, y) are not candidates, which is how
-    a second, distinct solution is found (an ambiguity test).
+    a second, distinct solution is found (an ambiguity test). `crop_pyramid`: build the grid's pyramid
+    only where this search reads it (a grid searched once or twice), not over the whole grid (a grid
+    searched by many scans, which share its pyramid).
     """
     angles = _angles(float(center[2]), window)
     cells_x, cells_y = _base_cells(
         points, float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
     )
     reach = _reach(window, grid)
-    pyramid = tuple(grid.pyramid(levels))
+    height, width = grid.values.shape
+    # The search reads cells within `reach` of the points' cells, and the coarsest level reads 2^levels
+    # cells on from there; the pyramid of that window of the grid is the pyramid of the grid there (its
+    # edges are the grid's wherever the search reaches them), built in a fraction of the time when the
+    # grid is much larger (a submap with a margin of the whole search radius).
+    left, top, right, bottom = 0, 0, width, height
+    if crop_pyramid and cells_x.size:
+        left = max(int(cells_x.min()) - reach, 0)
+        top = max(int(cells_y.min()) - reach, 0)
+        right = min(int(cells_x.max()) + reach + (1 << levels), width)
+        bottom = min(int(cells_y.max()) + reach + (1 << levels), height)
+    if left >= right or top >= bottom:  # the search reads nothing: any window will do
+        left, top, right, bottom = 0, 0, width, height
+    pyramid = tuple(grid.pyramid(levels, (top, bottom, left, right)))
+    cells_x = cells_x - left
+    cells_y = cells_y - top
     exclude_x = exclude_y = 0
     exclude_radius = -1
     if exclude is not None:

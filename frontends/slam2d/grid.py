@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from frontends.errors import MapExtentError
 
 FloatArray = NDArray[np.float64]
+Window = tuple[int, int, int, int]
 
 MAX_LIKELIHOOD_CELLS = 40_000_000
 """A likelihood grid takes 8 bytes a cell (values, nearest): this bounds one at ~0.3 GB. Local maps and
@@ -38,16 +39,21 @@ class LikelihoodGrid:
     resolution: float
     values: NDArray[np.float32]
     nearest: NDArray[np.int32]
-    _pyramids: dict[int, list[NDArray[np.float32]]] = field(default_factory=dict, repr=False)
+    _pyramids: dict[tuple[int, Window], list[NDArray[np.float32]]] = field(default_factory=dict, repr=False)
 
-    def pyramid(self, levels: int) -> list[NDArray[np.float32]]:
-        """`max_pyramid(values, levels)`, built once per grid: every scan matched against a local map, and
+    def pyramid(self, levels: int, window: Window | None = None) -> list[NDArray[np.float32]]:
+        """`max_pyramid` of the values, or of the cells `window` = (row start, row stop, column start,
+        column stop) of them; built once per grid and window: every scan matched against a local map, and
         both searches of a loop-closure verification, share it (grids are not modified once built)."""
-        for built, pyramid in self._pyramids.items():
-            if built >= levels:
+        height, width = self.values.shape
+        window = window or (0, height, 0, width)
+        for (built, built_window), pyramid in self._pyramids.items():
+            if built >= levels and built_window == window:
                 return pyramid[: levels + 1]
-        pyramid = max_pyramid(self.values, levels)
-        self._pyramids[levels] = pyramid
+        top, bottom, left, right = window
+        values = self.values if window == (0, height, 0, width) else self.values[top:bottom, left:right]
+        pyramid = max_pyramid(np.ascontiguousarray(values), levels)
+        self._pyramids[(levels, window)] = pyramid
         return pyramid
 
     def cell_of(self, xy: FloatArray) -> NDArray[np.int64]:

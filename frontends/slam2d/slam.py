@@ -330,7 +330,8 @@ class LaserSlam2D:
         query = self._query_points(current)
         window = SearchWindow(radius, settings.angular_window, settings.angular_step)
         coarse = match_branch_and_bound(
-            query, submap.grid, here, window, settings.min_score, levels=BRANCH_AND_BOUND_LEVELS
+            query, submap.grid, here, window, settings.min_score, levels=BRANCH_AND_BOUND_LEVELS,
+            crop_pyramid=True,
         )
         if coarse is None:
             return None
@@ -342,6 +343,7 @@ class LaserSlam2D:
             settings.ambiguity_ratio * coarse.score,
             levels=BRANCH_AND_BOUND_LEVELS,
             exclude=(coarse.pose[:2], settings.ambiguity_distance),
+            crop_pyramid=True,
         )
         if rival is not None:
             return None
