@@ -5,17 +5,20 @@ nested stages once (checked on a fake clock, not timed)."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from frontends.logs.types import Scan2D, Transform
 from frontends.slam2d import stage_times
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.grid import build_likelihood_grid, max_pyramid
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, place
+from frontends.slam2d.log_input import OdometryTrack, scans_in_base_frame
 from frontends.slam2d.slam import LaserSlam2D
 from frontends.slam2d.stage_times import StageTimes
 from tests.laser_world import simulate_scan, square_loop
@@ -165,3 +168,59 @@ def test_the_frontend_reports_its_stages() -> None:
     result = slam.finish()
     assert set(result.stage_times.wall) >= {"matching", "keyframes"}
     assert all(seconds >= 0.0 for seconds in result.stage_times.cpu.values())
+
+
+def test_one_stamp_is_interpolated_exactly_as_in_a_batch() -> None:
+    rng = np.random.default_rng(3)
+    stamps = np.cumsum(rng.integers(1, 400_000_000, 300)).astype(np.int64)
+    stamps[150:] += 6_000_000_000  # a gap longer than the odometry may bridge
+    poses = np.cumsum(rng.normal(0.0, 0.3, (300, 3)), axis=0)
+    poses[:, 2] = (poses[:, 2] + np.pi) % (2.0 * np.pi) - np.pi  # headings crossing ±π
+    track = OdometryTrack(stamps, poses, "odom", "base_link")
+    queries = np.concatenate([stamps[::7], stamps[::5] + 12_345, [stamps[0] - 1, stamps[-1] + 1],
+                              stamps[149:152] + 1_000])
+    batch_poses, batch_intervals = track.interpolate(queries)
+    assert np.isnan(batch_poses).any() and np.isfinite(batch_poses).any()
+    for query, pose, interval in zip(queries, batch_poses, batch_intervals, strict=True):
+        one_pose, one_interval = track.interpolate(np.array([query]))
+        np.testing.assert_array_equal(one_pose[0], pose)
+        assert one_interval[0] == interval
+
+
+class ListLog:
+    path = Path("list.log")
+
+    def __init__(self, scans: list[Scan2D]) -> None:
+        self._scans = scans
+
+    def scans(self, topic: str) -> list[Scan2D]:
+        return self._scans
+
+
+class MountTree:
+    def __init__(self, mount: Transform) -> None:
+        self.mount = mount
+
+    def sensor_mount(self, base_frame: str, frame: str, stamp_ns: int) -> Transform:
+        return self.mount
+
+
+def test_scans_are_moved_into_the_base_frame_as_by_their_own_transform() -> None:
+    rng = np.random.default_rng(4)
+    half = 0.5 * math.radians(20.0)
+    mount = Transform("base_link", "laser", 0, 0, np.array([0.3, -0.1, 0.2]),
+                      np.array([0.0, 0.0, math.sin(half), math.cos(half)]), True)
+    scans = []
+    for k in range(5):
+        ranges = rng.uniform(0.5, 10.0, 40)
+        bearings = np.linspace(-1.5, 1.5, 40)
+        points = np.stack([ranges * np.cos(bearings), ranges * np.sin(bearings)], axis=1)
+        scans.append(Scan2D(k * 1000, k * 1000, "laser", points, ranges, bearings, 40))
+    log, tree = ListLog(scans), MountTree(mount)
+    moved = list(scans_in_base_frame(log, "/scan", tree, "base_link"))  # type: ignore[arg-type]
+    assert len(moved) == len(scans)
+    for scan, (result, has_mount) in zip(scans, moved, strict=True):
+        expected = scan.transformed(mount)
+        assert has_mount and result.frame_id == "base_link"
+        np.testing.assert_array_equal(result.points, expected.points)
+        np.testing.assert_array_equal(result.ranges, scan.ranges)
