@@ -182,13 +182,6 @@ def _branch_and_bound(
     (exclude_x, exclude_y) (a negative radius excludes nothing)."""
     top = len(levels) - 1
     span = 1 << top
-    # Stack of candidates (angle, tx, ty, level, score); the best-scoring child is pushed last so it is
-    # explored first, and a candidate no better than the best leaf found so far is pruned whole.
-    stack_a = []
-    stack_x = []
-    stack_y = []
-    stack_level = []
-    stack_score = []
     starts = np.arange(-reach, reach + 1, span)
     count = cells_x.shape[0] * starts.shape[0] * starts.shape[0]
     scores = np.empty(count)
@@ -205,21 +198,36 @@ def _branch_and_bound(
                 keys[k, 1] = tx
                 keys[k, 2] = ty
                 k += 1
+    # Stack of candidates (angle, tx, ty, level, score) in arrays: depth first, a path holds at most 3
+    # siblings a level above the top candidates. The best-scoring child is pushed last so it is explored
+    # first, and a candidate no better than the best leaf found so far is pruned whole.
+    capacity = count + 4 * (top + 1)
+    stack_a = np.empty(capacity, dtype=np.int64)
+    stack_x = np.empty(capacity, dtype=np.int64)
+    stack_y = np.empty(capacity, dtype=np.int64)
+    stack_level = np.empty(capacity, dtype=np.int64)
+    stack_score = np.empty(capacity)
+    size = 0
     for k in np.argsort(scores):
-        stack_a.append(keys[k, 0])
-        stack_x.append(keys[k, 1])
-        stack_y.append(keys[k, 2])
-        stack_level.append(top)
-        stack_score.append(scores[k])
+        if scores[k] <= min_score:  # would be pruned when popped
+            continue
+        stack_a[size] = keys[k, 0]
+        stack_x[size] = keys[k, 1]
+        stack_y[size] = keys[k, 2]
+        stack_level[size] = top
+        stack_score[size] = scores[k]
+        size += 1
     best = (0, 0, 0, min_score)
     found = False
     child_scores = np.empty(4)
-    while len(stack_a) > 0:
-        a = stack_a.pop()
-        tx = stack_x.pop()
-        ty = stack_y.pop()
-        level = stack_level.pop()
-        score = stack_score.pop()
+    order = np.empty(4, dtype=np.int64)
+    while size > 0:
+        size -= 1
+        a = stack_a[size]
+        tx = stack_x[size]
+        ty = stack_y[size]
+        level = stack_level[size]
+        score = stack_score[size]
         if score <= best[3]:
             continue
         if level == 0:
@@ -234,13 +242,22 @@ def _branch_and_bound(
                 child_scores[c] = -1.0
             else:
                 child_scores[c] = _score(levels[level - 1], cells_x[a], cells_y[a], cx, cy, half)
-        for c in np.argsort(child_scores):
+        # Ascending, ties in index order (what argsort gives on four values), by insertion.
+        for c in range(4):
+            j = c
+            while j > 0 and child_scores[order[j - 1]] > child_scores[c]:
+                order[j] = order[j - 1]
+                j -= 1
+            order[j] = c
+        for i in range(4):
+            c = order[i]
             if child_scores[c] > best[3]:
-                stack_a.append(a)
-                stack_x.append(tx + half * (c & 1))
-                stack_y.append(ty + half * (c >> 1))
-                stack_level.append(level - 1)
-                stack_score.append(child_scores[c])
+                stack_a[size] = a
+                stack_x[size] = tx + half * (c & 1)
+                stack_y[size] = ty + half * (c >> 1)
+                stack_level[size] = level - 1
+                stack_score[size] = child_scores[c]
+                size += 1
     if not found:
         return (0, 0, 0, -1.0)
     return best
