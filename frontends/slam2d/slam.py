@@ -307,7 +307,10 @@ class LaserSlam2D:
 
     def _path_lengths_to(self, keyframe: int) -> FloatArray:
         """Shortest path length (m) through the graph's constraints from `keyframe` to every keyframe."""
-        first, second, steps, _, _ = self._edges.arrays()
+        edges = self._edges  # only the columns needed: `arrays()` would stack every information matrix too
+        first = np.array(edges.first, dtype=np.int64)
+        second = np.array(edges.second, dtype=np.int64)
+        steps = np.array(edges.measurement, dtype=np.float64).reshape(-1, 3)
         return path_lengths(len(self._keyframe_poses), first, second, np.hypot(steps[:, 0], steps[:, 1]),
                             keyframe)
 
