@@ -45,7 +45,9 @@ def make_inputs(folder: Path, shared: Path, logs: int, graphs: int) -> Path:
         paths.append(folder / f"log{index:02d}_{SAMPLE_LOG.name}")
         shutil.copyfile(SAMPLE_LOG, paths[-1])
     sources = [shared / "data" / "posegraphs" / "2d" / name for name in SHARED_GRAPHS]
-    sources = [path for path in sources if path.exists()] or [REPO / "pipeline" / "samples" / "M3500.g2o"]
+    sources = [path for path in sources if path.exists()]
+    if graphs and not sources:
+        raise SystemExit(f"batch_bench: the graphs need ../shared/data/posegraphs/2d ({shared} has none)")
     for index in range(graphs):
         source = sources[index % len(sources)]
         paths.append(folder / f"graph{index:02d}_{source.name}")

@@ -53,7 +53,7 @@ def reading_seconds(path: Path) -> float:
 
 
 def draw_map(result: LogReplayResult, title: str, path: Path) -> None:
-    frontend = result.frontend
+    frontend = result.frontend.result
     figure, axes = plt.subplots(figsize=(9, 9))
     for scan, pose in zip(frontend.keyframe_scans, result.keyframe_poses, strict=True):
         c, s = np.cos(pose[2]), np.sin(pose[2])
@@ -90,7 +90,7 @@ def main() -> None:
             frontend = result.wall_time["frontend"]
             rows.append((name, scans, scans / read, scans / max(frontend - read, 1e-9), scans / frontend,
                          result.wall_time["optimize_and_record"], total, scans / total,
-                         result.frontend.loop_closures_accepted, result.frontend.loop_closures_rejected))
+                         result.loop_closures["accepted"], result.loop_closures["rejected"]))
             draw_map(result, name, args.out / f"map_{name.split()[0].lower()}.png")
             if name == "ACES":
                 aces_scores = evaluate_files(result.outputs.tum, args.shared / ACES_RELATIONS)

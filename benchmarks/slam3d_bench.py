@@ -3,7 +3,7 @@
     python benchmarks/slam3d_bench.py [--shared ../shared] [--out benchmarks/results] [--frames 163]
 
 1. `../shared/data/logs/kitti/kitti_city.mcap` (154 real KITTI frames, read in place — never copied):
-   `replay_cloud` (what `replay LOG` runs for point clouds) against KISS-ICP's own odometry run frame by
+   `replay_log` (what `replay LOG` runs, here on point clouds) against KISS-ICP's own odometry run frame by
    frame with its default configuration (`kiss_icp.config.load_config(None)`) on the same decoded
    frames. Figures: the final position difference as a percentage of the path length (target ≤ 1 %),
    and frames per second of each.
@@ -35,7 +35,7 @@ from kiss_icp.kiss_icp import KissICP  # noqa: E402
 
 from frontends.logs import open_log  # noqa: E402
 from frontends.slam3d import se3  # noqa: E402
-from pipeline.replay_cloud import CloudReplayResult, replay_cloud  # noqa: E402
+from pipeline.replay_log import LogReplayResult, replay_log  # noqa: E402
 from tests.lidar_world import Lidar, drive, planar_to_matrix, town_loop, write_cloud_log  # noqa: E402
 
 KITTI = "data/logs/kitti/kitti_city.mcap"
@@ -77,7 +77,7 @@ def kitti_section(shared: Path) -> dict[str, float]:
     reference, kiss_seconds = kiss_icp_alone(frames, times)
     with tempfile.TemporaryDirectory() as folder:
         started = time.perf_counter()
-        result = replay_cloud(path, out_dir=Path(folder))
+        result = replay_log(path, out_dir=Path(folder))
         replay_seconds = time.perf_counter() - started
     ours = result.poses
     length = path_length(reference)
@@ -91,8 +91,8 @@ def kitti_section(shared: Path) -> dict[str, float]:
         "final_difference_percent": 100.0 * float(differences[-1]) / length,
         "max_difference_m": float(differences.max()),
         "final_rotation_difference_deg": float(np.degrees(heading)),
-        "loop_closures": result.frontend.loop_closures_accepted,
-        "keyframes": result.frontend.num_keyframes,
+        "loop_closures": result.loop_closures["accepted"],
+        "keyframes": len(result.keyframe_poses),
         "kiss_icp_fps": len(frames) / kiss_seconds,
         "replay_fps": len(frames) / replay_seconds,
         "frontend_fps": len(frames) / result.wall_time["frontend"],
@@ -107,15 +107,15 @@ def synthetic_section(frames: int) -> dict[str, float]:
         clouds, times = read_frames(log)
         _, kiss_seconds = kiss_icp_alone(clouds, times)
         started = time.perf_counter()
-        result = replay_cloud(log, out_dir=Path(folder) / "out")
+        result = replay_log(log, out_dir=Path(folder) / "out")
         replay_seconds = time.perf_counter() - started
     errors = _errors_against_truth(result, loop.base_poses)
     return {
         "frames": frames,
         "points_per_frame": float(np.mean([len(c) for c in loop.clouds])),
         "path_length_m": float(loop.distances[-1] - loop.distances[0]),
-        "loop_closures": result.frontend.loop_closures_accepted,
-        "keyframes": result.frontend.num_keyframes,
+        "loop_closures": result.loop_closures["accepted"],
+        "keyframes": len(result.keyframe_poses),
         "final_error_m": float(errors[-1]),
         "max_error_m": float(errors.max()),
         "kiss_icp_fps": frames / kiss_seconds,
@@ -125,7 +125,7 @@ def synthetic_section(frames: int) -> dict[str, float]:
     }
 
 
-def _errors_against_truth(result: CloudReplayResult, truth: np.ndarray) -> np.ndarray:
+def _errors_against_truth(result: LogReplayResult, truth: np.ndarray) -> np.ndarray:
     estimated = se3.relative(result.poses[0], result.poses)[:, :2, 3]
     expected = se3.relative(planar_to_matrix(truth[0]), planar_to_matrix(truth))[:, :2, 3]
     return np.linalg.norm(estimated - expected, axis=1)

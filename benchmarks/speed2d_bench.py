@@ -37,6 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from frontends.logs import LogReader  # noqa: E402
+from frontends.slam2d import frontend as laser_frontend  # noqa: E402
 from frontends.slam2d.stage_times import StageTimes  # noqa: E402
 from pipeline import recording  # noqa: E402
 from pipeline import replay_log as replay_module  # noqa: E402
@@ -114,16 +115,17 @@ class _Timed:
 
 
 REPLAY_STAGES: tuple[tuple[Any, tuple[str, ...], str], ...] = (
-    (replay_module, ("open_log", "read_odometry", "scans_in_base_frame"), "reading"),
+    (replay_module, ("open_log",), "reading"),
+    (laser_frontend, ("read_odometry", "scans_in_base_frame"), "reading"),
     (LogReader, ("transform_tree", "sensor_topic", "odometry_topic"), "reading"),
     (replay_module, ("optimize_keyframes",), "final_optimization"),
     (recording, ("create_recording", "close_recording", "log_final_map", "log_styles",
-                 "log_initial_trajectory"), "recording"),
+                 "log_initial_trajectory", "log_run_properties"), "recording"),
     (recording.IterationRecorder, ("add", "flush"), "recording"),
-    (scan_recording, ("log_scan_styles", "log_loop_closures_found", "log_odometry_trajectory",
-                      "log_final_trajectory", "log_occupancy"), "recording"),
-    (scan_recording.ScanRecorder, ("add", "flush"), "recording"),
-    (replay_module, ("occupancy_grid", "write_tum", "write_g2o", "write_png", "write_text"), "outputs"),
+    (scan_recording.ScanReplayRecording, ("measurement", "frontend_done", "final"), "recording"),
+    (laser_frontend, ("occupancy_grid",), "outputs"),
+    (replay_module, ("write_tum", "write_g2o", "write_text", "write_png", "map_server_pgm",
+                     "map_server_yaml", "picture_with_scale_bar"), "outputs"),
 )
 """What the replay calls for each of its own stages (names the replay module does not have are skipped)."""
 
@@ -148,7 +150,7 @@ def run_log(name: str, path: Path, out: Path) -> tuple[LogRun, LogReplayResult]:
     wall_started, cpu_started = time.perf_counter(), time.process_time()
     result, replay_times = timed_replay(path, out)
     wall, cpu = time.perf_counter() - wall_started, time.process_time() - cpu_started
-    frontend_times = result.frontend.stage_times
+    frontend_times = result.frontend.result.stage_times
     stages_cpu: dict[str, float] = {}
     stages_wall: dict[str, float] = {}
     for stage in STAGES[:-1]:
@@ -164,9 +166,9 @@ def run_log(name: str, path: Path, out: Path) -> tuple[LogRun, LogReplayResult]:
         duration_s=float(stamps[-1] - stamps[0]) * 1e-9,
         wall_s=wall,
         cpu_s=cpu,
-        keyframes=result.frontend.graph.num_poses,
-        loops_accepted=result.frontend.loop_closures_accepted,
-        loops_rejected=result.frontend.loop_closures_rejected,
+        keyframes=int(result.counts["keyframes"]),
+        loops_accepted=int(result.loop_closures["accepted"]),
+        loops_rejected=int(result.loop_closures["rejected"]),
         stages_cpu_s=stages_cpu,
         stages_wall_s=stages_wall,
     )

@@ -3,8 +3,9 @@
     python benchmarks/strong_sgd_bench.py [--quick] [--skip-scale]
 
 Prints markdown tables: χ² after 10/30/100 iterations of both SGDs on every graph of
-../shared/data/posegraphs/2d and on generated grid worlds (from the file's / generated estimate; "s=2"
-is sgd-tree with half the learning rate); for
+../shared/data/posegraphs/2d and on generated grid worlds (from the file's / generated estimate;
+"sgd-tree" is the default, `tree="auto"`, with the tree it chose; "breadth-first" is what sgd-tree was
+before TORO's incremental tree was added; "incremental" is TORO's tree forced); for
 M3500-shaped worlds with heavy heading noise, the χ² that Levenberg–Marquardt (`optimizer.polish`) reaches
 after each SGD next to the one it reaches from the ground truth; and the time per iteration of both
 SGDs on M3500 and a 10⁵-pose grid world (numba compilation excluded). `--quick` drops the 10 000-pose
@@ -27,28 +28,41 @@ if str(REPO) not in sys.path:  # runnable from a checkout without installing the
     sys.path.insert(0, str(REPO))
 
 from optimizer.cost import chi2  # noqa: E402
+from optimizer.errors import OptimizerError  # noqa: E402
 from optimizer.graph import PoseGraph  # noqa: E402
 from optimizer.graph_files import read_graph  # noqa: E402
 from optimizer.gridworld import generate_grid_world  # noqa: E402
 from optimizer.iteration import Iteration  # noqa: E402
 from optimizer.polish import gauss_newton  # noqa: E402
 from optimizer.sgd import sgd  # noqa: E402
-from optimizer.sgd_tree import sgd_tree  # noqa: E402
+from optimizer.sgd_tree import sgd_tree, spanning_tree  # noqa: E402
 
 POSEGRAPHS = REPO.parent / "shared" / "data" / "posegraphs" / "2d"
 CHECKPOINTS = (10, 30, 100)
 TIMED = ("paper SGD", "sgd-tree")
 HEADING_SIGMAS = (0.1, 0.2, 0.3)
 TORO_M3500_AFTER_100 = 248.8
+EQUAL_LOOP_SIGMA = (0.02, 0.02, 0.01)
+"""The generator's odometry noise: loop closures then weigh like odometry, as in M3500 and city10000."""
 FloatArray = NDArray[np.float64]
 Optimizer = Callable[[PoseGraph, int], Iterator[Iteration]]
 OPTIMIZERS: dict[str, Optimizer] = {"paper SGD": lambda g, n: sgd(g, n),
                                     "sgd-tree": lambda g, n: sgd_tree(g, n),
-                                    "sgd-tree s=2": lambda g, n: sgd_tree(g, n, learning_rate_scale=2.0)}
+                                    "breadth-first": lambda g, n: sgd_tree(g, n, tree="breadth-first"),
+                                    "incremental": lambda g, n: _incremental_or_nothing(g, n)}
+
+
+def _incremental_or_nothing(graph: PoseGraph, iterations: int) -> Iterator[Iteration]:
+    """TORO's tree forced; nothing where it does not exist (a pose without a lower-numbered neighbour)."""
+    try:
+        spanning_tree(graph, "incremental")
+    except OptimizerError:
+        return iter(())
+    return sgd_tree(graph, iterations, tree="incremental")
 
 
 def _checkpoints(optimizer: Optimizer, graph: PoseGraph) -> tuple[dict[int, float], FloatArray]:
-    values: dict[int, float] = {}
+    values: dict[int, float] = dict.fromkeys(CHECKPOINTS, float("nan"))
     poses = graph.poses
     for step in optimizer(graph, max(CHECKPOINTS)):
         if step.index in CHECKPOINTS:
@@ -69,23 +83,27 @@ def _graphs(quick: bool) -> list[tuple[str, PoseGraph]]:
     graphs = [(path.name, read_graph(path, repair_information=True).graph)
               for path in sorted(POSEGRAPHS.glob("*")) if path.suffix in (".g2o", ".graph", ".txt")]
     graphs.append(("grid world 3500 (seed 0)", generate_grid_world(3500, seed=0).graph))
+    graphs.append(("grid world 3500 (seed 0), loops as certain as odometry",
+                   generate_grid_world(3500, seed=0, loop_sigma=EQUAL_LOOP_SIGMA).graph))
     if not quick:
         graphs.append(("grid world 10000 (seed 0)", generate_grid_world(10000, seed=0).graph))
+        graphs.append(("grid world 10000 (seed 0), loops as certain as odometry",
+                       generate_grid_world(10000, seed=0, loop_sigma=EQUAL_LOOP_SIGMA).graph))
     return graphs
 
 
 def chi2_table(quick: bool) -> None:
     print("## χ² after 10 / 30 / 100 iterations from the file's estimate\n")
-    print("| graph | N | M | initial χ² | " + " | ".join(
+    print("| graph | N | M | initial χ² | sgd-tree's tree | " + " | ".join(
         f"{name} {k}" for name in OPTIMIZERS for k in CHECKPOINTS) + " |")
-    print("|---|---:|---:|---:|" + "---:|" * (len(OPTIMIZERS) * len(CHECKPOINTS)))
+    print("|---|---:|---:|---:|---|" + "---:|" * (len(OPTIMIZERS) * len(CHECKPOINTS)))
     for label, graph in _graphs(quick):
         cells = []
         for optimizer in OPTIMIZERS.values():
             values, _ = _checkpoints(optimizer, graph)
             cells += [f"{values[k]:.6g}" for k in CHECKPOINTS]
         print(f"| {label} | {graph.num_poses} | {graph.num_edges} | {chi2(graph):.4g} | "
-              + " | ".join(cells) + " |", flush=True)
+              f"{spanning_tree(graph).kind} | " + " | ".join(cells) + " |", flush=True)
     print(f"\nTORO (Grisetti et al. 2007) reports {TORO_M3500_AFTER_100} on M3500 after 100 iterations.\n")
 
 

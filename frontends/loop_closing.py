@@ -4,12 +4,15 @@
   removal for the loop closures an optimization finds inconsistent.
 - `HypothesisPool`: a loop closure that would move the map by more than a small correction is only a
   hypothesis until another one agrees with it (a false match seldom finds an agreeing second one).
+- `optimize_and_prune`: re-optimize the keyframe graph and remove the loop closures whose error stays large
+  at the optimum (inconsistent with the rest), one at a time, worst first.
 - `path_lengths`: the length of the shortest path between keyframes through the constraints, which the
   loop-closure search radius grows with (drift accumulates along the path that links two places).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -19,6 +22,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from optimizer import se2
+from optimizer.cost import edge_chi2
+from optimizer.graph import PoseGraph
+from optimizer.polish import gauss_newton
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -77,6 +83,8 @@ class HypothesisPool:
     small_linear: float
     small_angular: float
     pending: list[Hypothesis] = field(default_factory=list)
+    dropped: int = 0
+    """Hypotheses forgotten unconfirmed so far (expired, or void after the map moved)."""
 
     def confirm(self, hypothesis: Hypothesis) -> list[Hypothesis]:
         """The loop closures `hypothesis` makes acceptable: itself when it barely moves the map; otherwise
@@ -101,12 +109,14 @@ class HypothesisPool:
         kept = [h for h in self.pending if current - h.current <= max_age]
         dropped = len(self.pending) - len(kept)
         self.pending = kept
+        self.dropped += dropped
         return dropped
 
     def clear(self) -> int:
         """Forget every pending hypothesis (their corrections are void once the map moved); how many."""
         dropped = len(self.pending)
         self.pending = []
+        self.dropped += dropped
         return dropped
 
 
@@ -117,3 +127,29 @@ def path_lengths(
     weights = np.maximum(lengths, 1e-6)  # a zero weight would mean "no edge" to the sparse graph
     adjacency = coo_matrix((weights, (first, second)), shape=(count, count)).tocsr()
     return dijkstra(adjacency, directed=False, indices=source)
+
+
+def optimize_and_prune(
+    edges: Constraints,
+    graph_at: Callable[[FloatArray], PoseGraph],
+    poses: FloatArray,
+    chi2_threshold: float,
+    iterations: int,
+) -> tuple[FloatArray, int]:
+    """Gauss–Newton from `poses` on `graph_at(poses)` (the SE(2) graph of `edges`); while the worst loop
+    closure's χ² at the optimum exceeds `chi2_threshold`, remove it from `edges` and optimize again.
+    Returns the optimized poses and how many loop closures were removed."""
+    removed = 0
+    while True:
+        graph = graph_at(poses)
+        for step in gauss_newton(graph, poses, max_iterations=iterations):
+            poses = step.poses
+        loops = np.flatnonzero(edges.is_loop)
+        if len(loops) == 0:
+            return poses, removed
+        errors = edge_chi2(graph, poses)[loops]
+        worst = int(np.argmax(errors))
+        if errors[worst] <= chi2_threshold:
+            return poses, removed
+        edges.remove(int(loops[worst]))
+        removed += 1

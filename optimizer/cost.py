@@ -51,7 +51,7 @@ def _chi2_kernel(poses: FloatArray, edge_from: NDArray[np.int64], edge_to: NDArr
         ex, ey = px - z[0], py - z[1]
         e[0] = cz * ex + sz * ey
         e[1] = -sz * ex + cz * ey
-        e[2] = (pt - z[2] + math.pi) % (2.0 * math.pi) - math.pi
+        e[2] = se2.wrap_angle(pt - z[2])
         info = information[k]
         for i in range(3):
             for j in range(3):

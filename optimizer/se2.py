@@ -6,15 +6,20 @@ seen from a, which is what a constraint measures.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import vectorize
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
 
-def wrap_angle(theta: FloatArray | float) -> FloatArray:
-    """Wrap angles to [-π, π)."""
-    return (np.asarray(theta) + np.pi) % (2.0 * np.pi) - np.pi
+@vectorize(["float64(float64)"], cache=True)
+def wrap_angle(theta: float) -> float:  # pragma: no cover  (compiled)
+    """Wrap angles to [-π, π): the project's one definition. A numpy ufunc (scalars and arrays of any
+    shape), callable from compiled kernels too."""
+    return (theta + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def compose(a: FloatArray, b: FloatArray) -> FloatArray:

@@ -3,21 +3,35 @@
 Grisetti, Stachniss, Grzonka & Burgard (RSS 2007) replace Olson's incremental state (the odometry
 chain: a loop closure from pose 10 to pose 3000 moves 2990 increments) by differences along a spanning
 tree of the constraint graph: a constraint then moves only the parameters on the tree path between its
-poses, which a breadth-first tree keeps short. The rest is the paper's SGD: residuals and W = R Ω Rᵀ in
-the global frame, Jacobi preconditioner M (summed over paths, recomputed at iterations 1, 2, 4, 8, …),
-steps clamped to the residual, learning rate 1/(γ t). One choice differs from TORO's default, measured
-(see benchmarks/strong_sgd_bench.py): constraints are visited by path length, shortest first (TORO's
-alternative order), so each loop is closed over local structure that is already consistent; by the depth
-of the path's top node (TORO's default) ends up to 10× higher on grid worlds with heavy heading noise.
-A smaller learning rate (`learning_rate_scale` = 2) lowers χ² at iteration 100 on the large graphs
-(M3500 300 instead of 309) but slows small loops to a polynomial crawl (pg1.g2o: 3.9 instead of 7e-7),
-so the paper's rate stays the default.
+poses. The rest is the paper's SGD: residuals and W = R Ω Rᵀ in the global frame, Jacobi preconditioner
+M (summed over paths, recomputed at iterations 1, 2, 4, 8, …), steps clamped to the residual, learning
+rate 1/(γ t).
+
+Two trees, each with the constraint order and schedule measured best for it (benchmarks/strong_sgd_bench.py):
+- "incremental", TORO's default tree (`buildSimpleTree`): the parent of pose v is the lowest-numbered pose
+  it shares a constraint with, so a pose that revisits a place hangs from the first visit. Constraints are
+  visited by the depth of their path's top node, shallowest first, and the learning rate's counter starts
+  at 2, all as TORO does (its `propagateErrors` increments the counter before the first pass). On M3500 this
+  is TORO's 248.8 after 100 iterations (the breadth-first tree: 309). Unlike TORO, poses are summed
+  exactly from the root at every visit (TORO reads the top's cached pose, which may be stale), and M is
+  recomputed on the paper's schedule rather than every iteration (no difference on M3500).
+- "breadth-first": shortest paths to pose 0 in constraint hops; constraints visited by path length,
+  shortest first, so each loop is closed over local structure that is already consistent. Far better
+  than the incremental tree on FR079 (136 against 485 after 100 iterations), INTEL (1.1e3 against 1.3e5)
+  and generated worlds whose loop closures are less certain than their odometry (1.7e4 against 1.0e5).
+- "auto" (default) takes the incremental tree only where its paths are shorter in total (TORO's
+  "complexity of an iteration", the parameters one pass moves) and, in every dimension, carry less
+  variance relative to their constraints' own (`path_variance`): the incremental tree hangs revisits from
+  loop closures, which hurts where those are less certain than odometry. Breadth-first otherwise, and on
+  ties. Neither rule alone separates the graphs measured (path length alone picks the incremental tree
+  on generated worlds, path variance alone on INTEL).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,6 +47,7 @@ from optimizer.sgd import recomputes_stiffness
 from optimizer.sgd_tree_kernels import (
     lowest_common_ancestors,
     parameters_from_poses,
+    path_variance_ratios,
     poses_from_parameters,
     tree_depths,
     tree_sgd_iteration,
@@ -41,18 +56,24 @@ from optimizer.sgd_tree_kernels import (
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+TreeKind = Literal["auto", "breadth-first", "incremental"]
+TREE_KINDS: tuple[str, ...] = ("auto", "breadth-first", "incremental")
 
 STAGE = "sgd-tree"
 DEFAULT_LEARNING_RATE_SCALE = 1.0
+_COUNTER_OFFSET = {"breadth-first": 0, "incremental": 1}
+"""Added to the iteration number in the learning rate 1/(γ t): TORO's counter starts at 2."""
 
 
 @dataclass(frozen=True, eq=False)
 class SpanningTree:
-    """A breadth-first spanning tree of a pose graph's constraints and each constraint's path in it."""
+    """A spanning tree of a pose graph's constraints and each constraint's path in it."""
 
+    kind: str
+    """"breadth-first" or "incremental" (see the module's docstring)."""
     root: int
     order: IntArray
-    """(N,) the poses in breadth-first order (every parent before its children)."""
+    """(N,) the poses with every parent before its children."""
     parent: IntArray
     """(N,) parent of every pose; the root's is itself."""
     depth: IntArray
@@ -62,8 +83,25 @@ class SpanningTree:
     path_length: IntArray
     """(M,) number of parameters each constraint moves: depth(a) + depth(b) − 2·depth(top)."""
 
+    @property
+    def total_path_length(self) -> int:
+        """Parameters moved by one pass over all constraints."""
+        return int(self.path_length.sum())
 
-def spanning_tree(graph: PoseGraph, root: int = 0) -> SpanningTree:
+    def visit_order(self) -> IntArray:
+        """Constraint indices in the order one iteration visits them (stable: ties keep the stored order)."""
+        key = self.depth[self.top] if self.kind == "incremental" else self.path_length
+        return np.argsort(key, kind="stable").astype(np.int64)
+
+
+def _with_paths(kind: str, graph: PoseGraph, root: int, order: IntArray, parent: IntArray) -> SpanningTree:
+    depth = tree_depths(order, parent)
+    top = lowest_common_ancestors(graph.edge_from, graph.edge_to, parent, depth)
+    path_length = depth[graph.edge_from] + depth[graph.edge_to] - 2 * depth[top]
+    return SpanningTree(kind, root, order, parent, depth, top, path_length)
+
+
+def breadth_first_tree(graph: PoseGraph, root: int = 0) -> SpanningTree:
     """Breadth-first tree from `root` over the undirected constraint graph: every path to the root is a
     shortest one in constraint hops, which keeps every constraint's path short."""
     n = graph.num_poses
@@ -74,11 +112,47 @@ def spanning_tree(graph: PoseGraph, root: int = 0) -> SpanningTree:
         raise OptimizerError(f"the graph is not connected: {n - len(order)} poses unreachable from {root}")
     parent = predecessors.astype(np.int64)
     parent[root] = root
-    order = order.astype(np.int64)
-    depth = tree_depths(order, parent)
-    top = lowest_common_ancestors(graph.edge_from, graph.edge_to, parent, depth)
-    path_length = depth[graph.edge_from] + depth[graph.edge_to] - 2 * depth[top]
-    return SpanningTree(root, order, parent, depth, top, path_length)
+    return _with_paths("breadth-first", graph, root, order.astype(np.int64), parent)
+
+
+def incremental_tree(graph: PoseGraph) -> SpanningTree | None:
+    """TORO's tree: each pose's parent is the lowest-numbered pose it shares a constraint with, if lower
+    than itself. None when a pose other than 0 has no lower neighbour (the tree would be a forest)."""
+    n = graph.num_poses
+    parent = np.full(n, n, dtype=np.int64)
+    np.minimum.at(parent, graph.edge_high, graph.edge_low)
+    if np.count_nonzero(parent == n) != 1:
+        return None
+    parent[0] = 0
+    # Parents are lower-numbered, so the pose order itself has every parent before its children.
+    return _with_paths("incremental", graph, 0, np.arange(n, dtype=np.int64), parent)
+
+
+def spanning_tree(graph: PoseGraph, kind: TreeKind = "auto") -> SpanningTree:
+    """The tree of `kind`. "auto": the incremental tree if its paths are both shorter in total and, in
+    every dimension, less uncertain relative to their constraints (`path_variance`); else breadth-first."""
+    if kind not in TREE_KINDS:
+        raise OptimizerError(f"unknown tree {kind!r}; expected one of {', '.join(TREE_KINDS)}")
+    if kind == "breadth-first":
+        return breadth_first_tree(graph)
+    incremental = incremental_tree(graph)
+    if kind == "incremental":
+        if incremental is None:
+            raise OptimizerError("no incremental tree: some pose has no constraint to a lower-numbered one")
+        return incremental
+    breadth_first = breadth_first_tree(graph)
+    if (incremental is not None and incremental.total_path_length < breadth_first.total_path_length
+            and np.all(path_variance(graph, incremental) < path_variance(graph, breadth_first))):
+        return incremental
+    return breadth_first
+
+
+def path_variance(graph: PoseGraph, tree: SpanningTree) -> FloatArray:
+    """(3,) per dimension, Σ over constraints of their path's variance over their own (see
+    `optimizer.sgd_tree_kernels.path_variance_ratios`)."""
+    out = np.empty(3)
+    path_variance_ratios(tree.parent, graph.edge_from, graph.edge_to, tree.top, graph.information, out)
+    return out
 
 
 def sgd_tree(
@@ -88,12 +162,14 @@ def sgd_tree(
     *,
     first_iteration: int = 1,
     learning_rate_scale: float = DEFAULT_LEARNING_RATE_SCALE,
+    tree: TreeKind = "auto",
 ) -> Iterator[Iteration]:
     """Run `iterations` tree-parameterised SGD iterations from `poses` (default: the graph's estimate).
 
     Yields Iteration("sgd-tree", k, poses, χ²) after every iteration k ≥ 1; pose 0 stays fixed.
     `first_iteration` > 1 continues a schedule (a smaller learning rate), as in `optimizer.sgd.sgd`;
-    `learning_rate_scale` s sets the learning rate 1/(s γ t) (s = 1 is the paper's).
+    `learning_rate_scale` s sets the learning rate 1/(s γ t) (s = 1 is the paper's); `tree` chooses the
+    spanning tree (see the module's docstring).
     """
     if iterations < 0:
         raise OptimizerError(f"iterations must be >= 0, got {iterations}")
@@ -106,25 +182,26 @@ def sgd_tree(
         raise OptimizerError(f"expected poses of shape {graph.poses.shape}, got {state.shape}")
     if not np.all(np.isfinite(state)):
         raise OptimizerError("the starting poses contain non-finite values")
+    spanning = spanning_tree(graph, tree)
     if iterations == 0:
         return
-    tree = spanning_tree(graph)
-    visit_order = np.argsort(tree.path_length, kind="stable").astype(np.int64)
+    visit_order = spanning.visit_order()
+    counter_offset = _COUNTER_OFFSET[spanning.kind]
     params = np.empty_like(state)
-    parameters_from_poses(state, tree.parent, tree.root, params)
-    poses_from_parameters(params, tree.parent, tree.order, state)
+    parameters_from_poses(state, spanning.parent, spanning.root, params)
+    poses_from_parameters(params, spanning.parent, spanning.order, state)
     stiffness = np.empty_like(state)
     gamma = np.empty(3)
 
     for offset in range(iterations):
         t = first_iteration + offset
         if offset == 0 or recomputes_stiffness(t):
-            tree_stiffness(state, graph.edge_from, graph.edge_to, tree.top, graph.information, tree.parent,
-                           stiffness, gamma)
-        tree_sgd_iteration(params, graph.edge_from, graph.edge_to, tree.top, visit_order, graph.measurements,
-                           graph.information, tree.parent, tree.root, stiffness, gamma,
-                           learning_rate_scale, t)
-        poses_from_parameters(params, tree.parent, tree.order, state)
+            tree_stiffness(state, graph.edge_from, graph.edge_to, spanning.top, graph.information,
+                           spanning.parent, stiffness, gamma)
+        tree_sgd_iteration(params, graph.edge_from, graph.edge_to, spanning.top, visit_order,
+                           graph.measurements, graph.information, spanning.parent, spanning.root, stiffness,
+                           gamma, learning_rate_scale, t + counter_offset)
+        poses_from_parameters(params, spanning.parent, spanning.order, state)
         if not np.all(np.isfinite(state)):
             raise OptimizerError(f"tree SGD diverged at iteration {t} (non-finite poses)")
         poses_out = state.copy()

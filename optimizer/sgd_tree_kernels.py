@@ -156,3 +156,35 @@ def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.nd
                 for j in range(3):
                     params[node, j] += sign * beta[j] / stiffness[node, j]
                 node = parent[node]
+
+
+
+@njit(cache=True)
+def path_variance_ratios(parent: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, top: np.ndarray,
+                         information: np.ndarray, out: np.ndarray) -> None:
+    """out_j = Σ over constraints k of (Σ over the tree edges e on k's path of 1/Ω_e,jj) · Ω_k,jj.
+
+    How uncertain, per dimension, the path a constraint's residual is spread over is compared with the
+    constraint itself. A tree edge's variance is that of the most certain constraint joining the pose to
+    its parent, with 1/Ω_jj standing in for the variance. Paths are walked (O(total path length), as one
+    SGD pass): differences of sums from the root would cancel where variances span many magnitudes.
+    """
+    n = parent.shape[0]
+    variance = np.full((n, 3), np.inf)
+    for k in range(edge_from.shape[0]):
+        a = edge_from[k]
+        b = edge_to[k]
+        child = b if parent[b] == a else (a if parent[a] == b else -1)
+        if child >= 0 and child != parent[child]:
+            for j in range(3):
+                if information[k, j, j] > 0.0:  # a direction without information adds no certainty
+                    variance[child, j] = min(variance[child, j], 1.0 / information[k, j, j])
+    out[:] = 0.0
+    for k in range(edge_from.shape[0]):
+        for side in range(2):
+            node = edge_from[k] if side == 0 else edge_to[k]
+            while node != top[k]:
+                for j in range(3):
+                    if information[k, j, j] > 0.0:
+                        out[j] += variance[node, j] * information[k, j, j]
+                node = parent[node]

@@ -25,12 +25,12 @@ from frontends.errors import FrontendError
 from optimizer.errors import OptimizerError
 from pipeline.config import ReplayConfig, load_config
 from pipeline.errors import PipelineError
+from pipeline.outputs import output_stem as output_stem  # the batch modules name outputs by it
 
 if TYPE_CHECKING:
-    from frontends.slam2d import ScanEstimate
+    from frontends.protocol import Estimate
     from optimizer.graph import PoseGraph
     from optimizer.iteration import Iteration
-    from pipeline.replay_cloud import CloudReplayResult
     from pipeline.replay_graph import GraphReplayResult
     from pipeline.replay_log import LogReplayResult
 
@@ -80,12 +80,6 @@ def input_kind(path: str | Path) -> InputKind:
     return "graph" if is_graph_file(Path(path)) else "log"
 
 
-def output_stem(path: str | Path) -> str:
-    """The name a replay of `path` gives its outputs (`<stem>.rrd`, …): the file's stem, a folder's name."""
-    path = Path(path)
-    return path.stem if path.is_file() or input_kind(path) == "graph" else path.name
-
-
 @dataclass(frozen=True)
 class ReplayStats:
     """The numbers of a replay (all of them, and more, are in `ReplayResult.summary`)."""
@@ -126,14 +120,15 @@ class ReplayResult:
     """Sensor stamp of each scan of a log; None for a pose-graph file."""
     stats: ReplayStats
     outputs: Mapping[str, Path]
-    """The files written, by kind: "g2o", "json", "rrd", and for a log also "tum" and "map_png"."""
+    """The files written, by kind: "g2o", "json", "rrd", and for a log also "tum" and "map_png" (scans)
+    or "ply" (clouds)."""
     summary: Mapping[str, Any]
     """The machine-readable summary, as written to `<stem>.json`."""
-    detail: LogReplayResult | GraphReplayResult | CloudReplayResult
+    detail: LogReplayResult | GraphReplayResult
     """The replay's own result, with everything else it knows."""
 
 
-ScanCallback = Callable[["ScanEstimate"], None]
+ScanCallback = Callable[["Estimate"], None]
 IterationCallback = Callable[["Iteration"], None]
 
 
@@ -145,12 +140,14 @@ def replay(
     on_scan: ScanCallback | None = None,
     on_iteration: IterationCallback | None = None,
 ) -> ReplayResult:
-    """Replay a log (2D laser SLAM, then the optimizer) or optimize a pose-graph file, recording every
-    iteration, and write `<stem>.{tum,g2o,json,rrd}` to `out_dir`.
+    """Replay a log (2D laser or 3D LiDAR SLAM, then the optimizer) or optimize a pose-graph file,
+    recording every iteration, and write `<stem>.{g2o,json,rrd}` to `out_dir` (for a log also `.tum` and
+    the map, `_map.png` or `.ply`).
 
     `config` is a `ReplayConfig`, the path of a TOML configuration file, or None for the defaults.
-    `on_scan` is called with every scan's `ScanEstimate` as the frontend processes it (logs only);
-    `on_iteration` with every optimizer `Iteration`, the initial estimate first.
+    `on_scan` is called with every scan's or cloud's estimate (`frontends.protocol.Estimate`) as the
+    frontend processes it (logs only); `on_iteration` with every optimizer `Iteration`, the initial
+    estimate first. A log's warnings are raised as `LogWarning`s once the replay is done.
     """
     path = Path(path)
     if config is None:
@@ -159,49 +156,7 @@ def replay(
         config = load_config(config)
     if input_kind(path) == "graph":
         return _replay_graph_file(path, config, Path(out_dir), on_iteration)
-    if _sensor_kind(path, config.input.scan_topic) == "cloud":
-        return _replay_cloud_file(path, config, Path(out_dir), on_iteration)
     return _replay_log_file(path, config, Path(out_dir), on_scan, on_iteration)
-
-
-def _sensor_kind(path: Path, topic: str | None) -> str:
-    """ "scan" or "cloud": what the log's sensor topic carries (from its channels, not its messages)."""
-    from frontends.logs import open_log
-
-    with open_log(path) as log:
-        return log.sensor_topic(topic)[1]
-
-
-def _replay_cloud_file(path: Path, config: ReplayConfig, out_dir: Path,
-                       on_iteration: IterationCallback | None) -> ReplayResult:
-    from frontends.slam3d import planar
-    from optimizer.cost import chi2
-    from pipeline import replay_cloud as module
-
-    detail = module.replay_cloud(path, out_dir=out_dir, cloud_topic=config.input.scan_topic,
-                                 method=config.optimizer.method, iterations=config.optimizer.iterations,
-                                 robust=config.optimizer.robust_kernel,
-                                 on_iteration=on_iteration)
-    frontend = detail.frontend
-    graph = frontend.planar_graph(detail.planar_keyframe_poses)
-    iterations: dict[str, int] = {}
-    for stage, _, _ in detail.chi2_per_iteration[1:]:
-        iterations[stage] = iterations.get(stage, 0) + 1
-    stats = ReplayStats(
-        poses=frontend.num_keyframes,
-        constraints=graph.num_edges,
-        loop_closures=frontend.loop_closures_accepted,
-        loop_closures_rejected=frontend.loop_closures_rejected,
-        scans=detail.counts.get("clouds"),
-        iterations=iterations,
-        chi2_initial=detail.chi2_per_iteration[0][2],
-        chi2_final=float(chi2(graph)),
-        wall_time_s=dict(detail.wall_time),
-        converged=detail.optimization.converged,
-        stop_reason=detail.optimization.reason,
-    )
-    return ReplayResult(path, "log", graph, planar.planar(detail.poses), detail.stamps_ns, stats,
-                        _outputs(detail.outputs), module.summary(detail), detail)
 
 
 def _replay_graph_file(path: Path, config: ReplayConfig, out_dir: Path,
@@ -236,34 +191,34 @@ def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: S
     from optimizer.cost import chi2
     from pipeline import replay_log as module
 
-    detail = module.replay_log(path, out_dir=out_dir, scan_topic=config.input.scan_topic,
-                               odometry_topic=config.input.odom_topic, method=config.optimizer.method,
-                               robust=config.optimizer.robust_kernel,
-                               iterations=config.optimizer.iterations, config=config.to_slam2d(),
-                               on_scan=on_scan, on_iteration=on_iteration)
-    frontend = detail.frontend
+    detail = module.replay_log(path, out_dir=out_dir, topic=config.input.scan_topic,
+                               odometry_topic=config.input.odom_topic, base_frame=config.input.base_frame,
+                               method=config.optimizer.method, robust=config.optimizer.robust_kernel,
+                               iterations=config.optimizer.iterations, slam2d=config.to_slam2d(),
+                               slam3d=config.to_slam3d(), on_measurement=on_scan, on_iteration=on_iteration)
+    graph = detail.frontend.keyframe_graph(detail.keyframe_poses)
     iterations: dict[str, int] = {}
     for stage, _, _ in detail.chi2_per_iteration[1:]:
         iterations[stage] = iterations.get(stage, 0) + 1
     stats = ReplayStats(
-        poses=frontend.graph.num_poses,
-        constraints=frontend.graph.num_edges,
-        loop_closures=frontend.loop_closures_accepted,
-        loop_closures_rejected=frontend.loop_closures_rejected,
-        scans=detail.counts["scans"],
+        poses=graph.num_poses,
+        constraints=graph.num_edges,
+        loop_closures=detail.loop_closures["accepted"],
+        loop_closures_rejected=detail.loop_closures["rejected"],
+        scans=detail.measurements,
         iterations=iterations,
         chi2_initial=detail.chi2_per_iteration[0][2],
-        chi2_final=float(chi2(frontend.graph, detail.keyframe_poses)),
+        chi2_final=float(chi2(graph)),
         wall_time_s=dict(detail.wall_time),
         converged=detail.optimization.converged,
         stop_reason=detail.optimization.reason,
     )
-    return ReplayResult(path, "log", frontend.graph.with_poses(detail.keyframe_poses), detail.poses,
-                        detail.stamps_ns, stats, _outputs(detail.outputs), module.summary(detail), detail)
+    return ReplayResult(path, "log", graph, detail.planar_poses, detail.stamps_ns, stats,
+                        detail.outputs.paths(), module.summary(detail), detail)
 
 
 def _outputs(outputs: Any) -> dict[str, Path]:
-    """The output paths of a replay's outputs dataclass, by field name ("rrd", "map_png", …)."""
+    """The output paths of a replay's outputs dataclass, by field name ("rrd", "g2o", …)."""
     return {item.name: getattr(outputs, item.name) for item in dataclasses.fields(outputs)}
 
 

@@ -7,15 +7,8 @@ from contextlib import AbstractContextManager
 from importlib import resources
 from pathlib import Path
 
-SAMPLE_GRAPH = "M3500.g2o"
-"""Olson's Manhattan world, the paper's own benchmark (3500 poses)."""
 SAMPLE_LOG = "csail_sample.mcap"
 """The default input of `replay`: the first 1000 scans of the real MIT CSAIL laser log, with loops."""
-
-
-def sample_graph() -> AbstractContextManager[Path]:
-    """A context manager giving a file-system path of the bundled sample pose graph."""
-    return resources.as_file(resources.files("pipeline") / "samples" / SAMPLE_GRAPH)
 
 
 def sample_log() -> AbstractContextManager[Path]:

@@ -1,13 +1,16 @@
 """The `replay` command line.
 
-`replay [INPUT ...] [options]` runs the default command on logs (MCAP, ROS 1 bag, ROS 2 bag directory) or
-2D pose graphs (g2o, TORO), told apart by the path and its content; a first argument naming a subcommand
-(`info`, `evaluate`) runs that one instead. Several inputs run `--jobs` at a time in worker processes;
-one failing does not stop the others; `--ray` runs them as tasks on a Ray cluster instead, and `--inputs`
-reads them from a list or a folder. A batch also writes its result table, `batch_summary.parquet`.
+`replay [INPUT ...] [options]` runs the default command on logs (MCAP, ROS 1 bag, ROS 2 bag directory) of
+2D laser scans or 3D point clouds, or on 2D pose graphs (g2o, TORO), told apart by the path and its
+content; a first argument naming a subcommand (`info`, `evaluate`) runs that one instead. Several inputs
+run `--jobs` at a time in worker processes; one failing does not stop the others; `--ray` runs them as
+tasks on a Ray cluster instead, and `--inputs` reads them from a list or a folder. A batch also writes its
+result table, `batch_summary.parquet`.
 
 Errors the program raises on purpose (`OptimizerError`, `FrontendError`, `PipelineError`) end in one line
 on stderr, `replay: error: <message>`, and exit code 2; anything else is a bug and keeps its traceback.
+Warnings (data skipped or lost while reading) are one line each, `replay: warning: <input>: <message>`,
+a repeated one counted, none with --quiet; Python's own warning output is switched off.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import os
 import re
 import signal
 import sys
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -39,7 +43,7 @@ if TYPE_CHECKING:
     from rich.console import Console
     from rich.progress import Progress, TaskID
 
-    from frontends.slam2d import ScanEstimate
+    from frontends.protocol import Estimate
     from optimizer.iteration import Iteration
     from pipeline.batch import BatchOutcome, RayOptions
     from pipeline.config import ReplayConfig
@@ -134,14 +138,16 @@ app = typer.Typer(
 
 @app.callback()
 def _root() -> None:
-    """Replay a robot log (2D laser) or a pose graph through the SGD backend into a Rerun recording."""
+    """Replay a robot log (2D laser or 3D LiDAR) or a pose graph through the SGD backend into a Rerun
+    recording."""
 
 
 _EPILOG = f"""\b
 Examples:
   replay                                 # {SAMPLE_DESCRIPTION} -> recordings/
-  replay run.mcap                        # 2D laser SLAM -> recordings/run.{{tum,g2o,json,rrd}}
-  replay run.bag --scan-topic /front/scan --odom-topic /wheel_odom
+  replay run.mcap                        # 2D laser SLAM -> recordings/run.{{tum,g2o,json,rrd}}, run_map.png
+  replay drive.mcap                      # 3D LiDAR SLAM (PointCloud2) -> ... and drive.ply, the point map
+  replay run.bag --scan-topic /front/scan --odom-topic /wheel_odom --base-frame base_footprint
   replay rosbag2_dir/                    # a ROS 2 bag (sqlite3 or MCAP storage)
   replay graph.g2o                       # SGD then Gauss-Newton (the default method)
   replay graph.graph --method sgd --iterations 30 --allow-unconverged --out results
@@ -153,7 +159,8 @@ Examples:
 \b
 Outputs, in DIR: <stem>.g2o (optimised poses), <stem>.json (counts, chi2 per iteration, wall time per
 stage), <stem>.rrd (every iteration on the timeline `iteration`) and, for logs, <stem>.tum (one pose per
-scan at its sensor stamp) and <stem>_map.png. A batch (several inputs, --inputs, --ray) also writes
+scan or cloud at its sensor stamp) and the map: <stem>_map.png (laser scans) or <stem>.ply (point
+clouds). A batch (several inputs, --inputs, --ray) also writes
 batch_summary.parquet: one row per input (status, error, counts, chi2, times, host). Open the
 recording with the Rerun viewer of rerun-sdk 0.41: rerun recordings/csail_sample.rrd. Settings: a TOML
 file (--config; --dump-config writes the defaults), which the options override. Other commands: replay
@@ -167,8 +174,9 @@ outputs are written and say so), unless --allow-unconverged."""
 def run(
     sources: Annotated[list[Path] | None, typer.Argument(
         metavar="INPUT", show_default=False,
-        help="Logs with 2D laser scans (MCAP, ROS 1 .bag, ROS 2 bag directory) or 2D pose graphs (g2o "
-             f"VERTEX_SE2/EDGE_SE2, TORO VERTEX2/EDGE2). Default: {SAMPLE_DESCRIPTION}."),
+        help="Logs with 2D laser scans or 3D point clouds (MCAP, ROS 1 .bag, ROS 2 bag directory) or 2D "
+             "pose graphs (g2o VERTEX_SE2/EDGE_SE2, TORO VERTEX2/EDGE2). Default: "
+             f"{SAMPLE_DESCRIPTION}."),
     ] = None,
     out: Annotated[Path, typer.Option(
         "--out", "-o", metavar="DIR", help="Folder for the outputs (created if missing).")] = DEFAULT_OUT_DIR,
@@ -193,9 +201,14 @@ def run(
         "--repair-information", help="Clamp the eigenvalues of information matrices that are not positive "
                                      "definite, instead of rejecting the file.")] = False,
     scan_topic: Annotated[str | None, typer.Option(
-        "--scan-topic", metavar="TOPIC", help="The LaserScan topic, when the log has several.")] = None,
+        "--scan-topic", metavar="TOPIC",
+        help="The sensor topic (LaserScan or PointCloud2), when the log has several.")] = None,
     odom_topic: Annotated[str | None, typer.Option(
         "--odom-topic", metavar="TOPIC", help="The odometry topic, when the log has several.")] = None,
+    base_frame: Annotated[str | None, typer.Option(
+        "--base-frame", metavar="FRAME", show_default=False,
+        help="The vehicle frame the poses are of. Default: the frame tf mounts the sensor on (for laser "
+             "logs with odometry: the odometry's child frame), else base_link.")] = None,
     jobs: Annotated[int, typer.Option(
         "--jobs", "-j", min=1, max=MAX_JOBS, metavar="N",
         help="Inputs replayed at the same time (worker processes).")] = 1,
@@ -239,6 +252,8 @@ def run(
         overrides["input"]["scan_topic"] = scan_topic
     if odom_topic is not None:
         overrides["input"]["odom_topic"] = odom_topic
+    if base_frame is not None:
+        overrides["input"]["base_frame"] = base_frame
     if repair_information:
         overrides["input"]["repair_information"] = True
     try:
@@ -253,6 +268,8 @@ def run(
     ray = _ray_options(ray_address, cpus_per_task, retries, jobs)
     if inputs_from is not None:
         sources = [*(sources or []), *_listed_inputs(inputs_from, out)]
+    _refuse_options_without_use(sources or [], inputs_from, scan_topic, odom_topic, base_frame,
+                                repair_information)
     if not sources:
         with sample_input() as sample:
             if ray is not None:
@@ -289,6 +306,22 @@ def run(
                    f"(outputs written with \"converged\": false{advice})", err=True)
     if unconverged and not allow_unconverged:
         raise typer.Exit(EXIT_UNCONVERGED)
+
+
+def _refuse_options_without_use(sources: Sequence[Path], inputs_from: Path | None, scan_topic: str | None,
+                                odom_topic: str | None, base_frame: str | None,
+                                repair_information: bool) -> None:
+    """Options that apply to no input named on the command line are errors, not silently ignored."""
+    if inputs_from is not None:  # what the list holds is not known yet
+        return
+    kinds = {input_kind(path) for path in sources} if sources else {"log"}  # no input: the sample log
+    if "graph" not in kinds and repair_information:
+        _fail(PipelineError("--repair-information applies to pose-graph inputs only, and no input is one"))
+    if "log" not in kinds:
+        for option, value in (("--scan-topic", scan_topic), ("--odom-topic", odom_topic),
+                              ("--base-frame", base_frame)):
+            if value is not None:
+                _fail(PipelineError(f"{option} applies to logs only, and every input is a pose graph"))
 
 
 def _ray_options(address: str | None, cpus_per_task: float | None, retries: int | None,
@@ -356,7 +389,7 @@ def _run_in_process(sources: Sequence[Path], config: ReplayConfig, out: Path, sh
     from pipeline.batch import run_one, with_this_host
 
     outcomes = []
-    with _progress_display(show_progress, len(sources) if several else 0) as display:
+    with _python_warnings_off(), _progress_display(show_progress, len(sources) if several else 0) as display:
         for path in sources:
             with display.watch(path, config) as (on_scan, on_iteration):
                 outcome = run_one(path, config, out_dir=out, on_scan=on_scan, on_iteration=on_iteration,
@@ -371,11 +404,28 @@ def _run_in_pool(sources: Sequence[Path], config: ReplayConfig, out: Path, jobs:
     """Worker processes here (`jobs`), or Ray tasks (`ray`)."""
     from pipeline.batch import run_batch
 
-    with _progress_display(show_progress, len(sources)) as display:
+    with _python_warnings_off(), _progress_display(show_progress, len(sources)) as display:
         try:
             return run_batch(sources, config, out_dir=out, jobs=jobs, ray=ray, on_done=display.finished)
         except KNOWN_ERRORS as error:
             _fail(error)
+
+
+@contextmanager
+def _python_warnings_off() -> Iterator[None]:
+    """Replays count their warnings into their summaries, which `_report` prints one line each: Python's
+    own printing of them (multi-line, here and in worker processes) would only repeat them."""
+    previous = os.environ.get("PYTHONWARNINGS")
+    os.environ["PYTHONWARNINGS"] = "ignore"  # inherited by the worker processes started meanwhile
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        if previous is None:
+            os.environ.pop("PYTHONWARNINGS", None)
+        else:
+            os.environ["PYTHONWARNINGS"] = previous
 
 
 @contextmanager
@@ -415,7 +465,7 @@ class _ProgressDisplay:
             self._inputs_task = progress.add_task("inputs", total=inputs, info="")
 
     @contextmanager
-    def watch(self, path: Path, config: ReplayConfig) -> Iterator[tuple[Callable[[ScanEstimate], None] | None,
+    def watch(self, path: Path, config: ReplayConfig) -> Iterator[tuple[Callable[[Estimate], None] | None,
                                                                          Callable[[Iteration], None] | None]]:
         """The callbacks to pass to the replay of `path` (None when progress is off)."""
         progress = self._progress
@@ -427,12 +477,12 @@ class _ProgressDisplay:
         name = path.name
         log = input_kind(path) == "log"
         first_task = progress.add_task(
-            f"{name}: {'scans' if log else 'reading'}",
+            f"{name}: {'frames' if log else 'reading'}",
             total=expected_scans(path, config.input.scan_topic) if log else None, info="")
         loops = 0
         stage_tasks: dict[str, TaskID] = {}
 
-        def on_scan(estimate: ScanEstimate) -> None:
+        def on_scan(estimate: Estimate) -> None:
             nonlocal loops
             loops += len(estimate.new_loop_closures)
             progress.update(first_task, completed=estimate.index + 1,
@@ -467,7 +517,14 @@ class _ProgressDisplay:
 
 def _report(outcomes: Sequence[BatchOutcome], *, quiet: bool, as_json: bool,
             summary_path: Path | None = None) -> None:
-    """Errors (always), the summary on stderr (unless --quiet), JSON on stdout (--json)."""
+    """Errors (always), warnings and the summary on stderr (unless --quiet), JSON on stdout (--json)."""
+    if not quiet:
+        from pipeline.warning_tally import warning_lines
+
+        for outcome in outcomes:
+            tally = (outcome.summary or {}).get("warnings", [])
+            for line in warning_lines(PROGRAM, outcome.input_path, tally):
+                typer.echo(line, err=True)
     if as_json:
         from pipeline.outputs import json_text
 
@@ -494,14 +551,12 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     stats, summary = outcome.stats, outcome.summary
     assert stats is not None and summary is not None
     name = outcome.input_path.name
-    if "cloud_topic" in summary:
-        lines = [f"{name}: {stats.scans} point clouds on {summary['cloud_topic']} (KISS-ICP odometry); "
+    if stats.scans is not None:
+        what = "point clouds" if summary["sensor"] == "cloud" else "scans"
+        lines = [f"{name}: {stats.scans} {what} on {summary['topic']}, odometry "
+                 f"{summary['odometry_topic'] or 'none'}, base frame {summary['base_frame'] or 'none'}; "
                  f"{stats.poses} keyframes, {stats.loop_closures} loop closures "
                  f"({stats.loop_closures_rejected} rejected)"]
-    elif stats.scans is not None:
-        lines = [f"{name}: {stats.scans} scans on {summary['scan_topic']}, odometry "
-                 f"{summary['odometry_topic'] or 'none'}; {stats.poses} keyframes, {stats.loop_closures} "
-                 f"loop closures ({stats.loop_closures_rejected} rejected)"]
     else:
         lines = [f"{name}: {stats.poses} poses, {stats.constraints} constraints ({stats.loop_closures} loop "
                  f"closures), method {summary['method']}"]
@@ -530,9 +585,12 @@ def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None = N
     table = Table(title=f"{len(outcomes)} inputs, {len(outcomes) - failed} done, {failed} failed",
                   title_justify="left", caption=None if summary_path is None else f"table: {summary_path}",
                   caption_justify="left")
-    for column, justify in (("input", "left"), ("result", "left"), ("poses", "right"), ("loops", "right"),
-                            ("chi2 initial -> final", "right"), ("time s", "right")):
-        table.add_column(column, justify=justify)  # type: ignore[arg-type]
+    # A path cut short ("…") cannot be found again: the input column always holds whole paths, the
+    # other columns fold instead.
+    table.add_column("input", no_wrap=True, min_width=max(len(str(o.input_path)) for o in outcomes))
+    table.add_column("result", overflow="fold")
+    for column in ("poses", "loops", "chi2 initial -> final", "time s"):
+        table.add_column(column, justify="right")
     for outcome in outcomes:
         stats = outcome.stats
         if stats is None:

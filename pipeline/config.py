@@ -1,13 +1,17 @@
 """The replay configuration: pydantic models mirroring the frontends' frozen dataclasses, and its TOML file.
 
-    [input]                 scan_topic, odom_topic, repair_information
-    [optimizer]             method, iterations
-    [matching] [odometry] [keyframes] [loop_closure]    the fields of `frontends.slam2d.config`
+    [input]                 scan_topic, odom_topic, base_frame, repair_information
+    [optimizer]             method, iterations, robust
+    [slam2d.matching] [slam2d.odometry] [slam2d.keyframes] [slam2d.loop_closure]
+                            the fields of `frontends.slam2d.Slam2DConfig` (logs of laser scans)
+    [slam3d.odometry] [slam3d.keyframes] [slam3d.loop_closure]
+                            the fields of `frontends.slam3d.Slam3DConfig` (logs of point clouds)
 
 The frontend sections are built from the dataclasses' fields (same section and key names, same defaults),
 so a setting added there appears here without touching this module. Units are the dataclasses' except
 angles: an angle field (its name mentions an angle, see `is_angle_field`) is in degrees here and in the
-file, and converted to radians by `ReplayConfig.to_slam2d()`.
+file, and converted to radians by `ReplayConfig.to_slam2d()` / `to_slam3d()`. A setting whose default is
+"none" (e.g. `slam3d.odometry.voxel_size`) is left out of the file to keep it.
 
 Every key is optional; unknown keys and bad values are errors naming the file, line and key
 (`ConfigError`). Numbers must be finite and positive unless listed in `_BOUNDS`.
@@ -38,6 +42,7 @@ from pydantic import (
 )
 
 from frontends.slam2d import Slam2DConfig
+from frontends.slam3d import Slam3DConfig
 from optimizer.file_input import read_bytes_bounded
 from optimizer.robust import KERNELS
 from optimizer.solve import (
@@ -51,6 +56,7 @@ from pipeline.errors import PipelineError
 
 __all__ = [
     "SLAM2D_SECTIONS",
+    "SLAM3D_SECTIONS",
     "ConfigError",
     "InputSection",
     "OptimizerSection",
@@ -96,32 +102,49 @@ _POSITIVE_FRACTION: dict[str, float] = {"gt": 0, "le": 1}
 
 _BOUNDS: dict[tuple[str, str], dict[str, float]] = {
     # zero is meaningful: no growth with distance / turn, no tolerance, no context around a match
-    ("odometry", "odometry_sigma_per_metre"): _NON_NEGATIVE,
-    ("odometry", "odometry_sigma_per_radian"): _NON_NEGATIVE,
-    ("odometry", "min_inlier_fraction"): _FRACTION,
-    ("loop_closure", "search_radius_per_metre"): _NON_NEGATIVE,
-    ("loop_closure", "submap_keyframes"): _NON_NEGATIVE,
-    ("loop_closure", "query_keyframes"): _NON_NEGATIVE,
-    ("loop_closure", "small_correction_linear"): _NON_NEGATIVE,
-    ("loop_closure", "small_correction_angular"): _NON_NEGATIVE,
-    ("loop_closure", "min_score"): _FRACTION,
-    ("loop_closure", "ambiguity_ratio"): _POSITIVE_FRACTION,
-    ("loop_closure", "min_inlier_fraction"): _FRACTION,
+    ("slam2d.odometry", "odometry_sigma_per_metre"): _NON_NEGATIVE,
+    ("slam2d.odometry", "odometry_sigma_per_radian"): _NON_NEGATIVE,
+    ("slam2d.odometry", "min_inlier_fraction"): _FRACTION,
+    ("slam2d.loop_closure", "search_radius_per_metre"): _NON_NEGATIVE,
+    ("slam2d.loop_closure", "submap_keyframes"): _NON_NEGATIVE,
+    ("slam2d.loop_closure", "query_keyframes"): _NON_NEGATIVE,
+    ("slam2d.loop_closure", "small_correction_linear"): _NON_NEGATIVE,
+    ("slam2d.loop_closure", "small_correction_angular"): _NON_NEGATIVE,
+    ("slam2d.loop_closure", "min_score"): _FRACTION,
+    ("slam2d.loop_closure", "ambiguity_ratio"): _POSITIVE_FRACTION,
+    ("slam2d.loop_closure", "min_inlier_fraction"): _FRACTION,
+    ("slam3d.odometry", "min_range"): _NON_NEGATIVE,
+    ("slam3d.odometry", "max_threads"): _NON_NEGATIVE,  # 0: all cores
+    ("slam3d.keyframes", "odometry_sigma_per_metre"): _NON_NEGATIVE,
+    ("slam3d.keyframes", "odometry_sigma_per_radian"): _NON_NEGATIVE,
+    ("slam3d.keyframes", "odometry_sigma_per_metre_angular"): _NON_NEGATIVE,
+    ("slam3d.loop_closure", "min_travel"): _NON_NEGATIVE,
+    ("slam3d.loop_closure", "search_radius_per_metre"): _NON_NEGATIVE,
+    ("slam3d.loop_closure", "submap_keyframes"): _NON_NEGATIVE,
+    ("slam3d.loop_closure", "small_correction_linear"): _NON_NEGATIVE,
+    ("slam3d.loop_closure", "small_correction_angular"): _NON_NEGATIVE,
+    ("slam3d.loop_closure", "min_inlier_fraction"): _FRACTION,
+    ("slam3d.loop_closure", "ambiguity_ratio"): _POSITIVE_FRACTION,
 }
 """Bounds of the numbers that need not be strictly positive (every other number must be)."""
 
 _FLOORS: dict[tuple[str, str], float] = {
-    ("matching", "resolution"): 0.005,
-    ("loop_closure", "query_thinning"): 0.005,
-    ("odometry", "angular_step"): 0.01,
-    ("loop_closure", "angular_step"): 0.01,
+    ("slam2d.matching", "resolution"): 0.005,
+    ("slam2d.loop_closure", "query_thinning"): 0.005,
+    ("slam2d.odometry", "angular_step"): 0.01,
+    ("slam2d.loop_closure", "angular_step"): 0.01,
+    ("slam3d.odometry", "voxel_size"): 0.01,
+    ("slam3d.keyframes", "cloud_voxel"): 0.01,
+    ("slam3d.loop_closure", "registration_voxel"): 0.01,
 }
 """Steps and cells finer than these (m, degrees) multiply the work and memory of a search or a grid far
 beyond any use."""
 
 _CEILINGS: dict[tuple[str, str], float] = {
-    ("matching", "max_range"): 1000.0,
-    ("keyframes", "max_turn_rate"): 3600.0,
+    ("slam2d.matching", "max_range"): 1000.0,
+    ("slam2d.keyframes", "max_turn_rate"): 3600.0,
+    ("slam3d.odometry", "max_range"): 1000.0,
+    ("slam3d.odometry", "min_range"): 1000.0,
 }
 _MAX_NUMBER = 10_000.0
 """Every other number's upper bound (metres, counts, scales): far above any use, and low enough that no
@@ -140,14 +163,15 @@ def _bounds(section: str, name: str) -> dict[str, float]:
     return bounds
 
 _AT_LEAST: dict[tuple[str, str], str] = {
-    ("loop_closure", "max_search_radius"): "search_radius",
+    ("slam2d.loop_closure", "max_search_radius"): "search_radius",
+    ("slam3d.loop_closure", "max_search_radius"): "search_radius",
 }
 """A key that must be at least another key of its section; left out, it defaults to the larger of its
 dataclass default and that key (so raising `search_radius` alone is never an error)."""
 
 _AT_MOST: dict[tuple[str, str], str] = {
-    ("odometry", "angular_step"): "window_angular",
-    ("loop_closure", "angular_step"): "angular_window",
+    ("slam2d.odometry", "angular_step"): "window_angular",
+    ("slam2d.loop_closure", "angular_step"): "angular_window",
 }
 """A search step must not exceed the window it steps through."""
 
@@ -170,9 +194,9 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
         if annotation is bool:
             fields[item.name] = (bool, default)
             continue
-        if annotation not in (int, float):
+        if annotation not in (int, float, float | None):
             raise TypeError(f"{dataclass_type.__name__}.{item.name}: no TOML form for {annotation!r}")
-        if annotation is float and is_angle_field(item.name):
+        if default is not None and annotation is not int and is_angle_field(item.name):
             default = round(math.degrees(default), _DEGREE_DIGITS)
         fields[item.name] = (annotation, Field(default, **_bounds(section, item.name)))
 
@@ -187,7 +211,7 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
     if derived:
         validators["_derived_defaults"] = model_validator(mode="before")(_derive_at_least(derived))
 
-    name = dataclass_type.__name__.removesuffix("Config") + "Section"
+    name = section.title().replace(".", "").replace("_", "") + "Section"
     model = create_model(name, __base__=_Section, __module__=__name__, __validators__=validators, **fields)
     model.__doc__ = f"The [{section}] section: `{dataclass_type.__module__}.{dataclass_type.__name__}`."
     return model
@@ -218,13 +242,42 @@ def _derive_at_least(derived: dict[str, tuple[str, float]]) -> Callable[[type, A
     return derive
 
 
-SLAM2D_SECTIONS: dict[str, type[_Section]] = {}
+def _frontend_sections(name: str, config_type: type) -> tuple[dict[str, type[_Section]], type[_Section]]:
+    """One section model per field of a frontend's config dataclass (`[name.field]`), and the model of
+    `[name]` holding them."""
+    hints = typing.get_type_hints(config_type)
+    sections: dict[str, type[_Section]] = {}
+    for item in dataclasses.fields(config_type):
+        model = _section_model(f"{name}.{item.name}", hints[item.name])
+        sections[item.name] = model
+        globals()[model.__name__] = model  # importable by name, so that configurations pickle
+    holder = create_model(  # type: ignore[call-overload]
+        f"{name.title()}Sections", __base__=_Section, __module__=__name__,
+        **{key: (model, Field(default_factory=model)) for key, model in sections.items()},
+    )
+    holder.__doc__ = f"The [{name}.*] sections: `{config_type.__module__}.{config_type.__name__}`."
+    globals()[holder.__name__] = holder
+    return sections, holder
+
+
+SLAM2D_SECTIONS, Slam2DSections = _frontend_sections("slam2d", Slam2DConfig)
 """Section name → model, one per field of `Slam2DConfig`, in its order."""
-for _field in dataclasses.fields(Slam2DConfig):
-    _model = _section_model(_field.name, typing.get_type_hints(Slam2DConfig)[_field.name])
-    SLAM2D_SECTIONS[_field.name] = _model
-    globals()[_model.__name__] = _model  # importable by name, so that configurations pickle
-del _field, _model
+SLAM3D_SECTIONS, Slam3DSections = _frontend_sections("slam3d", Slam3DConfig)
+"""Section name → model, one per field of `Slam3DConfig`, in its order."""
+
+
+def _to_dataclass(sections: _Section, config_type: type) -> Any:
+    """A frontend's frozen config dataclass from its sections (angles back to radians)."""
+    hints = typing.get_type_hints(config_type)
+    values: dict[str, Any] = {}
+    for name in type(sections).model_fields:
+        fields = getattr(sections, name).model_dump()
+        for key, value in fields.items():
+            if isinstance(value, float) and is_angle_field(key):
+                fields[key] = math.radians(value)
+        values[name] = hints[name](**fields)
+    return config_type(**values)
+
 
 _METHOD_CHOICE = Literal[METHODS]  # type: ignore[valid-type]
 
@@ -255,57 +308,51 @@ class InputSection(_Section):
     a log has several); `repair_information` applies to pose-graph files."""
 
     scan_topic: str | None = Field(None, min_length=1)
+    """The sensor topic: laser scans or point clouds."""
     odom_topic: str | None = Field(None, min_length=1)
+    base_frame: str | None = Field(None, min_length=1)
+    """The vehicle frame poses are of; left out: the frame tf mounts the sensor on, else base_link."""
     repair_information: bool = False
 
 
-_Slam2DSections: type[_Section] = create_model(  # type: ignore[call-overload]
-    "_Slam2DSections",
-    __base__=_Section,
-    __module__=__name__,
-    **{name: (model, Field(default_factory=model)) for name, model in SLAM2D_SECTIONS.items()},
-)
-
-
-class ReplayConfig(_Slam2DSections):  # type: ignore[misc, valid-type]
+class ReplayConfig(_Section):
     """Everything a replay can be told: `ReplayConfig(optimizer={"method": "sgd"})`, or `load_config(path)`.
 
     Frozen; `model_copy(update=...)` does not validate, so build a changed one with `with_updates`.
     """
 
-    optimizer: OptimizerSection = Field(default_factory=OptimizerSection)
     input: InputSection = Field(default_factory=InputSection)
+    optimizer: OptimizerSection = Field(default_factory=OptimizerSection)
+    slam2d: Slam2DSections = Field(default_factory=Slam2DSections)  # type: ignore[valid-type]
+    slam3d: Slam3DSections = Field(default_factory=Slam3DSections)  # type: ignore[valid-type]
 
     def to_slam2d(self) -> Slam2DConfig:
-        """The frontend's frozen dataclass (angles in radians)."""
-        sections: dict[str, Any] = {}
-        hints = typing.get_type_hints(Slam2DConfig)
-        for name in SLAM2D_SECTIONS:
-            values = getattr(self, name).model_dump()
-            for key, value in values.items():
-                if isinstance(value, float) and is_angle_field(key):
-                    values[key] = math.radians(value)
-            sections[name] = hints[name](**values)
-        return Slam2DConfig(**sections)
+        """The 2D frontend's frozen dataclass (angles in radians)."""
+        return _to_dataclass(self.slam2d, Slam2DConfig)  # type: ignore[no-any-return]
+
+    def to_slam3d(self) -> Slam3DConfig:
+        """The 3D frontend's frozen dataclass (angles in radians)."""
+        return _to_dataclass(self.slam3d, Slam3DConfig)  # type: ignore[no-any-return]
 
     def with_updates(self, updates: Mapping[str, Mapping[str, Any]]) -> ReplayConfig:
         """A validated copy with some keys replaced, e.g. `{"optimizer": {"method": "gn"}}`."""
         return config_from_mapping(_merge(self.to_mapping(), updates))
 
     def to_mapping(self) -> dict[str, dict[str, Any]]:
-        """Section → key → value as in the file (degrees), sections in file order, unset topics left out."""
-        order = ["input", "optimizer", *SLAM2D_SECTIONS]
-        return {name: getattr(self, name).model_dump(exclude_none=True) for name in order}
+        """Section → key → value as in the file (degrees), sections in file order, unset values left out."""
+        return {name: getattr(self, name).model_dump(exclude_none=True) for name in type(self).model_fields}
 
     def to_toml(self) -> str:
         """This configuration as a TOML document that `load_config` reads back to an equal one."""
         parts = [_TOML_HEADER]
         for name, values in self.to_mapping().items():
             text = tomli_w.dumps({name: values})
-            comments = _SECTION_COMMENTS.get(name)
-            if comments:
+            comments = _SECTION_COMMENTS.get(name, "")
+            if name in ("input", "optimizer"):  # comments under the header, before the keys
                 header, _, body = text.partition("\n")
                 text = f"{header}\n{comments}{body}"
+            else:
+                text = comments + text
             parts.append(text)
         return "\n".join(parts)
 
@@ -317,12 +364,16 @@ _TOML_HEADER = """\
 """
 
 _SECTION_COMMENTS = {
-    "input": '# scan_topic = "/scan"    # default: the log\'s only LaserScan topic\n'
-             '# odom_topic = "/odom"    # default: the log\'s only odometry topic, if any\n',
+    "input": '# scan_topic = "/scan"    # default: the log\'s only LaserScan or PointCloud2 topic\n'
+             '# odom_topic = "/odom"    # default: the log\'s only odometry topic, if any\n'
+             '# base_frame = "base_link"  # default: the frame tf mounts the sensor on, else base_link\n',
     "optimizer": f"# method: one of {', '.join(METHODS)}\n"
                  f"# iterations: SGD (or Gauss-Seidel) iterations; with gn, the Gauss-Newton cap "
                  f"(left out: {DEFAULT_POLISH_ITERATIONS})\n"
                  f"# robust: none, {' or '.join(KERNELS)}: a robust kernel against false loop closures\n",
+    "slam2d": "# The 2D laser SLAM (logs of LaserScan messages): frontends.slam2d.Slam2DConfig\n",
+    "slam3d": "# The 3D LiDAR SLAM (logs of PointCloud2 messages): frontends.slam3d.Slam3DConfig.\n"
+              "# Left out: voxel_size (max_range / 100, KISS-ICP's rule), fixed_threshold (adaptive).\n",
 }
 
 
@@ -405,19 +456,14 @@ def _config_error(error: ValidationError, path: str | Path | None, text: str | N
 
 
 def _unknown_key_message(loc: tuple[str, ...]) -> str:
-    if len(loc) == 1:
-        known = list(ReplayConfig.model_fields)
-        what = "unknown section"
-    else:
-        model = _section_models().get(loc[0])
-        known = list(model.model_fields) if model is not None else []
-        what = f"unknown key in [{loc[0]}]"
+    model: Any = ReplayConfig
+    for part in loc[:-1]:
+        field = model.model_fields.get(part) if isinstance(model, type) else None
+        model = field.annotation if field is not None else None
+    known = list(model.model_fields) if isinstance(model, type) and issubclass(model, BaseModel) else []
+    what = "unknown section" if len(loc) == 1 else f"unknown key in [{'.'.join(loc[:-1])}]"
     close = difflib.get_close_matches(loc[-1], known, n=1)
     return what + (f"; did you mean {close[0]}?" if close else f"; known: {', '.join(known)}")
-
-
-def _section_models() -> dict[str, type[BaseModel]]:
-    return {name: field.annotation for name, field in ReplayConfig.model_fields.items()}  # type: ignore[misc]
 
 
 _TABLE = re.compile(r"^\s*\[\s*([A-Za-z0-9_.\- ]+?)\s*\]\s*(#.*)?$")
@@ -425,25 +471,25 @@ _KEY = re.compile(r"^\s*([A-Za-z0-9_.\-]+)\s*=")
 
 
 def _line_of(text: str, loc: tuple[str, ...]) -> int | None:
-    """The 1-based line of `[section]` or of `key = …` under it (or `section.key = …` before any table)."""
+    """The 1-based line of the table `[a.b]` that `loc` names, or of `key = …` under its table (or as a
+    dotted key `a.b.key = …` before any table)."""
     if not loc:
         return None
-    section, key = loc[0], (loc[1] if len(loc) > 1 else None)
+    whole, table_of_key, key = ".".join(loc), ".".join(loc[:-1]), loc[-1]
     table = ""
     for number, line in enumerate(text.splitlines(), start=1):
         header = _TABLE.match(line)
         if header:
             table = header.group(1).replace(" ", "")
-            if key is None and table == section:
+            if table == whole or table.startswith(whole + "."):
                 return number
             continue
         assignment = _KEY.match(line)
         if assignment is None:
             continue
         name = assignment.group(1)
-        at_key = (table == section and name == key) or (not table and name == f"{section}.{key}")
-        if key is not None and at_key:
+        if (table == table_of_key and name == key) or (not table and name == whole):
             return number
-        if key is None and not table and name.split(".")[0] == section:
+        if not table and name.startswith(whole + "."):
             return number
     return None

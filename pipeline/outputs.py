@@ -209,9 +209,11 @@ def staged_outputs_in(directory: Path, *targets: Path) -> Iterator[tuple[Path, .
         raise
 
 
-def output_stem(path: Path) -> str:
-    """What a replay names its outputs after: a file's stem, a folder's name (a ROS 2 bag)."""
-    return path.stem if path.is_file() else path.name
+def output_stem(path: str | Path) -> str:
+    """What a replay names its outputs after (`<stem>.rrd`, …): a folder's name (a ROS 2 bag), otherwise
+    the file's stem (whether or not it exists yet)."""
+    path = Path(path)
+    return path.name if path.is_dir() else path.stem
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -224,6 +226,14 @@ def write_text(path: Path, text: str) -> None:
     """Write `text` as UTF-8, turning OS errors into an OutputError that names the file."""
     try:
         path.write_text(text, encoding="utf-8")
+    except OSError as error:
+        raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
+
+
+def write_bytes(path: Path, data: bytes) -> None:
+    """Write `data`, turning OS errors into an OutputError that names the file."""
+    try:
+        path.write_bytes(data)
     except OSError as error:
         raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
 

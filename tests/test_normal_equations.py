@@ -24,7 +24,7 @@ from optimizer.normal_equations import (
     quadratic_form,
 )
 from optimizer.polish import _linearise, edge_jacobians, gauss_newton
-from tests.test_polish import random_information, run
+from tests.optimizer_fixtures import random_information, run
 
 
 def tangled_graph(seed: int) -> PoseGraph:

@@ -19,8 +19,7 @@ from optimizer.iteration import Iteration
 from pipeline import ReplayConfig, replay
 from pipeline.api import input_kind, output_stem
 from pipeline.trajectory_io import read_tum
-from tests.test_pipeline_log import write_drive
-from tests.test_pipeline_replay import LOOP_POSES, loop_graph_text, write_loop_graph
+from tests.pipeline_fixtures import LOOP_POSES, loop_graph_text, write_drive, write_loop_graph
 
 REPO = Path(__file__).resolve().parents[1]
 DRIVE_SCANS = 12

@@ -17,13 +17,9 @@ from pipeline.batch_summary import BATCH_SUMMARY_NAME
 from pipeline.cli import _with_ray_address, app
 from pipeline.config import ReplayConfig
 from pipeline.errors import PipelineError
-from tests.test_pipeline_log import write_drive
-from tests.test_pipeline_replay import LOOP_POSES, write_loop_graph
+from tests.pipeline_fixtures import BROKEN_GRAPH, LOOP_POSES, write_drive, write_loop_graph
 
 DRIVE_SCANS = 10
-BROKEN_GRAPH = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0\n"  # the edge lacks values
-
-
 def run_replay(*args: object) -> object:
     return CliRunner().invoke(app, [str(arg) for arg in args])
 
@@ -232,6 +228,7 @@ KILLED_MID_WRITE = """
 import os, sys
 from pathlib import Path
 from pipeline.outputs import staged_outputs
+from tests.pipeline_fixtures import BROKEN_GRAPH
 folder = Path(sys.argv[1])
 with staged_outputs(folder / f"{sys.argv[2]}.g2o", folder / f"{sys.argv[2]}.json") as temporaries:
     for temporary in temporaries:

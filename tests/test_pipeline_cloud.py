@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from frontends.errors import TopicSelectionError
 from frontends.slam3d import se3
-from pipeline.errors import PipelineError
 from pipeline.ply import PlyFileError, read_ply, write_ply
-from pipeline.replay_cloud import CloudReplayResult, replay_cloud
+from pipeline.replay_log import LogReplayResult, replay_log
 from pipeline.trajectory_io import read_tum
 from tests._frontends_fixtures import write_mcap_ros
 from tests.conftest import shared_file
@@ -26,20 +26,20 @@ from tests.lidar_world import (
     town_loop,
     write_cloud_log,
 )
-from tests.test_pipeline_replay import read_recording
+from tests.pipeline_fixtures import read_recording
 
 
 @pytest.fixture(scope="module")
-def loop_replay(tmp_path_factory: pytest.TempPathFactory) -> tuple[CloudReplayResult, Path, np.ndarray]:
+def loop_replay(tmp_path_factory: pytest.TempPathFactory) -> tuple[LogReplayResult, Path, np.ndarray]:
     folder = tmp_path_factory.mktemp("cloud")
     path = folder / "town.mcap"
     stamps = write_cloud_log(path, loop_drive())
-    result = replay_cloud(path, out_dir=folder / "out")
+    result = replay_log(path, out_dir=folder / "out")
     return result, folder / "out", stamps
 
 
 def test_outputs_are_written_and_the_trajectory_follows_the_truth(
-    loop_replay: tuple[CloudReplayResult, Path, np.ndarray],
+    loop_replay: tuple[LogReplayResult, Path, np.ndarray],
 ) -> None:
     result, out, stamps = loop_replay
     assert sorted(p.name for p in out.iterdir()) == [
@@ -61,25 +61,24 @@ def test_outputs_are_written_and_the_trajectory_follows_the_truth(
     errors = np.linalg.norm(relative[:, :2, 3] - expected[:, :2, 3], axis=1)
     assert errors.max() < 0.5 and errors[-1] < 0.2
     summary = json.loads((out / "town.json").read_text())
-    assert summary["schema"] == "sgdslam.replay-cloud/2"
-    assert summary["cloud_topic"] == "/points" and summary["base_frame"] == "base_link"
+    assert summary["schema"] == "sgdslam.replay-log/3" and summary["sensor"] == "cloud"
+    assert summary["topic"] == "/points" and summary["base_frame"] == "base_link"
+    assert summary["sensor_frame"] == "lidar"
     assert summary["counts"]["clouds"] == len(stamps) == summary["counts"]["clouds_in_trajectory"]
     assert summary["loop_closures"]["accepted"] >= 1
-    assert summary["counts"]["keyframes"] == result.frontend.num_keyframes
+    assert summary["counts"]["keyframes"] == len(result.keyframe_poses)
     assert summary["config"]["odometry"]["max_range"] == 100.0
+    assert summary["warnings"] == []
 
 
 def test_the_map_is_a_ply_of_points_on_the_world_s_surfaces(
-    loop_replay: tuple[CloudReplayResult, Path, np.ndarray],
+    loop_replay: tuple[LogReplayResult, Path, np.ndarray],
 ) -> None:
     result, out, _ = loop_replay
     vertices = read_ply(out / "town.ply")
     assert vertices.dtype.names == ("x", "y", "z")
-    assert (
-        len(vertices)
-        == result.map_points
-        == json.loads((out / "town.json").read_text())["counts"]["map_points"]
-    )
+    assert len(vertices) == result.counts["map_points"]
+    assert json.loads((out / "town.json").read_text())["counts"]["map_points"] == len(vertices)
     points = np.column_stack([vertices["x"], vertices["y"], vertices["z"]]).astype(np.float64)[::7]
     # Into the world frame with the true first pose: the points lie on the boxes or the ground, up to the
     # trajectory's errors (a few tenths of a degree of pitch moves a point 50 m away by decimetres).
@@ -94,7 +93,7 @@ def test_the_map_is_a_ply_of_points_on_the_world_s_surfaces(
 
 
 def test_the_recording_holds_every_iteration_in_2d_and_3d(
-    loop_replay: tuple[CloudReplayResult, Path, np.ndarray],
+    loop_replay: tuple[LogReplayResult, Path, np.ndarray],
 ) -> None:
     result, out, _ = loop_replay
     entities = read_recording(out / "town.rrd")
@@ -103,7 +102,7 @@ def test_the_recording_holds_every_iteration_in_2d_and_3d(
     assert entities["/world3d/trajectory"].steps == steps
     first = entities["/world3d/keyframes/k000000"]
     assert first.steps == steps and first.static_rows == 1
-    last = f"/world3d/keyframes/k{result.frontend.num_keyframes - 1:06d}"
+    last = f"/world3d/keyframes/k{len(result.keyframe_poses) - 1:06d}"
     assert entities[last].steps == steps
     assert entities["/world3d/map"].static_rows == 1
     assert entities["/world/loop_closures"].steps == steps
@@ -123,17 +122,17 @@ def test_without_tf_or_point_times_the_poses_are_the_sensor_s(tmp_path: Path) ->
     short = drive(town_loop(), sweeps=12, step=0.5, lidar=Lidar(columns=360))
     path = tmp_path / "bare.mcap"
     write_cloud_log(path, short, with_times=False, with_mount=False)
-    result = replay_cloud(path, out_dir=tmp_path / "out", iterations=5)
-    assert result.base_frame is None
+    result = replay_log(path, out_dir=tmp_path / "out", iterations=5)
+    assert result.base_frame is None and result.sensor_frame == "lidar"
     summary = json.loads((tmp_path / "out" / "bare.json").read_text())
     assert summary["base_frame"] is None and summary["loop_closures"]["accepted"] == 0
     assert len(read_tum(tmp_path / "out" / "bare.tum")) == 12
 
 
-def test_a_laser_scan_log_is_refused_and_nothing_is_written(tmp_path: Path) -> None:
-    path = write_mcap_ros(tmp_path / "scans.mcap")
-    with pytest.raises(PipelineError, match="2D laser scans"):
-        replay_cloud(path, out_dir=tmp_path / "out", cloud_topic="/scan")
+def test_a_log_with_scans_and_clouds_asks_which_and_writes_nothing(tmp_path: Path) -> None:
+    path = write_mcap_ros(tmp_path / "both.mcap")  # /scan (LaserScan) and /points (PointCloud2)
+    with pytest.raises(TopicSelectionError, match=r"/points .*/scan .*; choose one with --scan-topic"):
+        replay_log(path, out_dir=tmp_path / "out")
     assert not (tmp_path / "out").exists()
 
 
@@ -160,9 +159,9 @@ def test_ply_round_trip_and_malformed_files(tmp_path: Path) -> None:
 def test_kitti_city_replays_in_place(tmp_path: Path) -> None:
     """The shared KITTI sequence (read from ../shared, never copied): 154 clouds, no loop."""
     path = shared_file("logs/kitti/kitti_city.mcap")
-    result = replay_cloud(path, out_dir=tmp_path, iterations=10)
+    result = replay_log(path, out_dir=tmp_path, iterations=10)
     assert len(result.stamps_ns) == 154
-    assert result.frontend.loop_closures_accepted == 0
+    assert result.loop_closures["accepted"] == 0
     path_length = np.linalg.norm(np.diff(result.poses[:, :3, 3], axis=0), axis=1).sum()
     assert 60.0 < path_length < 85.0
 
@@ -182,3 +181,26 @@ def test_the_replay_command_routes_a_point_cloud_log_to_the_3d_replay(tmp_path: 
         "street.g2o", "street.json", "street.ply", "street.rrd", "street.tum"]
     assert "point clouds on /points" in result.stderr
     assert len(read_tum(out / "street.tum")) == 12
+
+
+def test_options_and_progress_reach_the_3d_replay(tmp_path: Path) -> None:
+    from pipeline import ReplayConfig, replay
+
+    short = drive(town_loop(), sweeps=8, step=0.5, lidar=Lidar(columns=360))
+    path = tmp_path / "street.mcap"
+    write_cloud_log(path, short)
+    seen: list[tuple[int, int]] = []
+    config = ReplayConfig(input={"base_frame": "lidar"}, optimizer={"iterations": 3})
+    result = replay(path, config, out_dir=tmp_path / "out",
+                    on_scan=lambda estimate: seen.append((estimate.index, estimate.keyframe)))
+    assert [index for index, _ in seen] == list(range(8))  # the progress callback sees every cloud
+    assert seen[-1][1] + 1 == result.stats.poses > 1
+    # the sensor frame chosen as the base: poses of the sensor, no mount
+    assert (result.summary["base_frame"], result.summary["sensor_frame"]) == ("lidar", "lidar")
+    # a keyframe distance longer than the drive: one keyframe, so the [slam3d] settings reached the SLAM
+    far = replay(path, ReplayConfig(optimizer={"iterations": 3}, slam3d={"keyframes": {"distance": 100.0}}),
+                 out_dir=tmp_path / "far")
+    assert far.stats.poses == 1 and far.summary["config"]["keyframes"]["distance"] == 100.0
+    with pytest.raises(TopicSelectionError, match=r"/nowhere.*--odom-topic"):
+        replay(path, ReplayConfig(input={"odom_topic": "/nowhere"}), out_dir=tmp_path / "other")
+    assert not (tmp_path / "other").exists()

@@ -13,6 +13,9 @@ import pytest
 from typer.testing import CliRunner
 
 from frontends.slam2d.config import KeyframeConfig, LoopClosureConfig, OdometryConfig, Slam2DConfig
+from frontends.slam3d import Slam3DConfig
+from frontends.slam3d.config import KeyframeConfig as Keyframe3DConfig
+from frontends.slam3d.config import OdometryConfig as Odometry3DConfig
 from optimizer.solve import DEFAULT_POLISH_ITERATIONS
 from pipeline.cli import app
 from pipeline.config import (
@@ -20,13 +23,14 @@ from pipeline.config import (
     _AT_MOST,
     _BOUNDS,
     SLAM2D_SECTIONS,
+    SLAM3D_SECTIONS,
     ConfigError,
     ReplayConfig,
     default_config_toml,
     is_angle_field,
     load_config,
 )
-from tests.test_pipeline_replay import write_loop_graph
+from tests.pipeline_fixtures import write_loop_graph
 
 
 def write_config(tmp_path: Path, text: str, name: str = "replay.toml") -> Path:
@@ -41,6 +45,7 @@ def test_defaults_round_trip_through_toml(tmp_path: Path) -> None:
     assert loaded == ReplayConfig()
     # The frontend gets exactly its own defaults back (degrees in the file, radians inside).
     assert loaded.to_slam2d() == Slam2DConfig()
+    assert loaded.to_slam3d() == Slam3DConfig()
     assert (loaded.optimizer.method, loaded.optimizer.iterations) == ("sgd+gn", 100)
     assert loaded.input.scan_topic is None and loaded.input.odom_topic is None
 
@@ -51,13 +56,35 @@ def test_an_empty_file_is_the_defaults(tmp_path: Path) -> None:
 
 def test_sections_mirror_the_dataclasses() -> None:
     assert list(SLAM2D_SECTIONS) == ["matching", "odometry", "keyframes", "loop_closure"]
-    for name, model in SLAM2D_SECTIONS.items():
-        dataclass_type = type(getattr(Slam2DConfig(), name))
-        assert list(model.model_fields) == [item.name for item in dataclasses.fields(dataclass_type)]
+    assert list(SLAM3D_SECTIONS) == ["odometry", "keyframes", "loop_closure"]
+    frontends = {"slam2d": (SLAM2D_SECTIONS, Slam2DConfig()), "slam3d": (SLAM3D_SECTIONS, Slam3DConfig())}
+    for sections, defaults in frontends.values():
+        for name, model in sections.items():
+            dataclass_type = type(getattr(defaults, name))
+            assert list(model.model_fields) == [item.name for item in dataclasses.fields(dataclass_type)]
     rule_keys = [*_BOUNDS, *_AT_LEAST, *_AT_MOST]
     rule_keys += [(section, other) for (section, _), other in [*_AT_LEAST.items(), *_AT_MOST.items()]]
-    for section, key in rule_keys:  # a misspelt rule would silently never apply
-        assert key in SLAM2D_SECTIONS[section].model_fields, (section, key)
+    for qualified, key in rule_keys:  # a misspelt rule would silently never apply
+        frontend, section = qualified.split(".")
+        assert key in frontends[frontend][0][section].model_fields, (qualified, key)
+
+
+def test_the_file_has_a_section_per_frontend_setting_group() -> None:
+    text = default_config_toml()
+    for header in ("[input]", "[optimizer]", "[slam2d.matching]", "[slam2d.loop_closure]",
+                   "[slam3d.odometry]", "[slam3d.keyframes]", "[slam3d.loop_closure]"):
+        assert f"\n{header}\n" in text, header
+    assert "\n[matching]\n" not in text  # the 2D settings moved under [slam2d]
+
+
+def test_3d_settings_reach_the_3d_frontend_in_its_units(tmp_path: Path) -> None:
+    path = write_config(tmp_path, "[slam3d.odometry]\nmax_range = 60\nvoxel_size = 0.4\n\n"
+                                  "[slam3d.keyframes]\nangle = 20\n")
+    frontend = load_config(path).to_slam3d()
+    assert frontend.odometry == Odometry3DConfig(max_range=60.0, voxel_size=0.4)
+    assert frontend.keyframes == Keyframe3DConfig(angle=math.radians(20))
+    assert ReplayConfig().to_slam3d().odometry.voxel_size is None  # left out: KISS-ICP's rule
+    assert ReplayConfig().to_slam3d() == Slam3DConfig()
 
 
 def test_angles_are_degrees_in_the_file() -> None:
@@ -71,9 +98,9 @@ def test_angles_are_degrees_in_the_file() -> None:
         ("loop_closure", "angular_window"), ("loop_closure", "angular_step"),
         ("loop_closure", "small_correction_angular"),
     }
-    config = ReplayConfig(keyframes={"angle": 30, "max_turn_rate": 90.0, "distance": 0.5},
-                          odometry={"odometry_sigma_per_radian": 0.2})
-    assert config.keyframes.angle == 30.0
+    config = ReplayConfig(slam2d={"keyframes": {"angle": 30, "max_turn_rate": 90.0, "distance": 0.5},
+                                  "odometry": {"odometry_sigma_per_radian": 0.2}})
+    assert config.slam2d.keyframes.angle == 30.0
     frontend = config.to_slam2d()
     assert frontend.keyframes == KeyframeConfig(distance=0.5, angle=math.pi / 6, max_turn_rate=math.pi / 2)
     assert frontend.odometry == OdometryConfig(odometry_sigma_per_radian=0.2)  # a ratio, not an angle
@@ -88,7 +115,7 @@ scan_topic = "/front/scan"
 method = "sgd"
 iterations = 7
 
-[loop_closure]
+[slam2d.loop_closure]
 enabled = false
 angular_window = 40
 """)
@@ -101,8 +128,11 @@ angular_window = 40
 
 def test_derived_defaults_follow_the_values_they_depend_on() -> None:
     # Raising the search radius alone raises the cap with it rather than failing ...
-    assert ReplayConfig(loop_closure={"search_radius": 12.0}).loop_closure.max_search_radius == 12.0
-    assert ReplayConfig(loop_closure={"search_radius": 3.0}).loop_closure.max_search_radius == 10.0
+    for frontend, default in (("slam2d", 10.0), ("slam3d", 30.0)):
+        raised = ReplayConfig(**{frontend: {"loop_closure": {"search_radius": default + 2}}})
+        assert getattr(raised, frontend).loop_closure.max_search_radius == default + 2
+        lowered = ReplayConfig(**{frontend: {"loop_closure": {"search_radius": 3.0}}})
+        assert getattr(lowered, frontend).loop_closure.max_search_radius == default
     # ... and Gauss-Newton alone gets the polish cap unless iterations are given.
     assert ReplayConfig(optimizer={"method": "gn"}).optimizer.iterations == DEFAULT_POLISH_ITERATIONS
     assert ReplayConfig(optimizer={"method": "gn", "iterations": 4}).optimizer.iterations == 4
@@ -110,28 +140,43 @@ def test_derived_defaults_follow_the_values_they_depend_on() -> None:
 
 
 def test_a_configuration_pickles() -> None:  # it travels to the worker processes of a batch
-    config = ReplayConfig(optimizer={"method": "sgd"}, matching={"resolution": 0.1})
+    config = ReplayConfig(optimizer={"method": "sgd"}, slam2d={"matching": {"resolution": 0.1}},
+                          slam3d={"odometry": {"voxel_size": 0.5}})
     assert pickle.loads(pickle.dumps(config)) == config
 
 
 BAD_FILES = {
-    "typo in a key": ("[optimizer]\nmethod = \"sgd\"\n\n[loop_closure]\nserach_radius = 3.0\n", 5,
-                      "loop_closure.serach_radius: ", "did you mean search_radius"),
-    "typo in a section": ("[matchin]\nresolution = 0.1\n", 1, "matchin: ", "did you mean matching"),
-    "negative length": ("[matching]\nresolution = 0.1\nmax_range = -5\n", 3, "matching.max_range: ",
-                        "greater than 0"),
-    "text for a number": ("[keyframes]\ndistance = \"far\"\n", 2, "keyframes.distance: ", "valid number"),
-    "boolean for a count": ("[matching]\nmin_points = true\n", 2, "matching.min_points: ", "valid integer"),
-    "fraction above one": ("[loop_closure]\nmin_score = 1.5\n", 2, "loop_closure.min_score: ",
+    "typo in a key": ("[optimizer]\nmethod = \"sgd\"\n\n[slam2d.loop_closure]\nserach_radius = 3.0\n", 5,
+                      "slam2d.loop_closure.serach_radius: ", "did you mean search_radius"),
+    "typo in a section": ("[slam2d.matchin]\nresolution = 0.1\n", 1, "slam2d.matchin: ",
+                          "did you mean matching"),
+    "typo in a frontend": ("[slam4d.odometry]\nmax_range = 10\n", 1, "slam4d: ", "unknown section"),
+    "2D section at the top": ("[matching]\nresolution = 0.1\n", 1, "matching: ", "unknown section"),
+    "negative length": ("[slam2d.matching]\nresolution = 0.1\nmax_range = -5\n", 3,
+                        "slam2d.matching.max_range: ", "greater than 0"),
+    "text for a number": ("[slam2d.keyframes]\ndistance = \"far\"\n", 2, "slam2d.keyframes.distance: ",
+                          "valid number"),
+    "boolean for a count": ("[slam2d.matching]\nmin_points = true\n", 2, "slam2d.matching.min_points: ",
+                            "valid integer"),
+    "fraction above one": ("[slam2d.loop_closure]\nmin_score = 1.5\n", 2, "slam2d.loop_closure.min_score: ",
                            "less than or equal to 1"),
     "unknown method": ("[optimizer]\nmethod = \"lm\"\n", 2, "optimizer.method: ", "sgd+gn"),
-    "cap below radius": ("[loop_closure]\nsearch_radius = 8.0\nmax_search_radius = 5.0\n", 3,
-                         "loop_closure.max_search_radius: ", "at least search_radius"),
-    "step wider than window": ("[odometry]\nangular_step = 10\n", 2, "odometry.angular_step: ",
+    "cap below radius": ("[slam2d.loop_closure]\nsearch_radius = 8.0\nmax_search_radius = 5.0\n", 3,
+                         "slam2d.loop_closure.max_search_radius: ", "at least search_radius"),
+    "3D cap below radius": ("[slam3d.loop_closure]\nsearch_radius = 40.0\nmax_search_radius = 35.0\n", 3,
+                            "slam3d.loop_closure.max_search_radius: ", "at least search_radius"),
+    "step wider than window": ("[slam2d.odometry]\nangular_step = 10\n", 2, "slam2d.odometry.angular_step: ",
                                "at most window_angular"),
-    "not infinite": ("[matching]\nmax_range = inf\n", 2, "matching.max_range: ", "finite"),
-    "dotted key": ("matching.resolutoin = 0.1\n", 1, "matching.resolutoin: ", "did you mean resolution"),
-    "syntax error": ("[matching]\nresolution = \n", 2, "not valid TOML: ", "Invalid value"),
+    "not infinite": ("[slam2d.matching]\nmax_range = inf\n", 2, "slam2d.matching.max_range: ", "finite"),
+    "3D voxel too fine": ("[slam3d.odometry]\nvoxel_size = 0.001\n", 2, "slam3d.odometry.voxel_size: ",
+                          "greater than or equal to 0.01"),
+    "3D range beyond any sensor": ("[slam3d.odometry]\nmax_range = 1e300\n", 2,
+                                   "slam3d.odometry.max_range: ", "less than or equal to 1000"),
+    "3D text for a switch": ("[slam3d.odometry]\ndeskew = \"yes\"\n", 2, "slam3d.odometry.deskew: ",
+                             "valid boolean"),
+    "dotted key": ("slam2d.matching.resolutoin = 0.1\n", 1, "slam2d.matching.resolutoin: ",
+                   "did you mean resolution"),
+    "syntax error": ("[slam2d.matching]\nresolution = \n", 2, "not valid TOML: ", "Invalid value"),
 }
 
 
@@ -172,19 +217,22 @@ def test_dump_config_prints_defaults_that_load_back(tmp_path: Path) -> None:
     result = run_replay("--dump-config")
     assert result.exit_code == 0, result.output
     assert result.stderr == ""
-    assert "[loop_closure]" in result.stdout and "degrees" in result.stdout
+    assert "[slam2d.loop_closure]" in result.stdout and "[slam3d.loop_closure]" in result.stdout
+    assert "degrees" in result.stdout
     assert load_config(write_config(tmp_path, result.stdout)) == ReplayConfig()
 
 
 def test_options_override_the_config_file_in_dump_config(tmp_path: Path) -> None:
     path = write_config(tmp_path, "[optimizer]\nmethod = \"gn\"\niterations = 7\n\n"
-                                  "[input]\nscan_topic = \"/a\"\n\n[keyframes]\ndistance = 0.5\n")
-    result = run_replay("--config", path, "--method", "sgd", "--scan-topic", "/b", "--dump-config")
+                                  "[input]\nscan_topic = \"/a\"\n\n[slam2d.keyframes]\ndistance = 0.5\n\n"
+                                  "[slam3d.keyframes]\ndistance = 2.5\n")
+    result = run_replay("--config", path, "--method", "sgd", "--scan-topic", "/b", "--base-frame", "chassis",
+                        "--dump-config")
     assert result.exit_code == 0, result.output
     dumped = load_config(write_config(tmp_path, result.stdout, "dumped.toml"))
     assert (dumped.optimizer.method, dumped.optimizer.iterations) == ("sgd", 7)
-    assert dumped.input.scan_topic == "/b"
-    assert dumped.keyframes.distance == 0.5
+    assert (dumped.input.scan_topic, dumped.input.base_frame) == ("/b", "chassis")
+    assert (dumped.slam2d.keyframes.distance, dumped.slam3d.keyframes.distance) == (0.5, 2.5)
 
 
 def test_options_override_the_config_file_in_a_run(tmp_path: Path) -> None:
@@ -212,3 +260,21 @@ def test_a_bad_config_file_is_a_one_line_error_before_anything_runs(tmp_path: Pa
         f"replay: error: {path}:2: optimizer.iteratons: unknown key in [optimizer]; did you mean iterations?"
     ]
     assert not (tmp_path / "out").exists()
+
+
+def test_options_that_apply_to_no_input_are_refused_in_one_line(tmp_path: Path) -> None:
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    cases = [
+        ((tmp_path / "run.mcap", "--repair-information"), "--repair-information", "pose-graph inputs only"),
+        (("--repair-information",), "--repair-information", "pose-graph inputs only"),  # the sample log
+        ((graph, "--scan-topic", "/scan"), "--scan-topic", "logs only"),
+        ((graph, "--odom-topic", "/odom"), "--odom-topic", "logs only"),
+        ((graph, "--base-frame", "base_link"), "--base-frame", "logs only"),
+    ]
+    for args, option, reason in cases:
+        result = run_replay(*args, "--out", tmp_path / "out")
+        assert result.exit_code == 2, (args, result.output)
+        assert len(result.stderr.splitlines()) == 1 and option in result.stderr and reason in result.stderr
+    assert not (tmp_path / "out").exists()
+    mixed = run_replay(graph, tmp_path / "run.mcap", "--repair-information", "--out", tmp_path / "out")
+    assert "--repair-information" not in mixed.stderr  # it applies to the graph: accepted

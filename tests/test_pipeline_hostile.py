@@ -36,9 +36,9 @@ def test_option_values_out_of_range_are_one_line_errors(tmp_path: Path, args: li
 
 
 @pytest.mark.parametrize(("setting", "bound"), [
-    ("[matching]\nresolution = 1e-9\n", "greater than or equal to 0.005"),
-    ("[matching]\nmax_range = 1e300\n", "less than or equal to 1000"),
-    ("[keyframes]\nlocal_map_keyframes = 2000000000\n", "less than or equal to 10000"),
+    ("[slam2d.matching]\nresolution = 1e-9\n", "greater than or equal to 0.005"),
+    ("[slam2d.matching]\nmax_range = 1e300\n", "less than or equal to 1000"),
+    ("[slam2d.keyframes]\nlocal_map_keyframes = 2000000000\n", "less than or equal to 10000"),
     ("[optimizer]\niterations = 1000000000\n", "less than or equal to 1000000"),
 ])
 def test_config_values_that_would_overflow_are_rejected(tmp_path: Path, setting: str, bound: str) -> None:

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import json
-import math
 import shutil
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from mcap.writer import Writer as McapWriter
 from PIL import Image
 from typer.testing import CliRunner
@@ -17,106 +17,14 @@ from typer.testing import CliRunner
 from optimizer import se2
 from pipeline.cli import app
 from pipeline.trajectory_io import read_tum
-from tests._frontends_fixtures import RosMessages, quaternion_from_yaw, ros2_mcap
-from tests.laser_world import drive, simulate_scan, square_loop, wheel_odometry
-from tests.test_pipeline_replay import read_recording
-
-LASER_MOUNT = np.array([0.25, 0.0, 0.0])
-"""The laser sits 25 cm ahead of the base: the replay must take that from /tf_static."""
-BEAMS = 360
-SCAN_PERIOD_NS = 400_000_000
-START_NS = 1_700_000_000_000_000_000
-
-
-def _ranges(points: np.ndarray) -> np.ndarray:
-    """Sensor-frame points back to a 360-beam LaserScan's ranges (inf where a beam had no return)."""
-    ranges = np.full(BEAMS, np.inf, dtype=np.float32)
-    bearings = np.arctan2(points[:, 1], points[:, 0]) % (2 * math.pi)
-    index = np.round(bearings / (2 * math.pi / BEAMS)).astype(int) % BEAMS
-    ranges[index] = np.hypot(points[:, 0], points[:, 1])
-    return ranges
-
-
-def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = None) -> np.ndarray:
-    """Drive the simulated building's loop, writing /scan, /odom, /tf and /tf_static; returns the truth
-    (base poses) per scan."""
-    rng = np.random.default_rng(7)
-    truth = drive(square_loop(), 0.4)[:scans]
-    odometry = wheel_odometry(truth, rng)
-    with ros2_mcap(path) as (messages, add):
-        types = messages.types
-
-        def transform(stamp: int, parent: str, child: str, pose: np.ndarray) -> object:
-            q = quaternion_from_yaw(float(pose[2]))
-            return types["geometry_msgs/msg/TransformStamped"](
-                header=messages.header(stamp, parent),
-                child_frame_id=child,
-                transform=types["geometry_msgs/msg/Transform"](
-                    translation=types["geometry_msgs/msg/Vector3"](x=float(pose[0]), y=float(pose[1]), z=0.0),
-                    rotation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
-                ),
-            )
-
-        add(
-            "/tf_static",
-            "tf2_msgs/msg/TFMessage",
-            START_NS,
-            types["tf2_msgs/msg/TFMessage"](
-                transforms=[transform(START_NS, "base_link", "laser", LASER_MOUNT)]
-            ),
-        )
-        for k, pose in enumerate(truth):
-            stamp = START_NS + k * SCAN_PERIOD_NS
-            if with_odometry:
-                q = quaternion_from_yaw(float(odometry[k, 2]))
-                covariance = np.zeros(36)
-                odom = types["nav_msgs/msg/Odometry"](
-                    header=messages.header(stamp, "odom"),
-                    child_frame_id="base_link",
-                    pose=types["geometry_msgs/msg/PoseWithCovariance"](
-                        pose=types["geometry_msgs/msg/Pose"](
-                            position=types["geometry_msgs/msg/Point"](
-                                x=odometry[k, 0], y=odometry[k, 1], z=0.0
-                            ),
-                            orientation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
-                        ),
-                        covariance=covariance,
-                    ),
-                    twist=types["geometry_msgs/msg/TwistWithCovariance"](
-                        twist=types["geometry_msgs/msg/Twist"](
-                            linear=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                            angular=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                        ),
-                        covariance=covariance,
-                    ),
-                )
-                add("/odom", "nav_msgs/msg/Odometry", stamp, odom)
-                add(
-                    "/tf",
-                    "tf2_msgs/msg/TFMessage",
-                    stamp,
-                    types["tf2_msgs/msg/TFMessage"](
-                        transforms=[transform(stamp, "odom", "base_link", odometry[k])]
-                    ),
-                )
-            laser_pose = se2.compose(pose, LASER_MOUNT)
-            points = simulate_scan(
-                square_loop().segments, laser_pose, beams=BEAMS, max_range=20.0, range_noise=0.01, rng=rng
-            )
-            scan = types["sensor_msgs/msg/LaserScan"](
-                header=messages.header(stamp, "laser"),
-                angle_min=0.0,
-                angle_max=float(2 * math.pi * (BEAMS - 1) / BEAMS),
-                angle_increment=float(2 * math.pi / BEAMS),
-                time_increment=0.0,
-                scan_time=0.1,
-                range_min=0.05,
-                range_max=20.0,
-                ranges=_ranges(points),
-                intensities=np.zeros(0, dtype=np.float32),
-            )
-            add("/scan", "sensor_msgs/msg/LaserScan", stamp, scan)
-    return truth
+from tests._frontends_fixtures import RosMessages
+from tests.laser_world import wheel_odometry
+from tests.pipeline_fixtures import (
+    SCAN_PERIOD_NS,
+    START_NS,
+    read_recording,
+    write_drive,
+)
 
 
 @pytest.fixture(scope="module")
@@ -144,8 +52,13 @@ def test_replay_of_a_log_writes_a_trajectory_per_scan_that_follows_the_truth(
         "drive.json",
         "drive.rrd",
         "drive.tum",
+        "drive_map.pgm",
         "drive_map.png",
+        "drive_map.yaml",
     ]
+    map_yaml = yaml.safe_load((out / "drive_map.yaml").read_text())
+    assert map_yaml["image"] == "drive_map.pgm" and map_yaml["mode"] == "trinary"
+    assert (out / "drive_map.pgm").read_bytes().startswith(b"P5")
 
     trajectory = read_tum(out / "drive.tum")
     np.testing.assert_array_equal(trajectory.stamps_ns, START_NS + np.arange(len(truth)) * SCAN_PERIOD_NS)
@@ -158,7 +71,10 @@ def test_replay_of_a_log_writes_a_trajectory_per_scan_that_follows_the_truth(
     summary = json.loads((out / "drive.json").read_text())
     assert summary["counts"]["scans"] == len(truth)
     assert summary["counts"]["scans_with_tf_mount"] == len(truth)
-    assert summary["scan_topic"] == "/scan" and summary["odometry_topic"] == "/odom"
+    assert summary["topic"] == "/scan" and summary["odometry_topic"] == "/odom"
+    frames = (summary["sensor"], summary["sensor_frame"], summary["base_frame"])
+    assert frames == ("scan", "laser", "base_link")
+    assert summary["warnings"] == []
     assert summary["loop_closures"]["accepted"] >= 1
 
     entities = read_recording(out / "drive.rrd")

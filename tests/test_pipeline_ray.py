@@ -23,9 +23,7 @@ from pipeline.batch_summary import BATCH_SUMMARY_NAME
 from pipeline.cli import app
 from pipeline.config import ReplayConfig
 from pipeline.outputs import staged_outputs
-from tests.test_pipeline_batch import BROKEN_GRAPH
-from tests.test_pipeline_log import write_drive
-from tests.test_pipeline_replay import LOOP_POSES, write_loop_graph
+from tests.pipeline_fixtures import BROKEN_GRAPH, LOOP_POSES, write_drive, write_loop_graph
 
 ray = pytest.importorskip("ray", reason="needs the ray extra: pip install '.[ray]'")
 pytestmark = pytest.mark.ray

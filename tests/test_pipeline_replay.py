@@ -6,18 +6,14 @@ import json
 import shutil
 import subprocess
 import sys
-from collections import defaultdict
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pytest
 import typer
 from numpy.typing import NDArray
-from rerun.chunk import RrdReader
 from typer.testing import CliRunner
 
-from optimizer import se2
 from optimizer.cost import chi2
 from optimizer.errors import GraphError
 from optimizer.graph_files import read_graph
@@ -25,81 +21,11 @@ from optimizer.solve import METHODS, optimize
 from pipeline import recording
 from pipeline.cli import DEFAULT_COMMAND, ReplayGroup, app
 from pipeline.replay_graph import replay_graph
+from tests.pipeline_fixtures import LOOP_POSES, loop_graph_text, read_recording, write_loop_graph
 
 REPO = Path(__file__).resolve().parents[1]
 
 # ----------------------------------------------------------------------------------------------- helpers
-
-LOOP_POSES = 30
-LOOP_INFORMATION = (50.0, 0.0, 0.0, 50.0, 0.0, 200.0)  # g2o upper triangle: xx xy xθ yy yθ θθ
-
-
-def loop_graph_text(poses: int = LOOP_POSES, seed: int = 3) -> str:
-    """g2o text of a robot driving once around a circle: noisy odometry, two loop closures, and an initial
-    estimate that drifts (a steady heading bias), so χ² starts high and the optimum is near zero."""
-    rng = np.random.default_rng(seed)
-    angles = 2.0 * np.pi * np.arange(poses) / poses
-    truth = np.stack([5.0 * np.cos(angles), 5.0 * np.sin(angles), se2.wrap_angle(angles + np.pi / 2)], axis=1)
-    odometry = [(i, i + 1) for i in range(poses - 1)]
-    closures = [(poses - 1, 0), (poses // 3, 2 * poses // 3)]
-    lines = []
-    steps = se2.relative(truth[:-1], truth[1:]) + rng.normal(scale=[0.01, 0.01, 0.005], size=(poses - 1, 3))
-    drifting = steps + np.array([0.0, 0.0, 0.03])
-    initial = se2.compose_chain(drifting, start=truth[0])
-    for index, (x, y, theta) in enumerate(initial):
-        lines.append(f"VERTEX_SE2 {index} {x:.9f} {y:.9f} {theta:.9f}")
-    information = " ".join(f"{value:g}" for value in LOOP_INFORMATION)
-    for (a, b), z in zip(odometry, steps, strict=True):
-        lines.append(f"EDGE_SE2 {a} {b} {z[0]:.9f} {z[1]:.9f} {z[2]:.9f} {information}")
-    for a, b in closures:
-        z = se2.relative(truth[a], truth[b])
-        lines.append(f"EDGE_SE2 {a} {b} {z[0]:.9f} {z[1]:.9f} {z[2]:.9f} {information}")
-    return "\n".join(lines) + "\n"
-
-
-def write_loop_graph(path: Path) -> Path:
-    path.write_text(loop_graph_text())
-    return path
-
-
-@dataclass
-class EntityData:
-    """What a recording holds for one entity: static rows, and per timeline the logged index values."""
-
-    static_rows: int = 0
-    timelines: set[str] = field(default_factory=set)
-    steps: list[int] = field(default_factory=list)
-    columns: dict[str, list[object]] = field(default_factory=lambda: defaultdict(list))
-    static_columns: dict[str, list[object]] = field(default_factory=lambda: defaultdict(list))
-
-
-def read_recording(path: Path, timeline: str = "iteration") -> dict[str, EntityData]:
-    """Every entity of the (first) recording in an .rrd, with its data as Python values, rows sorted by
-    `timeline`."""
-    entities: dict[str, EntityData] = defaultdict(EntityData)
-    for chunk in RrdReader(path).stream():
-        entity = entities[chunk.entity_path]
-        batch = chunk.to_record_batch()
-        data_columns = [name for name in batch.schema.names if ":" in name]
-        if chunk.is_static:
-            entity.static_rows += chunk.num_rows
-            for name in data_columns:
-                entity.static_columns[name].extend(batch.column(name).to_pylist())
-            continue
-        entity.timelines.update(chunk.timeline_names)
-        if timeline not in batch.schema.names:
-            continue
-        steps = batch.column(timeline).to_pylist()
-        entity.steps.extend(steps)
-        for name in data_columns:
-            entity.columns[name].extend(batch.column(name).to_pylist())
-    for entity in entities.values():  # chunks need not come in timeline order
-        order = np.argsort(entity.steps, kind="stable")
-        entity.steps = [entity.steps[i] for i in order]
-        for name, values in entity.columns.items():
-            entity.columns[name] = [values[i] for i in order]
-    return dict(entities)
-
 
 def strip_points(value: object) -> NDArray[np.float64]:
     """The points of the single line strip in one LineStrips2D row, as an (n, 2) array."""

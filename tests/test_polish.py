@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Generator
-
 import numpy as np
 import pytest
 
@@ -13,30 +11,10 @@ from optimizer.errors import GraphError, OptimizerError
 from optimizer.graph import PoseGraph
 from optimizer.graph_files import read_graph
 from optimizer.gridworld import generate_grid_world
-from optimizer.iteration import Iteration
 from optimizer.polish import PolishStatus, _gradient, edge_jacobians, gauss_newton
 from optimizer.sgd import sgd
 from tests.conftest import shared_file
-
-
-def run(polish: Generator[Iteration, None, PolishStatus]) -> tuple[list[Iteration], PolishStatus]:
-    """Every yielded iteration and the generator's return value."""
-    iterations: list[Iteration] = []
-
-    def collect() -> Generator[Iteration, None, PolishStatus]:
-        return (yield from polish)
-
-    generator = collect()
-    while True:
-        try:
-            iterations.append(next(generator))
-        except StopIteration as stop:
-            return iterations, stop.value
-
-
-def random_information(rng: np.random.Generator, count: int) -> np.ndarray:
-    factors = rng.normal(size=(count, 3, 3))
-    return factors @ np.swapaxes(factors, 1, 2) + 0.5 * np.eye(3)
+from tests.optimizer_fixtures import random_information, run
 
 
 def square_loop(rng: np.random.Generator, noise: float = 0.0) -> tuple[PoseGraph, np.ndarray]:

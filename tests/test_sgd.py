@@ -11,6 +11,7 @@ from optimizer.errors import OptimizerError
 from optimizer.graph import PoseGraph
 from optimizer.sgd import recomputes_stiffness, sgd
 from tests.conftest import shared_file
+from tests.optimizer_fixtures import square_loop_graph
 
 
 def _angle_aware_max_difference(a: np.ndarray, b: np.ndarray) -> float:
@@ -19,38 +20,12 @@ def _angle_aware_max_difference(a: np.ndarray, b: np.ndarray) -> float:
     return float(difference.max())
 
 
-def _square_loop(noise: float, seed: int = 0, laps: int = 3, side: int = 5,
-                 reverse_every: int = 0) -> tuple[PoseGraph, np.ndarray]:
-    """A robot driving `laps` laps of a square; odometry edges plus loop closures to the first lap.
-
-    With `reverse_every` = k > 0, every k-th edge is stored from its later to its earlier pose (measured
-    that way, not turned around)."""
-    rng = np.random.default_rng(seed)
-    per_lap = 4 * side
-    steps = np.tile(np.array([1.0, 0.0, 0.0]), (laps * per_lap, 1))
-    steps[side - 1 :: side, 2] = np.pi / 2
-    truth = se2.compose_chain(steps)
-    n = len(truth)
-    edges = [(i, i + 1) for i in range(n - 1)]
-    edges += [(i, i + per_lap * lap) for lap in range(1, laps) for i in range(0, per_lap, 3)
-              if i + per_lap * lap < n]
-    if reverse_every:
-        edges = [(b, a) if k % reverse_every == 0 else (a, b) for k, (a, b) in enumerate(edges)]
-    a = np.array([e[0] for e in edges])
-    b = np.array([e[1] for e in edges])
-    z = se2.relative(truth[a], truth[b]) + rng.normal(0.0, noise, (len(edges), 3)) * [1.0, 1.0, 0.2]
-    info = np.tile(np.diag([100.0, 100.0, 400.0]), (len(edges), 1, 1))
-    steps = se2.relative(truth[:-1], truth[1:]) + rng.normal(0.0, noise, (n - 1, 3)) * [1.0, 1.0, 0.2]
-    odometry = se2.compose_chain(steps)
-    return PoseGraph.build(np.arange(n), odometry, a, b, z, info), truth
-
-
 def test_stiffness_schedule_is_powers_of_two() -> None:
     assert [t for t in range(1, 40) if recomputes_stiffness(t)] == [1, 2, 4, 8, 16, 32]
 
 
 def test_consistent_graph_at_its_solution_does_not_move() -> None:
-    graph, truth = _square_loop(noise=0.0)
+    graph, truth = square_loop_graph(noise=0.0)
     graph = graph.with_poses(truth)
     for step in sgd(graph, 5):
         assert _angle_aware_max_difference(step.poses, truth) < 1e-12
@@ -71,13 +46,13 @@ def test_chain_is_rebuilt_from_its_measurements_in_one_iteration() -> None:
 
 
 def test_last_visited_constraint_is_satisfied_after_the_first_iteration() -> None:
-    graph, _ = _square_loop(noise=0.05)
+    graph, _ = square_loop_graph(noise=0.05)
     first = next(sgd(graph, 1))
     assert np.abs(edge_errors(graph, first.poses)[-1]).max() < 1e-9
 
 
 def test_sgd_recovers_the_loop_from_a_poor_initial_estimate() -> None:
-    graph, truth = _square_loop(noise=0.03, seed=1)
+    graph, truth = square_loop_graph(noise=0.03, seed=1)
     steps = list(sgd(graph, 100))
     assert [s.index for s in steps] == list(range(1, 101))
     assert all(s.stage == "sgd" for s in steps)
@@ -89,7 +64,7 @@ def test_sgd_recovers_the_loop_from_a_poor_initial_estimate() -> None:
 
 
 def test_first_pose_is_the_anchor() -> None:
-    graph, _ = _square_loop(noise=0.05, seed=2)
+    graph, _ = square_loop_graph(noise=0.05, seed=2)
     for step in sgd(graph, 10):
         np.testing.assert_array_equal(step.poses[0], graph.poses[0])
 
@@ -97,7 +72,7 @@ def test_first_pose_is_the_anchor() -> None:
 @pytest.mark.parametrize("reverse_every", [2, 3])
 def test_sgd_solves_reversed_edges_as_stored(reverse_every: int) -> None:
     # Edges measured from the later pose: a wrong sign on their steps would drive χ² up, not down.
-    graph, truth = _square_loop(noise=0.03, seed=1, reverse_every=reverse_every)
+    graph, truth = square_loop_graph(noise=0.03, seed=1, reverse_every=reverse_every)
     assert graph.is_reversed.sum() > graph.num_edges // 4
     final = list(sgd(graph, 100))[-1]
     assert final.chi2 < 0.05 * chi2(graph)
@@ -109,7 +84,7 @@ def test_sgd_solves_reversed_edges_as_stored(reverse_every: int) -> None:
 @pytest.mark.parametrize("tree_block", [1, 3, 8, 128])
 def test_tree_equals_algorithm_1_on_generated_loops(seed: int, reverse_every: int, tree_block: int) -> None:
     # Blocks of 1 are a plain segment tree over the increments; 128 > N puts the whole loop in one block.
-    graph, _ = _square_loop(noise=0.1, seed=seed, laps=4, reverse_every=reverse_every)
+    graph, _ = square_loop_graph(noise=0.1, seed=seed, laps=4, reverse_every=reverse_every)
     tree = list(sgd(graph, 40, tree_block=tree_block))
     linear = list(sgd(graph, 40, implementation="linear"))
     for a, b in zip(tree, linear, strict=True):
@@ -130,7 +105,7 @@ def test_tree_equals_algorithm_1_on_real_graphs(relative: str, iterations: int) 
 
 
 def test_continuing_the_schedule_matches_one_long_run() -> None:
-    graph, _ = _square_loop(noise=0.1, seed=5)
+    graph, _ = square_loop_graph(noise=0.1, seed=5)
     whole = list(sgd(graph, 6))
     head = list(sgd(graph, 3))
     tail = list(sgd(graph, 3, head[-1].poses, first_iteration=4))
@@ -139,7 +114,7 @@ def test_continuing_the_schedule_matches_one_long_run() -> None:
 
 
 def test_bad_arguments_raise_our_error() -> None:
-    graph, _ = _square_loop(noise=0.0)
+    graph, _ = square_loop_graph(noise=0.0)
     with pytest.raises(OptimizerError):
         list(sgd(graph, -1))
     with pytest.raises(OptimizerError):
@@ -152,7 +127,7 @@ def test_bad_arguments_raise_our_error() -> None:
 
 def test_later_iterations_leave_earlier_poses_and_the_graph_untouched() -> None:
     # The tree starts each iteration from the poses it yielded last and writes a new array.
-    graph, _ = _square_loop(noise=0.1, seed=4)
+    graph, _ = square_loop_graph(noise=0.1, seed=4)
     initial = graph.poses.copy()
     iterations = []
     copies = []

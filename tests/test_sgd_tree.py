@@ -14,7 +14,7 @@ from optimizer.graph import PoseGraph
 from optimizer.gridworld import generate_grid_world
 from optimizer.polish import gauss_newton
 from optimizer.sgd import sgd
-from optimizer.sgd_tree import sgd_tree, spanning_tree
+from optimizer.sgd_tree import breadth_first_tree, incremental_tree, path_variance, sgd_tree, spanning_tree
 from tests.conftest import shared_file
 
 
@@ -39,9 +39,9 @@ def _last_chi2_of_gauss_newton(graph: PoseGraph, poses: np.ndarray) -> float:
     return result
 
 
-def test_spanning_tree_paths_are_shortest_hop_paths() -> None:
+def test_breadth_first_tree_paths_are_shortest_hop_paths() -> None:
     graph = generate_grid_world(200, seed=3).graph
-    tree = spanning_tree(graph)
+    tree = spanning_tree(graph, "breadth-first")
     adjacency = coo_matrix((np.ones(graph.num_edges), (graph.edge_from, graph.edge_to)),
                            shape=(graph.num_poses,) * 2)
     hops = shortest_path(adjacency, directed=False, unweighted=True, indices=0)
@@ -62,7 +62,73 @@ def test_spanning_tree_paths_are_shortest_hop_paths() -> None:
         assert tree.path_length[k] == ancestors[0].index(common[0]) + ancestors[1].index(common[0])
 
 
-def test_a_tree_of_constraints_is_solved_in_one_iteration() -> None:
+def _six_pose_graph(loops: list[tuple[int, int]]) -> PoseGraph:
+    """Odometry 0→1→…→5 plus the given loop constraints, stored as given (exact measurements of a line)."""
+    pairs = [(i, i + 1) for i in range(5)] + loops
+    truth = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])
+    a = np.array([pair[0] for pair in pairs])
+    b = np.array([pair[1] for pair in pairs])
+    information = np.tile(np.eye(3), (len(pairs), 1, 1))
+    return PoseGraph.build(np.arange(6), truth, a, b, se2.relative(truth[a], truth[b]), information)
+
+
+def test_incremental_tree_hangs_each_pose_from_its_lowest_numbered_neighbour() -> None:
+    # Pose 4 sees pose 1 (stored 4 → 1) and pose 5 sees pose 0: they hang from those, as in TORO.
+    graph = _six_pose_graph([(4, 1), (0, 5)])
+    tree = spanning_tree(graph, "incremental")
+    np.testing.assert_array_equal(tree.parent, [0, 0, 1, 2, 1, 0])
+    np.testing.assert_array_equal(tree.depth, [0, 1, 2, 3, 2, 1])
+    # Edges in stored order: 0-1, 1-2, 2-3, 3-4 (3→2→1←4), 4-5 (4→1→0←5), 4→1, 0→5.
+    np.testing.assert_array_equal(tree.top, [0, 1, 2, 1, 0, 1, 0])
+    np.testing.assert_array_equal(tree.path_length, [1, 1, 1, 3, 3, 1, 1])
+    # Constraints are visited by the depth of their top, ties in stored order.
+    np.testing.assert_array_equal(tree.visit_order(), [0, 4, 6, 1, 3, 5, 2])
+
+
+def test_no_incremental_tree_when_a_pose_has_no_lower_neighbour() -> None:
+    # Pose 3 → 4 removed and pose 4 tied only to 5: pose 4 has no lower-numbered neighbour.
+    pairs = [(0, 1), (1, 2), (2, 3), (5, 4), (3, 5)]
+    truth = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])
+    a = np.array([pair[0] for pair in pairs])
+    b = np.array([pair[1] for pair in pairs])
+    graph = PoseGraph.build(np.arange(6), truth, a, b, se2.relative(truth[a], truth[b]),
+                            np.tile(np.eye(3), (5, 1, 1)))
+    assert incremental_tree(graph) is None
+    with pytest.raises(OptimizerError):
+        spanning_tree(graph, "incremental")
+    assert spanning_tree(graph).kind == "breadth-first"
+    with pytest.raises(OptimizerError):
+        spanning_tree(graph, "widest")  # type: ignore[arg-type]
+
+
+def test_auto_takes_the_incremental_tree_only_where_its_paths_are_shorter_and_more_certain() -> None:
+    # Equal information everywhere: the incremental tree's paths are 3.7 times shorter in total.
+    equal = generate_grid_world(1500, seed=0, loop_sigma=(0.02, 0.02, 0.01)).graph
+    assert incremental_tree(equal).total_path_length < breadth_first_tree(equal).total_path_length
+    assert spanning_tree(equal).kind == "incremental"
+    # The default world's loop closures are 2.5 times less certain than its odometry in x and y; the
+    # incremental tree hangs revisits from them, so its paths carry more variance there.
+    weak_loops = generate_grid_world(1500, seed=0).graph
+    assert incremental_tree(weak_loops).total_path_length < breadth_first_tree(weak_loops).total_path_length
+    assert path_variance(weak_loops, incremental_tree(weak_loops))[0] > path_variance(
+        weak_loops, breadth_first_tree(weak_loops))[0]
+    assert spanning_tree(weak_loops).kind == "breadth-first"
+
+
+def test_path_variance_counts_each_path_edge_variance_over_the_constraint() -> None:
+    graph = _six_pose_graph([(4, 1), (0, 5)])
+    information = graph.information.copy()
+    information[3] = np.diag([4.0, 4.0, 4.0])  # 3-4: a path of three unit variances, weighted by 4
+    information[5] = np.diag([2.0, 2.0, 2.0])  # 4→1 is pose 4's tree edge: variance 1/2
+    graph = PoseGraph(graph.poses, graph.edge_from, graph.edge_to, graph.measurements, information,
+                      graph.vertex_ids)
+    tree = incremental_tree(graph)
+    # Paths: 0-1: 1; 1-2: 1; 2-3: 1; 3-4: (1 + 1 + 0.5)·4; 4-5: 0.5 + 1 + 1; 4→1: 0.5·2; 0→5: 1.
+    np.testing.assert_allclose(path_variance(graph, tree), np.full(3, 1 + 1 + 1 + 10 + 2.5 + 1 + 1))
+
+
+@pytest.mark.parametrize("kind", ["breadth-first", "incremental"])
+def test_a_tree_of_constraints_is_solved_in_one_iteration(kind: str) -> None:
     # With α = 1/γ at t = 1 and isotropic information every step is clamped to the whole residual; a
     # constraint graph that is itself a tree is then satisfied constraint by constraint, parents first.
     rng = np.random.default_rng(4)
@@ -72,7 +138,7 @@ def test_a_tree_of_constraints_is_solved_in_one_iteration() -> None:
     z = rng.normal([1.0, 0.2, 0.1], [0.5, 0.5, 0.6], (n - 1, 3))
     info = np.tile(np.diag([20.0, 20.0, 80.0]), (n - 1, 1, 1))
     graph = PoseGraph.build(np.arange(n), rng.normal(size=(n, 3)), parents, children, z, info)
-    result = next(sgd_tree(graph, 1, learning_rate_scale=1.0))
+    result = next(sgd_tree(graph, 1, tree=kind))
     expected = graph.poses.copy()
     for child, parent, measurement in zip(children, parents, z, strict=True):
         expected[child] = se2.compose(expected[parent], measurement)
@@ -91,8 +157,8 @@ def test_consistent_graph_at_its_solution_does_not_move() -> None:
         assert np.abs(difference).max() < 1e-9
 
 
-@pytest.mark.parametrize("every", [2, 3])
-def test_reversed_edges_reach_the_gauss_newton_optimum(every: int) -> None:
+@pytest.mark.parametrize(("every", "kind"), [(2, "breadth-first"), (3, "breadth-first"), (2, "incremental")])
+def test_reversed_edges_reach_the_gauss_newton_optimum(every: int, kind: str) -> None:
     rng = np.random.default_rng(every)
     world = generate_grid_world(500, seed=every)
     noise = (0.02, 0.02, 0.01)
@@ -102,7 +168,7 @@ def test_reversed_edges_reach_the_gauss_newton_optimum(every: int) -> None:
     graph = graph.with_poses(start)
     optimum = _last_chi2_of_gauss_newton(graph, world.ground_truth)
 
-    steps = list(sgd_tree(graph, 100))
+    steps = list(sgd_tree(graph, 100, tree=kind))
     assert [s.index for s in steps] == list(range(1, 101))
     assert all(s.stage == "sgd-tree" for s in steps)
     assert steps[-1].chi2 < 1e-2 * chi2(graph)
@@ -130,11 +196,15 @@ def test_beats_the_paper_sgd_on_a_grid_world() -> None:
     assert tree < 0.5 * paper
 
 
-def test_beats_the_paper_sgd_tenfold_on_m3500() -> None:
+def test_reaches_toros_figure_on_m3500() -> None:
     from optimizer.graph_files import read_graph
 
     graph = read_graph(shared_file("posegraphs/2d/M3500.g2o")).graph
+    assert spanning_tree(graph).kind == "incremental"
     tree = list(sgd_tree(graph, 100))[-1].chi2
+    # TORO (the authors' C++ tool) reaches 248.8 from this file in 100 iterations (measured, issue 9); the
+    # paper's SGD ends above 5 000.
+    assert tree <= 248.8
     paper = list(sgd(graph, 100))[-1].chi2
     assert tree < 0.1 * paper
 
@@ -161,3 +231,18 @@ def test_bad_arguments_raise_our_error() -> None:
     with pytest.raises(OptimizerError):
         list(sgd_tree(graph, 1, poses))
     assert list(sgd_tree(graph, 0)) == []
+
+
+def test_from_a_poor_start_it_leads_gauss_newton_to_the_optimum() -> None:
+    # Heavy heading noise (σθ = 0.2 rad on every odometry step): Gauss–Newton from the odometry estimate
+    # and after the paper's SGD ends in wrong basins; after the tree SGD it reaches the minimum that it
+    # finds from the ground truth.
+    world = generate_grid_world(1000, seed=0, odometry_sigma=(0.02, 0.02, 0.2))
+    graph = world.graph
+    optimum = _last_chi2_of_gauss_newton(graph, world.ground_truth)
+    assert _last_chi2_of_gauss_newton(graph, graph.poses) > 2.0 * optimum
+    paper = list(sgd(graph, 100))[-1]
+    assert _last_chi2_of_gauss_newton(graph, paper.poses) > 100.0 * optimum
+    tree = list(sgd_tree(graph, 100))[-1]
+    assert tree.chi2 < 0.1 * paper.chi2
+    assert _last_chi2_of_gauss_newton(graph, tree.poses) == pytest.approx(optimum, rel=1e-6)

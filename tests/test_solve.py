@@ -16,12 +16,12 @@ from optimizer.iteration import Iteration
 from optimizer.polish import gauss_newton
 from optimizer.solve import ESTIMATE, METHODS, optimize
 from tests.conftest import shared_file
-from tests.test_sgd import _square_loop
+from tests.optimizer_fixtures import square_loop_graph
 
 
 @pytest.mark.parametrize("method", METHODS)
 def test_every_method_starts_from_the_initial_estimate_and_lowers_chi2(method: str) -> None:
-    graph, _ = _square_loop(noise=0.05, seed=4)
+    graph, _ = square_loop_graph(noise=0.05, seed=4)
     steps = list(optimize(graph, method, iterations=20))
     assert (steps[0].stage, steps[0].index) == ("initial", 0)
     np.testing.assert_array_equal(steps[0].poses, graph.poses)
@@ -35,7 +35,7 @@ def test_every_method_starts_from_the_initial_estimate_and_lowers_chi2(method: s
 
 
 def test_stages_come_in_order() -> None:
-    graph, _ = _square_loop(noise=0.05, seed=4)
+    graph, _ = square_loop_graph(noise=0.05, seed=4)
     run = list(optimize(graph, "sgd+gn", iterations=7))
     stages = [s.stage for s in run if s.start == "estimate" and s.stage != "selected"]
     assert stages[:15] == ["initial"] + ["sgd"] * 7 + ["sgd-tree"] * 7
@@ -46,7 +46,7 @@ def test_stages_come_in_order() -> None:
 
 
 def test_unknown_method_and_negative_iterations_are_errors() -> None:
-    graph, _ = _square_loop(noise=0.0)
+    graph, _ = square_loop_graph(noise=0.0)
     with pytest.raises(OptimizerError, match="unknown method 'lu'"):
         list(optimize(graph, "lu"))
     with pytest.raises(OptimizerError, match="iterations"):

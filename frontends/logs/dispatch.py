@@ -60,10 +60,6 @@ def is_static_topic(topic: str) -> bool:
     return topic.rstrip("/").endswith("tf_static")
 
 
-def supported_types() -> tuple[str, ...]:
-    return (*ROS_TYPES, *FOXGLOVE_TYPES)
-
-
 @dataclass(frozen=True, slots=True)
 class DecodeOptions:
     """Choices that change what the converters keep."""

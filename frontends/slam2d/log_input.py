@@ -19,6 +19,7 @@ from frontends.logs import rotations
 from frontends.logs.log import LogReader
 from frontends.logs.transforms import TransformTree
 from frontends.logs.types import Scan2D, Transform
+from frontends.protocol import default_base_frame
 from frontends.slam2d.config import DataChecksConfig, MatchingConfig
 from optimizer import se2
 
@@ -193,7 +194,7 @@ def _reachable(
 ) -> bool:
     seconds = max((stamps_ns[b] - stamps_ns[a]) * 1e-9, 1e-3)
     distance = math.hypot(poses[b, 0] - poses[a, 0], poses[b, 1] - poses[a, 1])
-    turn = abs((poses[b, 2] - poses[a, 2] + math.pi) % (2.0 * math.pi) - math.pi)
+    turn = abs(se2.wrap_angle(poses[b, 2] - poses[a, 2]))
     return distance <= max_speed * seconds and turn <= max_turn_rate * seconds
 
 
@@ -201,14 +202,15 @@ def scans_in_base_frame(
     log: LogReader,
     topic: str,
     tree: TransformTree,
-    base_frame: str,
+    base_frame: str | None,
     *,
     min_points: int = MatchingConfig.min_points,
     checks: DataChecksConfig | None = None,
     counts: MutableMapping[str, int] | None = None,
-) -> Iterator[tuple[Scan2D, bool]]:
-    """Every scan of `topic` with a valid return, its points moved into `base_frame`, and whether tf gave
-    the mount.
+) -> Iterator[tuple[Scan2D, Transform | None]]:
+    """Every scan of `topic` with a valid return, its points moved into `base_frame` (None: the frame the
+    first scan's sensor is mounted on, `frontends.protocol.default_base_frame`), and the mount tf gave
+    (None: the scan is left in its sensor frame).
 
     Scans without any valid return (all NaN, inf, negative, out of range, or angles that are not a sweep)
     are skipped and counted (`scans_without_returns`); once the log is read, an `UnusableLogError` says so
@@ -228,9 +230,10 @@ def scans_in_base_frame(
             continue
         if scan.frame_id != looked_up_for:
             looked_up_for = scan.frame_id
+            base_frame = base_frame or default_base_frame(tree, scan.frame_id)
             mount = tree.sensor_mount(base_frame, scan.frame_id, scan.stamp_ns)
             mounted = None if mount is None else _Mount(mount)
-        yield (mounted.apply(scan) if mounted is not None else scan), mount is not None
+        yield (mounted.apply(scan) if mounted is not None else scan), mount
     if read and usable < checks.min_usable_scan_share * read:
         raise UnusableLogError(
             log.path,

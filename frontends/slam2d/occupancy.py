@@ -37,11 +37,17 @@ class OccupancyGrid:
     resolution: float
     log_odds: NDArray[np.float32]
 
+    def occupied_cells(self) -> NDArray[np.bool_]:
+        return self.log_odds > OCCUPIED_ABOVE
+
+    def free_cells(self) -> NDArray[np.bool_]:
+        return self.log_odds < -OCCUPIED_ABOVE
+
     def image(self) -> NDArray[np.uint8]:
         """Grey-scale picture, north up: occupied black, free white, unknown grey."""
         picture = np.full(self.log_odds.shape, 205, dtype=np.uint8)
-        picture[self.log_odds < -OCCUPIED_ABOVE] = 255
-        picture[self.log_odds > OCCUPIED_ABOVE] = 0
+        picture[self.free_cells()] = 255
+        picture[self.occupied_cells()] = 0
         return picture[::-1]  # image rows run downwards, y runs upwards
 
 

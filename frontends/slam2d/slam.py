@@ -19,16 +19,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.loop_closing import Constraints, HypothesisPool, path_lengths
+from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune, path_lengths
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, place
 from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
-from optimizer.cost import edge_chi2
 from optimizer.graph import PoseGraph
-from optimizer.polish import gauss_newton
 
 FloatArray = NDArray[np.float64]
 
@@ -70,6 +68,8 @@ class Slam2DGraph:
     loop_closures_accepted: int
     loop_closures_rejected: int
     scans_unmatched: int
+    loop_closures_unconfirmed: int = 0
+    """Loop closures that waited for a second, agreeing one in vain (expired, or void after the map moved)."""
     stage_times: StageTimes = field(default_factory=StageTimes)
     """Where the frontend spent its time (matching, keyframes, loop search, verification, online
     optimization)."""
@@ -400,24 +400,12 @@ class LaserSlam2D:
     def _optimize_online_untimed(self) -> None:
         self._pending_loops = 0
         settings = self.config.loop_closure
-        self._hypotheses = HypothesisPool(settings.small_correction_linear, settings.small_correction_angular)
+        self._hypotheses.clear()  # a hypothesis' correction is relative to the estimate it was found on
         if len(self._keyframe_poses) < 2 or not any(self._edges.is_loop):
             return
-        threshold = self.config.loop_closure.chi2_threshold
-        poses = np.array(self._keyframe_poses)
-        while True:
-            graph = self._graph(poses)
-            for step in gauss_newton(graph, poses, max_iterations=REOPTIMIZE_ITERATIONS):
-                poses = step.poses
-            loops = np.flatnonzero(self._edges.is_loop)
-            if len(loops) == 0:
-                break
-            errors = edge_chi2(graph, poses)[loops]
-            worst = int(np.argmax(errors))
-            if errors[worst] <= threshold:
-                break
-            self._edges.remove(int(loops[worst]))
-            self._rejected += 1
+        poses, removed = optimize_and_prune(self._edges, self._graph, np.array(self._keyframe_poses),
+                                            settings.chi2_threshold, REOPTIMIZE_ITERATIONS)
+        self._rejected += removed
         self._move_keyframes(poses)
 
     def _move_keyframes(self, poses: FloatArray) -> None:
@@ -436,6 +424,7 @@ class LaserSlam2D:
         """Final online optimization, and the keyframe graph with every scan's offset from its keyframe."""
         if self._pending_loops:
             self.optimize_online()
+        self._hypotheses.clear()
         graph = self._graph()
         _, _, measurements, _, is_loop = self._edges.arrays()
         chain = se2.compose_chain(measurements[~is_loop])
@@ -449,6 +438,7 @@ class LaserSlam2D:
             loop_closures_accepted=int(sum(self._edges.is_loop)),
             loop_closures_rejected=self._rejected,
             scans_unmatched=self._unmatched,
+            loop_closures_unconfirmed=self._hypotheses.dropped,
             stage_times=self.stage_times,
         )
 

@@ -2,7 +2,9 @@
 
 from frontends.slam3d import planar
 from frontends.slam3d.config import Slam3DConfig
+from frontends.slam3d.frontend import LidarFrontend
 from frontends.slam3d.odometry import downsample
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
 
-__all__ = ["CloudEstimate", "LidarSlam3D", "Slam3DConfig", "Slam3DGraph", "downsample", "planar"]
+__all__ = ["CloudEstimate", "LidarFrontend", "LidarSlam3D", "Slam3DConfig", "Slam3DGraph", "downsample",
+           "planar"]

@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from frontends.errors import FrontendError
 from frontends.logs.types import Cloud3D
-from frontends.loop_closing import Constraints, HypothesisPool, path_lengths
+from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune, path_lengths
 from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.loop_closure import (
@@ -42,9 +42,7 @@ from frontends.slam3d.loop_closure import (
 )
 from frontends.slam3d.odometry import KissOdometry, Odometry, downsample
 from optimizer import se2
-from optimizer.cost import edge_chi2
 from optimizer.graph import PoseGraph
-from optimizer.polish import gauss_newton
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -273,7 +271,7 @@ class LidarSlam3D:
         older = int(np.searchsorted(travel, travel[current] - settings.min_travel, side="right"))
         if older == 0:
             return ()
-        self._candidates["unconfirmed"] += self._hypotheses.expire(current, settings.hypothesis_keyframes)
+        self._hypotheses.expire(current, settings.hypothesis_keyframes)
         poses = planar.planar(np.array(self._keyframe_poses[:older]))
         here = planar.planar(self._keyframe_poses[current])
         distance = np.hypot(*(poses[:, :2] - here[:2]).T)
@@ -374,24 +372,14 @@ class LidarSlam3D:
         closures, and move the keyframes (and the map ← odometry correction) accordingly."""
         self._pending_loops = 0
         # a hypothesis' correction is relative to the estimate it was found on: void once that moves
-        self._candidates["unconfirmed"] += self._hypotheses.clear()
+        self._hypotheses.clear()
         if len(self._keyframe_poses) < 2 or not any(self._edges.is_loop):
             return
-        threshold = self.config.loop_closure.chi2_threshold
-        poses = planar.planar(np.array(self._keyframe_poses))
-        while True:
-            graph = self._planar_graph(poses)
-            for step in gauss_newton(graph, poses, max_iterations=REOPTIMIZE_ITERATIONS):
-                poses = step.poses
-            loops = np.flatnonzero(self._edges.is_loop)
-            if len(loops) == 0:
-                break
-            errors = edge_chi2(graph, poses)[loops]
-            worst = int(np.argmax(errors))
-            if errors[worst] <= threshold:
-                break
-            self._edges.remove(int(loops[worst]))
-            self._rejected += 1
+        poses, removed = optimize_and_prune(
+            self._edges, self._planar_graph, planar.planar(np.array(self._keyframe_poses)),
+            self.config.loop_closure.chi2_threshold, REOPTIMIZE_ITERATIONS,
+        )
+        self._rejected += removed
         lifted = planar.lift(poses, np.array(self._keyframe_odometry))
         self._keyframe_poses = list(lifted)
         self._map_from_odometry = lifted[-1] @ se3.inverse(self._keyframe_odometry[-1])
@@ -408,7 +396,7 @@ class LidarSlam3D:
             )
         if self._pending_loops:
             self.optimize_online()
-        self._candidates["unconfirmed"] += self._hypotheses.clear()
+        self._hypotheses.clear()
         first, second, relative, information, is_loop = self._edges.arrays()
         return Slam3DGraph(
             keyframe_poses=np.array(self._keyframe_poses),
@@ -425,7 +413,7 @@ class LidarSlam3D:
             keyframe_clouds=tuple(self._keyframe_clouds),
             loop_closures_accepted=int(is_loop.sum()),
             loop_closures_rejected=self._rejected,
-            loop_candidates=dict(self._candidates),
+            loop_candidates={**self._candidates, "unconfirmed": self._hypotheses.dropped},
             clouds_untracked=self._untracked,
             clouds_dropped=self._dropped,
         )

@@ -15,12 +15,16 @@ The blueprint shows the 3D scene beside the 2D graph and the χ² plots, with th
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
+from frontends.logs import Cloud3D
+from frontends.slam3d import CloudEstimate, LidarFrontend, Slam3DGraph, downsample
+from optimizer.iteration import Iteration
 from pipeline.recording import (
     CHI2_ENTITY,
     INITIAL_TRAJECTORY_COLOR,
@@ -41,6 +45,8 @@ MAP3D_COLOR = (60, 60, 60, 255)
 POINT_RADIUS = rr.Radius.ui_points(1.5)
 LINE_WIDTH = rr.Radius.ui_points(2.0)
 DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
+RECORDING_KEYFRAME_VOXEL = 0.5
+"""Keyframe clouds in the recording are thinned to this voxel (m): hundreds of them stay light to view."""
 
 FloatArray = NDArray[np.float64]
 
@@ -161,3 +167,44 @@ class KeyframePoseRecorder:
         )
         self._steps, self._poses = [], []
         self._buffered_bytes = 0
+
+
+class CloudReplayRecording:
+    """The 3D part of a log replay's recording (`pipeline.replay_log.FrontendRecording`): keyframe clouds
+    that move into place as the planar graph converges (height, roll and pitch from odometry), the map."""
+
+    with_map = False
+
+    def __init__(self, recording: rr.RecordingStream, frontend: LidarFrontend) -> None:
+        self._recording = recording
+        self._frontend = frontend
+        send_cloud_blueprint(recording)
+
+    def measurement(self, measurement: Cloud3D, estimate: CloudEstimate) -> None:
+        """Clouds are recorded per keyframe, once the graph is known."""
+
+    def frontend_done(self) -> None:
+        result = self._frontend.result
+        clouds = [downsample(cloud, RECORDING_KEYFRAME_VOXEL) for cloud in result.keyframe_clouds]
+        log_keyframe_clouds(self._recording, clouds)
+        log_initial_trajectory3d(self._recording, result.keyframe_odometry)
+
+    def iteration_sink(self) -> _LiftedPoses:
+        return _LiftedPoses(self._frontend.result, KeyframePoseRecorder(self._recording))
+
+    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: NDArray[Any]) -> None:
+        log_map(self._recording, map_export)
+
+
+class _LiftedPoses:
+    """Records every iteration's keyframe poses in 3D (height, roll and pitch from odometry)."""
+
+    def __init__(self, graph: Slam3DGraph, recorder: KeyframePoseRecorder) -> None:
+        self._graph = graph
+        self._recorder = recorder
+
+    def add(self, step: int, iteration: Iteration) -> None:
+        self._recorder.add(step, self._graph.lift(iteration.poses))
+
+    def flush(self) -> None:
+        self._recorder.flush()

@@ -14,6 +14,11 @@ import numpy as np
 import rerun as rr
 from numpy.typing import NDArray
 
+from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, place
+from optimizer import se2
+from pipeline.keyframe_optimization import IterationSink
+from pipeline.recording import log_final_map
+
 SCAN_TIMELINE = "scan"
 TIME_TIMELINE = "time"
 
@@ -124,3 +129,38 @@ class ScanRecorder:
         )
         self._indices, self._stamps, self._points, self._poses = [], [], [], []
         self._buffered = 0
+
+
+class ScanReplayRecording:
+    """The 2D part of a log replay's recording (`pipeline.replay_log.FrontendRecording`)."""
+
+    with_map = True
+
+    def __init__(self, recording: rr.RecordingStream, frontend: LaserFrontend) -> None:
+        self._recording = recording
+        self._frontend = frontend
+        self._scans = ScanRecorder(recording)
+        log_scan_styles(recording)
+
+    def measurement(self, measurement: ScanInBase, estimate: ScanEstimate) -> None:
+        scan, _ = measurement
+        self._scans.add(estimate.index, estimate.stamp_ns, place(scan.points, estimate.pose), estimate.pose)
+        if estimate.new_loop_closures:
+            position = self._frontend.keyframe_position
+            segments = np.array([[position(a), position(b)] for a, b in estimate.new_loop_closures])
+            log_loop_closures_found(self._recording, estimate.index, estimate.stamp_ns, segments)
+
+    def frontend_done(self) -> None:
+        self._scans.flush()
+        if self._frontend.odometry_poses:
+            # In the map frame, which starts at the first scan: the odometry seen from its own first pose.
+            track = np.array(self._frontend.odometry_poses)
+            log_odometry_trajectory(self._recording, se2.relative(track[0], track))
+
+    def iteration_sink(self) -> IterationSink | None:
+        return None
+
+    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
+        log_final_map(self._recording, self._frontend.result.keyframe_scans, planar_poses)
+        log_final_trajectory(self._recording, estimates)
+        log_occupancy(self._recording, map_export.image())

@@ -1,0 +1,145 @@
+"""What a log replay needs of a SLAM frontend, whatever its sensor: the interface both `frontends.slam2d`
+(laser scans) and `frontends.slam3d` (point clouds) implement, so that one replay drives either, and the
+part of it both implementations share (`LogFrontendBase`).
+
+A frontend is built on an open log and its sensor topic; the replay streams `measurements()` through
+`add`, each giving an `Estimate` (for progress and the recording), then calls `finish` once. After that
+the keyframe graph, every measurement's final pose and the map follow from optimized keyframe poses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from frontends.errors import FrontendError
+from frontends.logs import LogReader, TransformTree
+from optimizer.graph import PoseGraph
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+DEFAULT_BASE_FRAME = "base_link"
+
+
+@dataclass(frozen=True)
+class FrontendOptions:
+    """What the user may choose beside the frontend's own settings."""
+
+    base_frame: str | None = None
+    """The vehicle frame poses are of; None: from the log (see `default_base_frame`)."""
+    odometry_topic: str | None = None
+    """The odometry topic (when the log has several)."""
+
+
+def default_base_frame(tree: TransformTree, sensor_frame: str) -> str:
+    """The frame a sensor is mounted on: its parent in tf when that edge is static, else `base_link`."""
+    parent = tree.parent(sensor_frame)
+    return parent if parent is not None and tree.is_static(sensor_frame) else DEFAULT_BASE_FRAME
+
+
+class Estimate(Protocol):
+    """What a frontend concluded about one measurement when it processed it."""
+
+    index: int
+    stamp_ns: int
+    keyframe: int
+    new_loop_closures: tuple[tuple[int, int], ...]
+
+
+class LogFrontend(Protocol):
+    """A SLAM frontend fed from a log (see the module docstring for the order of calls)."""
+
+    sensor_frame: str
+    """The frame of the sensor's data ("" until the first measurement)."""
+    base_frame: str | None
+    """The frame poses are of; None when tf does not mount the sensor on it (poses of the sensor)."""
+    odometry_topic: str | None
+
+    def measurements(self) -> Iterator[Any]:
+        """The log's measurements, in sensor-time order, as `add` takes them."""
+        ...
+
+    def add(self, measurement: Any) -> Estimate: ...
+
+    def finish(self) -> None:
+        """The last online optimization; the methods below need it."""
+        ...
+
+    def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
+        """The SE(2) keyframe graph the backend optimizes, at the online estimate unless `planar_poses`."""
+        ...
+
+    @property
+    def odometry_chain(self) -> FloatArray:
+        """(K, 3) keyframe poses from odometry alone: the start that shows the map straighten out."""
+        ...
+
+    @property
+    def stamps_ns(self) -> IntArray:
+        """The stamp of every measurement with a pose (`estimates`)."""
+        ...
+
+    def estimates(self, planar_poses: FloatArray) -> FloatArray:
+        """Every measurement's pose given optimized keyframe poses: (S, 3), or (S, 4, 4) in 3D."""
+        ...
+
+    def map_export(self, planar_poses: FloatArray) -> Any:
+        """The map at optimized keyframe poses: an occupancy grid (2D) or points (3D)."""
+        ...
+
+    def counts(self) -> dict[str, int]:
+        """What was read, used, skipped and made (measurements, keyframes, constraints, …)."""
+        ...
+
+    def loop_closures(self) -> dict[str, Any]:
+        """{"accepted", "rejected", "candidates": how candidate verifications ended}."""
+        ...
+
+    def settings(self) -> dict[str, Any]:
+        """The frontend's configuration, as plain data."""
+        ...
+
+
+class _SlamResult(Protocol):
+    @property
+    def odometry_chain(self) -> FloatArray: ...
+
+
+ConfigT = TypeVar("ConfigT")
+ResultT = TypeVar("ResultT", bound=_SlamResult)
+
+
+class LogFrontendBase(Generic[ConfigT, ResultT]):
+    """What both `LogFrontend`s hold: the log and topic, its tf, the odometry topic chosen, the frames
+    (`base_frame` the one requested until the first measurement tells), and the SLAM's result once
+    `finish` set `_result`."""
+
+    def __init__(self, log: LogReader, topic: str, config: ConfigT, options: FrontendOptions | None) -> None:
+        options = options or FrontendOptions()
+        self.config = config
+        self._log = log
+        self._topic = topic
+        self.odometry_topic = log.odometry_topic(options.odometry_topic)
+        self._tree = log.transform_tree()
+        self.sensor_frame = ""
+        self.base_frame: str | None = options.base_frame
+        self._result: ResultT | None = None
+
+    @property
+    def result(self) -> ResultT:
+        if self._result is None:
+            raise FrontendError("the frontend has not finished")
+        return self._result
+
+    @property
+    def odometry_chain(self) -> FloatArray:
+        return self.result.odometry_chain
+
+    def settings(self) -> dict[str, Any]:
+        return dataclasses.asdict(self.config)  # type: ignore[call-overload, no-any-return]

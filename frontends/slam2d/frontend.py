@@ -1,0 +1,98 @@
+"""The 2D laser SLAM as a `frontends.protocol.LogFrontend`: a log's scans (in the base frame) and wheel
+odometry in, the keyframe graph, every scan's pose and an occupancy map out."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+from frontends.errors import FrontendError
+from frontends.logs import LogReader, Scan2D, Transform
+from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, default_base_frame
+from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d.log_input import OdometryTrack, read_odometry, scans_in_base_frame
+from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
+from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
+from optimizer.graph import PoseGraph
+
+ScanInBase = tuple[Scan2D, Transform | None]
+"""A scan with its points in the base frame, and the mount tf gave (None: left in the sensor frame)."""
+
+
+class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
+    """`LaserSlam2D` on the scans of `topic` in an open log; see `frontends.protocol.LogFrontend`."""
+
+    def __init__(self, log: LogReader, topic: str, config: Slam2DConfig | None = None,
+                 options: FrontendOptions | None = None) -> None:
+        super().__init__(log, topic, config or Slam2DConfig(), options)
+        self._input_counts: dict[str, int] = {}  # what the input checks dropped, skipped or reordered
+        self.odometry: OdometryTrack | None = read_odometry(log, self.odometry_topic,
+                                                            counts=self._input_counts)
+        if self.base_frame is None and self.odometry is not None:  # the odometry's poses are of that frame
+            self.base_frame = self.odometry.child_frame
+        self._slam = LaserSlam2D(self.config)
+        self._counts = {"scans": 0, "scans_with_tf_mount": 0, "scans_with_odometry": 0}
+        self.odometry_poses: list[FloatArray] = []
+        """The wheel-odometry pose at every scan that had one (for the recording)."""
+
+    def measurements(self) -> Iterator[ScanInBase]:
+        base = self.base_frame
+        for scan, mount in scans_in_base_frame(self._log, self._topic, self._tree, base,
+                                               min_points=self.config.matching.min_points,
+                                               counts=self._input_counts):
+            if not self.sensor_frame:
+                self.sensor_frame = scan.frame_id if mount is None else mount.child_frame
+                self.base_frame = base or default_base_frame(self._tree, self.sensor_frame)
+            yield scan, mount
+
+    def add(self, measurement: ScanInBase) -> ScanEstimate:
+        scan, mount = measurement
+        prediction, interval = None, 0.0
+        if self.odometry is not None:
+            at, intervals = self.odometry.interpolate(np.array([scan.stamp_ns]))
+            prediction = None if np.isnan(at[0, 0]) else at[0]
+            interval = float(intervals[0]) * 1e-9
+        estimate = self._slam.add_scan(scan.stamp_ns, scan.points, prediction, interval)
+        self._counts["scans"] += 1
+        self._counts["scans_with_tf_mount"] += mount is not None
+        if prediction is not None:
+            self._counts["scans_with_odometry"] += 1
+            self.odometry_poses.append(prediction)
+        return estimate
+
+    def keyframe_position(self, keyframe: int) -> FloatArray:
+        return self._slam.keyframe_position(keyframe)
+
+    def finish(self) -> None:
+        if self._counts["scans"] == 0:
+            raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
+        if not self._counts["scans_with_tf_mount"] and self.sensor_frame != self.base_frame:
+            self.base_frame = None
+        self._result = self._slam.finish()
+
+    def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
+        graph = self.result.graph
+        return graph if planar_poses is None else graph.with_poses(planar_poses)
+
+    @property
+    def stamps_ns(self) -> IntArray:
+        return self.result.scan_stamps_ns
+
+    def estimates(self, planar_poses: FloatArray) -> FloatArray:
+        return self.result.scan_poses(planar_poses)
+
+    def map_export(self, planar_poses: FloatArray) -> OccupancyGrid:
+        return occupancy_grid(self.result.keyframe_scans, planar_poses)
+
+    def counts(self) -> dict[str, int]:
+        result = self.result
+        return {**self._counts, **self._input_counts, **self._log.counts, "keyframes": result.graph.num_poses,
+                "constraints": result.graph.num_edges, "scans_unmatched": result.scans_unmatched}
+
+    def loop_closures(self) -> dict[str, Any]:
+        result = self.result
+        return {"accepted": result.loop_closures_accepted, "rejected": result.loop_closures_rejected,
+                "candidates": {"accepted": result.loop_closures_accepted + result.loop_closures_rejected,
+                               "unconfirmed": result.loop_closures_unconfirmed}}

@@ -1,0 +1,195 @@
+"""Fixtures shared by the pipeline tests: a small loop graph, a simulated drive written as a ROS 2 MCAP,
+and a reader that turns a recording (.rrd) back into Python values."""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from rerun.chunk import RrdReader
+
+from optimizer import se2
+from tests._frontends_fixtures import quaternion_from_yaw, ros2_mcap
+from tests.laser_world import drive, simulate_scan, square_loop, wheel_odometry
+
+LOOP_POSES = 30
+
+
+LOOP_INFORMATION = (50.0, 0.0, 0.0, 50.0, 0.0, 200.0)  # g2o upper triangle: xx xy xθ yy yθ θθ
+
+
+def loop_graph_text(poses: int = LOOP_POSES, seed: int = 3) -> str:
+    """g2o text of a robot driving once around a circle: noisy odometry, two loop closures, and an initial
+    estimate that drifts (a steady heading bias), so χ² starts high and the optimum is near zero."""
+    rng = np.random.default_rng(seed)
+    angles = 2.0 * np.pi * np.arange(poses) / poses
+    truth = np.stack([5.0 * np.cos(angles), 5.0 * np.sin(angles), se2.wrap_angle(angles + np.pi / 2)], axis=1)
+    odometry = [(i, i + 1) for i in range(poses - 1)]
+    closures = [(poses - 1, 0), (poses // 3, 2 * poses // 3)]
+    lines = []
+    steps = se2.relative(truth[:-1], truth[1:]) + rng.normal(scale=[0.01, 0.01, 0.005], size=(poses - 1, 3))
+    drifting = steps + np.array([0.0, 0.0, 0.03])
+    initial = se2.compose_chain(drifting, start=truth[0])
+    for index, (x, y, theta) in enumerate(initial):
+        lines.append(f"VERTEX_SE2 {index} {x:.9f} {y:.9f} {theta:.9f}")
+    information = " ".join(f"{value:g}" for value in LOOP_INFORMATION)
+    for (a, b), z in zip(odometry, steps, strict=True):
+        lines.append(f"EDGE_SE2 {a} {b} {z[0]:.9f} {z[1]:.9f} {z[2]:.9f} {information}")
+    for a, b in closures:
+        z = se2.relative(truth[a], truth[b])
+        lines.append(f"EDGE_SE2 {a} {b} {z[0]:.9f} {z[1]:.9f} {z[2]:.9f} {information}")
+    return "\n".join(lines) + "\n"
+
+
+def write_loop_graph(path: Path) -> Path:
+    path.write_text(loop_graph_text())
+    return path
+
+
+@dataclass
+class EntityData:
+    """What a recording holds for one entity: static rows, and per timeline the logged index values."""
+
+    static_rows: int = 0
+    timelines: set[str] = field(default_factory=set)
+    steps: list[int] = field(default_factory=list)
+    columns: dict[str, list[object]] = field(default_factory=lambda: defaultdict(list))
+    static_columns: dict[str, list[object]] = field(default_factory=lambda: defaultdict(list))
+
+
+def read_recording(path: Path, timeline: str = "iteration") -> dict[str, EntityData]:
+    """Every entity of the (first) recording in an .rrd, with its data as Python values, rows sorted by
+    `timeline`."""
+    entities: dict[str, EntityData] = defaultdict(EntityData)
+    for chunk in RrdReader(path).stream():
+        entity = entities[chunk.entity_path]
+        batch = chunk.to_record_batch()
+        data_columns = [name for name in batch.schema.names if ":" in name]
+        if chunk.is_static:
+            entity.static_rows += chunk.num_rows
+            for name in data_columns:
+                entity.static_columns[name].extend(batch.column(name).to_pylist())
+            continue
+        entity.timelines.update(chunk.timeline_names)
+        if timeline not in batch.schema.names:
+            continue
+        steps = batch.column(timeline).to_pylist()
+        entity.steps.extend(steps)
+        for name in data_columns:
+            entity.columns[name].extend(batch.column(name).to_pylist())
+    for entity in entities.values():  # chunks need not come in timeline order
+        order = np.argsort(entity.steps, kind="stable")
+        entity.steps = [entity.steps[i] for i in order]
+        for name, values in entity.columns.items():
+            entity.columns[name] = [values[i] for i in order]
+    return dict(entities)
+
+
+LASER_MOUNT = np.array([0.25, 0.0, 0.0])
+"""The laser sits 25 cm ahead of the base: the replay must take that from /tf_static."""
+
+
+BEAMS = 360
+
+
+SCAN_PERIOD_NS = 400_000_000
+
+
+START_NS = 1_700_000_000_000_000_000
+
+
+def laser_ranges(points: np.ndarray) -> np.ndarray:
+    """Sensor-frame points back to a 360-beam LaserScan's ranges (inf where a beam had no return)."""
+    ranges = np.full(BEAMS, np.inf, dtype=np.float32)
+    bearings = np.arctan2(points[:, 1], points[:, 0]) % (2 * math.pi)
+    index = np.round(bearings / (2 * math.pi / BEAMS)).astype(int) % BEAMS
+    ranges[index] = np.hypot(points[:, 0], points[:, 1])
+    return ranges
+
+
+def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = None) -> np.ndarray:
+    """Drive the simulated building's loop, writing /scan, /odom, /tf and /tf_static; returns the truth
+    (base poses) per scan."""
+    rng = np.random.default_rng(7)
+    truth = drive(square_loop(), 0.4)[:scans]
+    odometry = wheel_odometry(truth, rng)
+    with ros2_mcap(path) as (messages, add):
+        types = messages.types
+
+        def transform(stamp: int, parent: str, child: str, pose: np.ndarray) -> object:
+            q = quaternion_from_yaw(float(pose[2]))
+            return types["geometry_msgs/msg/TransformStamped"](
+                header=messages.header(stamp, parent),
+                child_frame_id=child,
+                transform=types["geometry_msgs/msg/Transform"](
+                    translation=types["geometry_msgs/msg/Vector3"](x=float(pose[0]), y=float(pose[1]), z=0.0),
+                    rotation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+                ),
+            )
+
+        add(
+            "/tf_static",
+            "tf2_msgs/msg/TFMessage",
+            START_NS,
+            types["tf2_msgs/msg/TFMessage"](
+                transforms=[transform(START_NS, "base_link", "laser", LASER_MOUNT)]
+            ),
+        )
+        for k, pose in enumerate(truth):
+            stamp = START_NS + k * SCAN_PERIOD_NS
+            if with_odometry:
+                q = quaternion_from_yaw(float(odometry[k, 2]))
+                covariance = np.zeros(36)
+                odom = types["nav_msgs/msg/Odometry"](
+                    header=messages.header(stamp, "odom"),
+                    child_frame_id="base_link",
+                    pose=types["geometry_msgs/msg/PoseWithCovariance"](
+                        pose=types["geometry_msgs/msg/Pose"](
+                            position=types["geometry_msgs/msg/Point"](
+                                x=odometry[k, 0], y=odometry[k, 1], z=0.0
+                            ),
+                            orientation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+                        ),
+                        covariance=covariance,
+                    ),
+                    twist=types["geometry_msgs/msg/TwistWithCovariance"](
+                        twist=types["geometry_msgs/msg/Twist"](
+                            linear=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                            angular=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                        ),
+                        covariance=covariance,
+                    ),
+                )
+                add("/odom", "nav_msgs/msg/Odometry", stamp, odom)
+                add(
+                    "/tf",
+                    "tf2_msgs/msg/TFMessage",
+                    stamp,
+                    types["tf2_msgs/msg/TFMessage"](
+                        transforms=[transform(stamp, "odom", "base_link", odometry[k])]
+                    ),
+                )
+            laser_pose = se2.compose(pose, LASER_MOUNT)
+            points = simulate_scan(
+                square_loop().segments, laser_pose, beams=BEAMS, max_range=20.0, range_noise=0.01, rng=rng
+            )
+            scan = types["sensor_msgs/msg/LaserScan"](
+                header=messages.header(stamp, "laser"),
+                angle_min=0.0,
+                angle_max=float(2 * math.pi * (BEAMS - 1) / BEAMS),
+                angle_increment=float(2 * math.pi / BEAMS),
+                time_increment=0.0,
+                scan_time=0.1,
+                range_min=0.05,
+                range_max=20.0,
+                ranges=laser_ranges(points),
+                intensities=np.zeros(0, dtype=np.float32),
+            )
+            add("/scan", "sensor_msgs/msg/LaserScan", stamp, scan)
+    return truth
+
+
+BROKEN_GRAPH = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0\n"  # the edge lacks values
