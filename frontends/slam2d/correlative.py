@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from frontends.slam2d.grid import LikelihoodGrid, max_pyramid
+from frontends.slam2d.grid import LikelihoodGrid
 
 FloatArray = NDArray[np.float64]
 
@@ -106,13 +106,40 @@ def _score(
 def _exhaustive(
     values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y: NDArray[np.int64], reach: int
 ) -> tuple[int, int, int, float]:
+    """The best (angle, tx, ty, score) of every translation within ±`reach` cells, as `_score` with span 1.
+
+    Point by point, each adding its (2·reach + 1)² patch of the grid to the totals of all translations:
+    rows read contiguously instead of one random cell per point and candidate. Each total sums the points
+    in the same order as `_score`, so the scores, and the first best in (angle, ty, tx) order, are equal.
+    """
+    height, width = values.shape
+    side = 2 * reach + 1
+    count = cells_x.shape[1]
+    totals = np.empty((side, side))
     best = (0, 0, 0, -1.0)
     for a in range(cells_x.shape[0]):
-        for ty in range(-reach, reach + 1):
-            for tx in range(-reach, reach + 1):
-                score = _score(values, cells_x[a], cells_y[a], tx, ty, 1)
+        totals[:] = 0.0
+        for i in range(count):
+            left = cells_x[a, i] - reach
+            bottom = cells_y[a, i] - reach
+            if left >= 0 and bottom >= 0 and left + side <= width and bottom + side <= height:
+                for j in range(side):
+                    for k in range(side):
+                        totals[j, k] += values[bottom + j, left + k]
+            else:
+                for j in range(side):
+                    cy = bottom + j
+                    if cy < 0 or cy >= height:
+                        continue
+                    for k in range(side):
+                        cx = left + k
+                        if 0 <= cx < width:
+                            totals[j, k] += values[cy, cx]
+        for j in range(side):
+            for k in range(side):
+                score = totals[j, k] / max(count, 1)
                 if score > best[3]:
-                    best = (a, tx, ty, score)
+                    best = (a, k - reach, j - reach, score)
     return best
 
 
@@ -155,13 +182,6 @@ def _branch_and_bound(
     (exclude_x, exclude_y) (a negative radius excludes nothing)."""
     top = len(levels) - 1
     span = 1 << top
-    # Stack of candidates (angle, tx, ty, level, score); the best-scoring child is pushed last so it is
-    # explored first, and a candidate no better than the best leaf found so far is pruned whole.
-    stack_a = []
-    stack_x = []
-    stack_y = []
-    stack_level = []
-    stack_score = []
     starts = np.arange(-reach, reach + 1, span)
     count = cells_x.shape[0] * starts.shape[0] * starts.shape[0]
     scores = np.empty(count)
@@ -178,21 +198,36 @@ def _branch_and_bound(
                 keys[k, 1] = tx
                 keys[k, 2] = ty
                 k += 1
+    # Stack of candidates (angle, tx, ty, level, score) in arrays: depth first, a path holds at most 3
+    # siblings a level above the top candidates. The best-scoring child is pushed last so it is explored
+    # first, and a candidate no better than the best leaf found so far is pruned whole.
+    capacity = count + 4 * (top + 1)
+    stack_a = np.empty(capacity, dtype=np.int64)
+    stack_x = np.empty(capacity, dtype=np.int64)
+    stack_y = np.empty(capacity, dtype=np.int64)
+    stack_level = np.empty(capacity, dtype=np.int64)
+    stack_score = np.empty(capacity)
+    size = 0
     for k in np.argsort(scores):
-        stack_a.append(keys[k, 0])
-        stack_x.append(keys[k, 1])
-        stack_y.append(keys[k, 2])
-        stack_level.append(top)
-        stack_score.append(scores[k])
+        if scores[k] <= min_score:  # would be pruned when popped
+            continue
+        stack_a[size] = keys[k, 0]
+        stack_x[size] = keys[k, 1]
+        stack_y[size] = keys[k, 2]
+        stack_level[size] = top
+        stack_score[size] = scores[k]
+        size += 1
     best = (0, 0, 0, min_score)
     found = False
     child_scores = np.empty(4)
-    while len(stack_a) > 0:
-        a = stack_a.pop()
-        tx = stack_x.pop()
-        ty = stack_y.pop()
-        level = stack_level.pop()
-        score = stack_score.pop()
+    order = np.empty(4, dtype=np.int64)
+    while size > 0:
+        size -= 1
+        a = stack_a[size]
+        tx = stack_x[size]
+        ty = stack_y[size]
+        level = stack_level[size]
+        score = stack_score[size]
         if score <= best[3]:
             continue
         if level == 0:
@@ -207,13 +242,22 @@ def _branch_and_bound(
                 child_scores[c] = -1.0
             else:
                 child_scores[c] = _score(levels[level - 1], cells_x[a], cells_y[a], cx, cy, half)
-        for c in np.argsort(child_scores):
+        # Ascending, ties in index order (what argsort gives on four values), by insertion.
+        for c in range(4):
+            j = c
+            while j > 0 and child_scores[order[j - 1]] > child_scores[c]:
+                order[j] = order[j - 1]
+                j -= 1
+            order[j] = c
+        for i in range(4):
+            c = order[i]
             if child_scores[c] > best[3]:
-                stack_a.append(a)
-                stack_x.append(tx + half * (c & 1))
-                stack_y.append(ty + half * (c >> 1))
-                stack_level.append(level - 1)
-                stack_score.append(child_scores[c])
+                stack_a[size] = a
+                stack_x[size] = tx + half * (c & 1)
+                stack_y[size] = ty + half * (c >> 1)
+                stack_level[size] = level - 1
+                stack_score[size] = child_scores[c]
+                size += 1
     if not found:
         return (0, 0, 0, -1.0)
     return best
@@ -227,19 +271,37 @@ def match_branch_and_bound(
     min_score: float,
     levels: int = 4,
     exclude: tuple[FloatArray, float] | None = None,
+    crop_pyramid: bool = False,
 ) -> Match | None:
     """The best pose within a wide `window`, or None when no candidate scores above `min_score`.
 
     Equal to `match_exhaustive` on the same window (same optimum), in a fraction of the evaluations.
     `exclude` = (x, y, radius): translations within the radius of (x, y) are not candidates, which is how
-    a second, distinct solution is found (an ambiguity test).
+    a second, distinct solution is found (an ambiguity test). `crop_pyramid`: build the grid's pyramid
+    only where this search reads it (a grid searched once or twice), not over the whole grid (a grid
+    searched by many scans, which share its pyramid).
     """
     angles = _angles(float(center[2]), window)
     cells_x, cells_y = _base_cells(
         points, float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
     )
     reach = _reach(window, grid)
-    pyramid = tuple(max_pyramid(grid.values, levels))
+    height, width = grid.values.shape
+    # The search reads cells within `reach` of the points' cells, and the coarsest level reads 2^levels
+    # cells on from there; the pyramid of that window of the grid is the pyramid of the grid there (its
+    # edges are the grid's wherever the search reaches them), built in a fraction of the time when the
+    # grid is much larger (a submap with a margin of the whole search radius).
+    left, top, right, bottom = 0, 0, width, height
+    if crop_pyramid and cells_x.size:
+        left = max(int(cells_x.min()) - reach, 0)
+        top = max(int(cells_y.min()) - reach, 0)
+        right = min(int(cells_x.max()) + reach + (1 << levels), width)
+        bottom = min(int(cells_y.max()) + reach + (1 << levels), height)
+    if left >= right or top >= bottom:  # the search reads nothing: any window will do
+        left, top, right, bottom = 0, 0, width, height
+    pyramid = tuple(grid.pyramid(levels, (top, bottom, left, right)))
+    cells_x = cells_x - left
+    cells_y = cells_y - top
     exclude_x = exclude_y = 0
     exclude_radius = -1
     if exclude is not None:

@@ -11,7 +11,7 @@ which bounds the score of every translation inside a coarse cell (the branch-and
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -20,11 +20,11 @@ from numpy.typing import NDArray
 from frontends.errors import MapExtentError
 
 FloatArray = NDArray[np.float64]
+Window = tuple[int, int, int, int]
 
 MAX_LIKELIHOOD_CELLS = 40_000_000
-"""A likelihood grid takes 12 bytes a cell while it is built (values, nearest, best distance): this
-bounds one at ~0.5 GB. Local maps and loop-closure submaps cover tens of metres (≤ 1 M cells at 5 cm);
-only absurd poses or settings reach this."""
+"""A likelihood grid takes 8 bytes a cell (values, nearest): this bounds one at ~0.3 GB. Local maps and
+loop-closure submaps cover tens of metres (≤ 1 M cells at 5 cm); only absurd poses or settings reach this."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,6 +39,22 @@ class LikelihoodGrid:
     resolution: float
     values: NDArray[np.float32]
     nearest: NDArray[np.int32]
+    _pyramids: dict[tuple[int, Window], list[NDArray[np.float32]]] = field(default_factory=dict, repr=False)
+
+    def pyramid(self, levels: int, window: Window | None = None) -> list[NDArray[np.float32]]:
+        """`max_pyramid` of the values, or of the cells `window` = (row start, row stop, column start,
+        column stop) of them; built once per grid and window: every scan matched against a local map, and
+        both searches of a loop-closure verification, share it (grids are not modified once built)."""
+        height, width = self.values.shape
+        window = window or (0, height, 0, width)
+        for (built, built_window), pyramid in self._pyramids.items():
+            if built >= levels and built_window == window:
+                return pyramid[: levels + 1]
+        top, bottom, left, right = window
+        values = self.values if window == (0, height, 0, width) else self.values[top:bottom, left:right]
+        pyramid = max_pyramid(np.ascontiguousarray(values), levels)
+        self._pyramids[(levels, window)] = pyramid
+        return pyramid
 
     def cell_of(self, xy: FloatArray) -> NDArray[np.int64]:
         return np.floor((np.asarray(xy) - self.origin) / self.resolution).astype(np.int64)
@@ -59,6 +75,8 @@ def build_likelihood_grid(
             f"would need more than {MAX_LIKELIHOOD_CELLS} cells"
         )
     shape = cells.astype(np.int64)
+    # Zeroed by the allocator (pages untouched by a stamp stay free); `values` holds squared distances
+    # while the points are stamped, then the Gaussian of them.
     values = np.zeros((int(shape[1]), int(shape[0])), dtype=np.float32)
     nearest = np.full(values.shape, -1, dtype=np.int32)
     radius_cells = max(1, math.ceil(max(3.0 * sigma, pairing_distance) / resolution))
@@ -76,48 +94,83 @@ def _stamp(
     values: NDArray[np.float32],
     nearest: NDArray[np.int32],
 ) -> None:
+    """Stamp every point within `radius` cells: each cell gets its nearest point (the first one on a tie)
+    and the Gaussian of the distance to it. Points along a wall stamp the same cells dozens of times; the
+    Gaussian is evaluated once per cell afterwards, over the columns the stamps reached in each row."""
     height, width = values.shape
     inverse_two_sigma2 = 1.0 / (2.0 * sigma * sigma)
-    best = np.full(values.shape, np.inf, dtype=np.float32)
+    row_start = np.full(height, width, dtype=np.int64)
+    row_stop = np.zeros(height, dtype=np.int64)
+    dx_squared = np.empty(2 * radius + 1)
     for k in range(points.shape[0]):
         fx = (points[k, 0] - origin[0]) / resolution
         fy = (points[k, 1] - origin[1]) / resolution
         cx = int(math.floor(fx))
         cy = int(math.floor(fy))
+        low_x = max(cx - radius, 0)
+        columns = min(cx + radius + 1, width) - low_x
+        for j in range(columns):
+            dx = (low_x + j + 0.5 - fx) * resolution
+            dx_squared[j] = dx * dx
         for iy in range(max(cy - radius, 0), min(cy + radius + 1, height)):
             dy = (iy + 0.5 - fy) * resolution
-            for ix in range(max(cx - radius, 0), min(cx + radius + 1, width)):
+            dy_squared = dy * dy
+            row_start[iy] = min(row_start[iy], low_x)
+            row_stop[iy] = max(row_stop[iy], low_x + columns)
+            value_row = values[iy]
+            nearest_row = nearest[iy]
+            for j in range(columns):
+                # Selects, not branches: the compiler vectorizes the row.
+                squared = dx_squared[j] + dy_squared
+                old_value = value_row[low_x + j]
+                old_nearest = nearest_row[low_x + j]
+                closer = (old_nearest < 0) | (squared < old_value)
+                value_row[low_x + j] = np.float32(squared) if closer else old_value
+                nearest_row[low_x + j] = k if closer else old_nearest
+    for iy in range(height):
+        for ix in range(row_start[iy], row_stop[iy]):
+            k = nearest[iy, ix]
+            if k >= 0:
+                # The same arithmetic as above: the value the winning point's own distance gives.
+                fx = (points[k, 0] - origin[0]) / resolution
+                fy = (points[k, 1] - origin[1]) / resolution
+                dy = (iy + 0.5 - fy) * resolution
                 dx = (ix + 0.5 - fx) * resolution
-                squared = dx * dx + dy * dy
-                if squared < best[iy, ix]:
-                    best[iy, ix] = squared
-                    nearest[iy, ix] = k
-                    values[iy, ix] = math.exp(-squared * inverse_two_sigma2)
+                values[iy, ix] = math.exp(-(dx * dx + dy * dy) * inverse_two_sigma2)
 
 
 def max_pyramid(values: NDArray[np.float32], levels: int) -> list[NDArray[np.float32]]:
     """[values, M1, M2, …]: M_h[y, x] = max of values[y : y + 2^h, x : x + 2^h] (0 past the edge)."""
-    pyramid = [values]
+    return [values, *_coarse_levels(values, levels)] if levels > 0 else [values]
+
+
+@njit(cache=True)
+def _coarse_levels(values: NDArray[np.float32], levels: int) -> list[NDArray[np.float32]]:
+    pyramid = []
+    finer = values
     for level in range(1, levels + 1):
-        pyramid.append(_doubled_max(pyramid[-1], 1 << (level - 1)))
+        finer = _doubled_max(finer, 1 << (level - 1))
+        pyramid.append(finer)
     return pyramid
 
 
 @njit(cache=True)
 def _doubled_max(values: NDArray[np.float32], shift: int) -> NDArray[np.float32]:
+    """max of values[y : y + 2·shift, x : x + 2·shift] from values holding the max over shift × shift;
+    branch-free inner loops (the compiler vectorizes them), edges copied."""
     height, width = values.shape
-    along_x = np.zeros_like(values)
+    along_x = np.empty_like(values)
+    inner_width = max(width - shift, 0)
     for y in range(height):
+        for x in range(inner_width):
+            along_x[y, x] = max(values[y, x], values[y, x + shift])
+        for x in range(inner_width, width):
+            along_x[y, x] = values[y, x]
+    out = np.empty_like(values)
+    for y in range(max(height - shift, 0)):
         for x in range(width):
-            v = values[y, x]
-            if x + shift < width and values[y, x + shift] > v:
-                v = values[y, x + shift]
-            along_x[y, x] = v
-    out = np.zeros_like(values)
-    for y in range(height):
+            out[y, x] = max(along_x[y, x], along_x[y + shift, x])
+    for y in range(max(height - shift, 0), height):
         for x in range(width):
-            v = along_x[y, x]
-            if y + shift < height and along_x[y + shift, x] > v:
-                v = along_x[y + shift, x]
-            out[y, x] = v
+            out[y, x] = along_x[y, x]
     return out

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,6 +30,20 @@ class Keyframe:
 
     points: FloatArray
     normals: FloatArray
+    _placed: dict[tuple[float, float, float], tuple[FloatArray, FloatArray]] = field(
+        default_factory=dict, repr=False
+    )
+
+    def placed(self, pose: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Points and normals in the frame where the keyframe is at `pose`. A keyframe joins a few dozen
+        local maps at the same pose (until an optimization moves it): placed once for all of them."""
+        key = (float(pose[0]), float(pose[1]), float(pose[2]))
+        cached = self._placed.get(key)
+        if cached is None:
+            cached = (place(self.points, pose), self.normals @ rotation(pose[2]))
+            self._placed.clear()  # the previous pose is not coming back
+            self._placed[key] = cached
+        return cached
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,12 +69,14 @@ class Submap:
         if reach is not None:
             # Keyframes farther from the newest than two scan reaches share no point with what is matched
             # against this map; leaving them out keeps the grid small after a jump in the poses.
-            centre = np.asarray(poses[-1])[:2]
-            near = [np.hypot(*(np.asarray(p)[:2] - centre)) <= reach for p in poses]
+            positions = np.asarray(poses, dtype=np.float64).reshape(-1, 3)[:, :2]
+            offsets = positions - positions[-1]
+            near = np.hypot(offsets[:, 0], offsets[:, 1]) <= reach
             keyframes = [k for k, n in zip(keyframes, near, strict=True) if n]
             poses = [p for p, n in zip(poses, near, strict=True) if n]
-        points = np.concatenate([place(k.points, p) for k, p in zip(keyframes, poses, strict=True)])
-        normals = np.concatenate([k.normals @ rotation(p[2]) for k, p in zip(keyframes, poses, strict=True)])
+        placed = [k.placed(p) for k, p in zip(keyframes, poses, strict=True)]
+        points = np.concatenate([p for p, _ in placed])
+        normals = np.concatenate([n for _, n in placed])
         # Several keyframes see the same wall: keep one point per half cell, the latest keyframe's
         # (the best placed relative to the robot), which keeps pairing even without changing the grid.
         cells = np.floor(points / (0.5 * resolution)).astype(np.int64)

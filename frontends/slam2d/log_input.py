@@ -15,6 +15,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from frontends.errors import UnusableLogError
+from frontends.logs import rotations
 from frontends.logs.log import LogReader
 from frontends.logs.transforms import TransformTree
 from frontends.logs.types import Scan2D, Transform
@@ -47,6 +48,9 @@ class OdometryTrack:
         """Poses as `at`, and the length (ns) of the odometry interval each was interpolated in (0 when a
         message has the exact stamp)."""
         stamps = np.asarray(stamps_ns, dtype=np.int64)
+        if stamps.shape == (1,) and len(self.stamps_ns) >= 2:
+            pose, interval = self._interpolate_one(int(stamps[0]))
+            return pose[None, :], np.array([interval], dtype=np.int64)
         out = np.full((len(stamps), 3), np.nan)
         if len(self.stamps_ns) < 2:
             return out, np.zeros(len(stamps), dtype=np.int64)
@@ -67,6 +71,35 @@ class OdometryTrack:
         out[exact] = self.poses[after[exact]]
         interval = np.where(exact, 0, gap)
         return out, interval
+
+    def _interpolate_one(self, stamp: int) -> tuple[FloatArray, int]:
+        """`interpolate` of one stamp (the replay asks scan by scan) in scalar arithmetic: the same
+        operations in the same order as the array code, without its dozens of small array operations."""
+        stamps = self.stamps_ns
+        count = len(stamps)
+        after = int(np.searchsorted(stamps, stamp, side="left"))
+        if after < count and int(stamps[after]) == stamp:
+            return self.poses[after].copy(), 0
+        inside = 0 < after < count
+        before, after = max(after - 1, 0), min(after, count - 1)
+        gap = int(stamps[after]) - int(stamps[before])
+        if not (inside and 0 < gap <= MAX_ODOMETRY_GAP_NS):
+            return np.full(3, np.nan), gap
+        fraction = (stamp - int(stamps[before])) / gap
+        x0, y0, theta0 = (float(v) for v in self.poses[before])
+        x1, y1, theta1 = (float(v) for v in self.poses[after])
+        c, s = math.cos(theta0), math.sin(theta0)
+        dx, dy = x1 - x0, y1 - y0
+        # se2.relative(start, end) * fraction, then se2.compose(start, ·), written out.
+        forward = (c * dx + s * dy) * fraction
+        sideways = (-s * dx + c * dy) * fraction
+        turn = _wrap(theta1 - theta0) * fraction
+        return np.array([x0 + c * forward - s * sideways, y0 + s * forward + c * sideways,
+                         _wrap(theta0 + turn)]), gap
+
+
+def _wrap(theta: float) -> float:
+    return (theta + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def read_odometry(
@@ -185,6 +218,7 @@ def scans_in_base_frame(
     checks = checks or DataChecksConfig()
     counts = counts if counts is not None else {}
     mount: Transform | None = None
+    mounted: _Mount | None = None
     looked_up_for: str | None = None
     read = usable = 0
     for scan in log.scans(topic):
@@ -198,7 +232,8 @@ def scans_in_base_frame(
             looked_up_for = scan.frame_id
             base_frame = base_frame or default_base_frame(tree, scan.frame_id)
             mount = tree.sensor_mount(base_frame, scan.frame_id, scan.stamp_ns)
-        yield (scan.transformed(mount) if mount is not None else scan), mount
+            mounted = None if mount is None else _Mount(mount)
+        yield (mounted.apply(scan) if mounted is not None else scan), mount
     if read and usable < checks.min_usable_scan_share * read:
         raise UnusableLogError(
             log.path,
@@ -206,3 +241,21 @@ def scans_in_base_frame(
             f"(need {checks.min_usable_scan_share:.0%}): the ranges are NaN, infinite, negative or out of "
             "range, or the beam angles are invalid",
         )
+
+
+class _Mount:
+    """`Scan2D.transformed(mount)` with the mount's rotation matrix built once, not once per scan (the
+    same arithmetic on the same matrix: the points are equal)."""
+
+    def __init__(self, mount: Transform) -> None:
+        self._mount = mount
+        self._rotation_t = rotations.to_matrix(mount.rotation).T
+
+    def apply(self, scan: Scan2D) -> Scan2D:
+        if scan.frame_id != self._mount.child_frame:
+            return scan.transformed(self._mount)  # raises: the mount is for another frame
+        xyz = np.zeros((scan.points.shape[0], 3))
+        xyz[:, :2] = scan.points
+        points = np.ascontiguousarray((xyz @ self._rotation_t + self._mount.translation)[:, :2])
+        return Scan2D(scan.stamp_ns, scan.log_time_ns, self._mount.parent_frame, points, scan.ranges,
+                      scan.bearings, scan.beam_count)

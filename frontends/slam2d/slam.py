@@ -15,7 +15,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -26,6 +26,7 @@ from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, place
+from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
 from optimizer.graph import PoseGraph
 
@@ -74,6 +75,9 @@ class Slam2DGraph:
     scans_unmatched: int
     loop_closures_unconfirmed: int = 0
     """Loop closures that waited for a second, agreeing one in vain (expired, or void after the map moved)."""
+    stage_times: StageTimes = field(default_factory=StageTimes)
+    """Where the frontend spent its time (matching, keyframes, loop search, verification, online
+    optimization)."""
 
     def scan_poses(self, keyframe_poses: FloatArray) -> FloatArray:
         """Every scan's pose given (optimized) keyframe poses."""
@@ -110,6 +114,7 @@ class LaserSlam2D:
         self._hypotheses = HypothesisPool(settings.small_correction_linear, settings.small_correction_angular)
         self._rejected = 0
         self._unmatched = 0
+        self.stage_times = StageTimes()
 
     @classmethod
     def resume(
@@ -149,10 +154,12 @@ class LaserSlam2D:
             self._add_keyframe(pose, points, None, information)
         else:
             reliable = odometry_interval <= self.config.odometry.reliable_interval
-            prior, prior_information = self._predict(odometry, reliable)
-            pose, matched, information = self._match(
-                points, prior, prior_information, 1.0 if reliable else self.config.odometry.unreliable_scale
-            )
+            with self.stage_times.stage("matching"):
+                prior, prior_information = self._predict(odometry, reliable)
+                pose, matched, information = self._match(
+                    points, prior, prior_information,
+                    1.0 if reliable else self.config.odometry.unreliable_scale,
+                )
             last_keyframe = self._keyframe_poses[-1]
             step = se2.relative(last_keyframe, pose)
             keyframes = self.config.keyframes
@@ -164,7 +171,8 @@ class LaserSlam2D:
                 self._local_map is None and len(points) >= matching.min_points
             ):
                 self._add_keyframe(pose, points, step, information)
-                new_loops = self._close_loops()
+                with self.stage_times.stage("loop_search"):
+                    new_loops = self._close_loops()
                 pose = self._last_pose  # the loop closures may have moved it
         self._last_odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
         keyframe = len(self._keyframe_poses) - 1
@@ -242,6 +250,12 @@ class LaserSlam2D:
     def _add_keyframe(
         self, pose: FloatArray, points: FloatArray, step: FloatArray | None, information: FloatArray
     ) -> None:
+        with self.stage_times.stage("keyframes"):
+            self._add_keyframe_untimed(pose, points, step, information)
+
+    def _add_keyframe_untimed(
+        self, pose: FloatArray, points: FloatArray, step: FloatArray | None, information: FloatArray
+    ) -> None:
         self._keyframe_poses.append(np.array(pose, dtype=np.float64))
         self._keyframes.append(Keyframe(points, scan_normals(points)))
         self._last_pose = np.array(pose, dtype=np.float64)
@@ -299,7 +313,8 @@ class LaserSlam2D:
         found = []
         self._hypotheses.expire(current, settings.hypothesis_keyframes)
         for candidate in candidates:
-            hypothesis = self._verify_loop(candidate, current, float(radius[candidate]))
+            with self.stage_times.stage("verification"):
+                hypothesis = self._verify_loop(candidate, current, float(radius[candidate]))
             if hypothesis is None:
                 continue
             for accepted in self._hypotheses.confirm(hypothesis):
@@ -314,7 +329,10 @@ class LaserSlam2D:
 
     def _path_lengths_to(self, keyframe: int) -> FloatArray:
         """Shortest path length (m) through the graph's constraints from `keyframe` to every keyframe."""
-        first, second, steps, _, _ = self._edges.arrays()
+        edges = self._edges  # only the columns needed: `arrays()` would stack every information matrix too
+        first = np.array(edges.first, dtype=np.int64)
+        second = np.array(edges.second, dtype=np.int64)
+        steps = np.array(edges.measurement, dtype=np.float64).reshape(-1, 3)
         return path_lengths(len(self._keyframe_poses), first, second, np.hypot(steps[:, 0], steps[:, 1]),
                             keyframe)
 
@@ -337,7 +355,8 @@ class LaserSlam2D:
         query = self._query_points(current)
         window = SearchWindow(radius, settings.angular_window, settings.angular_step)
         coarse = match_branch_and_bound(
-            query, submap.grid, here, window, settings.min_score, levels=BRANCH_AND_BOUND_LEVELS
+            query, submap.grid, here, window, settings.min_score, levels=BRANCH_AND_BOUND_LEVELS,
+            crop_pyramid=True,
         )
         if coarse is None:
             return None
@@ -349,6 +368,7 @@ class LaserSlam2D:
             settings.ambiguity_ratio * coarse.score,
             levels=BRANCH_AND_BOUND_LEVELS,
             exclude=(coarse.pose[:2], settings.ambiguity_distance),
+            crop_pyramid=True,
         )
         if rival is not None:
             return None
@@ -396,6 +416,10 @@ class LaserSlam2D:
 
     def optimize_online(self) -> None:
         """Re-optimize the keyframe graph from the current estimate, dropping inconsistent loop closures."""
+        with self.stage_times.stage("online_optimization"):
+            self._optimize_online_untimed()
+
+    def _optimize_online_untimed(self) -> None:
         self._pending_loops = 0
         settings = self.config.loop_closure
         self._hypotheses.clear()  # a hypothesis' correction is relative to the estimate it was found on
@@ -445,5 +469,6 @@ class LaserSlam2D:
             loop_closures_rejected=self._rejected,
             scans_unmatched=self._unmatched,
             loop_closures_unconfirmed=self._hypotheses.dropped,
+            stage_times=self.stage_times,
         )
 

@@ -1,0 +1,226 @@
+"""What the 2D path's speed work must keep: the exhaustive search returns the brute-force optimum, a grid's
+cached pyramid is `max_pyramid`, a keyframe placed from its cache is `place`, and the stage timers charge
+nested stages once (checked on a fake clock, not timed)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from frontends.logs.types import Scan2D, Transform
+from frontends.slam2d import stage_times
+from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
+from frontends.slam2d.grid import build_likelihood_grid, max_pyramid
+from frontends.slam2d.icp import scan_normals
+from frontends.slam2d.local_map import Keyframe, Submap, place
+from frontends.slam2d.log_input import OdometryTrack, scans_in_base_frame
+from frontends.slam2d.slam import LaserSlam2D
+from frontends.slam2d.stage_times import StageTimes
+from tests.laser_world import simulate_scan, square_loop
+
+RESOLUTION = 0.05
+SIGMA = 0.06
+
+
+def brute_force_best(points: np.ndarray, values: np.ndarray, origin: np.ndarray, centre: np.ndarray,
+                     window: SearchWindow) -> tuple[float, np.ndarray]:
+    """Every candidate scored from scratch (cells outside the grid read 0); the first best in (angle, ty,
+    tx) order, as the matcher documents."""
+    reach = math.ceil(window.linear / RESOLUTION - 1e-9)
+    count = int(math.floor(window.angular / window.angular_step))
+    height, width = values.shape
+    best_score, best_pose = -1.0, np.zeros(3)
+    for a in range(-count, count + 1):
+        theta = centre[2] + window.angular_step * a
+        c, s = math.cos(theta), math.sin(theta)
+        world_x = centre[0] + c * points[:, 0] - s * points[:, 1]
+        world_y = centre[1] + s * points[:, 0] + c * points[:, 1]
+        base_x = np.floor((world_x - origin[0]) / RESOLUTION).astype(np.int64)
+        base_y = np.floor((world_y - origin[1]) / RESOLUTION).astype(np.int64)
+        for ty in range(-reach, reach + 1):
+            for tx in range(-reach, reach + 1):
+                cx, cy = base_x + tx, base_y + ty
+                inside = (cx >= 0) & (cy >= 0) & (cx < width) & (cy < height)
+                score = values[cy[inside], cx[inside]].astype(np.float64).sum() / len(points)
+                if score > best_score + 1e-12:
+                    best_score = score
+                    best_pose = np.array([centre[0] + tx * RESOLUTION, centre[1] + ty * RESOLUTION, theta])
+    return best_score, best_pose
+
+
+@settings(max_examples=6, deadline=None)
+@given(
+    shift=st.tuples(st.floats(-0.15, 0.15), st.floats(-0.15, 0.15), st.floats(-0.05, 0.05)),
+    linear=st.sampled_from([0.1, 0.2, 0.6]),
+    margin=st.sampled_from([0.0, 1.0]),
+)
+def test_exhaustive_search_finds_the_brute_force_optimum_even_across_the_grid_edge(
+        shift: tuple[float, float, float], linear: float, margin: float) -> None:
+    reference = simulate_scan(square_loop().segments, np.array([6.5, 9.0, 0.3]))[:, :2]
+    # Without a margin, translations push points off the grid: the edge handling is exercised.
+    grid = build_likelihood_grid(reference, RESOLUTION, SIGMA, margin=margin)
+    scan = reference[::3]
+    centre = np.array(shift)
+    window = SearchWindow(linear, math.radians(2.0), math.radians(0.5))
+    match = match_exhaustive(scan, grid, centre, window)
+    score, pose = brute_force_best(scan, grid.values, grid.origin, centre, window)
+    assert match.score == pytest.approx(score, abs=1e-9)
+    np.testing.assert_allclose(match.pose, pose, atol=1e-12)
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    centre=st.tuples(st.floats(-12.0, 12.0), st.floats(-12.0, 12.0), st.floats(-0.3, 0.3)),
+    linear=st.sampled_from([0.5, 2.0, 4.0]),
+    min_score=st.sampled_from([0.0, 0.2]),
+)
+def test_branch_and_bound_on_the_cropped_pyramid_finds_what_it_finds_on_the_whole_one(
+        centre: tuple[float, float, float], linear: float, min_score: float) -> None:
+    world = square_loop().segments
+    reference = simulate_scan(world, np.array([6.5, 9.0, 0.3]))[:, :2]
+    scan = simulate_scan(world, np.array([6.9, 8.7, 0.35]))[::2, :2]
+    window = SearchWindow(linear, math.radians(6.0), math.radians(1.0))
+    results = []
+    for crop in (False, True):
+        # A fresh grid each time: the whole grid's pyramid must not serve the cropped search.
+        grid = build_likelihood_grid(reference, RESOLUTION, SIGMA, margin=1.0)
+        results.append(match_branch_and_bound(scan, grid, np.array(centre), window, min_score, levels=4,
+                                              crop_pyramid=crop))
+        rival = results[-1]
+        if rival is not None:  # the ambiguity search (an excluded disc) as well
+            results.append(match_branch_and_bound(scan, grid, np.array(centre), window, 0.5 * rival.score,
+                                                  levels=4, exclude=(rival.pose[:2], 0.5), crop_pyramid=crop))
+    half = len(results) // 2
+    for whole, cropped in zip(results[:half], results[half:], strict=True):
+        assert (whole is None) == (cropped is None)
+        if whole is not None:
+            np.testing.assert_array_equal(whole.pose, cropped.pose)
+            assert whole.score == cropped.score
+
+
+def test_a_grid_builds_its_pyramid_once_and_serves_fewer_levels_from_it() -> None:
+    reference = simulate_scan(square_loop().segments, np.array([6.5, 9.0, 0.3]))[:, :2]
+    grid = build_likelihood_grid(reference, RESOLUTION, SIGMA, margin=0.5)
+    pyramid = grid.pyramid(4)
+    expected = max_pyramid(grid.values, 4)
+    assert len(pyramid) == 5
+    for level, (built, reference_level) in enumerate(zip(pyramid, expected, strict=True)):
+        np.testing.assert_array_equal(built, reference_level, err_msg=f"level {level}")
+    assert all(a is b for a, b in zip(grid.pyramid(4), pyramid, strict=True))  # built once
+    fewer = grid.pyramid(2)
+    assert len(fewer) == 3 and all(a is b for a, b in zip(fewer, pyramid, strict=False))
+
+
+def test_a_keyframe_placed_from_its_cache_is_placed_as_by_place() -> None:
+    points = simulate_scan(square_loop().segments, np.array([6.5, 9.0, 0.3]))[:, :2].copy()
+    keyframe = Keyframe(points, scan_normals(points))
+    for pose in (np.array([1.0, -2.0, 0.4]), np.array([1.0, -2.0, 0.4]), np.array([0.5, 0.0, -2.0])):
+        placed, normals = keyframe.placed(pose)
+        np.testing.assert_array_equal(placed, place(points, pose))
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        rotated = np.stack([keyframe.normals[:, 0] * c - keyframe.normals[:, 1] * s,
+                            keyframe.normals[:, 0] * s + keyframe.normals[:, 1] * c], axis=1)
+        np.testing.assert_allclose(normals, rotated, atol=1e-12)
+    submap = Submap.of([keyframe], [np.array([0.5, 0.0, -2.0])], resolution=RESOLUTION,
+                       likelihood_sigma=SIGMA, margin=0.5, pairing_distance=0.3)
+    assert len(submap.points) > 0.5 * len(points)
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_nested_stages_are_charged_to_the_innermost_one_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    clock = FakeClock()
+    monkeypatch.setattr(stage_times.time, "perf_counter", clock)
+    monkeypatch.setattr(stage_times.time, "process_time", clock)
+    times = StageTimes()
+    clock.now = 10.0
+    with times.stage("loop_search"):
+        clock.now += 1.0
+        with times.stage("verification"):
+            clock.now += 3.0
+        clock.now += 0.5
+        with times.stage("verification"):
+            clock.now += 2.0
+    clock.now += 100.0  # outside every stage: charged to none
+    with times.stage("matching"):
+        clock.now += 0.25
+    assert times.wall == pytest.approx({"loop_search": 1.5, "verification": 5.0, "matching": 0.25})
+    assert times.cpu == times.wall
+
+
+def test_the_frontend_reports_its_stages() -> None:
+    slam = LaserSlam2D()
+    world = square_loop()
+    for k in range(6):
+        pose = np.array([6.5 + 0.2 * k, 9.0, 0.3])
+        slam.add_scan(k * 100_000_000, simulate_scan(world.segments, pose)[:, :2], odometry=pose)
+    result = slam.finish()
+    assert set(result.stage_times.wall) >= {"matching", "keyframes"}
+    assert all(seconds >= 0.0 for seconds in result.stage_times.cpu.values())
+
+
+def test_one_stamp_is_interpolated_exactly_as_in_a_batch() -> None:
+    rng = np.random.default_rng(3)
+    stamps = np.cumsum(rng.integers(1, 400_000_000, 300)).astype(np.int64)
+    stamps[150:] += 6_000_000_000  # a gap longer than the odometry may bridge
+    poses = np.cumsum(rng.normal(0.0, 0.3, (300, 3)), axis=0)
+    poses[:, 2] = (poses[:, 2] + np.pi) % (2.0 * np.pi) - np.pi  # headings crossing ±π
+    track = OdometryTrack(stamps, poses, "odom", "base_link")
+    queries = np.concatenate([stamps[::7], stamps[::5] + 12_345, [stamps[0] - 1, stamps[-1] + 1],
+                              stamps[149:152] + 1_000])
+    batch_poses, batch_intervals = track.interpolate(queries)
+    assert np.isnan(batch_poses).any() and np.isfinite(batch_poses).any()
+    for query, pose, interval in zip(queries, batch_poses, batch_intervals, strict=True):
+        one_pose, one_interval = track.interpolate(np.array([query]))
+        np.testing.assert_array_equal(one_pose[0], pose)
+        assert one_interval[0] == interval
+
+
+class ListLog:
+    path = Path("list.log")
+
+    def __init__(self, scans: list[Scan2D]) -> None:
+        self._scans = scans
+
+    def scans(self, topic: str) -> list[Scan2D]:
+        return self._scans
+
+
+class MountTree:
+    def __init__(self, mount: Transform) -> None:
+        self.mount = mount
+
+    def sensor_mount(self, base_frame: str, frame: str, stamp_ns: int) -> Transform:
+        return self.mount
+
+
+def test_scans_are_moved_into_the_base_frame_as_by_their_own_transform() -> None:
+    rng = np.random.default_rng(4)
+    half = 0.5 * math.radians(20.0)
+    mount = Transform("base_link", "laser", 0, 0, np.array([0.3, -0.1, 0.2]),
+                      np.array([0.0, 0.0, math.sin(half), math.cos(half)]), True)
+    scans = []
+    for k in range(5):
+        ranges = rng.uniform(0.5, 10.0, 40)
+        bearings = np.linspace(-1.5, 1.5, 40)
+        points = np.stack([ranges * np.cos(bearings), ranges * np.sin(bearings)], axis=1)
+        scans.append(Scan2D(k * 1000, k * 1000, "laser", points, ranges, bearings, 40))
+    log, tree = ListLog(scans), MountTree(mount)
+    moved = list(scans_in_base_frame(log, "/scan", tree, "base_link"))  # type: ignore[arg-type]
+    assert len(moved) == len(scans)
+    for scan, (result, has_mount) in zip(scans, moved, strict=True):
+        expected = scan.transformed(mount)
+        assert has_mount and result.frame_id == "base_link"
+        np.testing.assert_array_equal(result.points, expected.points)
+        np.testing.assert_array_equal(result.ranges, scan.ranges)
