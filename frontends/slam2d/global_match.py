@@ -42,6 +42,7 @@ def match_unambiguous(
     acceptance: LoopClosureConfig,
     levels: int,
     search_grid: LikelihoodGrid | None = None,
+    crop_pyramid: bool = False,
 ) -> VerifiedMatch | None:
     """The pose of `query` (points in its own frame) in `submap` within `window` around `center`, or None
     when it scores below `acceptance.min_score`, has a distinct rival, or fails the ICP verification.
@@ -49,7 +50,8 @@ def match_unambiguous(
     `search_grid` (default: the submap's) is the grid the branch and bound searches: a coarser one makes
     a whole-map search affordable, ICP on the submap's points then brings the pose to its resolution."""
     grid = submap.grid if search_grid is None else search_grid
-    coarse = match_branch_and_bound(query, grid, center, window, acceptance.min_score, levels=levels)
+    coarse = match_branch_and_bound(query, grid, center, window, acceptance.min_score, levels=levels,
+                                    crop_pyramid=crop_pyramid)
     if coarse is None:
         return None
     rival = match_branch_and_bound(
@@ -60,6 +62,7 @@ def match_unambiguous(
         acceptance.ambiguity_ratio * coarse.score,
         levels=levels,
         exclude=(coarse.pose[:2], acceptance.ambiguity_distance),
+        crop_pyramid=crop_pyramid,
     )
     if rival is not None:
         return None

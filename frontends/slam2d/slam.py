@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune, path_lengths
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
+from frontends.slam2d.global_match import match_unambiguous
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, place
 from frontends.slam2d.stage_times import StageTimes
@@ -354,35 +355,11 @@ class LaserSlam2D:
         here = self._keyframe_poses[current]
         query = self._query_points(current)
         window = SearchWindow(radius, settings.angular_window, settings.angular_step)
-        coarse = match_branch_and_bound(
-            query, submap.grid, here, window, settings.min_score, levels=BRANCH_AND_BOUND_LEVELS,
-            crop_pyramid=True,
-        )
-        if coarse is None:
+        verified = match_unambiguous(query, submap, here, window, matching=matching, acceptance=settings,
+                                     levels=BRANCH_AND_BOUND_LEVELS, crop_pyramid=True)
+        if verified is None:
             return None
-        rival = match_branch_and_bound(
-            query,
-            submap.grid,
-            here,
-            window,
-            settings.ambiguity_ratio * coarse.score,
-            levels=BRANCH_AND_BOUND_LEVELS,
-            exclude=(coarse.pose[:2], settings.ambiguity_distance),
-            crop_pyramid=True,
-        )
-        if rival is not None:
-            return None
-        refined = refine_point_to_line(
-            query,
-            submap.grid,
-            submap.points,
-            submap.normals,
-            coarse.pose,
-            max_distance=matching.icp_max_distance,
-            sigma=matching.point_sigma,
-        )
-        if refined.inlier_fraction < settings.min_inlier_fraction or refined.rms > settings.max_rms:
-            return None
+        refined = verified.icp
         z = se2.relative(self._keyframe_poses[candidate], refined.pose)
         correction = se2.compose(refined.pose, se2.inverse(here))
         return _LoopHypothesis(
