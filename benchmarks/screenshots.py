@@ -179,8 +179,8 @@ def log_replay(name: str, log: Path, out: Path, shots: Path) -> dict[str, Any]:
 
     result = replay_log(log, out_dir=out / name)
     times = result.wall_time
-    recording_seconds = sum(times[stage] for stage in RECORDING_STAGES)
-    bounds = placed_bounds(result.frontend.keyframe_scans, result.keyframe_poses)
+    recording_seconds = sum(times.get(stage, 0.0) for stage in RECORDING_STAGES)
+    bounds = placed_bounds(result.frontend.result.keyframe_scans, result.keyframe_poses)
     fractions = shoot_iterations(name, result.outputs.rrd, len(result.chi2_per_iteration), shots,
                                  log_replay_blueprint(bounds))
     fractions |= shoot_scans(name, result.outputs.rrd, int(result.counts["scans"]), bounds, shots)
