@@ -152,6 +152,10 @@ def read_session(path: Path) -> SessionContent:
     return SessionContent(header, arrays, tuple(array for _, array in points))
 
 
+load_session = read_session
+"""`pipeline.load_session(path)`: the public name of `read_session`."""
+
+
 def _reason(error: Exception, path: Path) -> str:
     """The error's message without the file name our readers put in front of it."""
     return str(error).removeprefix(f"{path}: ")

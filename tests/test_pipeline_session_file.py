@@ -31,7 +31,9 @@ def write(path: Path, header: dict | None = None) -> tuple[dict, list[np.ndarray
 def test_round_trip_keeps_every_array_bit_for_bit(tmp_path: Path) -> None:
     path = tmp_path / "run.session"
     arrays, points = write(path)
-    content = read_session(path)
+    import pipeline
+
+    content = pipeline.load_session(path)
     assert content.header["sensor_kind"] == "scan"
     assert content.header["version"] == SESSION_VERSION
     assert set(content.arrays) == set(arrays)
