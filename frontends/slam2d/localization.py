@@ -28,7 +28,12 @@ from frontends.slam2d.global_match import VerifiedMatch, match_unambiguous, thin
 from frontends.slam2d.grid import build_likelihood_grid
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
-from frontends.slam2d.slam import BRANCH_AND_BOUND_LEVELS, ODOMETRY_BRANCH_AND_BOUND_LEVELS, LaserSlam2D
+from frontends.slam2d.slam import (
+    BRANCH_AND_BOUND_LEVELS,
+    ODOMETRY_BRANCH_AND_BOUND_LEVELS,
+    LaserSlam2D,
+    predicted_motion,
+)
 from optimizer import se2
 
 FloatArray = NDArray[np.float64]
@@ -235,21 +240,8 @@ class MapLocalizer:
 
     def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
         assert self._pose is not None
-        settings = self.config.odometry
-        if odometry is not None and self._last_odometry is not None:
-            motion = se2.relative(self._last_odometry, odometry)
-            sigma_linear = settings.odometry_sigma_linear + settings.odometry_sigma_per_metre * float(
-                np.hypot(motion[0], motion[1]))
-            sigma_angular = settings.odometry_sigma_angular + settings.odometry_sigma_per_radian * abs(
-                float(motion[2]))
-            if not reliable:
-                sigma_linear *= settings.unreliable_scale
-                sigma_angular *= settings.unreliable_scale
-        else:
-            motion = self._last_motion
-            sigma_linear = settings.constant_velocity_sigma_linear
-            sigma_angular = settings.constant_velocity_sigma_angular
-        information = np.diag([sigma_linear**-2, sigma_linear**-2, sigma_angular**-2])
+        motion, information = predicted_motion(self.config.odometry, self._last_odometry, odometry, reliable,
+                                               self._last_motion)
         return se2.compose(self._pose, motion), information
 
     # ---------------------------------------------------------------------------- global localization

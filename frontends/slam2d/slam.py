@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune, path_lengths
-from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d.config import OdometryConfig, Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import match_unambiguous
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
@@ -93,6 +93,26 @@ class _LoopHypothesis:
     information: FloatArray
     correction: FloatArray
     """Matched pose ∘ estimated pose⁻¹ of the current keyframe: how far the match moves the map."""
+
+
+def predicted_motion(settings: OdometryConfig, last_odometry: FloatArray | None, odometry: FloatArray | None,
+                     reliable: bool, last_motion: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The motion since the last scan and its information: from wheel odometry when both scans have it
+    (uncertainty growing with the distance and turn, scaled up when the odometry is `reliable` no more),
+    else the last motion again (constant velocity, loosely)."""
+    if odometry is not None and last_odometry is not None:
+        motion = se2.relative(last_odometry, np.asarray(odometry, dtype=np.float64))
+        distance = float(np.hypot(motion[0], motion[1]))
+        sigma_linear = settings.odometry_sigma_linear + settings.odometry_sigma_per_metre * distance
+        sigma_angular = settings.odometry_sigma_angular + settings.odometry_sigma_per_radian * abs(motion[2])
+        if not reliable:
+            sigma_linear *= settings.unreliable_scale
+            sigma_angular *= settings.unreliable_scale
+    else:
+        motion = last_motion
+        sigma_linear = settings.constant_velocity_sigma_linear
+        sigma_angular = settings.constant_velocity_sigma_angular
+    return motion, np.diag([sigma_linear**-2, sigma_linear**-2, sigma_angular**-2])
 
 
 class LaserSlam2D:
@@ -184,22 +204,8 @@ class LaserSlam2D:
         return ScanEstimate(index, int(stamp_ns), pose.copy(), matched, keyframe, new_loops)
 
     def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
-        settings = self.config.odometry
-        if odometry is not None and self._last_odometry is not None:
-            motion = se2.relative(self._last_odometry, np.asarray(odometry, dtype=np.float64))
-            distance = float(np.hypot(motion[0], motion[1]))
-            sigma_linear = settings.odometry_sigma_linear + settings.odometry_sigma_per_metre * distance
-            sigma_angular = settings.odometry_sigma_angular + settings.odometry_sigma_per_radian * abs(
-                motion[2]
-            )
-            if not reliable:
-                sigma_linear *= settings.unreliable_scale
-                sigma_angular *= settings.unreliable_scale
-        else:
-            motion = self._last_motion
-            sigma_linear = settings.constant_velocity_sigma_linear
-            sigma_angular = settings.constant_velocity_sigma_angular
-        information = np.diag([sigma_linear**-2, sigma_linear**-2, sigma_angular**-2])
+        motion, information = predicted_motion(self.config.odometry, self._last_odometry, odometry, reliable,
+                                               self._last_motion)
         return se2.compose(self._last_pose, motion), information
 
     def _match(
