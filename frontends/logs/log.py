@@ -104,12 +104,14 @@ class LogReader:
                     candidates,
                     option,
                 )
-            raise TopicSelectionError(self.path, f"no topic {topic}; {wanted} topics", candidates, option)
+            if candidates:
+                raise TopicSelectionError(self.path, f"no topic {topic}; {wanted} topics", candidates, option)
         if len(candidates) == 1:
             return candidates[0]
         if not candidates:
             present = [f"{c.topic} ({c.type})" for c in sorted(self.channels, key=lambda c: c.topic)]
-            raise TopicSelectionError(self.path, f"no {wanted} topic; the log has", present or ["no topics"])
+            missing = f"no {wanted} topic" if topic is None else f"no topic {topic}, and no {wanted} topic"
+            raise TopicSelectionError(self.path, f"{missing}; the log has", present or ["no topics"])
         described = [
             f"{t} ({', '.join(sorted({c.type for c in self.channels if c.topic == t}))})" for t in candidates
         ]
