@@ -20,7 +20,6 @@ import multiprocessing
 import os
 import signal
 import socket
-import sys
 import time
 import traceback
 from collections.abc import Callable, Mapping, Sequence
@@ -289,23 +288,6 @@ def _init_worker() -> None:
     _worker_limits = threadpool_limits(limits=1, user_api="blas")
     for number in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
         signal.signal(number, _on_worker_stop_signal)
-    _stop_with_parent()
-
-
-PR_SET_PDEATHSIG = 1
-
-
-def _stop_with_parent() -> None:
-    """Ask Linux to send SIGTERM when the parent dies: a parent killed with SIGKILL cannot stop its pool,
-    and workers left behind would go on publishing outputs nobody waits for."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
-    if os.getppid() == 1:  # the parent died before the request took effect
-        os.kill(os.getpid(), signal.SIGTERM)
 
 
 def _on_worker_stop_signal(signum: int, frame: FrameType | None) -> None:
