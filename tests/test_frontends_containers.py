@@ -256,8 +256,8 @@ def test_no_scan_topic_lists_what_the_log_has(tmp_path: Path) -> None:
     # A topic asked for by name that is not there either: said so, and what the log has instead.
     with pytest.raises(TopicSelectionError) as caught:
         log.scans("/scan")
-    assert str(caught.value) == (f"{path}: no topic /scan, and no LaserScan topic; the log has: /imu "
-                                 "(sensor_msgs/msg/Imu)")
+    assert str(caught.value) == (f"{path}: no topic /scan (--scan-topic), and no LaserScan topic; "
+                                 "the log has: /imu (sensor_msgs/msg/Imu)")
     assert log.odometry_topic() is None
     assert list(log.odometry()) == []  # optional when absent
 

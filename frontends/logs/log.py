@@ -110,7 +110,8 @@ class LogReader:
             return candidates[0]
         if not candidates:
             present = [f"{c.topic} ({c.type})" for c in sorted(self.channels, key=lambda c: c.topic)]
-            missing = f"no {wanted} topic" if topic is None else f"no topic {topic}, and no {wanted} topic"
+            missing = (f"no {wanted} topic" if topic is None
+                       else f"no topic {topic} ({option}), and no {wanted} topic")
             raise TopicSelectionError(self.path, f"{missing}; the log has", present or ["no topics"])
         described = [
             f"{t} ({', '.join(sorted({c.type for c in self.channels if c.topic == t}))})" for t in candidates

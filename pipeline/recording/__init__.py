@@ -187,7 +187,9 @@ def _write_probe_failure(path: Path, *, sync: bool) -> str | None:
     try:
         descriptor = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         try:
-            os.write(descriptor, bytes(_PROBE_BYTES))
+            remaining = memoryview(bytes(_PROBE_BYTES))
+            while remaining:  # a nearly full disk takes part of a write; the next one fails with ENOSPC
+                remaining = remaining[os.write(descriptor, remaining):]
             if sync:
                 os.fsync(descriptor)
         finally:
