@@ -84,8 +84,7 @@ def optimize_keyframes(
     if keyframe_scans is not None:
         sinks.append(map2d.KeyframeMapRecorder(stream, keyframe_scans))
     if not loops.any():
-        recording.log_note(stream, "no loop closures: the odometry chain is already consistent, so χ² "
-                                   "starts (near) zero and nothing moves")
+        recording.log_note(stream, recording.NO_LOOP_CLOSURES_NOTE)
     record_seconds = time.perf_counter() - record_started
     trace: list[tuple[str, int, float]] = []
     final = from_odometry.poses

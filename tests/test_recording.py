@@ -240,3 +240,45 @@ def test_thin_scan_keeps_the_first_point_of_each_cell_in_scan_order() -> None:
     # Cells of 0.05 m: (0, 0) twice then again, (10, −1), (−1, 0); the NaN point is dropped.
     np.testing.assert_allclose(map2d.thin_scan(points), [[0.01, 0.01], [0.5, -0.01], [-0.01, 0.0]], atol=1e-7)
     assert map2d.thin_scan(np.zeros((0, 2))).shape == (0, 2)
+
+
+def _chain_graph_text(start_error: float) -> str:
+    """A 6-pose chain of odometry edges (no loop closure); vertex k after the first is off by
+    `start_error` metres in x from where the edges put it."""
+    step = np.array([1.0, 0.0, 0.3])
+    poses = [np.zeros(3)]
+    for _ in range(5):
+        poses.append(se2.compose(poses[-1], step))
+    lines = [f"VERTEX_SE2 {k} {x + (start_error if k else 0.0):.17g} {y:.17g} {t:.17g}"
+             for k, (x, y, t) in enumerate(poses)]
+    lines += [f"EDGE_SE2 {k} {k + 1} 1 0 0.3 100 0 0 100 0 1000" for k in range(5)]
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("start_error", [0.0, 0.5])
+def test_a_graph_without_loop_closures_says_so_and_plots_no_round_off_chi2(
+    tmp_path: Path, start_error: float,
+) -> None:
+    path = tmp_path / "chain.g2o"
+    path.write_text(_chain_graph_text(start_error))
+    result = replay_graph(path, out_dir=tmp_path / "out", method="sgd", iterations=20)
+    entities = read_recording(tmp_path / "out" / "chain.rrd")
+    plain = [row[0] for row in entities["/optimizer/chi2"].columns["Scalars:scalars"]]
+    assert len(plain) == len(result.iterations)  # the data keeps every value, round-off included
+    assert min(plain) < recording.ROUND_OFF_CHI2  # the chain's optimum is zero: SGD gets there
+    logged = entities.get("/optimizer/log10_chi2")
+    log10 = [] if logged is None else [row[0] for row in logged.columns["Scalars:scalars"]]
+    # Independent expectation: the plot holds exactly the χ² values that are more than round-off.
+    assert log10 == pytest.approx([np.log10(c) for c in plain if c > recording.ROUND_OFF_CHI2])
+    assert bool(log10) == (start_error > 0)
+    notes = [row[0] for row in entities["/optimizer/stage"].columns["TextLog:text"]]
+    assert recording.NO_LOOP_CLOSURES_NOTE in notes
+
+
+def test_a_graph_with_loop_closures_plots_every_positive_chi2(graph_recording: tuple[Path, dict]) -> None:
+    _, content = graph_recording
+    plain = [row[0] for row in content["entities"]["/optimizer/chi2"].columns["Scalars:scalars"]]
+    log10 = [row[0] for row in content["entities"]["/optimizer/log10_chi2"].columns["Scalars:scalars"]]
+    assert log10 == pytest.approx([np.log10(c) for c in plain if c > 0])
+    notes = [row[0] for row in content["entities"]["/optimizer/stage"].columns["TextLog:text"]]
+    assert recording.NO_LOOP_CLOSURES_NOTE not in notes

@@ -285,6 +285,10 @@ def log_note(recording: rr.RecordingStream, text: str) -> None:
     recording.reset_time()
 
 
+NO_LOOP_CLOSURES_NOTE = ("no loop closures: the constraints form a chain that holds exactly, so the optimum "
+                         "is χ² = 0 and χ² at round-off is left out of the log10 plot")
+
+
 LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
     "estimate": (TRAJECTORY_COLOR, "the trajectory at the selected iteration (drawn on top)"),
     "loop closures": (LOOP_CLOSURE_COLOR, "loop-closure constraints at that iteration"),
@@ -362,11 +366,18 @@ def send_loop_segments(recording: rr.RecordingStream, steps: IntArray, segments:
     )
 
 
-def send_chi2(recording: rr.RecordingStream, steps: IntArray, chi2: FloatArray) -> None:
-    """χ² per iteration, and its log10 (non-positive χ² has no log and is left out of that series)."""
+ROUND_OFF_CHI2 = 1e-12
+"""Below this, the χ² of a graph without loop closures is round-off of zero (a chain is exactly
+consistent), not a cost worth a point on the log plot."""
+
+
+def send_chi2(recording: rr.RecordingStream, steps: IntArray, chi2: FloatArray, *,
+              floor: float = 0.0) -> None:
+    """χ² per iteration, and its log10 for the values above `floor` (χ² ≤ 0 has no log; χ² at or below
+    `floor` is noise the plot would draw as a meaningless −24)."""
     index = [_iteration_column(steps)]
     recording.send_columns(CHI2_ENTITY, indexes=index, columns=rr.Scalars.columns(scalars=chi2))
-    positive = chi2 > 0
+    positive = chi2 > max(floor, 0.0)
     if positive.any():
         recording.send_columns(
             LOG10_CHI2_ENTITY,
@@ -425,6 +436,9 @@ class IterationRecorder:
 
     With `still_move` (m), an iteration whose poses all lie within it of the last drawn iteration's gets
     no geometry row (χ² and stage only): the viewer keeps showing the last row, which is that close.
+
+    Without loop closures the optimum is χ² = 0 exactly, so the log plot leaves out χ² ≤ `ROUND_OFF_CHI2`
+    (the caller logs a note saying the graph is already consistent); the plain χ² keeps every value.
     """
 
     def __init__(
@@ -443,6 +457,7 @@ class IterationRecorder:
         self._loop_from = np.asarray(loop_from, dtype=np.int64)
         self._loop_to = np.asarray(loop_to, dtype=np.int64)
         self._loop_shown = _every_kth(len(self._loop_from), max_points // 2, keep_last=False)
+        self._chi2_floor = ROUND_OFF_CHI2 if len(self._loop_from) == 0 else 0.0
         self._max_points = max_points
         self._batch_bytes = batch_bytes
         self._still_move = still_move
@@ -522,7 +537,8 @@ class IterationRecorder:
         `flush`): χ² and stage lines of all, the geometry of those that have it, runs of equally thinned
         ones as one column batch each."""
         steps = np.arange(self._first_step, self._first_step + count, dtype=np.int64)
-        send_chi2(self._recording, steps, np.asarray(self._chi2[:count], dtype=np.float64))
+        send_chi2(self._recording, steps, np.asarray(self._chi2[:count], dtype=np.float64),
+                  floor=self._chi2_floor)
         lines = self._stages[:count]
         shown = np.array([line is not None for line in lines], dtype=bool)
         send_stages(self._recording, steps[shown], [line for line in lines if line is not None])
