@@ -203,11 +203,11 @@ def graph_replay(name: str, graph: Path, out: Path, shots: Path | None, **option
 
 
 def cloud_replay(name: str, log: Path, out: Path, shots: Path) -> dict[str, Any]:
-    from pipeline.replay_cloud import replay_cloud
+    from pipeline.replay_log import replay_log
 
-    result = replay_cloud(log, out_dir=out / name)
+    result = replay_log(log, out_dir=out / name)
     fractions = shoot_iterations(name, result.outputs.rrd, len(result.chi2_per_iteration), shots,
-                                 cloud_blueprint())
+                                 cloud_blueprint(world_bounds(result.keyframe_poses)))
     return {"rrd_mb": result.outputs.rrd.stat().st_size / 1e6, "drawn_fraction": fractions}
 
 
@@ -256,7 +256,9 @@ def main() -> None:
         for png, fraction in values.get("drawn_fraction", {}).items():
             print(f"  {png}: {fraction:.1%} of the main view drawn")
     arguments.out.mkdir(parents=True, exist_ok=True)
-    (arguments.out / "screenshots.json").write_text(json.dumps(figures, indent=2) + "\n")
+    table = arguments.out / "screenshots.json"
+    earlier = json.loads(table.read_text()) if table.exists() else {}  # --only keeps the other rows
+    table.write_text(json.dumps(earlier | figures, indent=2) + "\n")
 
 
 if __name__ == "__main__":

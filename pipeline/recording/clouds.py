@@ -34,7 +34,9 @@ from pipeline.recording import (
     LOG10_CHI2_ENTITY,
     STAGE_ENTITY,
     TRAJECTORY_COLOR,
+    Bounds,
     map_view,
+    world_bounds,
 )
 
 WORLD3D_ENTITY = "world3d"
@@ -59,16 +61,16 @@ def keyframe_entity(index: int) -> str:
     return f"{KEYFRAMES_ENTITY}/k{index:06d}"
 
 
-def cloud_blueprint() -> rrb.Blueprint:
+def cloud_blueprint(bounds: Bounds | None = None) -> rrb.Blueprint:
     """The 3D scene (the static final map off by default: the keyframe clouds already are the map, moving
-    with the iterations), the planar pose graph (y up), χ² on a log scale, the stage log and the legend;
-    the time panel on `iteration`."""
+    with the iterations), the planar pose graph (y up, framing `bounds` once the final poses are known),
+    χ² on a log scale, the stage log and the legend; the time panel on `iteration`."""
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(origin=WORLD3D_ENTITY, name="keyframes and map (3D)",
                               overrides={f"/{MAP3D_ENTITY}": rrb.EntityBehavior(visible=False)}),
             rrb.Vertical(
-                map_view(),
+                map_view(bounds=bounds),
                 rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
                 rrb.TextLogView(origin=STAGE_ENTITY, name="stages"),
                 rrb.TextDocumentView(origin=LEGEND_ENTITY, name="legend"),
@@ -82,8 +84,8 @@ def cloud_blueprint() -> rrb.Blueprint:
     )
 
 
-def send_cloud_blueprint(recording: rr.RecordingStream) -> None:
-    recording.send_blueprint(cloud_blueprint(), make_active=True, make_default=True)
+def send_cloud_blueprint(recording: rr.RecordingStream, bounds: Bounds | None = None) -> None:
+    recording.send_blueprint(cloud_blueprint(bounds), make_active=True, make_default=True)
 
 
 def _colour(index: int, count: int) -> tuple[int, int, int, int]:
@@ -208,6 +210,7 @@ class CloudReplayRecording:
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: NDArray[Any]) -> None:
         log_map(self._recording, map_export)
+        send_cloud_blueprint(self._recording, world_bounds(planar_poses))
 
 
 class _LiftedPoses:
