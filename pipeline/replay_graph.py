@@ -210,7 +210,8 @@ def _optimize_and_record(
         recording.log_legend(stream)
         recording.log_initial_trajectory(stream, graph.poses)
         loops = ~graph.is_odometry
-        recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops])
+        recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops],
+                                               still_fraction=recording.STILL_FRACTION)
         if not loops.any():
             recording.log_note(stream, recording.NO_LOOP_CLOSURES_NOTE)
         optimization = optimize(graph, method=method, iterations=iterations, robust=robust)

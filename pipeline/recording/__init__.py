@@ -88,6 +88,11 @@ DEFAULT_MAX_POINTS_PER_ITERATION = 100_000
 """Above this many poses (or half as many loop closures) `IterationRecorder` thins each iteration's
 geometry, except the final iteration's."""
 
+STILL_FRACTION = 1e-3
+"""A graph replay redraws an iteration only when a pose moved more than this fraction of the map's extent
+since the last drawn one: about one pixel of a 1000-pixel view framing the map, so nothing visible is
+left out, while the many iterations that only polish the last digits cost no geometry."""
+
 VIEW_MARGIN = 0.05
 """The default 2D view frames the final map with this fraction of its extent around it."""
 
@@ -436,6 +441,8 @@ class IterationRecorder:
 
     With `still_move` (m), an iteration whose poses all lie within it of the last drawn iteration's gets
     no geometry row (χ² and stage only): the viewer keeps showing the last row, which is that close.
+    `still_fraction` sets that distance relative to the iteration's extent instead (`STILL_FRACTION`:
+    about a pixel of a view framing the whole map), for graphs whose units and size are unknown.
 
     Without loop closures the optimum is χ² = 0 exactly, so the log plot leaves out χ² ≤ `ROUND_OFF_CHI2`
     (the caller logs a note saying the graph is already consistent); the plain χ² keeps every value.
@@ -450,6 +457,7 @@ class IterationRecorder:
         batch_bytes: int = DEFAULT_BATCH_BYTES,
         max_points: int = DEFAULT_MAX_POINTS_PER_ITERATION,
         still_move: float | None = None,
+        still_fraction: float | None = None,
     ) -> None:
         if max_points < 2:
             raise PipelineError(f"max_points must be at least 2, got {max_points}")
@@ -461,6 +469,7 @@ class IterationRecorder:
         self._max_points = max_points
         self._batch_bytes = batch_bytes
         self._still_move = still_move
+        self._still_fraction = still_fraction
         self._last_drawn: NDArray[np.float64] | None = None
         # None where an iteration's geometry is not sent (see `still_move`).
         self._trajectories: list[NDArray[np.float32] | None] = []
@@ -505,17 +514,26 @@ class IterationRecorder:
         self._send(len(self._trajectories))
 
     def _buffer_geometry(self, poses: NDArray[np.float64], *, thin: bool) -> None:
-        if (thin and self._still_move is not None and self._last_drawn is not None
-                and np.max(np.abs(poses[:, :2] - self._last_drawn), initial=0.0) <= self._still_move):
+        still = self._still_distance(poses)
+        if (thin and still is not None and self._last_drawn is not None
+                and np.max(np.abs(poses[:, :2] - self._last_drawn), initial=0.0) <= still):
             self._trajectories.append(None)
             self._loop_segments.append(None)
             return
-        if self._still_move is not None:
+        if still is not None:
             self._last_drawn = np.array(poses[:, :2])
         trajectory, segments = self._geometry(poses, thin=thin)
         self._trajectories.append(trajectory)
         self._loop_segments.append(segments)
         self._buffered_bytes += trajectory.nbytes + segments.nbytes
+
+    def _still_distance(self, poses: NDArray[np.float64]) -> float | None:
+        """How far every pose may move from the last drawn row without a new one; None: always draw."""
+        if self._still_fraction is None:
+            return self._still_move
+        finite = poses[np.all(np.isfinite(poses[:, :2]), axis=1), :2]
+        extent = float(np.max(np.ptp(finite, axis=0))) if len(finite) else 0.0
+        return max(self._still_move or 0.0, self._still_fraction * extent)
 
     def _geometry(self, poses: NDArray[np.float64], *, thin: bool) -> tuple[NDArray[np.float32],
                                                                            NDArray[np.float32]]:
