@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import itertools
+import re
 from pathlib import Path
 
 import numpy as np
@@ -273,6 +274,10 @@ def test_a_graph_without_loop_closures_says_so_and_plots_no_round_off_chi2(
     assert bool(log10) == (start_error > 0)
     notes = [row[0] for row in entities["/optimizer/stage"].columns["TextLog:text"]]
     assert recording.NO_LOOP_CLOSURES_NOTE in notes
+    # The stage log words round-off as zero, so no line shows a meaningless 1e-2x.
+    lines = [line for line in notes if line != recording.NO_LOOP_CLOSURES_NOTE]
+    assert not any(re.search(r"e-(1[3-9]|[2-9]\d)", line) for line in lines)  # nothing below 1e-12
+    assert any(line.endswith("χ² = 0 (round-off)") for line in lines)
 
 
 def test_a_graph_with_loop_closures_plots_every_positive_chi2(graph_recording: tuple[Path, dict]) -> None:

@@ -391,9 +391,9 @@ def send_chi2(recording: rr.RecordingStream, steps: IntArray, chi2: FloatArray, 
         )
 
 
-def stage_line(stage: str, index: int, chi2: float) -> str:
-    """The stage log's line for one iteration."""
-    return f"{stage} {index}: χ² = {chi2:.6g}"
+def stage_line(stage: str, index: int, chi2: str) -> str:
+    """The stage log's line for one iteration (`chi2` as shown)."""
+    return f"{stage} {index}: χ² = {chi2}"
 
 
 def send_stages(recording: rr.RecordingStream, steps: IntArray, lines: Sequence[str]) -> None:
@@ -496,10 +496,12 @@ class IterationRecorder:
         # Several starts are optimized one after another: name the start unless it is the graph's own.
         stage = iteration.stage if iteration.start == ESTIMATE else f"{iteration.start}: {iteration.stage}"
         chi2 = float(iteration.chi2)
-        # A converged stage keeps yielding the same χ²: the log shows the first such line only.
-        shown = (stage, f"{chi2:.6g}")
+        # A converged stage keeps yielding the same χ²: the log shows the first such line only. Round-off
+        # of a zero optimum reads as zero, so a stage that only shuffles it shows one line too.
+        value = f"{chi2:.6g}" if chi2 > self._chi2_floor else "0 (round-off)"
+        shown = (stage, value)
         repeat = shown == self._previous_line
-        self._stages.append(None if repeat else stage_line(stage, iteration.index, chi2))
+        self._stages.append(None if repeat else stage_line(stage, iteration.index, value))
         self._previous_line = shown
         self._chi2.append(chi2)
         if self._buffered_bytes >= self._batch_bytes:
