@@ -290,6 +290,13 @@ def run(
     session_options = _session_options(map_session, continue_session, initial_pose, sources or [],
                                        several=inputs_from is not None or ray_address is not None)
     if session_options:
+        _refuse_options_without_use(sources or [], None, scan_topic, odom_topic, base_frame,
+                                    repair_information)
+        if map_session is not None:
+            for option, value in (("--method", method), ("--iterations", iterations), ("--robust", robust)):
+                if value is not None:
+                    _fail(PipelineError(f"{option} has nothing to optimize with --map (localization only: "
+                                        "the saved map is not changed)"))
         outcomes = _run_in_process(sources or [], config, out, show_progress, several=False,
                                    replay_options=session_options)
         _report(outcomes, quiet=quiet, as_json=as_json)

@@ -212,6 +212,14 @@ def test_both_options_or_an_initial_pose_without_map_are_refused(logs: Logs, tmp
     assert file_names(tmp_path) == set()
 
 
+@pytest.mark.parametrize("option", [("--method", "sgd"), ("--iterations", "5"), ("--robust", "cauchy"),
+                                    ("--repair-information",)])
+def test_options_map_has_no_use_for_are_refused(logs: Logs, tmp_path: Path, option: tuple[str, ...]) -> None:
+    line = one_error_line(run_replay(logs.inside, "--out", tmp_path, "--map", logs.session, *option))
+    assert option[0] in line
+    assert file_names(tmp_path) == set()
+
+
 @pytest.mark.parametrize("text", ["1,2", "1,2,3,4", "a,b,c", "nan,0,0", "inf,0,0", "1_0,0,0", "1;2;3", ""])
 def test_a_malformed_initial_pose_is_refused(logs: Logs, tmp_path: Path, text: str) -> None:
     line = one_error_line(run_replay(logs.inside, "--out", tmp_path, "--map", logs.session,
