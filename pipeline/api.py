@@ -4,6 +4,11 @@
     result = replay("run.mcap", ReplayConfig(optimizer={"method": "sgd"}), out_dir="results")
     result.poses, result.graph, result.stats.chi2_final, result.outputs["rrd"]
 
+    # sessions (2D laser logs): localize in a saved map, or continue mapping it
+    replay("second.mcap", map="recordings/first.session")            # second.{tum,json,rrd}
+    replay("second.mcap", map="recordings/first.session", initial_pose=(3.5, -1.2, 1.57))
+    replay("second.mcap", continue_from="recordings/first.session")  # both runs, a new second.session
+
 `replay` picks the replay from the input (a pose-graph file or a log, `input_kind`) the way the command
 does, and raises `OptimizerError`, `FrontendError` or `PipelineError` (`KNOWN_ERRORS`) on bad input;
 it never prints or exits. The heavy modules (rerun, numba) are imported on the first call only.
@@ -12,7 +17,7 @@ it never prints or exits. The heavy modules (rerun, numba) are imported on the f
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +37,7 @@ if TYPE_CHECKING:
     from optimizer.graph import PoseGraph
     from optimizer.iteration import Iteration
     from pipeline.replay_graph import GraphReplayResult
-    from pipeline.replay_log import LogReplayResult
+    from pipeline.replay_log import LogReplayResult, SessionStart
 
 KNOWN_ERRORS: tuple[type[Exception], ...] = (OptimizerError, FrontendError, PipelineError)
 """What a replay raises on purpose (bad input, unwritable outputs); anything else is a bug."""
@@ -113,9 +118,12 @@ class ReplayResult:
     input_path: Path
     kind: InputKind
     graph: PoseGraph
-    """The pose graph with its optimized poses (for a log: the frontend's keyframe graph)."""
+    """The pose graph with its optimized poses (for a log: the frontend's keyframe graph; localizing in a
+    saved map: that map's graph, unchanged)."""
     poses: NDArray[np.float64]
-    """(N, 3) final poses (x, y, θ): one per scan for a log (at `stamps_ns`), one per graph pose otherwise."""
+    """(N, 3) final poses (x, y, θ): one per scan for a log (at `stamps_ns`; continuing a session: every
+    scan of it, old ones first; localizing in a saved map: every scan placed in it), one per graph pose
+    otherwise."""
     stamps_ns: NDArray[np.int64] | None
     """Sensor stamp of each scan of a log; None for a pose-graph file."""
     stats: ReplayStats
@@ -139,6 +147,9 @@ def replay(
     out_dir: str | Path = DEFAULT_OUT_DIR,
     on_scan: ScanCallback | None = None,
     on_iteration: IterationCallback | None = None,
+    map: str | Path | None = None,
+    continue_from: str | Path | None = None,
+    initial_pose: Sequence[float] | None = None,
 ) -> ReplayResult:
     """Replay a log (2D laser or 3D LiDAR SLAM, then the optimizer) or optimize a pose-graph file,
     recording every iteration, and write `<stem>.{g2o,json,rrd}` to `out_dir` (for a log also `.tum` and
@@ -148,15 +159,35 @@ def replay(
     `on_scan` is called with every scan's or cloud's estimate (`frontends.protocol.Estimate`) as the
     frontend processes it (logs only); `on_iteration` with every optimizer `Iteration`, the initial
     estimate first. A log's warnings are raised as `LogWarning`s once the replay is done.
+
+    Sessions (a `<stem>.session` a log replay wrote; 2D laser logs): `map` localizes the log in the
+    session's map without changing it (`initial_pose` (x, y, yaw) where the log starts in it, else found
+    by global localization) and writes `<stem>.{tum,json,rrd}`: the scans placed in the map, in its frame,
+    and per-scan match quality; `continue_from` continues mapping it with the log: one joint optimization,
+    every output of a log replay for both runs (the TUM holds every scan of the session, old ones first)
+    and a new session. Raises `SessionError` (a `PipelineError`) for a damaged or newer session file,
+    `MapPlacementError` (a `FrontendError`) when the log never matches the saved map.
     """
     path = Path(path)
     if config is None:
         config = ReplayConfig()
     elif not isinstance(config, ReplayConfig):
         config = load_config(config)
+    if map is not None and continue_from is not None:
+        raise PipelineError("localize in a saved map (map) or continue mapping it (continue_from), not both")
+    if initial_pose is not None and map is None:
+        raise PipelineError("an initial pose applies to localization in a saved map (map) only")
+    session = map if map is not None else continue_from
     if input_kind(path) == "graph":
+        if session is not None:
+            raise PipelineError(f"{path} is a pose graph: a session localizes or continues with logs only")
         return _replay_graph_file(path, config, Path(out_dir), on_iteration)
-    return _replay_log_file(path, config, Path(out_dir), on_scan, on_iteration)
+    start = None
+    if session is not None:
+        from pipeline.replay_log import SessionStart
+
+        start = SessionStart.load(session, "map" if map is not None else "continue", initial_pose)
+    return _replay_log_file(path, config, Path(out_dir), on_scan, on_iteration, start)
 
 
 def _replay_graph_file(path: Path, config: ReplayConfig, out_dir: Path,
@@ -187,7 +218,8 @@ def _replay_graph_file(path: Path, config: ReplayConfig, out_dir: Path,
 
 
 def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: ScanCallback | None,
-                     on_iteration: IterationCallback | None) -> ReplayResult:
+                     on_iteration: IterationCallback | None,
+                     session: SessionStart | None = None) -> ReplayResult:
     from optimizer.cost import chi2
     from pipeline import replay_log as module
 
@@ -195,8 +227,20 @@ def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: S
                                odometry_topic=config.input.odom_topic, base_frame=config.input.base_frame,
                                method=config.optimizer.method, robust=config.optimizer.robust_kernel,
                                iterations=config.optimizer.iterations, slam2d=config.to_slam2d(),
-                               slam3d=config.to_slam3d(), on_measurement=on_scan, on_iteration=on_iteration)
+                               slam3d=config.to_slam3d(), on_measurement=on_scan, on_iteration=on_iteration,
+                               session=session)
     graph = detail.frontend.keyframe_graph(detail.keyframe_poses)
+    if detail.optimization is None:  # localized in a saved map: its graph, unchanged, nothing optimized
+        saved_chi2 = float(chi2(graph))
+        stats = ReplayStats(
+            poses=graph.num_poses, constraints=graph.num_edges,
+            loop_closures=int((~graph.is_odometry).sum()), loop_closures_rejected=0,
+            scans=detail.measurements, iterations={}, chi2_initial=saved_chi2, chi2_final=saved_chi2,
+            wall_time_s=dict(detail.wall_time), converged=True,
+            stop_reason="localization in a saved map: nothing optimized",
+        )
+        return ReplayResult(path, "log", graph, detail.planar_poses, detail.stamps_ns, stats,
+                            detail.outputs.paths(), module.summary(detail), detail)
     iterations: dict[str, int] = {}
     for stage, _, _ in detail.chi2_per_iteration[1:]:
         iterations[stage] = iterations.get(stage, 0) + 1

@@ -129,12 +129,15 @@ def run_one(
     on_scan: ScanCallback | None = None,
     on_iteration: IterationCallback | None = None,
     catch_unexpected: bool = True,
+    replay_options: Mapping[str, Any] | None = None,
 ) -> BatchOutcome:
     """Replay one input, turning its failure into the outcome; with `catch_unexpected=False` only our own
-    errors are (anything else, a bug, propagates with its traceback)."""
+    errors are (anything else, a bug, propagates with its traceback). `replay_options`: more keyword
+    arguments of `pipeline.api.replay` (a session: `map`, `continue_from`, `initial_pose`)."""
     path = Path(path)
     try:
-        result = replay(path, config, out_dir=out_dir, on_scan=on_scan, on_iteration=on_iteration)
+        result = replay(path, config, out_dir=out_dir, on_scan=on_scan, on_iteration=on_iteration,
+                        **(replay_options or {}))
     except KNOWN_ERRORS as error:
         return BatchOutcome.failure(path, error)
     except Exception as error:

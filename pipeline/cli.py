@@ -155,12 +155,20 @@ Examples:
   replay --inputs logs.txt --ray         # each input a task on a local Ray runtime
   replay --inputs /fleet/today/ --ray head:6379 --out /shared/results --retries 2
   replay --dump-config > replay.toml     # then: replay run.mcap --config replay.toml
+  replay second.mcap --map recordings/first.session       # localize in first's map -> second.{{tum,json,rrd}}
+  replay second.mcap --map recordings/first.session --initial-pose 3.5,-1.2,1.57
+  replay second.mcap --continue recordings/first.session  # map on with second: both runs, second.session
 
 \b
 Outputs, in DIR: <stem>.g2o (optimised poses), <stem>.json (counts, chi2 per iteration, wall time per
 stage), <stem>.rrd (every iteration on the timeline `iteration`) and, for logs, <stem>.tum (one pose per
-scan or cloud at its sensor stamp) and the map: <stem>_map.png (laser scans) or <stem>.ply (point
-clouds). A batch (several inputs, --inputs, --ray) also writes
+scan or cloud at its sensor stamp), the map: <stem>_map.png (laser scans) or <stem>.ply (point
+clouds), and <stem>.session (what --map and --continue start from). Sessions (2D laser logs, one log at a
+time): --map localizes the log in the saved map without changing it and writes <stem>.tum (every scan
+placed in the map, in its frame; scans never placed are counted in the JSON, not written), <stem>.json
+(per-scan match quality) and <stem>.rrd (the saved map with the new run on it); --continue maps on from
+the session: the .tum holds every scan of both runs (the session's first) at its jointly optimised pose,
+and <stem>.session the joint map. A batch (several inputs, --inputs, --ray) also writes
 batch_summary.parquet: one row per input (status, error, counts, chi2, times, host). Open the
 recording with the Rerun viewer of rerun-sdk 0.41: rerun recordings/csail_sample.rrd. Settings: a TOML
 file (--config; --dump-config writes the defaults), which the options override. Other commands: replay
@@ -239,6 +247,20 @@ def run(
     dump_config: Annotated[bool, typer.Option(
         "--dump-config", help="Print the settings as TOML (the defaults, with --config and the options "
                               "applied) and exit.")] = False,
+    map_session: Annotated[Path | None, typer.Option(
+        "--map", metavar="SESSION", show_default=False,
+        help="Localize the one log INPUT in the map of SESSION (a .session a replay wrote; 2D laser): the "
+             "map is not changed. Writes <stem>.tum (in the map's frame), .json (match quality per scan) "
+             "and .rrd (the saved map with the new run).")] = None,
+    continue_session: Annotated[Path | None, typer.Option(
+        "--continue", metavar="SESSION", show_default=False,
+        help="Continue mapping SESSION with the one log INPUT (2D laser): new keyframes, loop closures "
+             "between the runs, one joint optimization; the outputs hold both runs, and a new session.")
+    ] = None,
+    initial_pose: Annotated[str | None, typer.Option(
+        "--initial-pose", metavar="X,Y,YAW", show_default=False,
+        help="With --map: where the log starts in the map (m, m, rad). Default: found by global "
+             "localization.")] = None,
 ) -> None:
     """Replay logs (or optimise pose graphs), recording every iteration, and write the results to DIR."""
     overrides: dict[str, dict[str, Any]] = {"optimizer": {}, "input": {}}
@@ -265,6 +287,21 @@ def run(
         return
 
     show_progress = not quiet and sys.stderr.isatty()
+    session_options = _session_options(map_session, continue_session, initial_pose, sources or [],
+                                       several=inputs_from is not None or ray_address is not None)
+    if session_options:
+        _refuse_options_without_use(sources or [], None, scan_topic, odom_topic, base_frame,
+                                    repair_information)
+        if map_session is not None:
+            for option, value in (("--method", method), ("--iterations", iterations), ("--robust", robust)):
+                if value is not None:
+                    _fail(PipelineError(f"{option} has nothing to optimize with --map (localization only: "
+                                        "the saved map is not changed)"))
+        outcomes = _run_in_process(sources or [], config, out, show_progress, several=False,
+                                   replay_options=session_options)
+        _report(outcomes, quiet=quiet, as_json=as_json)
+        _exit_for(outcomes, quiet=quiet, allow_unconverged=allow_unconverged)
+        return
     ray = _ray_options(ray_address, cpus_per_task, retries, jobs)
     if inputs_from is not None:
         sources = [*(sources or []), *_listed_inputs(inputs_from, out)]
@@ -296,7 +333,14 @@ def run(
     _report(outcomes, quiet=quiet, as_json=as_json, summary_path=summary_path)
     if summary_error is not None:
         typer.echo(f"{PROGRAM}: error: {summary_error}", err=True)
-    if summary_error is not None or not all(outcome.ok for outcome in outcomes):
+        raise typer.Exit(EXIT_ERROR)
+    _exit_for(outcomes, quiet=quiet, allow_unconverged=allow_unconverged)
+
+
+def _exit_for(outcomes: Sequence[BatchOutcome], *, quiet: bool, allow_unconverged: bool) -> None:
+    """Exit 2 when an input failed; say which optimizations did not converge, and exit 3 for them unless
+    `allow_unconverged`."""
+    if not all(outcome.ok for outcome in outcomes):
         raise typer.Exit(EXIT_ERROR)
     unconverged = [outcome for outcome in outcomes if outcome.stats and not outcome.stats.converged]
     for outcome in unconverged if not (quiet and allow_unconverged) else []:
@@ -322,6 +366,45 @@ def _refuse_options_without_use(sources: Sequence[Path], inputs_from: Path | Non
                               ("--base-frame", base_frame)):
             if value is not None:
                 _fail(PipelineError(f"{option} applies to logs only, and every input is a pose graph"))
+
+
+_NUMBER = r"\s*[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\s*"
+_INITIAL_POSE = re.compile(",".join([f"({_NUMBER})"] * 3))
+"""x,y,yaw: three plain decimal numbers (no inf, nan or digit separators)."""
+
+
+def _session_options(map_session: Path | None, continue_session: Path | None, initial_pose: str | None,
+                     sources: Sequence[Path], *, several: bool) -> dict[str, Any]:
+    """The `replay` keyword arguments of --map / --continue / --initial-pose ({} without them); a misuse
+    ends the command in one line."""
+    if map_session is not None and continue_session is not None:
+        _fail(PipelineError("--map (localize in a saved map) and --continue (map on from it) exclude each "
+                            "other: choose one"))
+    if initial_pose is not None and map_session is None:
+        _fail(PipelineError("--initial-pose applies to --map only (where the log starts in the saved map)"))
+    session = map_session if map_session is not None else continue_session
+    if session is None:
+        return {}
+    option = "--map" if map_session is not None else "--continue"
+    if several or len(sources) != 1:
+        _fail(PipelineError(f"{option} takes exactly one log (INPUT), not a batch or the bundled sample"))
+    if input_kind(sources[0]) == "graph":
+        _fail(PipelineError(f"{option} applies to logs; {sources[0]} is a pose graph"))
+    if map_session is None:
+        return {"continue_from": session}
+    options: dict[str, Any] = {"map": session}
+    if initial_pose is not None:
+        options["initial_pose"] = _parse_initial_pose(initial_pose)
+    return options
+
+
+def _parse_initial_pose(text: str) -> tuple[float, float, float]:
+    matched = _INITIAL_POSE.fullmatch(text)
+    values = () if matched is None else tuple(float(value) for value in matched.groups())
+    if len(values) != 3 or not all(math.isfinite(value) for value in values):
+        _fail(PipelineError(f"--initial-pose wants x,y,yaw (metres, metres, radians: three numbers "
+                            f"separated by commas), not {text!r}"))
+    return values[0], values[1], values[2]
 
 
 def _ray_options(address: str | None, cpus_per_task: float | None, retries: int | None,
@@ -383,9 +466,10 @@ def _fail(error: BaseException) -> NoReturn:
 
 
 def _run_in_process(sources: Sequence[Path], config: ReplayConfig, out: Path, show_progress: bool, *,
-                    several: bool) -> list[BatchOutcome]:
+                    several: bool, replay_options: dict[str, Any] | None = None) -> list[BatchOutcome]:
     """One input after another, with live progress. A single input's bug keeps its traceback; among
-    several, it becomes that input's failure so the others still run."""
+    several, it becomes that input's failure so the others still run. `replay_options`: a session's
+    (`_session_options`)."""
     from pipeline.batch import run_one, with_this_host
 
     outcomes = []
@@ -393,7 +477,7 @@ def _run_in_process(sources: Sequence[Path], config: ReplayConfig, out: Path, sh
         for path in sources:
             with display.watch(path, config) as (on_scan, on_iteration):
                 outcome = run_one(path, config, out_dir=out, on_scan=on_scan, on_iteration=on_iteration,
-                                  catch_unexpected=several)
+                                  catch_unexpected=several, replay_options=replay_options)
             outcomes.append(with_this_host(outcome) if several else outcome)
             display.finished(outcomes[-1])
     return outcomes
@@ -551,6 +635,8 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     stats, summary = outcome.stats, outcome.summary
     assert stats is not None and summary is not None
     name = outcome.input_path.name
+    if summary.get("mode") == "map":
+        return _localization_summary(outcome)
     if stats.scans is not None:
         what = "point clouds" if summary["sensor"] == "cloud" else "scans"
         lines = [f"{name}: {stats.scans} {what} on {summary['topic']}, odometry "
@@ -567,6 +653,12 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
         repaired = summary.get("repaired_information_lines") or []
         if repaired:
             lines.append(f"  repaired the information of {len(repaired)} constraints")
+    if summary.get("mode") == "continue":
+        counts, placement = summary["counts"], summary["session"]["placement"]
+        lines.append(f"  continued {summary['session']['continued_from']}: {counts['session_keyframes']} "
+                     f"keyframes and {counts['session_scans']} scans of it; placed in it at scan "
+                     f"{placement.get('scan')}, {counts['scans_unplaced']} scans before that left out; "
+                     f"{counts['loop_closures_old_new']} constraints between its keyframes and the new ones")
     per_stage = ", ".join(f"{stage} {count}" for stage, count in stats.iterations.items())
     lines.append(f"  chi2 {stats.chi2_initial:.6g} -> {stats.chi2_final:.6g}"
                  + (f" after {per_stage} iterations" if per_stage else ""))
@@ -576,6 +668,33 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
                                                         times.items()) + ")")
     lines.append("  wrote " + ", ".join(str(path) for path in outcome.outputs.values()))
     return "\n".join(lines)
+
+
+def _localization_summary(outcome: BatchOutcome) -> str:
+    stats, summary = outcome.stats, outcome.summary
+    assert stats is not None and summary is not None
+    found = summary["localization"]
+    first_fix = found["first_fix_after_s"]
+    lines = [
+        f"{outcome.input_path.name}: {found['scans']} scans on {summary['topic']} localized in "
+        f"{summary['session']} ({stats.poses} keyframes, not changed): {found['with_pose']} with a pose "
+        f"({found['matched']} matched, {found['recovered_by_a_global_fix']} recovered by a global fix), "
+        f"{found['never_localized']} never localized (not in the .tum)",
+        f"  {len(found['global_fixes'])} global fixes"
+        + ("" if first_fix is None else f", the first {first_fix:.1f} s after the first scan")
+        + f"; median match score {_or_dash(found['score']['median'])}, "
+          f"inliers {_or_dash(found['inlier_fraction']['median'])}",
+    ]
+    times = dict(stats.wall_time_s)
+    total = times.pop("total", math.nan)
+    lines.append(f"  time {total:.2f} s (" + ", ".join(f"{stage} {seconds:.2f}" for stage, seconds in
+                                                        times.items()) + ")")
+    lines.append("  wrote " + ", ".join(str(path) for path in outcome.outputs.values()))
+    return "\n".join(lines)
+
+
+def _or_dash(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
 
 
 def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None = None) -> None:

@@ -13,6 +13,15 @@ every iteration, trajectory and map files.
    for clouds), `<stem>.json` (counts, timings, χ² per iteration, convergence, warnings) and
    `<stem>.rrd`, published together on success (`pipeline.outputs`).
 
+A replay may start from a saved session (`SessionStart`, `pipeline.session_file`; 2D laser sessions):
+- `continue`: the frontend table's session factory gives a frontend that continues the saved keyframe graph
+  (`frontends.slam2d.session_frontends.ContinuingLaserFrontend`); everything else is as above, and the
+  trajectory, the graph, the map and the new session hold both runs;
+- `map`: localization only (`LocalizingLaserFrontend`): the scans stream through the localizer and the
+  recording as in step 2, nothing is optimized, and the outputs are `<stem>.tum` (the scans placed in the
+  saved map, in its frame), `<stem>.json` (per-scan match quality, `localization_summary`) and
+  `<stem>.rrd` (the saved map with the new run on it); the saved map is not changed or written again.
+
 Warnings raised on the way are counted (`pipeline.warning_tally`), written to the summary and raised once
 each afterwards. Library code: raises `FrontendError`, `OptimizerError` or `PipelineError`, never prints.
 """
@@ -20,11 +29,12 @@ each afterwards. Library code: raises `FrontendError`, `OptimizerError` or `Pipe
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,6 +42,7 @@ from numpy.typing import NDArray
 from frontends.logs import LogReader, open_log
 from frontends.protocol import Estimate, FrontendOptions, LogFrontend
 from frontends.slam2d import LaserFrontend, OccupancyGrid, Slam2DConfig
+from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
 from frontends.slam3d import LidarFrontend, Slam3DConfig, planar
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
@@ -52,8 +63,17 @@ from pipeline.outputs import (
 from pipeline.ply import write_map_pcd, write_ply
 from pipeline.recording import IterationSink
 from pipeline.recording.clouds import CloudReplayRecording
+from pipeline.recording.localization import MapLocalizationRecording
 from pipeline.recording.scans import ScanReplayRecording
-from pipeline.session_file import source_description, write_session_file
+from pipeline.session_file import (
+    SENSOR_WORDS,
+    SessionContent,
+    read_session,
+    saved_map_2d,
+    session_sensor_kind,
+    source_description,
+    write_session_file,
+)
 from pipeline.trajectory_io import write_kitti_poses, write_tum
 from pipeline.warning_tally import WarningTally, reissue, tallied_warnings
 
@@ -93,6 +113,50 @@ class _MapFile:
     """(staged path, the frontend's map export, the outputs' published paths)."""
 
 
+ReplayMode = Literal["slam", "continue", "map"]
+"""A plain log replay, mapping continued from a session, or localization in a session's map."""
+
+
+@dataclass(frozen=True, eq=False)
+class SessionStart:
+    """A saved session a log replay starts from (`replay LOG --continue SESSION`, `--map SESSION`)."""
+
+    path: Path
+    mode: Literal["continue", "map"]
+    content: SessionContent
+    initial_pose: tuple[float, float, float] | None = None
+    """With "map": where the new run starts in the map (x, y, yaw); None: found by global localization."""
+
+    @classmethod
+    def load(cls, path: str | Path, mode: Literal["continue", "map"],
+             initial_pose: Sequence[float] | None = None) -> SessionStart:
+        """Read the session file (`SessionError` naming it when it is damaged or from a newer version)."""
+        if mode not in ("continue", "map"):
+            raise PipelineError(f"unknown session mode {mode!r}; choose continue or map")
+        if initial_pose is not None:
+            if mode != "map":
+                raise PipelineError("an initial pose applies to localization in a map (--map) only")
+            pose = tuple(float(value) for value in initial_pose)
+            if len(pose) != 3 or not all(np.isfinite(pose)):
+                raise PipelineError(f"the initial pose must be three finite numbers x, y, yaw; got {pose}")
+            initial_pose = pose
+        path = Path(path)
+        return cls(path, mode, read_session(path), None if initial_pose is None else tuple(initial_pose))
+
+    def frontend_for(self, sensor: _Sensor, kind: str, log: LogReader, topic: str, config: Any,
+                     options: FrontendOptions) -> Any:
+        """The session's frontend on the log; `PipelineError` when the session's sensor is not the log's."""
+        saved_kind = session_sensor_kind(self.path, self.content)
+        if saved_kind != kind:
+            raise PipelineError(f"{self.path} is a map of {SENSOR_WORDS[saved_kind]} and {log.path} has "
+                                f"{SENSOR_WORDS[kind]} ({topic}): a session continues or localizes logs of "
+                                "its own kind")
+        if sensor.from_session is None:
+            raise PipelineError(f"{self.path}: --continue and --map work with 2D laser sessions only so far "
+                                f"(this one is of {SENSOR_WORDS[kind]})")
+        return sensor.from_session(log, topic, config, options, self)
+
+
 @dataclass(frozen=True)
 class _Sensor:
     """What a sensor kind chooses: its frontend, its recording, its map files."""
@@ -103,6 +167,11 @@ class _Sensor:
     map_files: tuple[_MapFile, ...]
     kitti_poses: bool = False
     """Also write the trajectory as KITTI poses (`<stem>.kitti`: 3×4 matrices, one line per measurement)."""
+    from_session: Callable[[LogReader, str, Any, FrontendOptions, SessionStart], Any] | None = None
+    """The frontend of a replay that starts from a saved session: continuing it (a `LogFrontend`) or
+    localizing in it (a `LocalizingLaserFrontend`); None: not built for this sensor."""
+    localization_recording: type[MapLocalizationRecording] | None = None
+    """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
 
 
 def _write_map_yaml(path: Path, grid: OccupancyGrid, outputs: ReplayOutputs) -> None:
@@ -110,12 +179,20 @@ def _write_map_yaml(path: Path, grid: OccupancyGrid, outputs: ReplayOutputs) -> 
     write_text(path, map_server_yaml(grid, outputs.map_pgm.name))
 
 
+def _laser_frontend_from_session(log: LogReader, topic: str, config: Slam2DConfig | None,
+                                 options: FrontendOptions, session: SessionStart) -> LaserFrontend:
+    saved = saved_map_2d(session.path, session.content)
+    if session.mode == "continue":
+        return ContinuingLaserFrontend(log, topic, saved, config, options)
+    return LocalizingLaserFrontend(log, topic, saved, config, options, initial_pose=session.initial_pose)
+
+
 _SENSORS = {
     "scan": _Sensor(LaserFrontend, ScanReplayRecording, (
         _MapFile("map_png", "_map.png", lambda path, grid, _: write_png(path, picture_with_scale_bar(grid))),
         _MapFile("map_pgm", "_map.pgm", lambda path, grid, _: write_bytes(path, map_server_pgm(grid))),
         _MapFile("map_yaml", "_map.yaml", _write_map_yaml),
-    )),
+    ), from_session=_laser_frontend_from_session, localization_recording=MapLocalizationRecording),
     "cloud": _Sensor(LidarFrontend, CloudReplayRecording, (
         _MapFile("ply", ".ply", lambda path, points, _: write_ply(path, points)),
         _MapFile("pcd", ".pcd", lambda path, points, _: write_map_pcd(path, points)),
@@ -126,9 +203,10 @@ _SENSORS = {
 @dataclass(frozen=True)
 class ReplayOutputs:
     tum: Path
-    g2o: Path
     json: Path
     rrd: Path
+    g2o: Path | None = None
+    """The keyframe graph (not written by a localization in a saved map)."""
     map_png: Path | None = None
     """The occupancy grid (scans), north up, with a scale bar."""
     map_pgm: Path | None = None
@@ -144,8 +222,13 @@ class ReplayOutputs:
     """Everything needed to localize in the map or continue it (`pipeline.session_file`)."""
 
     @classmethod
-    def for_input(cls, out_dir: Path, input_path: Path, sensor: str = "scan") -> ReplayOutputs:
+    def for_input(cls, out_dir: Path, input_path: Path, sensor: str = "scan",
+                  mode: ReplayMode = "slam") -> ReplayOutputs:
+        """The outputs of a replay of `input_path`; localization in a saved map ("map") writes only the
+        trajectory, the summary and the recording."""
         stem = output_stem(input_path)
+        if mode == "map":
+            return cls(**{suffix: out_dir / f"{stem}.{suffix}" for suffix in ("tum", "json", "rrd")})
         chosen = _SENSORS[sensor]
         files = {suffix: out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd", "session")}
         if chosen.kitti_poses:
@@ -176,10 +259,11 @@ class LogReplayResult:
     poses: FloatArray
     """Final pose of every measurement at `stamps_ns`: (S, 3), or (S, 4, 4) for clouds."""
     keyframe_poses: FloatArray
-    """(K, 3) optimized planar keyframe poses."""
+    """(K, 3) optimized planar keyframe poses (localizing in a saved map: the map's, unchanged)."""
     chi2_per_iteration: tuple[tuple[str, int, float], ...]
-    optimization: OptimizationResult
-    """How the keyframe optimization ended (converged, why, every start and the winner)."""
+    optimization: OptimizationResult | None
+    """How the keyframe optimization ended (converged, why, every start and the winner); None when
+    localizing in a saved map (nothing is optimized)."""
     wall_time: dict[str, float]
     outputs: ReplayOutputs
     counts: dict[str, int]
@@ -187,6 +271,9 @@ class LogReplayResult:
     warnings: list[dict[str, Any]]
     """[{"message", "count"}]: what was skipped or lost on the way, each distinct message once."""
     settings: dict[str, Any]
+    mode: ReplayMode = "slam"
+    session: Path | None = None
+    """The session the replay started from (continue, map)."""
 
     @property
     def planar_poses(self) -> FloatArray:
@@ -208,13 +295,15 @@ def replay_log(
     slam3d: Slam3DConfig | None = None,
     on_measurement: EstimateCallback | None = None,
     on_iteration: IterationCallback | None = None,
+    session: SessionStart | None = None,
 ) -> LogReplayResult:
     """Run the SLAM of the log's sensor (`topic`, found by type unless given) on the log at `path` and
-    write its outputs to `out_dir`. `slam2d` / `slam3d` configure the frontend of scans / clouds."""
+    write its outputs to `out_dir`. `slam2d` / `slam3d` configure the frontend of scans / clouds.
+    `session`: continue a saved session's map, or localize in it (see the module docstring)."""
     path = Path(path)
     if method not in METHODS:
         raise PipelineError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    run = _Run(path, method, iterations, robust, on_measurement, on_iteration)
+    run = _Run(path, method, iterations, robust, on_measurement, on_iteration, session)
     options = FrontendOptions(base_frame=base_frame, odometry_topic=odometry_topic)
     tally = WarningTally(path)
     try:
@@ -228,7 +317,7 @@ def replay_log(
 class _Optimized:
     measurements: int
     trace: tuple[tuple[str, int, float], ...]
-    optimization: OptimizationResult
+    optimization: OptimizationResult | None
     keyframe_poses: FloatArray
     poses: FloatArray
     map_export: Any
@@ -243,40 +332,45 @@ class _Run:
     robust: str | None
     on_measurement: EstimateCallback | None
     on_iteration: IterationCallback | None
+    session: SessionStart | None = None
+
+    @property
+    def mode(self) -> ReplayMode:
+        return "slam" if self.session is None else self.session.mode
 
     def replay(self, log: LogReader, out_dir: Path, topic: str | None, options: FrontendOptions,
                configs: dict[str, Any], tally: WarningTally) -> LogReplayResult:
         started = time.perf_counter()
         topic, kind = log.sensor_topic(topic)
         sensor = _SENSORS[kind]
-        outputs = ReplayOutputs.for_input(out_dir, self.path, kind)
+        localizing = self.mode == "map"
+        outputs = ReplayOutputs.for_input(out_dir, self.path, kind, self.mode)
         paths = outputs.paths()
         with staged_outputs_in(out_dir, *paths.values()) as staged_paths:
             staged = dict(zip(paths, staged_paths, strict=True))
-            frontend = sensor.frontend(log, topic, configs[kind], options)
+            if self.session is None:
+                frontend = sensor.frontend(log, topic, configs[kind], options)
+            else:
+                frontend = self.session.frontend_for(sensor, kind, log, topic, configs[kind], options)
             timings = {"read_odometry_tf": time.perf_counter() - started}
             stream = recording.create_recording(staged["rrd"], name=self.path.name,
                                                 with_map=sensor.recording.with_map)
             try:
-                recorder: FrontendRecording = sensor.recording(stream, frontend)  # type: ignore[arg-type]
-                result = self.through(frontend, topic, recorder, stream, timings)
+                if localizing:
+                    assert sensor.localization_recording is not None  # `frontend_for` checked it
+                    result = self.localize(frontend, topic, sensor.localization_recording(stream, frontend),
+                                           stream, timings)
+                else:
+                    recorder: FrontendRecording = sensor.recording(stream, frontend)  # type: ignore[arg-type]
+                    result = self.through(frontend, topic, recorder, stream, timings)
             finally:
                 close_started = time.perf_counter()
                 recording.close_recording(stream)
                 timings["record_close"] = time.perf_counter() - close_started
             write_started = time.perf_counter()
             write_tum(staged["tum"], frontend.stamps_ns, result.poses)
-            write_g2o(staged["g2o"], frontend.keyframe_graph(), result.keyframe_poses)
-            if outputs.kitti is not None:
-                write_kitti_poses(staged["kitti"], result.poses)
-            for map_file in sensor.map_files:
-                map_file.write(staged[map_file.output], result.map_export, outputs)
-            arrays, keyframe_points = frontend.session_content(result.keyframe_poses)
-            write_session_file(staged["session"], {
-                "sensor_kind": kind, "topic": topic, "sensor_frame": frontend.sensor_frame,
-                "base_frame": frontend.base_frame, "settings": frontend.settings(),
-                "source": source_description(log.info().files),
-            }, arrays, keyframe_points)
+            if not localizing:
+                self.write_map_outputs(frontend, log, kind, topic, result, outputs, staged)
             timings["write"] = time.perf_counter() - write_started
             timings["total"] = time.perf_counter() - started
             replayed = LogReplayResult(
@@ -286,15 +380,39 @@ class _Run:
                 keyframe_poses=result.keyframe_poses, chi2_per_iteration=result.trace,
                 optimization=result.optimization, wall_time=timings, outputs=outputs,
                 counts=frontend.counts(), loop_closures=frontend.loop_closures(), warnings=tally.as_json(),
-                settings=frontend.settings(),
+                settings=frontend.settings(), mode=self.mode,
+                session=None if self.session is None else self.session.path,
             )
-            write_text(staged["json"], json_text(summary(replayed)))
+            if localizing:
+                write_text(staged["json"], localization_summary_text(replayed))
+            else:
+                write_text(staged["json"], json_text(summary(replayed)))
         return replayed
 
-    def through(self, frontend: LogFrontend, topic: str, recorder: FrontendRecording, stream: Any,
-                timings: dict[str, float]) -> _Optimized:
-        """Stream the measurements through the frontend, then optimize its keyframe graph and make the map,
-        recording all of it; `timings` gets the seconds of each stage."""
+    def write_map_outputs(self, frontend: LogFrontend, log: LogReader, kind: str, topic: str,
+                          result: _Optimized, outputs: ReplayOutputs, staged: dict[str, Path]) -> None:
+        """The keyframe graph, the map files and the session of a mapping replay (plain or continued)."""
+        write_g2o(staged["g2o"], frontend.keyframe_graph(), result.keyframe_poses)
+        if outputs.kitti is not None:
+            write_kitti_poses(staged["kitti"], result.poses)
+        for map_file in _SENSORS[kind].map_files:
+            map_file.write(staged[map_file.output], result.map_export, outputs)
+        arrays, keyframe_points = frontend.session_content(result.keyframe_poses)
+        header = {
+            "sensor_kind": kind, "topic": topic, "sensor_frame": frontend.sensor_frame,
+            "base_frame": frontend.base_frame, "settings": frontend.settings(),
+            "source": source_description(log.info().files),
+        }
+        if self.session is not None:  # the map holds the earlier sessions' logs too
+            earlier = self.session.content.header
+            header["continued_from"] = {"path": str(self.session.path.resolve()),
+                                        "source": earlier.get("source"),
+                                        "continued_from": earlier.get("continued_from")}
+        write_session_file(staged["session"], header, arrays, keyframe_points)
+
+    def stream(self, frontend: LogFrontend | LocalizingLaserFrontend, recorder: FrontendRecording,
+               timings: dict[str, float]) -> int:
+        """Stream the measurements through the frontend and the recording; how many there were."""
         started = time.perf_counter()
         record_seconds = 0.0
         count = 0
@@ -312,11 +430,39 @@ class _Run:
         record_seconds += time.perf_counter() - record_started
         timings["frontend"] = time.perf_counter() - started - record_seconds
         timings["record_scans"] = record_seconds
+        return count
+
+    def localize(self, frontend: LocalizingLaserFrontend, topic: str, recorder: MapLocalizationRecording,
+                 stream: Any, timings: dict[str, float]) -> _Optimized:
+        """Localize every measurement in the saved map, recording the new run on it (nothing optimized)."""
+        count = self.stream(frontend, recorder, timings)
+        assert self.session is not None
+        saved_poses = frontend.saved.keyframe_poses
+        recording.log_run_properties(stream, {"input": str(self.path), "topic": topic, "mode": "map",
+                                              "session": str(self.session.path), "measurements": count,
+                                              "map_keyframes": len(saved_poses)})
+        map_started = time.perf_counter()
+        grid = frontend.map_export(saved_poses)
+        poses = frontend.localized_poses()
+        timings["map"] = time.perf_counter() - map_started
+        record_started = time.perf_counter()
+        recorder.final(saved_poses, poses, grid)
+        timings["record_maps"] = time.perf_counter() - record_started
+        return _Optimized(count, (), None, saved_poses, poses, grid)
+
+    def through(self, frontend: LogFrontend, topic: str, recorder: FrontendRecording, stream: Any,
+                timings: dict[str, float]) -> _Optimized:
+        """Stream the measurements through the frontend, then optimize its keyframe graph and make the map,
+        recording all of it; `timings` gets the seconds of each stage."""
+        count = self.stream(frontend, recorder, timings)
         optimize_started = time.perf_counter()
         graph = frontend.keyframe_graph()
-        recording.log_run_properties(stream, {"input": str(self.path), "topic": topic,
-                                              "method": self.method, "measurements": count,
-                                              "keyframes": graph.num_poses})
+        properties: dict[str, str | int | float] = {"input": str(self.path), "topic": topic,
+                                                     "method": self.method, "measurements": count,
+                                                     "keyframes": graph.num_poses}
+        if self.session is not None:
+            properties.update(mode=self.mode, session=str(self.session.path))
+        recording.log_run_properties(stream, properties)
         wheel_odometry = frontend.keyframe_wheel_odometry()
         optimized = optimize_keyframes(
             stream, frontend.keyframe_graph(frontend.odometry_chain), graph, self.method, self.iterations,
@@ -337,8 +483,17 @@ class _Run:
 
 
 def summary(result: LogReplayResult) -> dict[str, Any]:
+    """The JSON summary of a mapping replay (plain or continued)."""
+    if result.optimization is None:
+        return localization_summary(result)
+    continued = {}
+    if result.session is not None and isinstance(result.frontend, ContinuingLaserFrontend):
+        continued = {"session": {"continued_from": str(result.session),
+                                 "placement": result.frontend.placement()}}
     return {
         "schema": SUMMARY_SCHEMA,
+        "mode": result.mode,
+        **continued,
         "input": str(result.input_path),
         "sensor": result.sensor,
         "topic": result.topic,
@@ -354,3 +509,91 @@ def summary(result: LogReplayResult) -> dict[str, Any]:
         "config": result.settings,
         "outputs": {kind: str(path) for kind, path in result.outputs.paths().items()},
     }
+
+
+MAX_PER_SCAN_ROWS = 20_000
+"""A localization summary lists at most this many scans one by one (every k-th of a longer log)."""
+SCAN_STATES = {"matched": "m", "predicted": "p", "recovered": "r", "never": "-"}
+"""One character per scan in a localization summary's `per_scan.state`."""
+
+
+def localization_summary(result: LogReplayResult) -> dict[str, Any]:
+    """The JSON summary of a localization in a saved map, without its per-scan table (`per_scan`, see
+    `localization_summary_text`)."""
+    frontend = result.frontend
+    assert isinstance(frontend, LocalizingLaserFrontend)
+    found = frontend.localizations
+    stamps = found.stamps_ns
+    fixes = [{"scan": int(k), "stamp_ns": int(stamps[k]), "score": float(found.score[k])}
+             for k in found.global_fixes]
+    first_fix = (stamps[found.global_fixes[0]] - stamps[0]) * 1e-9 if len(fixes) else None
+    return {
+        "schema": SUMMARY_SCHEMA,
+        "mode": "map",
+        "session": str(result.session),
+        "input": str(result.input_path),
+        "sensor": result.sensor,
+        "topic": result.topic,
+        "odometry_topic": result.odometry_topic,
+        "sensor_frame": result.sensor_frame,
+        "base_frame": result.base_frame,
+        "initial_pose": None if frontend.initial_pose is None else list(frontend.initial_pose),
+        "counts": result.counts,
+        "localization": {
+            "scans": len(stamps),
+            "with_pose": int(found.has_pose.sum()),
+            "localized_when_processed": int(found.localized.sum()),
+            "matched": int(found.matched.sum()),
+            "recovered_by_a_global_fix": int(found.recovered.sum()),
+            "never_localized": int((~found.has_pose).sum()),
+            "never_localized_note": "scans never placed in the map have no pose and are not in the TUM file",
+            "first_fix_after_s": first_fix,
+            "global_fixes": fixes,
+            "score": _percentiles(found.score[found.matched]),
+            "inlier_fraction": _percentiles(found.inlier_fraction[found.matched]),
+            "rms_m": _percentiles(found.rms[found.matched]),
+        },
+        "wall_time_s": result.wall_time,
+        "warnings": result.warnings,
+        "config": result.settings,
+        "outputs": {kind: str(path) for kind, path in result.outputs.paths().items()},
+    }
+
+
+def localization_summary_text(result: LogReplayResult) -> str:
+    """`localization_summary` as JSON text, with `per_scan`: one row of compact arrays per quantity
+    (the scan's stamp, state — m matched, p predicted by odometry without a match, r pose recovered by a
+    later global fix, - never localized — score, inlier fraction, ICP rms), each on one line."""
+    assert isinstance(result.frontend, LocalizingLaserFrontend)
+    found = result.frontend.localizations
+    stride = -(-len(found.stamps_ns) // MAX_PER_SCAN_ROWS)
+    rows = np.arange(0, len(found.stamps_ns), stride)
+    state = np.full(len(found.stamps_ns), SCAN_STATES["never"])
+    state[found.recovered] = SCAN_STATES["recovered"]
+    state[found.localized] = SCAN_STATES["predicted"]
+    state[found.matched] = SCAN_STATES["matched"]
+    per_scan = {
+        "stride": int(stride),
+        "stamp_ns": found.stamps_ns[rows].tolist(),
+        "state": "".join(state[rows]),
+        "score": _rounded(found.score[rows], 3),
+        "inlier_fraction": _rounded(found.inlier_fraction[rows], 3),
+        "rms_m": _rounded(found.rms[rows], 4),
+    }
+    lines = ",\n".join(f'    "{name}": {json.dumps(values, separators=(",", ":"))}'
+                        for name, values in per_scan.items())
+    text = json_text(localization_summary(result))
+    assert text.endswith("\n}\n")
+    return text[:-3] + ',\n  "per_scan": {\n' + lines + "\n  }\n}\n"
+
+
+def _rounded(values: FloatArray, digits: int) -> list[float | None]:
+    return [round(value, digits) if np.isfinite(value) else None for value in values.tolist()]
+
+
+def _percentiles(values: FloatArray) -> dict[str, float | None]:
+    finite = values[np.isfinite(values)]
+    if len(finite) == 0:
+        return {"p5": None, "median": None, "p95": None}
+    p5, median, p95 = np.percentile(finite, [5, 50, 95])
+    return {"p5": float(p5), "median": float(median), "p95": float(p95)}

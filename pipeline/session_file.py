@@ -22,13 +22,16 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError, LogWarning
 from pipeline.errors import OutputError, PipelineError
+
+if TYPE_CHECKING:
+    from frontends.slam2d.session_frontends import SavedMap2D
 
 SESSION_FORMAT = "sgdslam.session"
 SESSION_VERSION = 1
@@ -120,10 +123,11 @@ def write_session(stream: BinaryIO, header: Mapping[str, Any], arrays: Mapping[s
     writer.finish()
 
 
-def read_session(path: Path) -> SessionContent:
+def read_session(path: str | Path) -> SessionContent:
     """Read a whole session file; `SessionError` names the file and what is wrong with it."""
     from frontends.logs.containers.mcap_file import McapContainer
 
+    path = Path(path)
     try:
         with path.open("rb") as stream:
             stream.seek(max(path.stat().st_size - len(MCAP_MAGIC), 0))
@@ -199,3 +203,73 @@ def _array(path: Path, topic: str, data: bytes) -> NDArray[Any]:
         return np.load(io.BytesIO(data), allow_pickle=False)
     except (ValueError, OSError, EOFError) as error:
         raise SessionError(f"{path}: damaged session file ({topic}: {error})") from error
+
+
+SCAN_SESSION_ARRAYS = ("keyframe_poses", "edge_from", "edge_to", "measurements", "information", "is_loop",
+                       "scan_stamps_ns", "scan_keyframes", "scan_offsets")
+"""The arrays a 2D laser session holds (`frontends.slam2d.LaserFrontend.session_content`)."""
+
+SENSOR_WORDS = {"scan": "2D laser scans", "cloud": "3D point clouds"}
+
+
+def session_sensor_kind(path: Path, content: SessionContent) -> str:
+    """"scan" or "cloud": what the session's map was made of."""
+    kind = content.header.get("sensor_kind")
+    if kind not in SENSOR_WORDS:
+        raise SessionError(f"{path}: damaged session header (sensor_kind {kind!r})")
+    return str(kind)
+
+
+def saved_map_2d(path: Path, content: SessionContent) -> SavedMap2D:
+    """The keyframe map of a 2D laser session, checked for consistency: `SessionError` naming the file and
+    the array when one is missing or does not fit the others."""
+    from frontends.slam2d.resume import SavedConstraints, SavedScans
+    from frontends.slam2d.session_frontends import SavedMap2D
+
+    arrays = content.arrays
+    missing = [name for name in SCAN_SESSION_ARRAYS if name not in arrays]
+    if missing:
+        raise SessionError(f"{path}: damaged session file (no {', '.join(missing)})")
+    poses = _checked(path, "keyframe_poses", arrays, (-1, 3), np.floating)
+    keyframes = len(poses)
+    if len(content.keyframe_points) != keyframes:
+        raise SessionError(f"{path}: damaged session file ({len(content.keyframe_points)} keyframe scans "
+                           f"for {keyframes} keyframe poses)")
+    scans = []
+    for index, points in enumerate(content.keyframe_points):
+        scans.append(_checked(path, f"keyframe_points[{index}]", {"": points}, (-1, 2), np.floating, name=""))
+    edge_from = _checked(path, "edge_from", arrays, (-1,), np.integer)
+    edges = len(edge_from)
+    edge_to = _checked(path, "edge_to", arrays, (edges,), np.integer)
+    ends = np.concatenate([edge_from, edge_to])
+    if edges and (ends.min() < 0 or ends.max() >= keyframes):
+        raise SessionError(f"{path}: damaged session file (constraints between keyframes that do not exist)")
+    stamps = _checked(path, "scan_stamps_ns", arrays, (-1,), np.integer)
+    scan_keyframes = _checked(path, "scan_keyframes", arrays, (len(stamps),), np.integer)
+    if len(stamps) and (scan_keyframes.min() < 0 or scan_keyframes.max() >= keyframes):
+        raise SessionError(f"{path}: damaged session file (scans of keyframes that do not exist)")
+    return SavedMap2D(
+        tuple(scans), poses,
+        SavedConstraints(edge_from.astype(np.int64), edge_to.astype(np.int64),
+                         _checked(path, "measurements", arrays, (edges, 3), np.floating),
+                         _checked(path, "information", arrays, (edges, 3, 3), np.floating),
+                         _checked(path, "is_loop", arrays, (edges,), np.bool_)),
+        SavedScans(stamps.astype(np.int64), scan_keyframes.astype(np.int64),
+                   _checked(path, "scan_offsets", arrays, (len(stamps), 3), np.floating)),
+    )
+
+
+def _checked(path: Path, label: str, arrays: Mapping[str, NDArray[Any]], shape: tuple[int, ...],
+             kind: type[np.generic], *, name: str | None = None) -> NDArray[Any]:
+    """`arrays[name]` (default: `label`) if it has `shape` (−1: any length), a dtype of `kind` and only
+    finite values (floats); else `SessionError`."""
+    array = arrays[label if name is None else name]
+    fits = array.ndim == len(shape) and all(want in (-1, got) for want, got in zip(shape, array.shape,
+                                                                                      strict=True))
+    if not fits or not np.issubdtype(array.dtype, kind):
+        raise SessionError(f"{path}: damaged session file ({label}: {array.dtype} {array.shape})")
+    if kind is np.floating:
+        if not np.all(np.isfinite(array)):
+            raise SessionError(f"{path}: damaged session file ({label}: values not finite)")
+        return array.astype(np.float64)
+    return array

@@ -110,12 +110,17 @@ def laser_ranges(points: np.ndarray) -> np.ndarray:
     return ranges
 
 
-def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = None) -> np.ndarray:
+def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = None,
+                part: slice | None = None, later_ns: int = 0, seed: int = 7) -> np.ndarray:
     """Drive the simulated building's loop, writing /scan, /odom, /tf and /tf_static; returns the truth
-    (base poses) per scan."""
-    rng = np.random.default_rng(7)
+    (base poses) per scan. `part`: only these scans of the drive, as a log recorded `later_ns` later whose
+    wheel odometry starts at its own origin (a second recording of the same building)."""
+    rng = np.random.default_rng(seed)
     truth = drive(square_loop(), 0.4)[:scans]
     odometry = wheel_odometry(truth, rng)
+    if part is not None:
+        truth, odometry = truth[part], odometry[part]
+        odometry = se2.relative(odometry[0], odometry)
     with ros2_mcap(path) as (messages, add):
         types = messages.types
 
@@ -139,7 +144,7 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
             ),
         )
         for k, pose in enumerate(truth):
-            stamp = START_NS + k * SCAN_PERIOD_NS
+            stamp = START_NS + later_ns + k * SCAN_PERIOD_NS
             if with_odometry:
                 q = quaternion_from_yaw(float(odometry[k, 2]))
                 covariance = np.zeros(36)

@@ -31,6 +31,10 @@ ScanInBase = tuple[Scan2D, Transform | None]
 class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
     """`LaserSlam2D` on the scans of `topic` in an open log; see `frontends.protocol.LogFrontend`."""
 
+    odometry_starts_at_map_origin = True
+    """The map frame is the first scan's: the odometry seen from its first pose is in it. Not so for a run
+    placed in a saved map (`frontends.slam2d.session_frontends`)."""
+
     def __init__(self, log: LogReader, topic: str, config: Slam2DConfig | None = None,
                  options: FrontendOptions | None = None) -> None:
         super().__init__(log, topic, config or Slam2DConfig(), options)
@@ -42,7 +46,8 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
         self._slam = LaserSlam2D(self.config)
         self._counts = {"scans": 0, "scans_with_tf_mount": 0, "scans_with_odometry": 0}
         self.odometry_poses: list[FloatArray] = []
-        """The wheel-odometry pose at every scan that had one (for the recording)."""
+        """The wheel-odometry pose at every scan that had one (for the recording; empty when the
+        odometry's first pose is not the map's origin, see `odometry_starts_at_map_origin`)."""
 
     def measurements(self) -> Iterator[ScanInBase]:
         base = self.base_frame
@@ -61,13 +66,19 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
             at, intervals = self.odometry.interpolate(np.array([scan.stamp_ns]))
             prediction = None if np.isnan(at[0, 0]) else at[0]
             interval = float(intervals[0]) * 1e-9
-        estimate = self._slam.add_scan(scan.stamp_ns, scan.points, prediction, interval)
+        estimate = self._process(scan.stamp_ns, scan.points, prediction, interval)
         self._counts["scans"] += 1
         self._counts["scans_with_tf_mount"] += mount is not None
         if prediction is not None:
             self._counts["scans_with_odometry"] += 1
-            self.odometry_poses.append(prediction)
+            if self.odometry_starts_at_map_origin:
+                self.odometry_poses.append(prediction)
         return estimate
+
+    def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
+                 odometry_interval: float) -> ScanEstimate:
+        """One scan (base-frame points, its interpolated wheel-odometry pose) through the SLAM."""
+        return self._slam.add_scan(stamp_ns, points, odometry, odometry_interval)
 
     def keyframe_position(self, keyframe: int) -> FloatArray:
         return self._slam.keyframe_position(keyframe)

@@ -193,6 +193,8 @@ class ScanReplayRecording:
 
     def measurement(self, measurement: ScanInBase, estimate: ScanEstimate) -> None:
         scan, _ = measurement
+        if not np.all(np.isfinite(estimate.pose)):  # not placed yet (a run joining a saved map): no pose
+            return
         self._scans.add(estimate.index, estimate.stamp_ns, place(scan.points, estimate.pose), estimate.pose)
         if estimate.new_loop_closures:
             position = self._frontend.keyframe_position

@@ -1,0 +1,226 @@
+"""The 2D laser frontends of a log replay that starts from a saved map (`replay LOG --map SESSION`,
+`replay LOG --continue SESSION`), both reading the new log as `LaserFrontend` does.
+
+- `ContinuingLaserFrontend`: `LaserFrontend` whose SLAM is `LaserSlam2D.resume` on the saved keyframe
+  graph; the replay then optimizes the joint graph like any other, and every scan of the session, old and
+  new, gets its pose (`stamps_ns`, `estimates`).
+- `LocalizingLaserFrontend`: every scan goes to a `MapLocalizer` over the saved keyframes; the saved map
+  is never changed and nothing is optimized. Scans never placed in the map have no pose: they are counted
+  (`ScanLocalizations`), never given a made-up one.
+
+In both, the new log's wheel odometry starts anywhere: it is used for the motion between scans only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from frontends.errors import FrontendError
+from frontends.logs import LogReader
+from frontends.protocol import FloatArray, FrontendOptions, IntArray
+from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d.frontend import LaserFrontend
+from frontends.slam2d.localization import MapLocalizer
+from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
+from frontends.slam2d.resume import MapPlacementError, ResumedSlam2D, SavedConstraints, SavedScans
+from frontends.slam2d.slam import LaserSlam2D, ScanEstimate
+from optimizer.graph import PoseGraph
+
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass(frozen=True, eq=False)
+class SavedMap2D:
+    """A saved 2D keyframe map: what a session file gives the frontends."""
+
+    keyframe_scans: tuple[FloatArray, ...]
+    """Each keyframe's points (N, 2) in its own frame."""
+    keyframe_poses: FloatArray
+    """(K, 3) the keyframes' optimized poses in the map frame."""
+    constraints: SavedConstraints
+    scans: SavedScans | None = None
+    """How the saved run's scans hang off its keyframes (to continue with every scan of the session)."""
+
+    def graph(self) -> PoseGraph:
+        """The saved keyframe graph at the saved poses."""
+        c = self.constraints
+        return PoseGraph.build(np.arange(len(self.keyframe_poses)), self.keyframe_poses, c.edge_from,
+                               c.edge_to, c.measurements, c.information)
+
+    def occupancy(self) -> OccupancyGrid:
+        return occupancy_grid(self.keyframe_scans, self.keyframe_poses)
+
+
+class ContinuingLaserFrontend(LaserFrontend):
+    """Mapping continued from a saved map: see the module docstring and `frontends.slam2d.resume`."""
+
+    odometry_starts_at_map_origin = False
+
+    def __init__(self, log: LogReader, topic: str, saved: SavedMap2D, config: Slam2DConfig | None = None,
+                 options: FrontendOptions | None = None) -> None:
+        super().__init__(log, topic, config, options)
+        self.saved = saved
+        self._resumed: ResumedSlam2D = LaserSlam2D.resume(saved.keyframe_scans, saved.keyframe_poses,
+                                                          saved.constraints, self.config, scans=saved.scans)
+        self._slam = self._resumed
+
+    def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
+                 odometry_interval: float) -> ScanEstimate:
+        estimate = super()._process(stamp_ns, points, odometry, odometry_interval)
+        # The resumed SLAM counts the session's scans too: the estimate is of this log's next scan.
+        return dataclasses.replace(estimate, index=self._counts["scans"])
+
+    def keyframe_wheel_odometry(self) -> FloatArray | None:
+        return None  # the saved keyframes were driven with another log's odometry
+
+    def counts(self) -> dict[str, int]:
+        """`LaserFrontend.counts` (its keyframes, constraints and loop closures those of the joint graph),
+        and what the session added: its keyframes and scans, the new scans left out because they came
+        before the stretch placed in the map, and the constraints tying new keyframes to old ones (the
+        placement's included)."""
+        graph = self.result.graph
+        old = len(self.saved.keyframe_poses)
+        crossing = ((graph.edge_from < old) != (graph.edge_to < old)) & ~graph.is_odometry
+        return {**super().counts(), "session_keyframes": old,
+                "session_scans": 0 if self.saved.scans is None else len(self.saved.scans.stamps_ns),
+                "scans_unplaced": self._resumed.scans_unplaced, "loop_closures_old_new": int(crossing.sum())}
+
+    def placement(self) -> dict[str, Any]:
+        """Where the new run joined the saved map: the new log's scan (index, stamp) placed by global
+        localization and its match quality."""
+        found = self._resumed.placement
+        if found is None:
+            return {}
+        return {"scan": found.index, "stamp_ns": found.stamp_ns, "pose": found.pose.tolist(),
+                "score": found.score, "inlier_fraction": found.inlier_fraction, "rms_m": found.rms}
+
+
+@dataclass(frozen=True, eq=False)
+class ScanLocalizations:
+    """How every scan of a localized log ended, in log order."""
+
+    stamps_ns: IntArray
+    poses: FloatArray
+    """(S, 3) in the map frame; NaN for a scan never placed."""
+    localized: BoolArray
+    """Placed when processed (tracking, or the global fix at this scan)."""
+    matched: BoolArray
+    """Matched the map when processed (else its pose is the odometry's prediction, or none)."""
+    recovered: BoolArray
+    """Not placed when processed; a later global fix gave its pose back."""
+    score: FloatArray
+    """Correlative score of the match in [0, 1] (NaN when not matched)."""
+    inlier_fraction: FloatArray
+    rms: FloatArray
+    """ICP residual (m) of the paired points (inf when none)."""
+    global_fixes: IntArray
+    """The scans at which a global localization was accepted."""
+
+    @property
+    def has_pose(self) -> BoolArray:
+        return self.localized | self.recovered
+
+
+class LocalizingLaserFrontend(LaserFrontend):
+    """Localization only in a saved map: see the module docstring and `frontends.slam2d.localization`.
+
+    After `finish`, `localizations` says how every scan ended, `stamps_ns` / `localized_poses` are the
+    scans with a pose, and `keyframe_graph` / `map_export` are the saved map's, unchanged."""
+
+    odometry_starts_at_map_origin = False
+
+    def __init__(self, log: LogReader, topic: str, saved: SavedMap2D, config: Slam2DConfig | None = None,
+                 options: FrontendOptions | None = None, *,
+                 initial_pose: Sequence[float] | None = None) -> None:
+        super().__init__(log, topic, config, options)
+        self.saved = saved
+        self.initial_pose = None if initial_pose is None else tuple(float(v) for v in initial_pose)
+        self._localizer = MapLocalizer(saved.keyframe_scans, saved.keyframe_poses, self.config,
+                                       initial_pose=self.initial_pose)
+        self._rows: list[tuple[int, bool, bool, float, float, float]] = []
+        """(stamp, localized, matched, score, inlier fraction, rms) per scan."""
+        self._poses: list[FloatArray] = []
+        self._recovered: list[int] = []
+        self._fixes: list[int] = []
+        self._localizations: ScanLocalizations | None = None
+
+    def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
+                 odometry_interval: float) -> ScanEstimate:
+        found = self._localizer.localize(stamp_ns, points, odometry, odometry_interval)
+        self._rows.append((found.stamp_ns, found.localized, found.matched, found.score, found.inlier_fraction,
+                           found.rms))
+        self._poses.append(found.pose.copy())
+        if found.global_fix:
+            self._fixes.append(found.index)
+            for index, pose in zip(found.recovered_indices.tolist(), found.recovered_poses, strict=True):
+                self._poses[index] = pose.copy()
+                self._recovered.append(index)
+        return ScanEstimate(found.index, found.stamp_ns, found.pose.copy(), found.matched, -1, ())
+
+    def finish(self) -> None:
+        """Raises `MapPlacementError` when no scan could be placed in the saved map."""
+        if self._counts["scans"] == 0:
+            raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
+        if not self._counts["scans_with_tf_mount"] and self.sensor_frame != self.base_frame:
+            self.base_frame = None
+        stamps, localized, matched, score, inliers, rms = (np.array(column) for column in zip(*self._rows,
+                                                                                              strict=True))
+        recovered = np.zeros(len(stamps), dtype=bool)
+        recovered[self._recovered] = True
+        recovered &= ~localized
+        self._localizations = ScanLocalizations(
+            stamps.astype(np.int64), np.array(self._poses).reshape(-1, 3), localized.astype(bool),
+            matched.astype(bool), recovered, score.astype(np.float64), inliers.astype(np.float64),
+            rms.astype(np.float64), np.array(self._fixes, dtype=np.int64))
+        if not self._localizations.has_pose.any():
+            raise MapPlacementError(
+                f"none of the {len(stamps)} scans of {self._log.path} could be placed in the saved map of "
+                f"{len(self.saved.keyframe_poses)} keyframes: no unambiguous match"
+                + ("" if self.initial_pose is not None else " (an --initial-pose x,y,yaw may help)"))
+
+    @property
+    def localizations(self) -> ScanLocalizations:
+        if self._localizations is None:
+            raise FrontendError("the frontend has not finished")
+        return self._localizations
+
+    @property
+    def stamps_ns(self) -> IntArray:
+        """The stamps of the scans placed in the map (the others have no pose)."""
+        found = self.localizations
+        return found.stamps_ns[found.has_pose]
+
+    def localized_poses(self) -> FloatArray:
+        """(S, 3) the map-frame pose of every scan at `stamps_ns`."""
+        found = self.localizations
+        return found.poses[found.has_pose]
+
+    def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
+        graph = self.saved.graph()
+        return graph if planar_poses is None else graph.with_poses(planar_poses)
+
+    def map_export(self, planar_poses: FloatArray) -> OccupancyGrid:
+        return occupancy_grid(self.saved.keyframe_scans, planar_poses)
+
+    def keyframe_wheel_odometry(self) -> FloatArray | None:
+        return None
+
+    def counts(self) -> dict[str, int]:
+        found = self.localizations
+        return {**self._counts, **self._input_counts, **self._log.counts,
+                "map_keyframes": len(self.saved.keyframe_poses),
+                "scans_localized": int(found.has_pose.sum()),
+                "scans_localized_when_processed": int(found.localized.sum()),
+                "scans_matched": int(found.matched.sum()),
+                "scans_recovered": int(found.recovered.sum()),
+                "scans_never_localized": int((~found.has_pose).sum()),
+                "global_fixes": len(found.global_fixes)}
+
+    def loop_closures(self) -> dict[str, Any]:
+        return {"accepted": 0, "rejected": 0, "candidates": {"accepted": 0, "unconfirmed": 0}}

@@ -1,0 +1,283 @@
+"""`replay LOG --map SESSION` and `replay LOG --continue SESSION` end to end (issue 13), and their API.
+
+The simulated building (tests/laser_world.py) is driven once; the drive is cut into logs recorded apart,
+each with its own stamps and its wheel odometry starting at its own origin:
+- `first`: scans 0–134 (the south, east and north corridors), mapped by a plain replay;
+- `inside`: scans 40–129, all inside the first map: localized with `--map`;
+- `second`: scans 100–190, from the north corridor (mapped) through the west one (not mapped) back into
+  the south one (mapped): continued with `--continue`.
+The map's frame is the first log's: its first scan's base pose is the origin, so the simulator's truth
+seen from the first log's first pose is what every pose written must match.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import pipeline
+from frontends.errors import FrontendError
+from frontends.slam2d.resume import MapPlacementError
+from pipeline.cli import app
+from pipeline.errors import PipelineError
+from pipeline.session_file import SESSION_VERSION, SessionError, write_session
+from pipeline.trajectory_io import read_tum
+from tests.laser_world import between
+from tests.pipeline_fixtures import read_recording, write_drive, write_loop_graph
+
+HOUR_NS = 3600 * 10**9
+MAP_TOLERANCE = 0.06
+"""Position error (m) allowed against the truth: the first map itself is off by up to ~4.5 cm."""
+
+
+@dataclass(frozen=True)
+class Logs:
+    folder: Path
+    first: Path
+    first_truth: np.ndarray
+    inside: Path
+    inside_truth: np.ndarray
+    second: Path
+    second_truth: np.ndarray
+    session: Path
+    """The session the plain replay of `first` wrote."""
+
+    def in_map_frame(self, truth: np.ndarray) -> np.ndarray:
+        return between(self.first_truth[0], truth)
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory: pytest.TempPathFactory) -> Logs:
+    folder = tmp_path_factory.mktemp("sessions")
+    first, inside, second = folder / "first.mcap", folder / "inside.mcap", folder / "second.mcap"
+    first_truth = write_drive(first, part=slice(0, 135))
+    inside_truth = write_drive(inside, part=slice(40, 130), later_ns=2 * HOUR_NS, seed=9)
+    second_truth = write_drive(second, part=slice(100, 191), later_ns=HOUR_NS, seed=8)
+    mapped = pipeline.replay(first, out_dir=folder / "first_out")
+    return Logs(folder, first, first_truth, inside, inside_truth, second, second_truth,
+                mapped.outputs["session"])
+
+
+def run_replay(*args: object) -> object:
+    return CliRunner().invoke(app, [str(arg) for arg in args])
+
+
+def tum_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    trajectory = read_tum(path)
+    yaw = 2.0 * np.arctan2(trajectory.quaternions[:, 2], trajectory.quaternions[:, 3])
+    return trajectory.stamps_ns, np.column_stack([trajectory.positions[:, :2], yaw])
+
+
+def position_errors(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    return np.hypot(poses[:, 0] - truth[:, 0], poses[:, 1] - truth[:, 1])
+
+
+def heading_errors(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    return np.abs((poses[:, 2] - truth[:, 2] + np.pi) % (2.0 * np.pi) - np.pi)
+
+
+def file_names(folder: Path) -> set[str]:
+    return {path.name for path in folder.iterdir()} if folder.exists() else set()
+
+
+# ------------------------------------------------------------------------------------------- --map
+
+
+def test_map_localizes_a_log_in_the_saved_map_without_an_initial_pose(logs: Logs, tmp_path: Path) -> None:
+    session_bytes = logs.session.read_bytes()
+    result = pipeline.replay(logs.inside, out_dir=tmp_path, map=logs.session)
+
+    assert file_names(tmp_path) == {"inside.tum", "inside.json", "inside.rrd"}  # no session, graph or map
+    assert logs.session.read_bytes() == session_bytes
+    stamps, poses = tum_poses(tmp_path / "inside.tum")
+    assert len(stamps) == len(logs.inside_truth), "every scan placed: one pose per scan"
+    truth = logs.in_map_frame(logs.inside_truth)
+    assert position_errors(poses, truth).max() < MAP_TOLERANCE
+    assert heading_errors(poses, truth).max() < math.radians(1.0)
+    np.testing.assert_array_equal(result.stamps_ns, stamps)
+    np.testing.assert_allclose(result.poses[:, :2], poses[:, :2], atol=1e-9)
+
+    summary = json.loads((tmp_path / "inside.json").read_text())
+    assert summary["mode"] == "map" and summary["session"] == str(logs.session)
+    found = summary["localization"]
+    assert found["scans"] == found["with_pose"] == len(stamps)
+    assert found["never_localized"] == 0
+    assert len(found["global_fixes"]) == 1, "found once, then tracked"
+    per_scan = summary["per_scan"]
+    assert len(per_scan["state"]) == len(per_scan["score"]) == len(stamps)
+    assert set(per_scan["state"]) <= {"m", "r"}  # matched, or recovered by the global fix
+    fix = found["global_fixes"][0]["scan"]
+    assert per_scan["state"][:fix] == "r" * fix and per_scan["state"][fix:] == "m" * (len(stamps) - fix)
+    assert min(s for s in per_scan["score"] if s is not None) > 0.5
+    assert result.stats.poses == summary["counts"]["map_keyframes"]  # the saved map's graph, unchanged
+
+    entities = read_recording(tmp_path / "inside.rrd", timeline="scan")
+    assert entities["/world/saved_map"].static_rows == 1
+    assert entities["/world/final_trajectory"].static_rows == 1
+    assert entities["/world/occupancy/grid"].static_rows == 1
+    assert len(entities["/world/robot"].steps) == len(stamps) - fix  # scans placed when processed
+
+
+def test_map_with_an_initial_pose_tracks_from_the_first_scan(logs: Logs, tmp_path: Path) -> None:
+    start = logs.in_map_frame(logs.inside_truth[0]) + np.array([0.15, -0.1, math.radians(3.0)])
+    result = run_replay(logs.inside, "--out", tmp_path, "--map", logs.session,
+                        "--initial-pose", ",".join(f"{value:.6f}" for value in start))
+    assert result.exit_code == 0, result.stderr
+    assert "localized in" in result.stderr
+    summary = json.loads((tmp_path / "inside.json").read_text())
+    assert summary["localization"]["global_fixes"] == []
+    assert summary["per_scan"]["state"] == "m" * len(logs.inside_truth)
+    assert summary["initial_pose"] == pytest.approx(start.tolist(), abs=1e-6)
+    stamps, poses = tum_poses(tmp_path / "inside.tum")
+    assert len(stamps) == len(logs.inside_truth)
+    assert position_errors(poses, logs.in_map_frame(logs.inside_truth)).max() < MAP_TOLERANCE
+
+
+def test_a_log_never_placed_in_the_map_is_one_line_and_publishes_nothing(logs: Logs, tmp_path: Path) -> None:
+    short = tmp_path / "short.mcap"
+    write_drive(short, part=slice(60, 63), later_ns=3 * HOUR_NS)  # three scans: too little to search with
+    out = tmp_path / "out"
+    result = run_replay(short, "--out", out, "--map", logs.session)
+    assert result.exit_code == 2
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("replay: error: ") and "saved map" in lines[0]
+    assert file_names(out) == set()
+    with pytest.raises(MapPlacementError):
+        pipeline.replay(short, out_dir=out, map=logs.session)
+
+
+# -------------------------------------------------------------------------------------- --continue
+
+
+def test_continue_maps_both_logs_into_one_trajectory_and_a_larger_session(logs: Logs, tmp_path: Path) -> None:
+    result = run_replay(logs.second, "--out", tmp_path, "--continue", logs.session, "--allow-unconverged")
+    assert result.exit_code == 0, result.stderr
+    assert "continued" in result.stderr
+
+    stamps, poses = tum_poses(tmp_path / "second.tum")
+    old, new = len(logs.first_truth), len(logs.second_truth)
+    assert len(stamps) == old + new, "every scan of the session, old and new"
+    first_stamps, _ = tum_poses(logs.session.with_suffix(".tum"))
+    np.testing.assert_array_equal(stamps[:old], first_stamps)  # the old log's scans first
+    assert np.all(np.diff(stamps) > 0)
+    truth = logs.in_map_frame(np.concatenate([logs.first_truth, logs.second_truth]))
+    errors = position_errors(poses, truth)
+    assert errors.max() < MAP_TOLERANCE, f"max error {errors.max():.3f} m at scan {errors.argmax()}"
+    assert heading_errors(poses, truth).max() < math.radians(1.0)
+
+    summary = json.loads((tmp_path / "second.json").read_text())
+    assert summary["mode"] == "continue"
+    assert summary["session"]["continued_from"] == str(logs.session)
+    counts = summary["counts"]
+    before = pipeline.load_session(logs.session)
+    assert counts["session_keyframes"] == len(before.keyframe_points)
+    assert counts["session_scans"] == old and counts["scans"] == new and counts["scans_unplaced"] == 0
+    assert counts["loop_closures_old_new"] >= 2, "the return to the south corridor closes loops on the map"
+    assert summary["chi2_per_iteration"][0]["stage"] == "initial"
+    assert len(summary["chi2_per_iteration"]) > 2
+
+    after = pipeline.load_session(tmp_path / "second.session")
+    assert len(after.keyframe_points) > len(before.keyframe_points)
+    assert len(after.arrays["scan_stamps_ns"]) == old + new
+    assert after.header["continued_from"]["path"] == str(logs.session.resolve())
+    assert after.header["continued_from"]["source"] == before.header["source"]
+    entities = read_recording(tmp_path / "second.rrd")
+    assert len(entities["/world/trajectory"].steps) >= 2  # recorded iteration by iteration
+
+
+# ----------------------------------------------------------------------------------------- refusals
+
+
+def one_error_line(result: object) -> str:
+    assert result.exit_code == 2, result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("replay: error: ")
+    return lines[0]
+
+
+def test_both_options_or_an_initial_pose_without_map_are_refused(logs: Logs, tmp_path: Path) -> None:
+    line = one_error_line(run_replay(logs.inside, "--out", tmp_path, "--map", logs.session,
+                                     "--continue", logs.session))
+    assert "--map" in line and "--continue" in line
+    line = one_error_line(run_replay(logs.inside, "--out", tmp_path, "--continue", logs.session,
+                                     "--initial-pose", "1,2,0"))
+    assert "--initial-pose" in line
+    assert file_names(tmp_path) == set()
+
+
+@pytest.mark.parametrize("option", [("--method", "sgd"), ("--iterations", "5"), ("--robust", "cauchy"),
+                                    ("--repair-information",)])
+def test_options_map_has_no_use_for_are_refused(logs: Logs, tmp_path: Path, option: tuple[str, ...]) -> None:
+    line = one_error_line(run_replay(logs.inside, "--out", tmp_path, "--map", logs.session, *option))
+    assert option[0] in line
+    assert file_names(tmp_path) == set()
+
+
+@pytest.mark.parametrize("text", ["1,2", "1,2,3,4", "a,b,c", "nan,0,0", "inf,0,0", "1_0,0,0", "1;2;3", ""])
+def test_a_malformed_initial_pose_is_refused(logs: Logs, tmp_path: Path, text: str) -> None:
+    line = one_error_line(run_replay(logs.inside, "--out", tmp_path, "--map", logs.session,
+                                     "--initial-pose", text))
+    assert "--initial-pose" in line
+    assert file_names(tmp_path) == set()
+
+
+def test_graph_inputs_and_batches_are_refused(logs: Logs, tmp_path: Path) -> None:
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    out = tmp_path / "out"
+    line = one_error_line(run_replay(graph, "--out", out, "--map", logs.session))
+    assert "pose graph" in line and str(graph) in line
+    line = one_error_line(run_replay(logs.inside, logs.second, "--out", out, "--continue", logs.session))
+    assert "exactly one log" in line
+    one_error_line(run_replay("--out", out, "--map", logs.session))  # the bundled sample
+    assert file_names(out) == set()
+    with pytest.raises(PipelineError, match="pose graph"):
+        pipeline.replay(graph, out_dir=out, continue_from=logs.session)
+
+
+@pytest.mark.parametrize("damage", ["cut", "newer"])
+def test_a_damaged_or_newer_session_is_one_line_naming_it(logs: Logs, tmp_path: Path, damage: str) -> None:
+    session = tmp_path / "bad.session"
+    if damage == "cut":
+        data = logs.session.read_bytes()
+        session.write_bytes(data[: len(data) // 2])
+    else:
+        with session.open("wb") as stream:
+            write_session(stream, {"version": SESSION_VERSION + 1, "sensor_kind": "scan"}, {}, [])
+    out = tmp_path / "out"
+    for option in ("--map", "--continue"):
+        line = one_error_line(run_replay(logs.inside, "--out", out, option, session))
+        assert str(session) in line
+    assert file_names(out) == set()
+    with pytest.raises(SessionError, match=r"bad\.session"):
+        pipeline.replay(logs.inside, out_dir=out, map=session)
+
+
+def test_a_session_of_the_other_sensor_kind_is_refused(logs: Logs, tmp_path: Path) -> None:
+    session = tmp_path / "clouds.session"
+    with session.open("wb") as stream:
+        write_session(stream, {"sensor_kind": "cloud"}, {"keyframe_poses": np.zeros((1, 3))},
+                      [np.zeros((4, 3))])
+    out = tmp_path / "out"
+    line = one_error_line(run_replay(logs.inside, "--out", out, "--continue", session))
+    assert "3D point clouds" in line and "2D laser scans" in line and str(session) in line
+    assert file_names(out) == set()
+    with pytest.raises(PipelineError, match="3D point clouds"):
+        pipeline.replay(logs.inside, out_dir=out, map=session)
+
+
+def test_the_api_refuses_what_the_command_refuses(logs: Logs, tmp_path: Path) -> None:
+    with pytest.raises(PipelineError, match="not both"):
+        pipeline.replay(logs.inside, out_dir=tmp_path, map=logs.session, continue_from=logs.session)
+    with pytest.raises(PipelineError, match="initial pose"):
+        pipeline.replay(logs.inside, out_dir=tmp_path, continue_from=logs.session, initial_pose=(0, 0, 0))
+    with pytest.raises(PipelineError, match="three finite numbers"):
+        pipeline.replay(logs.inside, out_dir=tmp_path, map=logs.session, initial_pose=(0.0, math.nan, 0.0))
+    assert file_names(tmp_path) == set()
+    assert issubclass(MapPlacementError, FrontendError)
