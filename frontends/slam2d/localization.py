@@ -5,7 +5,15 @@ matching) with the points and normals ICP pairs with.
 
 - Tracking: each scan is matched around its prediction (wheel odometry, else constant velocity), then
   refined by point-to-line ICP with the prediction as a prior, exactly as the SLAM matches its local map.
-- Global localization (no start pose, or tracking lost for `lost_after_unmatched` scans in a row): a
+  The match is kept only when it pairs enough points and ICP stayed inside the search window (a pose
+  that slid further is a corridor's degeneracy, not the map speaking); otherwise the scan keeps the
+  prediction and counts as predicted (`LocalizedScan.predicted`).
+- Local re-acquisition: after a few predicted scans, at every `relocalize_every` metres, the last few
+  scans (placed by their tracked poses, which odometry keeps consistent with each other) are searched
+  around the prediction by branch and bound, in a window growing with the distance driven unmatched, and
+  the match is accepted only when unambiguous and verified by ICP (the loop closures' tests).
+- Global localization (no start pose, or nothing matched for `max_dead_reckoning` metres, or for
+  `lost_after_unmatched` scans without odometry): a
   loop-closure-free `LaserSlam2D` tracks the scans in a frame of their own; at each of its new keyframes
   its last few keyframes, seen from the newest one, are searched over the whole map (all headings) by
   branch and bound, and the match is accepted only when it passes the loop closures' ambiguity and ICP
@@ -15,6 +23,7 @@ matching) with the points and normals ICP pairs with.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
@@ -34,10 +43,34 @@ from frontends.slam2d.slam import (
     LaserSlam2D,
     predicted_motion,
 )
+from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+LOCAL_SEARCH_LEVELS = 5
+"""Branch-and-bound levels of a local re-acquisition: coarsest candidates span 1.6 m at 5 cm, about the
+windows searched; the whole map's pyramid is built once and shared by every attempt."""
+RECENT_TURN = math.radians(12.0)
+"""A scan turned this much from the last one kept for re-acquisition queries is kept too (new walls)."""
+
+
+def _propagate(covariance: FloatArray, pose: FloatArray, motion: FloatArray, noise: FloatArray) -> FloatArray:
+    """The covariance (map frame) of pose ⊕ motion, `noise` being the motion's (robot frame)."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    jacobian = np.eye(3)
+    jacobian[0, 2] = -s * motion[0] - c * motion[1]
+    jacobian[1, 2] = c * motion[0] - s * motion[1]
+    return jacobian @ covariance @ jacobian.T + rotation @ noise @ rotation.T
+
+
+def _inside(pose: FloatArray, prior: FloatArray, window: SearchWindow, resolution: float) -> bool:
+    """Whether ICP ended inside the correlative search's window around the prior (one cell and one angular
+    step of slack): beyond it, ICP slid along a degenerate corridor the search never scored."""
+    return (max(abs(pose[0] - prior[0]), abs(pose[1] - prior[1])) <= window.linear + resolution
+            and abs(se2.wrap_angle(float(pose[2] - prior[2]))) <= window.angular + window.angular_step)
 
 
 class EmptyMapError(FrontendError):
@@ -62,20 +95,55 @@ class LocalizationConfig:
     """After a failed attempt, the next one waits this many keyframes: an attempt over a whole building
     costs tenths of a second to seconds, and the next keyframe mostly sees the same place."""
     lost_after_unmatched: int = 5
-    """Tracking is lost after this many scans in a row matched nothing, or matched with a score below
-    `min_tracking_score`: localize globally again."""
+    """Without wheel odometry, tracking is lost after this many scans in a row matched nothing: localize
+    globally again (a constant-velocity prediction is worth a few scans, not metres)."""
     max_dead_reckoning: float = 30.0
     """With wheel odometry, scans that match nothing (the robot drove out of the saved map, or people hide
     the walls) keep the odometry's pose; tracking is declared lost only once it moved this far (m) since
-    the last match: back in the map, the tracking window finds the walls again, which a global search in a
-    place the map does not show never would (and it costs seconds)."""
+    the last match: back in the map, the tracking window or the local re-acquisition finds the walls
+    again, which a global search in a place the map does not show never would (and it costs seconds)."""
     min_tracking_score: float = 0.5
-    """A well-tracked scan scores 0.8–1 on its map; a robot carried elsewhere without its odometry saying so
-    can still match a look-alike corridor at 0.55–0.7 (simulated building): the lost test catches only
-    scans that fit the map worse than that."""
+    """A tracked scan scoring below this on the map (a robot carried elsewhere can still match a look-alike
+    corridor at 0.55–0.7; a corridor the map saw only from afar scores 0.2–0.4) counts as a miss: after
+    `relocalize_after` misses the local re-acquisition looks for a better place; its pose is still the
+    match's."""
+    min_match_score: float = 0.1
+    """Below this the scan's match is not used at all: too few of its points lie on the map."""
+    relocalize_after: int = 3
+    """Local re-acquisition starts after this many misses in a row …"""
+    relocalize_every: float = 0.3
+    """… and is tried again every this many metres driven (m) while the misses go on."""
+    relocalize_window: float = 0.5
+    """Half-width of its search (m) at the first attempt …"""
+    relocalize_window_per_metre: float = 0.1
+    """… plus this per metre driven since the last good match (odometry drifts a few % of the distance) …"""
+    max_relocalize_window: float = 4.0
+    """… up to this (m); beyond, only the global search looks further."""
+    relocalize_angular: float = math.radians(15.0)
+    relocalize_keyframes: int = 6
+    """The query of a local re-acquisition: the current scan and this many earlier ones, each at least
+    `relocalize_every` metres from the next (a few metres of context; one scan of a corridor is
+    ambiguous along it)."""
     max_lost_keyframes: int = 300
     """While lost, the scans are tracked in their own frame; that track restarts after this many keyframes
     (only the last few make a query; the rest would only cost memory)."""
+    odometry_noise_linear: float = 0.005
+    """Wheel odometry's noise between two scans, σ (m) …"""
+    odometry_noise_per_metre: float = 0.05
+    """… plus this share of the distance driven …"""
+    odometry_noise_angular: float = math.radians(0.2)
+    """… and in heading σ (rad) …"""
+    odometry_noise_angular_per_metre: float = math.radians(1.0)
+    """… plus this per metre driven …"""
+    odometry_noise_per_radian: float = 0.05
+    """… plus this share of the turn. The pose's covariance grows by these along the odometry and shrinks
+    with every match (`information_scale` × ICP's Hessian): the tracked pose is the covariance-weighted
+    mean of the prediction and the match, so one weak match in a corridor the map saw only from afar moves
+    it a little, not to wherever that match landed. (The SLAM's own odometry σ is the search window's, not
+    a noise model: 5 cm and 2° per scan.)"""
+    fix_sigma_linear: float = 0.1
+    fix_sigma_angular: float = math.radians(2.0)
+    """σ of a pose just placed (a global fix, a local re-acquisition, or the given initial pose)."""
     acceptance: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     """Score, ambiguity and ICP tests of a global match, and the query's keyframes and thinning: the loop
     closures' own settings."""
@@ -104,6 +172,14 @@ class LocalizedScan:
     """Scans processed while not localized whose map poses this global localization gives back …"""
     recovered_poses: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
     """… and those poses (M, 3)."""
+    relocalized: bool = False
+    """The pose comes from a local re-acquisition accepted at this scan (a windowed search around the
+    prediction after a stretch of weak or missing matches)."""
+
+    @property
+    def predicted(self) -> bool:
+        """Localized, but the pose is the odometry (or constant-velocity) prediction: the match was weak."""
+        return self.localized and not self.matched
 
 
 class MapLocalizer:
@@ -153,13 +229,18 @@ class MapLocalizer:
         )
         self._count = 0
         self._pose: FloatArray | None = None if initial_pose is None else np.array(initial_pose, dtype=float)
+        self._covariance = self._fix_covariance()
         self._last_odometry: FloatArray | None = None
         self._last_motion = np.zeros(3)
         self._misses = 0
-        self._unmatched_distance = 0.0
+        self._since_good = 0.0
+        self._since_attempt = 0.0
+        self._recent: deque[tuple[FloatArray, FloatArray]] = deque(maxlen=self.settings.relocalize_keyframes)
         self._tracker: LaserSlam2D | None = None
         self._tracked: list[int] = []
         self._last_tracker_keyframe = -1
+        self.stage_times = StageTimes()
+        """Where `localize` spent its time: tracking, local re-acquisition, global localization."""
 
     @property
     def localized(self) -> bool:
@@ -184,20 +265,36 @@ class MapLocalizer:
         self._count += 1
         odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
         if self._pose is None:
-            return self._search(index, int(stamp_ns), points, odometry, odometry_interval)
-        result = self._track(index, int(stamp_ns), points, odometry, odometry_interval)
+            with self.stage_times.stage("global"):
+                return self._search(index, int(stamp_ns), points, odometry, odometry_interval)
+        has_odometry = odometry is not None and self._last_odometry is not None
+        with self.stage_times.stage("tracking"):
+            result = self._track(index, int(stamp_ns), points, odometry, odometry_interval)
         self._last_odometry = odometry
-        fits = result.matched and result.score >= self.settings.min_tracking_score
-        if fits:
+        moved = float(np.hypot(self._last_motion[0], self._last_motion[1]))
+        self._since_attempt += moved
+        if len(points) < matching.min_points:  # nothing to judge the pose by: it follows the prediction
+            self._since_good += moved
+            return result
+        self._remember(points)
+        settings = self.settings
+        if result.matched and result.score >= settings.min_tracking_score:
             self._misses = 0
-            self._unmatched_distance = 0.0
+            self._since_good = 0.0
             return result
-        self._unmatched_distance += float(np.hypot(self._last_motion[0], self._last_motion[1]))
-        if len(points) < matching.min_points:
-            return result
+        self._since_good += moved
         self._misses += 1
-        dead_reckoning = odometry is not None and self._unmatched_distance <= self.settings.max_dead_reckoning
-        if self._misses >= self.settings.lost_after_unmatched and not dead_reckoning:
+        first_attempt = self._misses == settings.relocalize_after
+        if first_attempt or (self._misses > settings.relocalize_after
+                             and self._since_attempt >= settings.relocalize_every):
+            self._since_attempt = 0.0
+            with self.stage_times.stage("relocalization"):
+                found = self._relocalize(result)
+            if found is not None:
+                return found
+        lost = (self._since_good > settings.max_dead_reckoning if has_odometry
+                else self._misses >= settings.lost_after_unmatched)
+        if lost:
             self._lose()
         return result
 
@@ -208,7 +305,11 @@ class MapLocalizer:
         settings = self.config.odometry
         reliable = odometry_interval <= settings.reliable_interval
         has_odometry = odometry is not None and self._last_odometry is not None
-        prior, prior_information = self._predict(odometry, reliable)
+        prior, covariance = self._predict(odometry, reliable)
+        # ICP weighs its points as independent, which the match's information undoes by
+        # `information_scale`: the prior is weighed on the same (inflated) scale, so the fusion below is
+        # the covariance-weighted mean of prediction and match.
+        prior_information = np.linalg.inv(covariance) / matching.information_scale
         pose, matched, score = prior, False, math.nan
         information = np.zeros((3, 3))
         inliers, rms = 0.0, math.inf
@@ -230,26 +331,90 @@ class MapLocalizer:
                 prior=prior, prior_information=prior_information,
             )
             inliers, rms = refined.inlier_fraction, refined.rms
-            if coarse is not None and refined.inlier_fraction >= settings.min_inlier_fraction:
+            if (coarse is not None and coarse.score >= self.settings.min_match_score
+                    and refined.inlier_fraction >= settings.min_inlier_fraction
+                    and _inside(refined.pose, prior, window, self.map.grid.resolution)):
                 pose, matched, score = refined.pose, True, coarse.score
                 information = matching.information_scale * refined.information
+                covariance = np.linalg.inv(information + 1e-12 * np.eye(3))
         self._last_motion = se2.relative(self._pose, pose)
         self._pose = np.array(pose)
+        self._covariance = covariance
         return LocalizedScan(index, stamp_ns, self._pose.copy(), True, matched, score, inliers, rms,
                              information)
 
-    def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
+    def _remember(self, points: FloatArray) -> None:
+        """Keep the scan for local re-acquisition queries when it is `relocalize_every` from the last kept."""
         assert self._pose is not None
+        if self._recent:
+            step = se2.relative(self._recent[-1][1], self._pose)
+            if np.hypot(step[0], step[1]) < self.settings.relocalize_every and abs(step[2]) < RECENT_TURN:
+                return
+        self._recent.append((points, self._pose.copy()))
+
+    def _relocalize(self, tracked: LocalizedScan) -> LocalizedScan | None:
+        """The recent scans searched around the current pose in a window widening with the distance driven
+        since the last good match; the scan's new pose when unambiguous and verified."""
+        assert self._pose is not None
+        settings = self.settings
+        acceptance = settings.acceptance
+        scans = [s for s, _ in self._recent]
+        poses = [p for _, p in self._recent]
+        query = thinned_query(scans, poses, self._pose, acceptance.query_thinning)
+        if len(query) < self.config.matching.min_points:
+            return None
+        linear = min(settings.relocalize_window + settings.relocalize_window_per_metre * self._since_good,
+                     settings.max_relocalize_window)
+        window = SearchWindow(linear, settings.relocalize_angular, acceptance.angular_step)
+        found = match_unambiguous(query, self.map, self._pose, window, matching=self.config.matching,
+                                  acceptance=acceptance, levels=LOCAL_SEARCH_LEVELS)
+        if found is None:
+            return None
+        correction = se2.compose(found.pose, se2.inverse(self._pose))
+        self._recent = deque(((s, se2.compose(correction, p)) for s, p in self._recent),
+                             maxlen=settings.relocalize_keyframes)
+        self._pose = found.pose.copy()
+        self._covariance = self._fix_covariance()
+        self._misses = 0
+        self._since_good = 0.0
+        return LocalizedScan(
+            tracked.index, tracked.stamp_ns, self._pose.copy(), True, True, found.score,
+            found.icp.inlier_fraction, found.icp.rms,
+            self.config.matching.information_scale * found.icp.information, relocalized=True,
+        )
+
+    def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
+        """The predicted pose and its covariance: the pose's own, carried along the motion, plus the
+        motion's noise (wheel odometry's as `LocalizationConfig` models it; without odometry, the SLAM's
+        loose constant-velocity prior)."""
+        assert self._pose is not None
+        has_odometry = odometry is not None and self._last_odometry is not None
         motion, information = predicted_motion(self.config.odometry, self._last_odometry, odometry, reliable,
                                                self._last_motion)
-        return se2.compose(self._pose, motion), information
+        if has_odometry:
+            settings = self.settings
+            distance = float(np.hypot(motion[0], motion[1]))
+            linear = settings.odometry_noise_linear + settings.odometry_noise_per_metre * distance
+            angular = (settings.odometry_noise_angular + settings.odometry_noise_angular_per_metre * distance
+                       + settings.odometry_noise_per_radian * abs(float(motion[2])))
+            scale = 1.0 if reliable else self.config.odometry.unreliable_scale
+            noise = np.diag([(scale * linear) ** 2, (scale * linear) ** 2, (scale * angular) ** 2])
+        else:
+            noise = np.linalg.inv(information)
+        return se2.compose(self._pose, motion), _propagate(self._covariance, self._pose, motion, noise)
+
+    def _fix_covariance(self) -> FloatArray:
+        settings = self.settings
+        return np.diag([settings.fix_sigma_linear**2, settings.fix_sigma_linear**2,
+                        settings.fix_sigma_angular**2])
 
     # ---------------------------------------------------------------------------- global localization
 
     def _lose(self) -> None:
         self._pose = None
         self._misses = 0
-        self._unmatched_distance = 0.0
+        self._since_good = 0.0
+        self._recent.clear()
         self._tracker = None
 
     def _search(self, index: int, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
@@ -280,9 +445,11 @@ class MapLocalizer:
         recovered = se2.compose(map_from_local, tracked.scan_poses(tracked.graph.poses))
         pose = recovered[-1]
         self._pose = pose.copy()
+        self._covariance = self._fix_covariance()
         self._last_odometry = odometry
         self._last_motion = np.zeros(3)
         self._tracker = None
+        self._recent.clear()
         return LocalizedScan(
             index, stamp_ns, pose.copy(), True, True, found.score, found.icp.inlier_fraction, found.icp.rms,
             self.config.matching.information_scale * found.icp.information, global_fix=True,
