@@ -100,15 +100,19 @@ class LocalizationConfig:
     max_dead_reckoning: float = 30.0
     """With wheel odometry, scans that match nothing (the robot drove out of the saved map, or people hide
     the walls) keep the odometry's pose; tracking is declared lost only once it moved this far (m) since
-    the last match: back in the map, the tracking window or the local re-acquisition finds the walls
-    again, which a global search in a place the map does not show never would (and it costs seconds)."""
+    the last match scoring `min_tracking_score`: back in the map, the tracking window or the local
+    re-acquisition finds the walls again, which a global search in a place the map does not show never
+    would (and it costs seconds)."""
     min_tracking_score: float = 0.5
     """A tracked scan scoring below this on the map (a robot carried elsewhere can still match a look-alike
     corridor at 0.55–0.7; a corridor the map saw only from afar scores 0.2–0.4) counts as a miss: after
-    `relocalize_after` misses the local re-acquisition looks for a better place; its pose is still the
-    match's."""
-    min_match_score: float = 0.1
+    `relocalize_after` misses the local re-acquisition looks for a better place. Its match still counts,
+    weighed by `weak_match_weight`."""
+    min_match_score: float = 0.2
     """Below this the scan's match is not used at all: too few of its points lie on the map."""
+    weak_match_weight: float = 0.1
+    """A match scoring below `min_tracking_score` weighs this much against the prediction (its points
+    mostly fall where the map saw nothing, and the few that do not can pull it onto the wrong wall)."""
     relocalize_after: int = 3
     """Local re-acquisition starts after this many misses in a row …"""
     relocalize_every: float = 0.3
@@ -127,13 +131,13 @@ class LocalizationConfig:
     max_lost_keyframes: int = 300
     """While lost, the scans are tracked in their own frame; that track restarts after this many keyframes
     (only the last few make a query; the rest would only cost memory)."""
-    odometry_noise_linear: float = 0.005
+    odometry_noise_linear: float = 0.015
     """Wheel odometry's noise between two scans, σ (m) …"""
-    odometry_noise_per_metre: float = 0.05
+    odometry_noise_per_metre: float = 0.1
     """… plus this share of the distance driven …"""
-    odometry_noise_angular: float = math.radians(0.2)
+    odometry_noise_angular: float = math.radians(0.6)
     """… and in heading σ (rad) …"""
-    odometry_noise_angular_per_metre: float = math.radians(1.0)
+    odometry_noise_angular_per_metre: float = math.radians(3.0)
     """… plus this per metre driven …"""
     odometry_noise_per_radian: float = 0.05
     """… plus this share of the turn. The pose's covariance grows by these along the odometry and shrinks
@@ -325,6 +329,8 @@ class MapLocalizer:
                 coarse = match_branch_and_bound(points, self.map.grid, prior, window, 0.0,
                                                 levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS)
             start = prior if coarse is None else coarse.pose
+            if coarse is None or coarse.score < self.settings.min_tracking_score:
+                prior_information = prior_information / self.settings.weak_match_weight
             refined = refine_point_to_line(
                 points, self.map.grid, self.map.points, self.map.normals, start,
                 max_distance=matching.icp_max_distance, sigma=matching.point_sigma,
