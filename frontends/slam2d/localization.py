@@ -94,6 +94,11 @@ class LocalizationConfig:
     retry_every_keyframes: int = 3
     """After a failed attempt, the next one waits this many keyframes: an attempt over a whole building
     costs tenths of a second to seconds, and the next keyframe mostly sees the same place."""
+    attempts_before_backoff: int = 3
+    """After this many failed attempts in a row the wait between two doubles at every failure …"""
+    max_retry_keyframes: int = 24
+    """… up to this many keyframes (~7 m): a robot driving where the map never was (a courtyard, another
+    wing) would otherwise pay a whole-map search every metre, seconds each on a large map, for nothing."""
     lost_after_unmatched: int = 5
     """Without wheel odometry, tracking is lost after this many scans in a row matched nothing: localize
     globally again (a constant-velocity prediction is worth a few scans, not metres)."""
@@ -243,6 +248,8 @@ class MapLocalizer:
         self._tracker: LaserSlam2D | None = None
         self._tracked: list[int] = []
         self._last_tracker_keyframe = -1
+        self._next_attempt = self.settings.min_query_keyframes
+        self._failed_attempts = 0
         self.stage_times = StageTimes()
         """Where `localize` spent its time: tracking, local re-acquisition, global localization."""
 
@@ -431,6 +438,7 @@ class MapLocalizer:
             self._tracker = LaserSlam2D(replace(self.config, loop_closure=disabled))
             self._tracked = []
             self._last_tracker_keyframe = -1
+            self._next_attempt = self.settings.min_query_keyframes
         estimate = self._tracker.add_scan(stamp_ns, points, odometry, odometry_interval)
         self._tracked.append(index)
         nothing = LocalizedScan(index, stamp_ns, np.full(3, np.nan), False, False, math.nan, 0.0, math.inf,
@@ -439,12 +447,17 @@ class MapLocalizer:
             return nothing
         self._last_tracker_keyframe = estimate.keyframe
         keyframe_poses = self._tracker.keyframe_poses()
-        due = len(keyframe_poses) - self.settings.min_query_keyframes
-        if due < 0 or due % self.settings.retry_every_keyframes:
+        if len(keyframe_poses) < self._next_attempt:
             return nothing
         found = self._global_match(keyframe_poses)
         if found is None:
+            settings = self.settings
+            self._failed_attempts += 1
+            backoff = max(0, self._failed_attempts - settings.attempts_before_backoff)
+            self._next_attempt = len(keyframe_poses) + min(settings.retry_every_keyframes << min(backoff, 8),
+                                                           settings.max_retry_keyframes)
             return nothing
+        self._failed_attempts = 0
         local_frame = keyframe_poses[-1]
         map_from_local = se2.compose(found.pose, se2.inverse(local_frame))
         tracked = self._tracker.finish()
