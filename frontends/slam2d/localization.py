@@ -4,20 +4,24 @@ The map is built once from the saved keyframe scans at their poses: one likeliho
 matching) with the points and normals ICP pairs with.
 
 - Tracking: each scan is matched around its prediction (wheel odometry, else constant velocity), then
-  refined by point-to-line ICP with the prediction as a prior, exactly as the SLAM matches its local map.
-  The match is kept only when it pairs enough points and ICP stayed inside the search window (a pose
-  that slid further is a corridor's degeneracy, not the map speaking); otherwise the scan keeps the
+  refined by point-to-line ICP, exactly as the SLAM matches its local map, with one difference: the prior
+  is the prediction with the pose's own covariance (carried along the odometry, shrunk by every match), so
+  the pose is the covariance-weighted mean of prediction and match, and a weak match (scoring below
+  `min_tracking_score`: most of the scan falls where the map saw nothing) weighs only
+  `weak_match_weight`. The match is not used when it scores below `min_match_score`, pairs too few points,
+  or ICP left the search window (it slid along a corridor the search never scored): the scan keeps the
   prediction and counts as predicted (`LocalizedScan.predicted`).
-- Local re-acquisition: after a few predicted scans, at every `relocalize_every` metres, the last few
-  scans (placed by their tracked poses, which odometry keeps consistent with each other) are searched
-  around the prediction by branch and bound, in a window growing with the distance driven unmatched, and
-  the match is accepted only when unambiguous and verified by ICP (the loop closures' tests).
-- Global localization (no start pose, or nothing matched for `max_dead_reckoning` metres, or for
-  `lost_after_unmatched` scans without odometry): a
-  loop-closure-free `LaserSlam2D` tracks the scans in a frame of their own; at each of its new keyframes
-  its last few keyframes, seen from the newest one, are searched over the whole map (all headings) by
-  branch and bound, and the match is accepted only when it passes the loop closures' ambiguity and ICP
-  tests. The scans tracked meanwhile get their map poses back through the same transform (`recovered_*`).
+- Local re-acquisition: after a few misses, at every `relocalize_every` metres, the last few scans
+  (placed by their tracked poses, which odometry keeps consistent with each other) are searched around
+  the prediction by branch and bound, in a window growing with the distance driven since the last good
+  match, and the match is accepted only when unambiguous and verified by ICP (the loop closures' tests).
+- Global localization (no start pose, or no good match for `max_dead_reckoning` metres, or no match for
+  `lost_after_unmatched` scans without odometry): a loop-closure-free `LaserSlam2D` tracks the scans in a
+  frame of their own; at its new keyframes its last few keyframes, seen from the newest one, are searched
+  over the whole map (all headings) by branch and bound, and the match is accepted only when it passes
+  the loop closures' ambiguity and ICP tests. Failed attempts back off (a robot outside the map would pay
+  a whole-map search every metre). The scans tracked meanwhile get their map poses back through the same
+  transform (`recovered_*`).
 """
 
 from __future__ import annotations
@@ -89,6 +93,8 @@ class LocalizationConfig:
     global_margin: float = 2.0
     """The search covers the saved keyframes' bounding box plus this (m): the robot is where the mapping
     robot was, give or take a corridor's width."""
+    global_max_points: int = 300
+    """The whole-map search's query is thinned to at most this many points (evenly along it)."""
     min_query_keyframes: int = 4
     """Global localization waits until the scans since it started span this many keyframes (~1 m)."""
     retry_every_keyframes: int = 3
@@ -485,6 +491,9 @@ class MapLocalizer:
                               keyframe_poses[-1], thinning)
         if len(query) < self.config.matching.min_points:
             return None
+        # Every candidate of the search scores every query point: an evenly spread share of them bounds
+        # and ranks the candidates as well, for a fraction of the work.
+        query = np.ascontiguousarray(query[:: -(-len(query) // self.settings.global_max_points)])
         return match_unambiguous(query, self.map, self._search_center, self._search_window,
                                  matching=self.config.matching, acceptance=acceptance,
                                  levels=self.settings.global_levels, search_grid=self._search_grid)
