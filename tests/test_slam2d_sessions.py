@@ -102,6 +102,30 @@ def test_tracking_a_whole_drive_stays_on_the_truth(
     assert heading_errors(poses[5:], new_run.truth[5:]).max() < math.radians(1.0)
 
 
+def test_scans_that_do_not_match_keep_the_prediction(
+        localizer_map: tuple[list[np.ndarray], np.ndarray], new_run: Run) -> None:
+    """People block the laser for 3 m of a corridor (a handful of returns a scan): those scans keep the
+    odometry's prediction, localized but counted as predicted; the track then matches the map again."""
+    span = range(40, 140)
+    blocked = range(60, 80)
+    localizer = MapLocalizer(*localizer_map, initial_pose=new_run.truth[span.start])
+    results = []
+    for k in span:
+        scan = new_run.scans[k][:8] if k in blocked else new_run.scans[k]
+        results.append(localizer.localize(int(new_run.stamps_ns[k]), scan, new_run.odometry[k]))
+    inside = [k - span.start for k in blocked]
+    assert all(r.localized for r in results)
+    assert all(results[i].predicted and not results[i].matched for i in inside)
+    assert not any(r.predicted for i, r in enumerate(results) if i not in inside)
+    poses = np.array([r.pose for r in results])
+    truth = new_run.truth[span.start:span.stop]
+    odometry_error = position_errors(align_to_first(new_run.odometry[blocked.start - 1:blocked.stop],
+                                                    new_run.truth[blocked.start - 1:blocked.stop]),
+                                     new_run.truth[blocked.start - 1:blocked.stop]).max()
+    assert position_errors(poses[inside], truth[inside]).max() < odometry_error + 0.05
+    assert position_errors(poses[inside[-1] + 3:], truth[inside[-1] + 3:]).max() < 0.05
+
+
 def kidnapped_drive(run: Run, before: range, after: range) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
     """The scans of `before` then of `after` (the robot carried elsewhere between the two), with odometry
     that goes on smoothly across the jump (it never saw the robot lifted), and the true poses."""
