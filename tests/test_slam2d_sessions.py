@@ -11,11 +11,12 @@ import math
 import numpy as np
 import pytest
 
-from frontends.slam2d.localization import EmptyMapError, MapLocalizer
+from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, MapLocalizer
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D
 from optimizer.solve import optimize
 from tests.laser_world import Run, align_to_first, between, simulate_run, square_loop
+from tests.laser_world import compose as compose_poses
 
 MAP_EVERY = 3
 """A map keyframe every 3rd pose of the mapping drive (0.6 m apart)."""
@@ -81,6 +82,85 @@ def test_with_an_initial_pose_tracking_starts_at_once(
     assert all(r.localized and r.matched and not r.global_fix for r in results)
     poses = np.array([r.pose for r in results])
     assert position_errors(poses, new_run.truth[start:start + 60]).max() < 0.05
+
+
+def test_tracking_a_whole_drive_stays_on_the_truth(
+        localizer_map: tuple[list[np.ndarray], np.ndarray], new_run: Run) -> None:
+    """Once round the building and on past the start, from a rough start pose: every scan is localized
+    and matched, within a few centimetres of the truth although the odometry drifts metres."""
+    guess = new_run.truth[0] + np.array([-0.15, 0.1, math.radians(-3.0)])
+    localizer = MapLocalizer(*localizer_map, initial_pose=guess)
+    results = [localizer.localize(int(stamp), scan, odo)
+               for stamp, scan, odo in zip(new_run.stamps_ns, new_run.scans, new_run.odometry, strict=True)]
+    assert all(r.localized and r.matched and not r.predicted for r in results)
+    assert not any(r.global_fix or r.relocalized for r in results)
+    poses = np.array([r.pose for r in results])
+    errors = position_errors(poses, new_run.truth)
+    drift = position_errors(align_to_first(new_run.odometry, new_run.truth), new_run.truth)
+    assert drift.max() > 1.0, "the odometry alone would be metres off: the map does the work"
+    assert errors[5:].max() < 0.05 and np.median(errors) < 0.02
+    assert heading_errors(poses[5:], new_run.truth[5:]).max() < math.radians(1.0)
+
+
+def test_scans_that_do_not_match_keep_the_prediction(
+        localizer_map: tuple[list[np.ndarray], np.ndarray], new_run: Run) -> None:
+    """People block the laser for 3 m of a corridor (a handful of returns a scan): those scans keep the
+    odometry's prediction, localized but counted as predicted; the track then matches the map again."""
+    span = range(40, 140)
+    blocked = range(60, 80)
+    localizer = MapLocalizer(*localizer_map, initial_pose=new_run.truth[span.start])
+    results = []
+    for k in span:
+        scan = new_run.scans[k][:8] if k in blocked else new_run.scans[k]
+        results.append(localizer.localize(int(new_run.stamps_ns[k]), scan, new_run.odometry[k]))
+    inside = [k - span.start for k in blocked]
+    assert all(r.localized for r in results)
+    assert all(results[i].predicted and not results[i].matched for i in inside)
+    assert not any(r.predicted for i, r in enumerate(results) if i not in inside)
+    poses = np.array([r.pose for r in results])
+    truth = new_run.truth[span.start:span.stop]
+    odometry_error = position_errors(align_to_first(new_run.odometry[blocked.start - 1:blocked.stop],
+                                                    new_run.truth[blocked.start - 1:blocked.stop]),
+                                     new_run.truth[blocked.start - 1:blocked.stop]).max()
+    assert position_errors(poses[inside], truth[inside]).max() < odometry_error + 0.05
+    assert position_errors(poses[inside[-1] + 3:], truth[inside[-1] + 3:]).max() < 0.05
+
+
+def kidnapped_drive(run: Run, before: range, after: range) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """The scans of `before` then of `after` (the robot carried elsewhere between the two), with odometry
+    that goes on smoothly across the jump (it never saw the robot lifted), and the true poses."""
+    scans = [run.scans[k] for k in before] + [run.scans[k] for k in after]
+    first = run.odometry[list(before)]
+    carried_on = compose_poses(first[-1], between(run.odometry[after.start - 1], run.odometry[list(after)]))
+    return scans, np.concatenate([first, carried_on]), np.concatenate([run.truth[list(before)],
+                                                                       run.truth[list(after)]])
+
+
+def test_a_kidnapped_robot_is_found_again(
+        localizer_map: tuple[list[np.ndarray], np.ndarray], new_run: Run) -> None:
+    """Tracked along the south corridor heading east, then carried to the east corridor heading north, its
+    odometry none the wiser. Seen from inside, one corridor looks like another: at the prediction the scans
+    still fit the map, worse than a true track's, then ever worse as the doors and the clutter disagree;
+    once nothing has matched well for `max_dead_reckoning` metres (shortened here from 30 m, so the test
+    stays short) the robot is lost, and the global search finds it again."""
+    before, after = range(10, 60), range(130, 300)
+    scans, odometry, truth = kidnapped_drive(new_run, before, after)
+    settings = LocalizationConfig(max_dead_reckoning=4.0)
+    localizer = MapLocalizer(*localizer_map, initial_pose=truth[0], settings=settings)
+    results = [localizer.localize(int(new_run.stamps_ns[0]) + k * 300_000_000, scan, odo)
+               for k, (scan, odo) in enumerate(zip(scans, odometry, strict=True))]
+    poses = np.array([r.pose for r in results])
+    jump = len(before)
+    assert position_errors(poses[:jump], truth[:jump]).max() < 0.05
+    assert min(r.score for r in results[:jump]) > 0.9
+    fixes = [r.index for r in results if r.global_fix]
+    assert len(fixes) == 1 and jump < fixes[0] < jump + 80, f"found again at {fixes}"
+    wrong = results[jump:fixes[0]]
+    assert all(not (r.matched and r.score > 0.8) for r in wrong), "the wrong place fits like the right one"
+    assert any(not r.localized for r in wrong), "lost before the global search"
+    after_fix = slice(fixes[0], None)
+    assert all(r.localized and r.matched for r in results[after_fix])
+    assert position_errors(poses[after_fix], truth[after_fix]).max() < 0.05
 
 
 def test_a_map_without_points_is_refused() -> None:

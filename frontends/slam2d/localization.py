@@ -4,17 +4,30 @@ The map is built once from the saved keyframe scans at their poses: one likeliho
 matching) with the points and normals ICP pairs with.
 
 - Tracking: each scan is matched around its prediction (wheel odometry, else constant velocity), then
-  refined by point-to-line ICP with the prediction as a prior, exactly as the SLAM matches its local map.
-- Global localization (no start pose, or tracking lost for `lost_after_unmatched` scans in a row): a
-  loop-closure-free `LaserSlam2D` tracks the scans in a frame of their own; at each of its new keyframes
-  its last few keyframes, seen from the newest one, are searched over the whole map (all headings) by
-  branch and bound, and the match is accepted only when it passes the loop closures' ambiguity and ICP
-  tests. The scans tracked meanwhile get their map poses back through the same transform (`recovered_*`).
+  refined by point-to-line ICP, exactly as the SLAM matches its local map, with one difference: the prior
+  is the prediction with the pose's own covariance (carried along the odometry, shrunk by every match), so
+  the pose is the covariance-weighted mean of prediction and match, and a weak match (scoring below
+  `min_tracking_score`: most of the scan falls where the map saw nothing) weighs only
+  `weak_match_weight`. The match is not used when it scores below `min_match_score`, pairs too few points,
+  or ICP left the search window (it slid along a corridor the search never scored): the scan keeps the
+  prediction and counts as predicted (`LocalizedScan.predicted`).
+- Local re-acquisition: after a few misses, at every `relocalize_every` metres, the last few scans
+  (placed by their tracked poses, which odometry keeps consistent with each other) are searched around
+  the prediction by branch and bound, in a window growing with the distance driven since the last good
+  match, and the match is accepted only when unambiguous and verified by ICP (the loop closures' tests).
+- Global localization (no start pose, or no good match for `max_dead_reckoning` metres, or no match for
+  `lost_after_unmatched` scans without odometry): a loop-closure-free `LaserSlam2D` tracks the scans in a
+  frame of their own; at its new keyframes its last few keyframes, seen from the newest one, are searched
+  over the whole map (all headings) by branch and bound, and the match is accepted only when it passes
+  the loop closures' ambiguity and ICP tests. Failed attempts back off (a robot outside the map would pay
+  a whole-map search every metre). The scans tracked meanwhile get their map poses back through the same
+  transform (`recovered_*`).
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
@@ -22,63 +35,48 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
-from frontends.slam2d.config import LoopClosureConfig, Slam2DConfig
+from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import VerifiedMatch, match_unambiguous, thinned_query
 from frontends.slam2d.grid import build_likelihood_grid
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
-from frontends.slam2d.slam import (
-    BRANCH_AND_BOUND_LEVELS,
-    ODOMETRY_BRANCH_AND_BOUND_LEVELS,
-    LaserSlam2D,
-    predicted_motion,
-)
+from frontends.slam2d.localization_config import LocalizationConfig
+from frontends.slam2d.slam import ODOMETRY_BRANCH_AND_BOUND_LEVELS, LaserSlam2D, predicted_motion
+from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
+__all__ = ["EmptyMapError", "LocalizationConfig", "LocalizedScan", "MapLocalizer"]
+
+LOCAL_SEARCH_LEVELS = 5
+"""Branch-and-bound levels of a local re-acquisition: coarsest candidates span 1.6 m at 5 cm, about the
+windows searched; the whole map's pyramid is built once and shared by every attempt."""
+RECENT_TURN = math.radians(12.0)
+"""A scan turned this much from the last one kept for re-acquisition queries is kept too (new walls)."""
+
+
+def _propagate(covariance: FloatArray, pose: FloatArray, motion: FloatArray, noise: FloatArray) -> FloatArray:
+    """The covariance (map frame) of pose ⊕ motion, `noise` being the motion's (robot frame)."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    jacobian = np.eye(3)
+    jacobian[0, 2] = -s * motion[0] - c * motion[1]
+    jacobian[1, 2] = c * motion[0] - s * motion[1]
+    return jacobian @ covariance @ jacobian.T + rotation @ noise @ rotation.T
+
+
+def _inside(pose: FloatArray, prior: FloatArray, window: SearchWindow, resolution: float) -> bool:
+    """Whether ICP ended inside the correlative search's window around the prior (one cell and one angular
+    step of slack): beyond it, ICP slid along a degenerate corridor the search never scored."""
+    return (max(abs(pose[0] - prior[0]), abs(pose[1] - prior[1])) <= window.linear + resolution
+            and abs(se2.wrap_angle(float(pose[2] - prior[2]))) <= window.angular + window.angular_step)
+
 
 class EmptyMapError(FrontendError):
     """A saved map to localize in has no keyframe with enough points to match against."""
-
-
-@dataclass(frozen=True)
-class LocalizationConfig:
-    global_levels: int = BRANCH_AND_BOUND_LEVELS
-    """Branch-and-bound pyramid levels of the whole-map search (the loop closures': one compiled kernel)."""
-    global_resolution: float = 0.15
-    """Cell size (m) of the grid the whole-map search runs on (its likelihood σ at least this): a building
-    at 5 cm cells and 0.75° steps takes seconds per attempt, at 15 cm and 1° a fraction of one; ICP on the
-    full-resolution map then refines the match."""
-    global_angular_step: float = math.radians(1.0)
-    global_margin: float = 2.0
-    """The search covers the saved keyframes' bounding box plus this (m): the robot is where the mapping
-    robot was, give or take a corridor's width."""
-    min_query_keyframes: int = 4
-    """Global localization waits until the scans since it started span this many keyframes (~1 m)."""
-    retry_every_keyframes: int = 3
-    """After a failed attempt, the next one waits this many keyframes: an attempt over a whole building
-    costs tenths of a second to seconds, and the next keyframe mostly sees the same place."""
-    lost_after_unmatched: int = 5
-    """Tracking is lost after this many scans in a row matched nothing, or matched with a score below
-    `min_tracking_score`: localize globally again."""
-    max_dead_reckoning: float = 30.0
-    """With wheel odometry, scans that match nothing (the robot drove out of the saved map, or people hide
-    the walls) keep the odometry's pose; tracking is declared lost only once it moved this far (m) since
-    the last match: back in the map, the tracking window finds the walls again, which a global search in a
-    place the map does not show never would (and it costs seconds)."""
-    min_tracking_score: float = 0.5
-    """A well-tracked scan scores 0.8–1 on its map; a robot carried elsewhere without its odometry saying so
-    can still match a look-alike corridor at 0.55–0.7 (simulated building): the lost test catches only
-    scans that fit the map worse than that."""
-    max_lost_keyframes: int = 300
-    """While lost, the scans are tracked in their own frame; that track restarts after this many keyframes
-    (only the last few make a query; the rest would only cost memory)."""
-    acceptance: LoopClosureConfig = field(default_factory=LoopClosureConfig)
-    """Score, ambiguity and ICP tests of a global match, and the query's keyframes and thinning: the loop
-    closures' own settings."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,6 +102,14 @@ class LocalizedScan:
     """Scans processed while not localized whose map poses this global localization gives back …"""
     recovered_poses: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
     """… and those poses (M, 3)."""
+    relocalized: bool = False
+    """The pose comes from a local re-acquisition accepted at this scan (a windowed search around the
+    prediction after a stretch of weak or missing matches)."""
+
+    @property
+    def predicted(self) -> bool:
+        """Localized, but the pose is the odometry (or constant-velocity) prediction: the match was weak."""
+        return self.localized and not self.matched
 
 
 class MapLocalizer:
@@ -153,13 +159,20 @@ class MapLocalizer:
         )
         self._count = 0
         self._pose: FloatArray | None = None if initial_pose is None else np.array(initial_pose, dtype=float)
+        self._covariance = self._fix_covariance()
         self._last_odometry: FloatArray | None = None
         self._last_motion = np.zeros(3)
         self._misses = 0
-        self._unmatched_distance = 0.0
+        self._since_good = 0.0
+        self._since_attempt = 0.0
+        self._recent: deque[tuple[FloatArray, FloatArray]] = deque(maxlen=self.settings.relocalize_keyframes)
         self._tracker: LaserSlam2D | None = None
         self._tracked: list[int] = []
         self._last_tracker_keyframe = -1
+        self._next_attempt = self.settings.min_query_keyframes
+        self._failed_attempts = 0
+        self.stage_times = StageTimes()
+        """Where `localize` spent its time: tracking, local re-acquisition, global localization."""
 
     @property
     def localized(self) -> bool:
@@ -184,20 +197,36 @@ class MapLocalizer:
         self._count += 1
         odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
         if self._pose is None:
-            return self._search(index, int(stamp_ns), points, odometry, odometry_interval)
-        result = self._track(index, int(stamp_ns), points, odometry, odometry_interval)
+            with self.stage_times.stage("global"):
+                return self._search(index, int(stamp_ns), points, odometry, odometry_interval)
+        has_odometry = odometry is not None and self._last_odometry is not None
+        with self.stage_times.stage("tracking"):
+            result = self._track(index, int(stamp_ns), points, odometry, odometry_interval)
         self._last_odometry = odometry
-        fits = result.matched and result.score >= self.settings.min_tracking_score
-        if fits:
+        moved = float(np.hypot(self._last_motion[0], self._last_motion[1]))
+        self._since_attempt += moved
+        if len(points) < matching.min_points:  # nothing to judge the pose by: it follows the prediction
+            self._since_good += moved
+            return result
+        self._remember(points)
+        settings = self.settings
+        if result.matched and result.score >= settings.min_tracking_score:
             self._misses = 0
-            self._unmatched_distance = 0.0
+            self._since_good = 0.0
             return result
-        self._unmatched_distance += float(np.hypot(self._last_motion[0], self._last_motion[1]))
-        if len(points) < matching.min_points:
-            return result
+        self._since_good += moved
         self._misses += 1
-        dead_reckoning = odometry is not None and self._unmatched_distance <= self.settings.max_dead_reckoning
-        if self._misses >= self.settings.lost_after_unmatched and not dead_reckoning:
+        first_attempt = self._misses == settings.relocalize_after
+        if first_attempt or (self._misses > settings.relocalize_after
+                             and self._since_attempt >= settings.relocalize_every):
+            self._since_attempt = 0.0
+            with self.stage_times.stage("relocalization"):
+                found = self._relocalize(result)
+            if found is not None:
+                return found
+        lost = (self._since_good > settings.max_dead_reckoning if has_odometry
+                else self._misses >= settings.lost_after_unmatched)
+        if lost:
             self._lose()
         return result
 
@@ -208,7 +237,11 @@ class MapLocalizer:
         settings = self.config.odometry
         reliable = odometry_interval <= settings.reliable_interval
         has_odometry = odometry is not None and self._last_odometry is not None
-        prior, prior_information = self._predict(odometry, reliable)
+        prior, covariance = self._predict(odometry, reliable)
+        # ICP weighs its points as independent, which the match's information undoes by
+        # `information_scale`: the prior is weighed on the same (inflated) scale, so the fusion below is
+        # the covariance-weighted mean of prediction and match.
+        prior_information = np.linalg.inv(covariance) / matching.information_scale
         pose, matched, score = prior, False, math.nan
         information = np.zeros((3, 3))
         inliers, rms = 0.0, math.inf
@@ -224,32 +257,98 @@ class MapLocalizer:
                 coarse = match_branch_and_bound(points, self.map.grid, prior, window, 0.0,
                                                 levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS)
             start = prior if coarse is None else coarse.pose
+            if coarse is None or coarse.score < self.settings.min_tracking_score:
+                prior_information = prior_information / self.settings.weak_match_weight
             refined = refine_point_to_line(
                 points, self.map.grid, self.map.points, self.map.normals, start,
                 max_distance=matching.icp_max_distance, sigma=matching.point_sigma,
                 prior=prior, prior_information=prior_information,
             )
             inliers, rms = refined.inlier_fraction, refined.rms
-            if coarse is not None and refined.inlier_fraction >= settings.min_inlier_fraction:
+            if (coarse is not None and coarse.score >= self.settings.min_match_score
+                    and refined.inlier_fraction >= settings.min_inlier_fraction
+                    and _inside(refined.pose, prior, window, self.map.grid.resolution)):
                 pose, matched, score = refined.pose, True, coarse.score
                 information = matching.information_scale * refined.information
+                covariance = np.linalg.inv(information + 1e-12 * np.eye(3))
         self._last_motion = se2.relative(self._pose, pose)
         self._pose = np.array(pose)
+        self._covariance = covariance
         return LocalizedScan(index, stamp_ns, self._pose.copy(), True, matched, score, inliers, rms,
                              information)
 
-    def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
+    def _remember(self, points: FloatArray) -> None:
+        """Keep the scan for local re-acquisition queries when it is `relocalize_every` from the last kept."""
         assert self._pose is not None
+        if self._recent:
+            step = se2.relative(self._recent[-1][1], self._pose)
+            if np.hypot(step[0], step[1]) < self.settings.relocalize_every and abs(step[2]) < RECENT_TURN:
+                return
+        self._recent.append((points, self._pose.copy()))
+
+    def _relocalize(self, tracked: LocalizedScan) -> LocalizedScan | None:
+        """The recent scans searched around the current pose in a window widening with the distance driven
+        since the last good match; the scan's new pose when unambiguous and verified."""
+        assert self._pose is not None
+        settings = self.settings
+        acceptance = settings.acceptance
+        scans = [s for s, _ in self._recent]
+        poses = [p for _, p in self._recent]
+        query = thinned_query(scans, poses, self._pose, acceptance.query_thinning)
+        if len(query) < self.config.matching.min_points:
+            return None
+        linear = min(settings.relocalize_window + settings.relocalize_window_per_metre * self._since_good,
+                     settings.max_relocalize_window)
+        window = SearchWindow(linear, settings.relocalize_angular, acceptance.angular_step)
+        found = match_unambiguous(query, self.map, self._pose, window, matching=self.config.matching,
+                                  acceptance=acceptance, levels=LOCAL_SEARCH_LEVELS)
+        if found is None:
+            return None
+        correction = se2.compose(found.pose, se2.inverse(self._pose))
+        self._recent = deque(((s, se2.compose(correction, p)) for s, p in self._recent),
+                             maxlen=settings.relocalize_keyframes)
+        self._pose = found.pose.copy()
+        self._covariance = self._fix_covariance()
+        self._misses = 0
+        self._since_good = 0.0
+        return LocalizedScan(
+            tracked.index, tracked.stamp_ns, self._pose.copy(), True, True, found.score,
+            found.icp.inlier_fraction, found.icp.rms,
+            self.config.matching.information_scale * found.icp.information, relocalized=True,
+        )
+
+    def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
+        """The predicted pose and its covariance: the pose's own, carried along the motion, plus the
+        motion's noise (wheel odometry's as `LocalizationConfig` models it; without odometry, the SLAM's
+        loose constant-velocity prior)."""
+        assert self._pose is not None
+        has_odometry = odometry is not None and self._last_odometry is not None
         motion, information = predicted_motion(self.config.odometry, self._last_odometry, odometry, reliable,
                                                self._last_motion)
-        return se2.compose(self._pose, motion), information
+        if has_odometry:
+            settings = self.settings
+            distance = float(np.hypot(motion[0], motion[1]))
+            linear = settings.odometry_noise_linear + settings.odometry_noise_per_metre * distance
+            angular = (settings.odometry_noise_angular + settings.odometry_noise_angular_per_metre * distance
+                       + settings.odometry_noise_per_radian * abs(float(motion[2])))
+            scale = 1.0 if reliable else self.config.odometry.unreliable_scale
+            noise = np.diag([(scale * linear) ** 2, (scale * linear) ** 2, (scale * angular) ** 2])
+        else:
+            noise = np.linalg.inv(information)
+        return se2.compose(self._pose, motion), _propagate(self._covariance, self._pose, motion, noise)
+
+    def _fix_covariance(self) -> FloatArray:
+        settings = self.settings
+        return np.diag([settings.fix_sigma_linear**2, settings.fix_sigma_linear**2,
+                        settings.fix_sigma_angular**2])
 
     # ---------------------------------------------------------------------------- global localization
 
     def _lose(self) -> None:
         self._pose = None
         self._misses = 0
-        self._unmatched_distance = 0.0
+        self._since_good = 0.0
+        self._recent.clear()
         self._tracker = None
 
     def _search(self, index: int, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
@@ -260,6 +359,7 @@ class MapLocalizer:
             self._tracker = LaserSlam2D(replace(self.config, loop_closure=disabled))
             self._tracked = []
             self._last_tracker_keyframe = -1
+            self._next_attempt = self.settings.min_query_keyframes
         estimate = self._tracker.add_scan(stamp_ns, points, odometry, odometry_interval)
         self._tracked.append(index)
         nothing = LocalizedScan(index, stamp_ns, np.full(3, np.nan), False, False, math.nan, 0.0, math.inf,
@@ -268,21 +368,28 @@ class MapLocalizer:
             return nothing
         self._last_tracker_keyframe = estimate.keyframe
         keyframe_poses = self._tracker.keyframe_poses()
-        due = len(keyframe_poses) - self.settings.min_query_keyframes
-        if due < 0 or due % self.settings.retry_every_keyframes:
+        if len(keyframe_poses) < self._next_attempt:
             return nothing
         found = self._global_match(keyframe_poses)
         if found is None:
+            settings = self.settings
+            self._failed_attempts += 1
+            backoff = max(0, self._failed_attempts - settings.attempts_before_backoff)
+            self._next_attempt = len(keyframe_poses) + min(settings.retry_every_keyframes << min(backoff, 8),
+                                                           settings.max_retry_keyframes)
             return nothing
+        self._failed_attempts = 0
         local_frame = keyframe_poses[-1]
         map_from_local = se2.compose(found.pose, se2.inverse(local_frame))
         tracked = self._tracker.finish()
         recovered = se2.compose(map_from_local, tracked.scan_poses(tracked.graph.poses))
         pose = recovered[-1]
         self._pose = pose.copy()
+        self._covariance = self._fix_covariance()
         self._last_odometry = odometry
         self._last_motion = np.zeros(3)
         self._tracker = None
+        self._recent.clear()
         return LocalizedScan(
             index, stamp_ns, pose.copy(), True, True, found.score, found.icp.inlier_fraction, found.icp.rms,
             self.config.matching.information_scale * found.icp.information, global_fix=True,
@@ -299,6 +406,9 @@ class MapLocalizer:
                               keyframe_poses[-1], thinning)
         if len(query) < self.config.matching.min_points:
             return None
+        # Every candidate of the search scores every query point: an evenly spread share of them bounds
+        # and ranks the candidates as well, for a fraction of the work.
+        query = np.ascontiguousarray(query[:: -(-len(query) // self.settings.global_max_points)])
         return match_unambiguous(query, self.map, self._search_center, self._search_window,
                                  matching=self.config.matching, acceptance=acceptance,
                                  levels=self.settings.global_levels, search_grid=self._search_grid)
