@@ -144,7 +144,8 @@ def noisy_heading_table() -> None:
 def limits_table() -> None:
     print(f"## Where both SGDs end: χ² after 100, 1 000 and {LIMIT_ITERATIONS:,} iterations\n")
     print("Both follow the same approximate gradient (a pose's heading does not turn its constraints' "
-          "measured translations), so both tend to the same point, which is not the minimum.\n")
+          "measured translations), so both tend to points close to each other (on pg1.g2o the same one), "
+          "neither of them the minimum.\n")
     marks = (100, 1000, LIMIT_ITERATIONS)
     print("| graph | optimum (LM) | " + " | ".join(f"{name} {k}" for name in TIMED for k in marks) + " |")
     print("|---|---:|" + "---:|" * (len(TIMED) * len(marks)))
