@@ -1,6 +1,6 @@
 """The tree-parameterised SGD (`optimizer.sgd_tree`) against the paper's SGD (`optimizer.sgd`).
 
-    python benchmarks/strong_sgd_bench.py [--quick] [--skip-scale]
+    python benchmarks/strong_sgd_bench.py [--quick] [--skip-scale] [--only SECTION ...]
 
 Prints markdown tables: χ² after 10/30/100 iterations of both SGDs on every graph of
 ../shared/data/posegraphs/2d and on generated grid worlds (from the file's / generated estimate;
@@ -10,6 +10,12 @@ M3500-shaped worlds with heavy heading noise, the χ² that Levenberg–Marquard
 after each SGD next to the one it reaches from the ground truth; and the time per iteration of both
 SGDs on M3500 and a 10⁵-pose grid world (numba compilation excluded). `--quick` drops the 10 000-pose
 world and the 10⁵-pose timing.
+
+Two diagnostic sections: "limits", both SGDs after 10⁴ iterations on the small shared graphs (where they
+end, not how fast); "basin", on σθ = 0.3 worlds, Levenberg–Marquardt from the ground truth's headings with
+positions solved for them (`optimizer.initialization.positions_given_headings`) against LM from the chordal
+start (rotation-only headings, positions solved the same way): which basin the polish reaches is decided
+by the headings alone.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from optimizer.errors import OptimizerError  # noqa: E402
 from optimizer.graph import PoseGraph  # noqa: E402
 from optimizer.graph_files import read_graph  # noqa: E402
 from optimizer.gridworld import generate_grid_world  # noqa: E402
+from optimizer.initialization import chordal_initialization, positions_given_headings  # noqa: E402
 from optimizer.iteration import Iteration  # noqa: E402
 from optimizer.polish import gauss_newton  # noqa: E402
 from optimizer.sgd import sgd  # noqa: E402
@@ -41,6 +48,11 @@ POSEGRAPHS = REPO.parent / "shared" / "data" / "posegraphs" / "2d"
 CHECKPOINTS = (10, 30, 100)
 TIMED = ("paper SGD", "sgd-tree")
 HEADING_SIGMAS = (0.1, 0.2, 0.3)
+LIMIT_ITERATIONS = 10_000
+LIMIT_GRAPHS = ("pg1.g2o", "pose2example.txt", "w100.graph")
+BASIN_SIGMA = 0.3
+BASIN_SEEDS = (0, 1, 2)
+SECTIONS = ("chi2", "noisy", "limits", "basin", "timing")
 TORO_M3500_AFTER_100 = 248.8
 EQUAL_LOOP_SIGMA = (0.02, 0.02, 0.01)
 """The generator's odometry noise: loop closures then weigh like odometry, as in M3500 and city10000."""
@@ -129,6 +141,42 @@ def noisy_heading_table() -> None:
     print()
 
 
+def limits_table() -> None:
+    print(f"## Where both SGDs end: χ² after 100, 1 000 and {LIMIT_ITERATIONS:,} iterations\n")
+    print("Both follow the same approximate gradient (a pose's heading does not turn its constraints' "
+          "measured translations), so both tend to points close to each other (on pg1.g2o the same one), "
+          "neither of them the minimum.\n")
+    marks = (100, 1000, LIMIT_ITERATIONS)
+    print("| graph | optimum (LM) | " + " | ".join(f"{name} {k}" for name in TIMED for k in marks) + " |")
+    print("|---|---:|" + "---:|" * (len(TIMED) * len(marks)))
+    for name in LIMIT_GRAPHS:
+        graph = read_graph(POSEGRAPHS / name, repair_information=True).graph
+        cells = []
+        for label in TIMED:
+            values = {step.index: step.chi2 for step in OPTIMIZERS[label](graph, LIMIT_ITERATIONS)
+                      if step.index in marks}
+            cells += [f"{values[k]:.6g}" for k in marks]
+        print(f"| {name} | {_polished(graph, graph.poses):.6g} | " + " | ".join(cells) + " |", flush=True)
+    print()
+
+
+def basin_table() -> None:
+    print(f"## σθ = {BASIN_SIGMA} worlds: the headings decide the basin\n")
+    print("Every start is polished by LM (≤ 1000 steps). Positions are solved for the given headings "
+          "(`positions_given_headings`); the chordal start is the same with rotation-only headings.\n")
+    print("| seed | LM from truth | truth headings + positions: start χ² | → LM | chordal: start χ² | → LM |")
+    print("|---:|---:|---:|---:|---:|---:|")
+    for seed in BASIN_SEEDS:
+        world = generate_grid_world(3500, seed=seed, odometry_sigma=(0.02, 0.02, BASIN_SIGMA))
+        graph = world.graph
+        truth_headings = positions_given_headings(graph, world.ground_truth)
+        chordal = chordal_initialization(graph)
+        print(f"| {seed} | {_polished(graph, world.ground_truth):.6g} | {chi2(graph, truth_headings):.6g} | "
+              f"{_polished(graph, truth_headings):.6g} | {chi2(graph, chordal):.6g} | "
+              f"{_polished(graph, chordal):.6g} |", flush=True)
+    print()
+
+
 def _seconds_per_iteration(optimizer: Optimizer, graph: PoseGraph, iterations: int) -> float:
     for _ in optimizer(graph, 2):  # compile (cached kernels still pay a first-call load)
         pass
@@ -157,10 +205,22 @@ def main() -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="skip the 10 000-pose world and 10⁵-pose timing")
     parser.add_argument("--skip-scale", action="store_true", help="skip the timing table")
+    parser.add_argument("--only", action="append", choices=SECTIONS,
+                        help="run only this section (repeatable); default: all but the diagnostics "
+                             "'limits' and 'basin'")
     arguments = parser.parse_args()
-    chi2_table(arguments.quick)
-    noisy_heading_table()
-    if not arguments.skip_scale:
+    sections = set(arguments.only or ("chi2", "noisy", "timing"))
+    if arguments.skip_scale:
+        sections.discard("timing")
+    if "chi2" in sections:
+        chi2_table(arguments.quick)
+    if "noisy" in sections:
+        noisy_heading_table()
+    if "limits" in sections:
+        limits_table()
+    if "basin" in sections:
+        basin_table()
+    if "timing" in sections:
         timing_table(arguments.quick)
 
 

@@ -10,7 +10,7 @@ from optimizer.cost import chi2
 from optimizer.graph import PoseGraph, reverse_constraints
 from optimizer.graph_files import read_graph
 from optimizer.gridworld import generate_grid_world
-from optimizer.initialization import chordal_initialization, rotation_weights
+from optimizer.initialization import chordal_initialization, positions_given_headings, rotation_weights
 from optimizer.polish import gauss_newton
 from tests.conftest import shared_file
 
@@ -105,6 +105,46 @@ def test_positions_minimise_the_chi2_for_the_estimated_rotations() -> None:
         moved = poses.copy()
         moved[1:, :2] += rng.normal(scale=1e-3, size=(graph.num_poses - 1, 2))
         assert chi2(graph, moved) > best
+
+
+def test_positions_given_true_headings_recover_a_noise_free_world_from_any_positions() -> None:
+    world = generate_grid_world(400, seed=2, add_noise=False)
+    rng = np.random.default_rng(5)
+    scrambled = np.array(world.ground_truth)
+    scrambled[1:, :2] = rng.uniform(-50.0, 50.0, size=(world.graph.num_poses - 1, 2))
+    solved = positions_given_headings(world.graph, scrambled)
+    assert pose_difference(solved, world.ground_truth) < 1e-8
+
+
+def test_positions_given_headings_keep_the_headings_and_minimise_the_chi2_over_positions() -> None:
+    world = generate_grid_world(600, seed=4, odometry_sigma=(0.02, 0.02, 0.2))
+    rng = np.random.default_rng(8)
+    factors = rng.normal(size=(world.graph.num_edges, 3, 3))
+    information = factors @ np.swapaxes(factors, 1, 2) + 3.0 * np.eye(3)  # θ–translation coupling
+    graph = PoseGraph(world.graph.poses, world.graph.edge_from, world.graph.edge_to, world.graph.measurements,
+                      information, world.graph.vertex_ids)
+    headings = np.array(graph.poses)  # dead-reckoned headings: far from any minimum
+    solved = positions_given_headings(graph, headings)
+    np.testing.assert_allclose(solved[:, 2], se2.wrap_angle(headings[:, 2]), atol=1e-15)
+    np.testing.assert_array_equal(solved[0], graph.poses[0])
+    best = chi2(graph, solved)
+    assert best < chi2(graph, headings)
+    for _ in range(5):
+        moved = solved.copy()
+        moved[1:, :2] += rng.normal(scale=1e-3, size=(graph.num_poses - 1, 2))
+        assert chi2(graph, moved) > best
+
+
+def test_at_a_minimum_the_positions_given_its_headings_are_its_own() -> None:
+    # The χ² is quadratic in the positions once the headings are fixed, so a minimum's positions are the
+    # unique minimiser for its headings: the whole basin question is a question about headings.
+    world = generate_grid_world(500, seed=1, odometry_sigma=(0.02, 0.02, 0.3))
+    minimum = np.array(world.ground_truth)
+    for step in gauss_newton(world.graph, minimum, relative_tolerance=1e-14):
+        minimum = step.poses
+    scrambled = minimum.copy()
+    scrambled[1:, :2] += 3.0
+    assert pose_difference(positions_given_headings(world.graph, scrambled), minimum) < 1e-6
 
 
 def test_rotation_weights_are_the_marginal_theta_information_with_a_floor() -> None:
