@@ -22,7 +22,7 @@ from frontends.slam2d.correlative import (
 )
 from frontends.slam2d.grid import build_likelihood_grid, max_pyramid
 from frontends.slam2d.icp import scan_normals
-from frontends.slam2d.local_map import Keyframe, Submap, place
+from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.log_input import OdometryTrack, scans_in_base_frame
 from frontends.slam2d.slam import LaserSlam2D
 from frontends.slam2d.stage_times import StageTimes
@@ -268,3 +268,22 @@ def test_scans_are_moved_into_the_base_frame_as_by_their_own_transform() -> None
         assert has_mount and result.frame_id == "base_link"
         np.testing.assert_array_equal(result.points, expected.points)
         np.testing.assert_array_equal(result.ranges, scan.ranges)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    count=st.integers(0, 400),
+    spread=st.sampled_from([0.05, 1.0, 50.0]),
+    seed=st.integers(0, 2**31),
+    keep_last=st.booleans(),
+)
+def test_one_point_per_cell_keeps_the_first_or_last_of_each_cell_in_order(
+        count: int, spread: float, seed: int, keep_last: bool) -> None:
+    points = np.random.default_rng(seed).normal(scale=spread, size=(count, 2))
+    kept = one_per_cell(points, 0.1, keep_last=keep_last)
+    cells = [tuple(c) for c in np.floor(points / 0.1).astype(np.int64)]
+    chosen: dict[tuple[int, int], int] = {}
+    for index, key in enumerate(cells):
+        if keep_last or key not in chosen:
+            chosen[key] = index
+    assert kept.tolist() == sorted(chosen.values())

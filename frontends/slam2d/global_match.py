@@ -17,7 +17,7 @@ from frontends.slam2d.config import LoopClosureConfig, MatchingConfig
 from frontends.slam2d.correlative import SearchWindow, prepare_branch_and_bound
 from frontends.slam2d.grid import LikelihoodGrid
 from frontends.slam2d.icp import IcpResult, refine_point_to_line
-from frontends.slam2d.local_map import Submap, place
+from frontends.slam2d.local_map import Submap, one_per_cell, place
 from optimizer import se2
 
 FloatArray = NDArray[np.float64]
@@ -79,6 +79,4 @@ def thinned_query(scans: Sequence[FloatArray], poses: Sequence[FloatArray], fram
     """Scans (each in its own frame, at `poses`) seen from `frame`, thinned to one point per cell of
     `thinning` metres: a few metres of context rarely match the wrong place, one scan often does."""
     points = np.concatenate([place(s, se2.relative(frame, p)) for s, p in zip(scans, poses, strict=True)])
-    cells = np.floor(points / thinning).astype(np.int64)
-    _, first = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_index=True)
-    return np.ascontiguousarray(points[np.sort(first)])
+    return np.ascontiguousarray(points[one_per_cell(points, thinning)])

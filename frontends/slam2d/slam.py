@@ -26,7 +26,7 @@ from frontends.slam2d.config import OdometryConfig, Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import match_unambiguous
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
-from frontends.slam2d.local_map import Keyframe, Submap, place
+from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
 from optimizer.graph import PoseGraph
@@ -380,9 +380,7 @@ class LaserSlam2D:
         points = np.concatenate(
             [place(self._keyframes[k].points, se2.relative(here, self._keyframe_poses[k])) for k in recent]
         )
-        cells = np.floor(points / settings.query_thinning).astype(np.int64)
-        _, first = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_index=True)
-        return np.ascontiguousarray(points[np.sort(first)])
+        return np.ascontiguousarray(points[one_per_cell(points, settings.query_thinning)])
 
     # ------------------------------------------------------------------------------------ optimization
 
