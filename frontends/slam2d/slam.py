@@ -303,15 +303,18 @@ class LaserSlam2D:
             return ()
         positions = np.array(self._keyframe_poses[: older + 1])[:, :2]
         here = self._keyframe_poses[current]
-        # The drift between two keyframes grows with the path joining them in the graph (through the
-        # loop closures already made), not with the time since the last loop closure anywhere.
-        radius = np.minimum(
-            settings.search_radius
-            + settings.search_radius_per_metre * self._path_lengths_to(current)[: older + 1],
-            settings.max_search_radius,
-        )
         distance = np.hypot(*(positions - here[:2]).T)
         candidates: list[int] = []
+        # The drift between two keyframes grows with the path joining them in the graph (through the
+        # loop closures already made), not with the time since the last loop closure anywhere; no
+        # keyframe within the largest radius needs no path lengths.
+        radius = np.full(older + 1, settings.max_search_radius)
+        if np.any(distance <= settings.max_search_radius):
+            radius = np.minimum(
+                settings.search_radius
+                + settings.search_radius_per_metre * self._path_lengths_to(current)[: older + 1],
+                settings.max_search_radius,
+            )
         for candidate in np.argsort(distance / radius):
             if distance[candidate] > radius[candidate] or len(candidates) >= settings.candidates_per_keyframe:
                 break
