@@ -190,9 +190,10 @@ def print_tables(runs: list[LogRun]) -> None:
     print("|---|" + "---|" * len(stages))
     for r in runs:
         print(f"| {r.name} | " + " | ".join(f"{r.stages_cpu_s[s]:.2f}" for s in stages) + " |")
-    slow = [r.name for r in runs if r.real_time < TARGET_REAL_TIME]
-    print(f"\ntarget ≥ {TARGET_REAL_TIME:.0f}× real time (wall): "
-          f"{'met on every log' if not slow else 'NOT met on ' + ', '.join(slow)}")
+    for clock, speed in (("wall", lambda r: r.real_time), ("process CPU", lambda r: r.real_time_cpu)):
+        slow = [r.name for r in runs if speed(r) < TARGET_REAL_TIME]
+        print(f"\ntarget ≥ {TARGET_REAL_TIME:.0f}× real time ({clock}): "
+              f"{'met on every log' if not slow else 'NOT met on ' + ', '.join(slow)}")
 
 
 def print_aces_accuracy(result: LogReplayResult, relations: Path) -> dict[str, float]:

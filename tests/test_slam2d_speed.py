@@ -14,10 +14,15 @@ from hypothesis import strategies as st
 
 from frontends.logs.types import Scan2D, Transform
 from frontends.slam2d import stage_times
-from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
+from frontends.slam2d.correlative import (
+    SearchWindow,
+    match_branch_and_bound,
+    match_exhaustive,
+    prepare_branch_and_bound,
+)
 from frontends.slam2d.grid import build_likelihood_grid, max_pyramid
 from frontends.slam2d.icp import scan_normals
-from frontends.slam2d.local_map import Keyframe, Submap, place
+from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.log_input import OdometryTrack, scans_in_base_frame
 from frontends.slam2d.slam import LaserSlam2D
 from frontends.slam2d.stage_times import StageTimes
@@ -28,9 +33,11 @@ SIGMA = 0.06
 
 
 def brute_force_best(points: np.ndarray, values: np.ndarray, origin: np.ndarray, centre: np.ndarray,
-                     window: SearchWindow) -> tuple[float, np.ndarray]:
+                     window: SearchWindow, excluded: tuple[int, int, int] | None = None
+                     ) -> tuple[float, np.ndarray]:
     """Every candidate scored from scratch (cells outside the grid read 0); the first best in (angle, ty,
-    tx) order, as the matcher documents."""
+    tx) order, as the matcher documents. `excluded` = (tx, ty, radius) in cells: translations within the
+    radius of (tx, ty) are not candidates."""
     reach = math.ceil(window.linear / RESOLUTION - 1e-9)
     count = int(math.floor(window.angular / window.angular_step))
     height, width = values.shape
@@ -44,6 +51,9 @@ def brute_force_best(points: np.ndarray, values: np.ndarray, origin: np.ndarray,
         base_y = np.floor((world_y - origin[1]) / RESOLUTION).astype(np.int64)
         for ty in range(-reach, reach + 1):
             for tx in range(-reach, reach + 1):
+                if excluded is not None and (
+                        (tx - excluded[0]) ** 2 + (ty - excluded[1]) ** 2 <= excluded[2] ** 2):
+                    continue
                 cx, cy = base_x + tx, base_y + ty
                 inside = (cx >= 0) & (cy >= 0) & (cx < width) & (cy < height)
                 score = values[cy[inside], cx[inside]].astype(np.float64).sum() / len(points)
@@ -101,6 +111,40 @@ def test_branch_and_bound_on_the_cropped_pyramid_finds_what_it_finds_on_the_whol
         if whole is not None:
             np.testing.assert_array_equal(whole.pose, cropped.pose)
             assert whole.score == cropped.score
+
+
+@settings(max_examples=5, deadline=None)
+@given(
+    centre=st.tuples(st.floats(-0.4, 0.4), st.floats(-0.4, 0.4), st.floats(-0.1, 0.1)),
+    crop=st.booleans(),
+)
+def test_one_prepared_search_finds_the_optimum_then_the_best_rival_outside_its_disc(
+        centre: tuple[float, float, float], crop: bool) -> None:
+    world = square_loop().segments
+    reference = simulate_scan(world, np.array([6.5, 9.0, 0.3]))[:, :2]
+    scan = simulate_scan(world, np.array([6.6, 8.9, 0.32]))[::6, :2] - np.array([6.5, 9.0])
+    grid = build_likelihood_grid(reference - np.array([6.5, 9.0]), RESOLUTION, SIGMA, margin=1.0)
+    window = SearchWindow(0.5, math.radians(3.0), math.radians(1.0))
+    search = prepare_branch_and_bound(scan, grid, np.array(centre), window, levels=3, crop_pyramid=crop)
+    best = search.best(0.0)
+    score, pose = brute_force_best(scan, grid.values, grid.origin, np.array(centre), window)
+    assert best is not None
+    assert best.score == pytest.approx(score, abs=1e-9)
+    np.testing.assert_allclose(best.pose, pose, atol=1e-12)
+    # The rival of the ambiguity test: the same prepared search with the optimum's disc (0.2 m, 4 cells)
+    # excluded is the brute-force best outside it, and equals a search prepared from scratch.
+    offset = np.rint((best.pose[:2] - np.array(centre[:2])) / RESOLUTION).astype(int)
+    rival = search.best(0.0, exclude=(best.pose[:2], 0.2))
+    rival_score, rival_pose = brute_force_best(scan, grid.values, grid.origin, np.array(centre), window,
+                                               excluded=(int(offset[0]), int(offset[1]), 4))
+    assert rival is not None
+    assert rival.score == pytest.approx(rival_score, abs=1e-9)
+    np.testing.assert_allclose(rival.pose, rival_pose, atol=1e-12)
+    fresh = match_branch_and_bound(scan, grid, np.array(centre), window, 0.0, levels=3,
+                                   exclude=(best.pose[:2], 0.2), crop_pyramid=crop)
+    assert fresh is not None
+    np.testing.assert_array_equal(fresh.pose, rival.pose)
+    assert fresh.score == rival.score
 
 
 def test_a_grid_builds_its_pyramid_once_and_serves_fewer_levels_from_it() -> None:
@@ -224,3 +268,22 @@ def test_scans_are_moved_into_the_base_frame_as_by_their_own_transform() -> None
         assert has_mount and result.frame_id == "base_link"
         np.testing.assert_array_equal(result.points, expected.points)
         np.testing.assert_array_equal(result.ranges, scan.ranges)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    count=st.integers(0, 400),
+    spread=st.sampled_from([0.05, 1.0, 50.0]),
+    seed=st.integers(0, 2**31),
+    keep_last=st.booleans(),
+)
+def test_one_point_per_cell_keeps_the_first_or_last_of_each_cell_in_order(
+        count: int, spread: float, seed: int, keep_last: bool) -> None:
+    points = np.random.default_rng(seed).normal(scale=spread, size=(count, 2))
+    kept = one_per_cell(points, 0.1, keep_last=keep_last)
+    cells = [tuple(c) for c in np.floor(points / 0.1).astype(np.int64)]
+    chosen: dict[tuple[int, int], int] = {}
+    for index, key in enumerate(cells):
+        if keep_last or key not in chosen:
+            chosen[key] = index
+    assert kept.tolist() == sorted(chosen.values())

@@ -168,18 +168,13 @@ def _excluded(tx: int, ty: int, span: int, exclude_x: int, exclude_y: int, radiu
 
 
 @njit(cache=True)
-def _branch_and_bound(
+def _top_level(
     levels: tuple[NDArray[np.float32], ...],
     cells_x: NDArray[np.int64],
     cells_y: NDArray[np.int64],
     reach: int,
-    min_score: float,
-    exclude_x: int,
-    exclude_y: int,
-    exclude_radius: int,
-) -> tuple[int, int, int, float]:
-    """The best leaf above `min_score`, skipping translations within `exclude_radius` cells of
-    (exclude_x, exclude_y) (a negative radius excludes nothing)."""
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Scores of every candidate (angle, tx, ty) of the coarsest level, and those keys."""
     top = len(levels) - 1
     span = 1 << top
     starts = np.arange(-reach, reach + 1, span)
@@ -190,14 +185,37 @@ def _branch_and_bound(
     for a in range(cells_x.shape[0]):
         for ty in starts:
             for tx in starts:
-                if _excluded(tx, ty, span, exclude_x, exclude_y, exclude_radius):
-                    scores[k] = -1.0
-                else:
-                    scores[k] = _score(levels[top], cells_x[a], cells_y[a], tx, ty, span)
+                scores[k] = _score(levels[top], cells_x[a], cells_y[a], tx, ty, span)
                 keys[k, 0] = a
                 keys[k, 1] = tx
                 keys[k, 2] = ty
                 k += 1
+    return scores, keys
+
+
+@njit(cache=True)
+def _branch_and_bound(
+    levels: tuple[NDArray[np.float32], ...],
+    cells_x: NDArray[np.int64],
+    cells_y: NDArray[np.int64],
+    reach: int,
+    top_scores: FloatArray,
+    keys: NDArray[np.int64],
+    min_score: float,
+    exclude_x: int,
+    exclude_y: int,
+    exclude_radius: int,
+) -> tuple[int, int, int, float]:
+    """The best leaf above `min_score`, skipping translations within `exclude_radius` cells of
+    (exclude_x, exclude_y) (a negative radius excludes nothing); `top_scores` and `keys` are
+    `_top_level`'s, shared by every search of the same points on the same pyramid."""
+    top = len(levels) - 1
+    span = 1 << top
+    count = top_scores.shape[0]
+    scores = top_scores.copy()
+    for k in range(count):
+        if _excluded(keys[k, 1], keys[k, 2], span, exclude_x, exclude_y, exclude_radius):
+            scores[k] = -1.0
     # Stack of candidates (angle, tx, ty, level, score) in arrays: depth first, a path holds at most 3
     # siblings a level above the top candidates. The best-scoring child is pushed last so it is explored
     # first, and a candidate no better than the best leaf found so far is pruned whole.
@@ -263,24 +281,52 @@ def _branch_and_bound(
     return best
 
 
-def match_branch_and_bound(
+@dataclass(frozen=True, eq=False)
+class BranchAndBoundSearch:
+    """Points placed for a wide-window search (`prepare_branch_and_bound`): their cells at every rotation,
+    the pyramid they read and the scores of the coarsest candidates, computed once for every search of
+    these points in this window (the optimum, then a rival away from it)."""
+
+    center: FloatArray
+    resolution: float
+    angles: FloatArray
+    reach: int
+    pyramid: tuple[NDArray[np.float32], ...]
+    cells_x: NDArray[np.int64]
+    cells_y: NDArray[np.int64]
+    top_scores: FloatArray
+    top_keys: NDArray[np.int64]
+
+    def best(self, min_score: float, exclude: tuple[FloatArray, float] | None = None) -> Match | None:
+        """`match_branch_and_bound` of these points with this `min_score` and `exclude`."""
+        center, resolution = self.center, self.resolution
+        exclude_x = exclude_y = 0
+        exclude_radius = -1
+        if exclude is not None:
+            (x, y), radius = exclude
+            exclude_x = round((x - center[0]) / resolution)
+            exclude_y = round((y - center[1]) / resolution)
+            exclude_radius = round(radius / resolution)
+        a, tx, ty, score = _branch_and_bound(
+            self.pyramid, self.cells_x, self.cells_y, self.reach, self.top_scores, self.top_keys, min_score,
+            exclude_x, exclude_y, exclude_radius,
+        )
+        if score < 0.0:
+            return None
+        return Match(np.array([center[0] + tx * resolution, center[1] + ty * resolution, self.angles[a]]),
+                     float(score))
+
+
+def prepare_branch_and_bound(
     points: FloatArray,
     grid: LikelihoodGrid,
     center: FloatArray,
     window: SearchWindow,
-    min_score: float,
     levels: int = 4,
-    exclude: tuple[FloatArray, float] | None = None,
     crop_pyramid: bool = False,
-) -> Match | None:
-    """The best pose within a wide `window`, or None when no candidate scores above `min_score`.
-
-    Equal to `match_exhaustive` on the same window (same optimum), in a fraction of the evaluations.
-    `exclude` = (x, y, radius): translations within the radius of (x, y) are not candidates, which is how
-    a second, distinct solution is found (an ambiguity test). `crop_pyramid`: build the grid's pyramid
-    only where this search reads it (a grid searched once or twice), not over the whole grid (a grid
-    searched by many scans, which share its pyramid).
-    """
+) -> BranchAndBoundSearch:
+    """What every `match_branch_and_bound` of `points` in `window` around `center` on `grid` computes
+    before it searches; see there for `levels` and `crop_pyramid`."""
     angles = _angles(float(center[2]), window)
     cells_x, cells_y = _base_cells(
         points, float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
@@ -302,17 +348,29 @@ def match_branch_and_bound(
     pyramid = tuple(grid.pyramid(levels, (top, bottom, left, right)))
     cells_x = cells_x - left
     cells_y = cells_y - top
-    exclude_x = exclude_y = 0
-    exclude_radius = -1
-    if exclude is not None:
-        (x, y), radius = exclude
-        exclude_x = round((x - center[0]) / grid.resolution)
-        exclude_y = round((y - center[1]) / grid.resolution)
-        exclude_radius = round(radius / grid.resolution)
-    a, tx, ty, score = _branch_and_bound(
-        pyramid, cells_x, cells_y, reach, min_score, exclude_x, exclude_y, exclude_radius
-    )
-    if score < 0.0:
-        return None
-    pose = np.array([center[0] + tx * grid.resolution, center[1] + ty * grid.resolution, angles[a]])
-    return Match(pose, float(score))
+    top_scores, top_keys = _top_level(pyramid, cells_x, cells_y, reach)
+    return BranchAndBoundSearch(np.asarray(center, dtype=np.float64), grid.resolution, angles, reach, pyramid,
+                                cells_x, cells_y, top_scores, top_keys)
+
+
+def match_branch_and_bound(
+    points: FloatArray,
+    grid: LikelihoodGrid,
+    center: FloatArray,
+    window: SearchWindow,
+    min_score: float,
+    levels: int = 4,
+    exclude: tuple[FloatArray, float] | None = None,
+    crop_pyramid: bool = False,
+) -> Match | None:
+    """The best pose within a wide `window`, or None when no candidate scores above `min_score`.
+
+    Equal to `match_exhaustive` on the same window (same optimum), in a fraction of the evaluations.
+    `exclude` = (x, y, radius): translations within the radius of (x, y) are not candidates, which is how
+    a second, distinct solution is found (an ambiguity test). `crop_pyramid`: build the grid's pyramid
+    only where this search reads it (a grid searched once or twice), not over the whole grid (a grid
+    searched by many scans, which share its pyramid). Several searches of the same points and window:
+    `prepare_branch_and_bound` once, then `best` for each.
+    """
+    search = prepare_branch_and_bound(points, grid, center, window, levels, crop_pyramid)
+    return search.best(min_score, exclude)

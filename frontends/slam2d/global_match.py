@@ -14,10 +14,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.slam2d.config import LoopClosureConfig, MatchingConfig
-from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound
+from frontends.slam2d.correlative import SearchWindow, prepare_branch_and_bound
 from frontends.slam2d.grid import LikelihoodGrid
 from frontends.slam2d.icp import IcpResult, refine_point_to_line
-from frontends.slam2d.local_map import Submap, place
+from frontends.slam2d.local_map import Submap, one_per_cell, place
 from optimizer import se2
 
 FloatArray = NDArray[np.float64]
@@ -50,20 +50,14 @@ def match_unambiguous(
     `search_grid` (default: the submap's) is the grid the branch and bound searches: a coarser one makes
     a whole-map search affordable, ICP on the submap's points then brings the pose to its resolution."""
     grid = submap.grid if search_grid is None else search_grid
-    coarse = match_branch_and_bound(query, grid, center, window, acceptance.min_score, levels=levels,
-                                    crop_pyramid=crop_pyramid)
+    # Both searches place the same points in the same window: the second reuses the first's cells,
+    # pyramid and coarsest scores.
+    search = prepare_branch_and_bound(query, grid, center, window, levels=levels, crop_pyramid=crop_pyramid)
+    coarse = search.best(acceptance.min_score)
     if coarse is None:
         return None
-    rival = match_branch_and_bound(
-        query,
-        grid,
-        center,
-        window,
-        acceptance.ambiguity_ratio * coarse.score,
-        levels=levels,
-        exclude=(coarse.pose[:2], acceptance.ambiguity_distance),
-        crop_pyramid=crop_pyramid,
-    )
+    rival = search.best(acceptance.ambiguity_ratio * coarse.score,
+                        exclude=(coarse.pose[:2], acceptance.ambiguity_distance))
     if rival is not None:
         return None
     refined = refine_point_to_line(
@@ -85,6 +79,4 @@ def thinned_query(scans: Sequence[FloatArray], poses: Sequence[FloatArray], fram
     """Scans (each in its own frame, at `poses`) seen from `frame`, thinned to one point per cell of
     `thinning` metres: a few metres of context rarely match the wrong place, one scan often does."""
     points = np.concatenate([place(s, se2.relative(frame, p)) for s, p in zip(scans, poses, strict=True)])
-    cells = np.floor(points / thinning).astype(np.int64)
-    _, first = np.unique(cells[:, 0] * 2_000_003 + cells[:, 1], return_index=True)
-    return np.ascontiguousarray(points[np.sort(first)])
+    return np.ascontiguousarray(points[one_per_cell(points, thinning)])

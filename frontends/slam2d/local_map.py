@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from frontends.slam2d.grid import LikelihoodGrid, build_likelihood_grid
@@ -22,6 +23,40 @@ def rotation(theta: float) -> FloatArray:
 def place(points: FloatArray, pose: FloatArray) -> FloatArray:
     """Robot-frame points (N, 2) expressed in the frame where the robot is at `pose`."""
     return points @ rotation(pose[2]) + pose[:2]
+
+
+def one_per_cell(points: FloatArray, cell: float, keep_last: bool = False) -> NDArray[np.int64]:
+    """Indices (ascending) of the first point, or the last with `keep_last`, in each square cell of `cell`
+    metres: thinning that keeps the points' order."""
+    cells = np.floor(np.asarray(points, dtype=np.float64) / cell).astype(np.int64)
+    return _one_per_key(cells[:, 0] * 2_000_003 + cells[:, 1], keep_last)
+
+
+@njit(cache=True)
+def _one_per_key(keys: NDArray[np.int64], keep_last: bool) -> NDArray[np.int64]:
+    """What np.unique's first indices give (of the reversed keys, for the last), in linear time: an
+    open-addressing table of the keys seen, each with the index kept for it."""
+    count = keys.shape[0]
+    size = 1
+    while size < 2 * count:
+        size *= 2
+    table_keys = np.empty(size, dtype=np.int64)
+    table_index = np.full(size, -1, dtype=np.int64)
+    mask = np.uint64(size - 1)
+    for i in range(count):
+        slot = (np.uint64(keys[i]) * np.uint64(0x9E3779B97F4A7C15) >> np.uint64(17)) & mask
+        while table_index[slot] >= 0 and table_keys[slot] != keys[i]:
+            slot = (slot + np.uint64(1)) & mask
+        if table_index[slot] < 0:
+            table_keys[slot] = keys[i]
+            table_index[slot] = i
+        elif keep_last:
+            table_index[slot] = i
+    kept = np.zeros(count, dtype=np.bool_)
+    for slot in range(size):
+        if table_index[slot] >= 0:
+            kept[table_index[slot]] = True
+    return np.flatnonzero(kept)
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,10 +114,7 @@ class Submap:
         normals = np.concatenate([n for _, n in placed])
         # Several keyframes see the same wall: keep one point per half cell, the latest keyframe's
         # (the best placed relative to the robot), which keeps pairing even without changing the grid.
-        cells = np.floor(points / (0.5 * resolution)).astype(np.int64)
-        keys = cells[:, 0] * 2_000_003 + cells[:, 1]
-        _, last = np.unique(keys[::-1], return_index=True)
-        keep = np.sort(len(keys) - 1 - last)
+        keep = one_per_cell(points, 0.5 * resolution, keep_last=True)
         points = np.ascontiguousarray(points[keep])
         normals = np.ascontiguousarray(normals[keep])
         grid = build_likelihood_grid(points, resolution, likelihood_sigma, margin, pairing_distance)
