@@ -41,6 +41,7 @@ from pydantic import (
     model_validator,
 )
 
+from frontends.slam2d import RETIRED_SETTINGS as SLAM2D_RETIRED_SETTINGS
 from frontends.slam2d import Slam2DConfig
 from frontends.slam3d import Slam3DConfig
 from optimizer.file_input import read_bytes_bounded
@@ -107,9 +108,6 @@ _BOUNDS: dict[tuple[str, str], dict[str, float]] = {
     ("slam2d.odometry", "min_inlier_fraction"): _FRACTION,
     ("slam2d.loop_closure", "search_radius_per_metre"): _NON_NEGATIVE,
     ("slam2d.loop_closure", "submap_keyframes"): _NON_NEGATIVE,
-    ("slam2d.loop_closure", "query_keyframes"): _NON_NEGATIVE,
-    ("slam2d.loop_closure", "small_correction_linear"): _NON_NEGATIVE,
-    ("slam2d.loop_closure", "small_correction_angular"): _NON_NEGATIVE,
     ("slam2d.loop_closure", "min_score"): _FRACTION,
     ("slam2d.loop_closure", "ambiguity_ratio"): _POSITIVE_FRACTION,
     ("slam2d.loop_closure", "min_inlier_fraction"): _FRACTION,
@@ -131,7 +129,6 @@ _BOUNDS: dict[tuple[str, str], dict[str, float]] = {
 
 _FLOORS: dict[tuple[str, str], float] = {
     ("slam2d.matching", "resolution"): 0.005,
-    ("slam2d.loop_closure", "query_thinning"): 0.005,
     ("slam2d.odometry", "angular_step"): 0.01,
     ("slam2d.loop_closure", "angular_step"): 0.01,
     ("slam3d.odometry", "voxel_size"): 0.01,
@@ -458,6 +455,10 @@ def _config_error(error: ValidationError, path: str | Path | None, text: str | N
 
 
 def _unknown_key_message(loc: tuple[str, ...]) -> str:
+    if len(loc) == 3 and loc[0] == "slam2d" and (loc[1], loc[2]) in SLAM2D_RETIRED_SETTINGS:
+        fixed = SLAM2D_RETIRED_SETTINGS[loc[1], loc[2]]
+        return (f"{loc[2]} is no longer a setting (fixed at {fixed}, which served every log tried); "
+                "remove it from the file")
     model: Any = ReplayConfig
     for part in loc[:-1]:
         field = model.model_fields.get(part) if isinstance(model, type) else None

@@ -96,7 +96,6 @@ def test_angles_are_degrees_in_the_file() -> None:
         ("odometry", "constant_velocity_sigma_angular"),
         ("keyframes", "angle"), ("keyframes", "max_turn_rate"),
         ("loop_closure", "angular_window"), ("loop_closure", "angular_step"),
-        ("loop_closure", "small_correction_angular"),
     }
     config = ReplayConfig(slam2d={"keyframes": {"angle": 30, "max_turn_rate": 90.0, "distance": 0.5},
                                   "odometry": {"odometry_sigma_per_radian": 0.2}})
@@ -278,3 +277,15 @@ def test_options_that_apply_to_no_input_are_refused_in_one_line(tmp_path: Path) 
     assert not (tmp_path / "out").exists()
     mixed = run_replay(graph, tmp_path / "run.mcap", "--repair-information", "--out", tmp_path / "out")
     assert "--repair-information" not in mixed.stderr  # it applies to the graph: accepted
+
+
+def test_a_retired_setting_says_it_is_fixed_now(tmp_path: Path) -> None:
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    path = write_config(tmp_path, "[slam2d.loop_closure]\nmin_score = 0.6\nquery_thinning = 0.2\n")
+    result = run_replay(graph, "--config", path, "--out", tmp_path / "out")
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [
+        f"replay: error: {path}:3: slam2d.loop_closure.query_thinning: query_thinning is no longer a setting "
+        "(fixed at 0.1 m, which served every log tried); remove it from the file"
+    ]
+    assert not (tmp_path / "out").exists()

@@ -5,6 +5,46 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+# Fixed values. Each was a setting once; one value served every log we have (ACES, the CSAIL log, the two
+# RPLidar bags, the simulated buildings) and none is a property of a robot or a place, so they are no
+# longer asked of users (issue 12: fewer settings). A configuration file naming one gets a line saying so.
+
+RELIABLE_ODOMETRY_INTERVAL = 0.5
+"""Odometry interpolated over a longer interval between messages (s) predicts less well: the search
+window and the prior's σ are then scaled by `UNRELIABLE_ODOMETRY_SCALE`."""
+UNRELIABLE_ODOMETRY_SCALE = 2.5
+LOOP_QUERY_KEYFRAMES = 8
+"""A loop query is the current keyframe with this many previous ones, seen from it: one 180° scan of a
+corridor matches the wrong stretch of many corridors; a few metres of context rarely do."""
+LOOP_QUERY_THINNING = 0.1
+"""Loop query points are thinned to one per cell of this size (m)."""
+SMALL_CORRECTION_LINEAR = 0.3
+SMALL_CORRECTION_ANGULAR = math.radians(3.0)
+"""A loop closure moving the current estimate less than this agrees with the map: accepted at once.
+A larger correction is a hypothesis until another loop closure agrees with it (within the same bounds),
+which a false match seldom finds."""
+HYPOTHESIS_KEYFRAMES = 12
+"""A hypothesis not confirmed within this many keyframes is dropped."""
+LOOP_CANDIDATES_PER_KEYFRAME = 2
+LOOP_SEARCH_EVERY_KEYFRAMES = 2
+"""Loops are searched at every n-th keyframe (neighbouring keyframes see the same place)."""
+OPTIMIZE_EVERY_LOOP_CLOSURES = 3
+"""The online graph is re-optimized after this many new loop closures (and at the end)."""
+
+RETIRED_SETTINGS: dict[tuple[str, str], str] = {
+    ("odometry", "reliable_interval"): f"{RELIABLE_ODOMETRY_INTERVAL:g} s",
+    ("odometry", "unreliable_scale"): f"{UNRELIABLE_ODOMETRY_SCALE:g}",
+    ("loop_closure", "query_keyframes"): f"{LOOP_QUERY_KEYFRAMES}",
+    ("loop_closure", "query_thinning"): f"{LOOP_QUERY_THINNING:g} m",
+    ("loop_closure", "small_correction_linear"): f"{SMALL_CORRECTION_LINEAR:g} m",
+    ("loop_closure", "small_correction_angular"): f"{math.degrees(SMALL_CORRECTION_ANGULAR):g} degrees",
+    ("loop_closure", "hypothesis_keyframes"): f"{HYPOTHESIS_KEYFRAMES}",
+    ("loop_closure", "candidates_per_keyframe"): f"{LOOP_CANDIDATES_PER_KEYFRAME}",
+    ("loop_closure", "every_keyframes"): f"{LOOP_SEARCH_EVERY_KEYFRAMES}",
+    ("loop_closure", "optimize_every_loop_closures"): f"{OPTIMIZE_EVERY_LOOP_CLOSURES}",
+}
+"""(section, key) of each setting that became a fixed value, and that value as a reader would write it."""
+
 
 @dataclass(frozen=True)
 class MatchingConfig:
@@ -41,10 +81,6 @@ class OdometryConfig:
     constant_velocity_sigma_linear: float = 0.5
     """Without odometry the prior is constant velocity, weak: it only steers featureless stretches."""
     constant_velocity_sigma_angular: float = math.radians(20.0)
-    reliable_interval: float = 0.5
-    """Odometry interpolated over a longer interval between messages (s) predicts less well: the search
-    window and the prior's σ are then scaled by `unreliable_scale`."""
-    unreliable_scale: float = 2.5
     min_inlier_fraction: float = 0.25
     """A match pairing fewer scan points than this is not trusted: the pose follows the prior."""
 
@@ -83,25 +119,8 @@ class LoopClosureConfig:
     min_inlier_fraction: float = 0.6
     max_rms: float = 0.08
     """ICP verification: the refined match must pair most points closely (m)."""
-    query_keyframes: int = 8
-    """The query is the current keyframe with this many previous ones, seen from it: one 180° scan of a
-    corridor matches the wrong stretch of many corridors; a few metres of context rarely do."""
-    query_thinning: float = 0.1
-    """Query points are thinned to one per cell of this size (m)."""
-    small_correction_linear: float = 0.3
-    small_correction_angular: float = math.radians(3.0)
-    """A loop closure moving the current estimate less than this agrees with the map: accepted at once.
-    A larger correction is a hypothesis until another loop closure agrees with it (within the same
-    bounds), which a false match seldom finds."""
-    hypothesis_keyframes: int = 12
-    """A hypothesis not confirmed within this many keyframes is dropped."""
-    candidates_per_keyframe: int = 2
-    every_keyframes: int = 2
-    """Search at every n-th keyframe (neighbouring keyframes see the same place)."""
     chi2_threshold: float = 30.0
     """After optimizing, a loop closure whose error exceeds this χ² (3 dof) is rejected as inconsistent."""
-    optimize_every_loop_closures: int = 3
-    """Re-optimize the graph after this many new loop closures (and at the end)."""
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
-from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d.config import (
+    LOOP_QUERY_KEYFRAMES,
+    LOOP_QUERY_THINNING,
+    RELIABLE_ODOMETRY_INTERVAL,
+    UNRELIABLE_ODOMETRY_SCALE,
+    Slam2DConfig,
+)
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import VerifiedMatch, match_unambiguous, thinned_query
 from frontends.slam2d.grid import build_likelihood_grid
@@ -235,7 +241,7 @@ class MapLocalizer:
         assert self._pose is not None
         matching = self.config.matching
         settings = self.config.odometry
-        reliable = odometry_interval <= settings.reliable_interval
+        reliable = odometry_interval <= RELIABLE_ODOMETRY_INTERVAL
         has_odometry = odometry is not None and self._last_odometry is not None
         prior, covariance = self._predict(odometry, reliable)
         # ICP weighs its points as independent, which the match's information undoes by
@@ -246,7 +252,7 @@ class MapLocalizer:
         information = np.zeros((3, 3))
         inliers, rms = 0.0, math.inf
         if len(points) >= matching.min_points:
-            scale = 1.0 if reliable else settings.unreliable_scale
+            scale = 1.0 if reliable else UNRELIABLE_ODOMETRY_SCALE
             if has_odometry:
                 window = SearchWindow(settings.window_linear * scale, settings.window_angular * scale,
                                       settings.angular_step)
@@ -294,7 +300,7 @@ class MapLocalizer:
         acceptance = settings.acceptance
         scans = [s for s, _ in self._recent]
         poses = [p for _, p in self._recent]
-        query = thinned_query(scans, poses, self._pose, acceptance.query_thinning)
+        query = thinned_query(scans, poses, self._pose, LOOP_QUERY_THINNING)
         if len(query) < self.config.matching.min_points:
             return None
         linear = min(settings.relocalize_window + settings.relocalize_window_per_metre * self._since_good,
@@ -331,7 +337,7 @@ class MapLocalizer:
             linear = settings.odometry_noise_linear + settings.odometry_noise_per_metre * distance
             angular = (settings.odometry_noise_angular + settings.odometry_noise_angular_per_metre * distance
                        + settings.odometry_noise_per_radian * abs(float(motion[2])))
-            scale = 1.0 if reliable else self.config.odometry.unreliable_scale
+            scale = 1.0 if reliable else UNRELIABLE_ODOMETRY_SCALE
             noise = np.diag([(scale * linear) ** 2, (scale * linear) ** 2, (scale * angular) ** 2])
         else:
             noise = np.linalg.inv(information)
@@ -400,8 +406,8 @@ class MapLocalizer:
     def _global_match(self, keyframe_poses: FloatArray) -> VerifiedMatch | None:
         assert self._tracker is not None
         acceptance = self.settings.acceptance
-        recent = slice(max(0, len(keyframe_poses) - 1 - acceptance.query_keyframes), None)
-        thinning = max(acceptance.query_thinning, self._search_grid.resolution)
+        recent = slice(max(0, len(keyframe_poses) - 1 - LOOP_QUERY_KEYFRAMES), None)
+        thinning = max(LOOP_QUERY_THINNING, self._search_grid.resolution)
         query = thinned_query(self._tracker.keyframe_scans()[recent], keyframe_poses[recent],
                               keyframe_poses[-1], thinning)
         if len(query) < self.config.matching.min_points:

@@ -22,7 +22,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune, path_lengths
-from frontends.slam2d.config import OdometryConfig, Slam2DConfig
+from frontends.slam2d.config import (
+    HYPOTHESIS_KEYFRAMES,
+    LOOP_CANDIDATES_PER_KEYFRAME,
+    LOOP_QUERY_KEYFRAMES,
+    LOOP_QUERY_THINNING,
+    LOOP_SEARCH_EVERY_KEYFRAMES,
+    OPTIMIZE_EVERY_LOOP_CLOSURES,
+    RELIABLE_ODOMETRY_INTERVAL,
+    SMALL_CORRECTION_ANGULAR,
+    SMALL_CORRECTION_LINEAR,
+    UNRELIABLE_ODOMETRY_SCALE,
+    OdometryConfig,
+    Slam2DConfig,
+)
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import match_unambiguous
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
@@ -108,8 +121,8 @@ def predicted_motion(settings: OdometryConfig, last_odometry: FloatArray | None,
         sigma_linear = settings.odometry_sigma_linear + settings.odometry_sigma_per_metre * distance
         sigma_angular = settings.odometry_sigma_angular + settings.odometry_sigma_per_radian * abs(motion[2])
         if not reliable:
-            sigma_linear *= settings.unreliable_scale
-            sigma_angular *= settings.unreliable_scale
+            sigma_linear *= UNRELIABLE_ODOMETRY_SCALE
+            sigma_angular *= UNRELIABLE_ODOMETRY_SCALE
     else:
         motion = last_motion
         sigma_linear = settings.constant_velocity_sigma_linear
@@ -133,8 +146,7 @@ class LaserSlam2D:
         self._last_motion = np.zeros(3)
         self._local_map: Submap | None = None
         self._pending_loops = 0
-        settings = self.config.loop_closure
-        self._hypotheses = HypothesisPool(settings.small_correction_linear, settings.small_correction_angular)
+        self._hypotheses = HypothesisPool(SMALL_CORRECTION_LINEAR, SMALL_CORRECTION_ANGULAR)
         self._rejected = 0
         self._unmatched = 0
         self.stage_times = StageTimes()
@@ -176,12 +188,12 @@ class LaserSlam2D:
             pose, matched, information = np.zeros(3), True, np.eye(3)
             self._add_keyframe(pose, points, None, information)
         else:
-            reliable = odometry_interval <= self.config.odometry.reliable_interval
+            reliable = odometry_interval <= RELIABLE_ODOMETRY_INTERVAL
             with self.stage_times.stage("matching"):
                 prior, prior_information = self._predict(odometry, reliable)
                 pose, matched, information = self._match(
                     points, prior, prior_information,
-                    1.0 if reliable else self.config.odometry.unreliable_scale,
+                    1.0 if reliable else UNRELIABLE_ODOMETRY_SCALE,
                 )
             last_keyframe = self._keyframe_poses[-1]
             step = se2.relative(last_keyframe, pose)
@@ -295,7 +307,7 @@ class LaserSlam2D:
     def _close_loops(self) -> tuple[tuple[int, int], ...]:
         settings = self.config.loop_closure
         current = len(self._keyframe_poses) - 1
-        if not settings.enabled or current % settings.every_keyframes:
+        if not settings.enabled or current % LOOP_SEARCH_EVERY_KEYFRAMES:
             return ()
         scan = self._keyframes[current].points
         if len(scan) < self.config.matching.min_points:
@@ -318,12 +330,12 @@ class LaserSlam2D:
                 settings.max_search_radius,
             )
         for candidate in np.argsort(distance / radius):
-            if distance[candidate] > radius[candidate] or len(candidates) >= settings.candidates_per_keyframe:
+            if distance[candidate] > radius[candidate] or len(candidates) >= LOOP_CANDIDATES_PER_KEYFRAME:
                 break
             if all(abs(int(candidate) - c) > settings.submap_keyframes for c in candidates):
                 candidates.append(int(candidate))
         found = []
-        self._hypotheses.expire(current, settings.hypothesis_keyframes)
+        self._hypotheses.expire(current, HYPOTHESIS_KEYFRAMES)
         for candidate in candidates:
             with self.stage_times.stage("verification"):
                 hypothesis = self._verify_loop(candidate, current, float(radius[candidate]))
@@ -335,7 +347,7 @@ class LaserSlam2D:
                 found.append((accepted.candidate, accepted.current))
         if found:
             self._pending_loops += len(found)
-            if self._pending_loops >= settings.optimize_every_loop_closures:
+            if self._pending_loops >= OPTIMIZE_EVERY_LOOP_CLOSURES:
                 self.optimize_online()
         return tuple(found)
 
@@ -379,13 +391,12 @@ class LaserSlam2D:
 
     def _query_points(self, current: int) -> FloatArray:
         """The current keyframe's scan with the previous few, in its frame, thinned."""
-        settings = self.config.loop_closure
         here = self._keyframe_poses[current]
-        recent = range(max(0, current - settings.query_keyframes), current + 1)
+        recent = range(max(0, current - LOOP_QUERY_KEYFRAMES), current + 1)
         points = np.concatenate(
             [place(self._keyframes[k].points, se2.relative(here, self._keyframe_poses[k])) for k in recent]
         )
-        return np.ascontiguousarray(points[one_per_cell(points, settings.query_thinning)])
+        return np.ascontiguousarray(points[one_per_cell(points, LOOP_QUERY_THINNING)])
 
     # ------------------------------------------------------------------------------------ optimization
 
