@@ -122,6 +122,13 @@ def test_map_localizes_a_log_in_the_saved_map_without_an_initial_pose(logs: Logs
     assert entities["/world/final_trajectory"].static_rows == 1
     assert entities["/world/occupancy/grid"].static_rows == 1
     assert len(entities["/world/robot"].steps) == len(stamps) - fix  # scans placed when processed
+    # The match quality plot: the matched scans' scores as the JSON lists them, on `scan`.
+    score = entities["/localization/score"]
+    matched = [k for k, state in enumerate(per_scan["state"]) if state == "m"]
+    assert score.steps == matched
+    np.testing.assert_allclose([row[0] for row in score.columns["Scalars:scalars"]],
+                               [per_scan["score"][k] for k in matched], atol=1e-3)
+    assert "/optimizer/log10_chi2" not in entities  # nothing is optimized, no empty χ² plot
 
 
 def test_map_with_an_initial_pose_tracks_from_the_first_scan(logs: Logs, tmp_path: Path) -> None:

@@ -236,21 +236,24 @@ def map_view(
 
 def default_blueprint(
     *, bounds: Bounds | None = None, hidden: Sequence[str] = (), extra_tabs: Sequence[rrb.View] = (),
-    excluded: Sequence[str] = (), timeline: str = ITERATION_TIMELINE,
+    excluded: Sequence[str] = (), timeline: str = ITERATION_TIMELINE, side: Sequence[rrb.View] | None = None,
 ) -> rrb.Blueprint:
-    """The map and graph in 2D (tabs: `extra_tabs` beside it) beside the χ² plot, the stage log and the
-    legend; the time panel on `timeline`, the side panels collapsed so the map has the room."""
+    """The map and graph in 2D (tabs: `extra_tabs` beside it) beside the `side` views (by default the χ²
+    plot and the stage log) and the legend; the time panel on `timeline`, the side panels collapsed so the
+    map has the room."""
     main: rrb.View | rrb.Tabs = map_view(bounds=bounds, hidden=hidden, excluded=excluded)
     if extra_tabs:
         main = rrb.Tabs(main, *extra_tabs)
+    if side is None:
+        side = [rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
+                rrb.TextLogView(origin=STAGE_ENTITY, name="stages")]
     return rrb.Blueprint(
         rrb.Horizontal(
             main,
             rrb.Vertical(
-                rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
-                rrb.TextLogView(origin=STAGE_ENTITY, name="stages"),
+                *side,
                 rrb.TextDocumentView(origin=LEGEND_ENTITY, name="legend"),
-                row_shares=[2, 2, 1],
+                row_shares=[2] * len(side) + [1],
             ),
             column_shares=[3, 1],
         ),

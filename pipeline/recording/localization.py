@@ -5,8 +5,10 @@ pose, the robot's trail, on the `scan` and `time` timelines):
 - `world/saved_map` (static): the saved keyframe scans at their saved poses, thinned, over
 - `world/occupancy/grid` (static): the saved map's occupancy grid (`pipeline.recording.map2d`);
 - `world/final_trajectory` (static): every localized scan's pose, drawn by default here.
-The blueprint frames the saved map and the new trajectory; nothing is optimized, so there is no
-`iteration` timeline.
+- `localization/score` and `localization/inlier_fraction` on `scan`: how well each matched scan fit the
+  saved map (nothing for a scan whose pose is only the odometry's prediction).
+The blueprint frames the saved map and the new trajectory and plots the match quality where a log replay
+plots χ²; nothing is optimized, so there is no `iteration` timeline.
 """
 
 from __future__ import annotations
@@ -15,9 +17,10 @@ from collections.abc import Sequence
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
 from frontends.slam2d import OccupancyGrid, place
-from frontends.slam2d.session_frontends import LocalizingLaserFrontend
+from frontends.slam2d.session_frontends import LocalizingLaserFrontend, ScanLocalizations
 from pipeline.recording import (
     LEGEND_ENTITY,
     MAP_COLOR,
@@ -32,6 +35,7 @@ from pipeline.recording import scans as scan_recording
 from pipeline.recording.map2d import log_occupancy, placed_bounds, thin_scan
 
 SAVED_MAP_ENTITY = "world/saved_map"
+MATCH_QUALITY_ENTITY = "localization"
 
 LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
     "saved map": (MAP_COLOR, "the saved keyframe scans at their saved poses, over its occupancy grid"),
@@ -61,6 +65,18 @@ def log_localization_legend(recording: rr.RecordingStream) -> None:
                   static=True)
 
 
+def send_match_quality(recording: rr.RecordingStream, localizations: ScanLocalizations) -> None:
+    """Each matched scan's correlative score and ICP inlier fraction, on the `scan` timeline."""
+    matched = np.flatnonzero(localizations.matched & np.isfinite(localizations.score))
+    if len(matched) == 0:
+        return
+    index = [rr.TimeColumn(scan_recording.SCAN_TIMELINE, sequence=matched.astype(np.int64))]
+    for name, values in (("score", localizations.score), ("inlier_fraction", localizations.inlier_fraction)):
+        shown = np.asarray(values, dtype=np.float64)[matched]
+        recording.send_columns(f"{MATCH_QUALITY_ENTITY}/{name}", indexes=index,
+                               columns=rr.Scalars.columns(scalars=shown))
+
+
 class MapLocalizationRecording(scan_recording.ScanReplayRecording):
     """`ScanReplayRecording` for a localization: the saved map under the new run (see the module
     docstring); `final(saved keyframe poses, localized poses, saved occupancy grid)`."""
@@ -68,6 +84,7 @@ class MapLocalizationRecording(scan_recording.ScanReplayRecording):
     def __init__(self, recording: rr.RecordingStream, frontend: LocalizingLaserFrontend) -> None:
         super().__init__(recording, frontend)
         self._saved_scans = frontend.saved.keyframe_scans
+        self._localizer = frontend
 
     def keyframe_scans(self) -> Sequence[FloatArray] | None:
         return None  # no optimization to draw the walls moving in
@@ -79,6 +96,8 @@ class MapLocalizationRecording(scan_recording.ScanReplayRecording):
         log_localization_legend(self._recording)
         low_x, low_y, high_x, high_y = placed_bounds(self._saved_scans, planar_poses)
         bounds = world_bounds(np.array([[low_x, low_y], [high_x, high_y]]), estimates)
+        send_match_quality(self._recording, self._localizer.localizations)
         send_blueprint(self._recording, default_blueprint(
             bounds=bounds, extra_tabs=scan_recording.playback_views(bounds),
-            excluded=scan_recording.PLAYBACK_ENTITIES, timeline=scan_recording.SCAN_TIMELINE))
+            excluded=scan_recording.PLAYBACK_ENTITIES, timeline=scan_recording.SCAN_TIMELINE,
+            side=[rrb.TimeSeriesView(origin=MATCH_QUALITY_ENTITY, name="match quality per scan")]))
