@@ -15,12 +15,13 @@ Only loop closures are robustified (by default): outliers come from loop closing
 odometry chain lets the optimizer tear the trajectory apart at a few odometry constraints to satisfy a
 false loop (seen on M3500 with 100 false loops).
 
-DCS's weight 4Φ²/u² gives a true loop closure that dead reckoning left far off no pull at all, so the
-SGD stage weighs with Cauchy (weight c²/u) in `robust_optimize` whichever kernel the polish minimizes.
-Annealing the scale (graduated non-convexity, from a scale that keeps every weight near 1 down to the
-kernel's) was tried and is not used: while the scale is large the false loops bend the map, and the SGD's
-decaying learning rate cannot undo it (M3500 + 100 false loops after 100 iterations: χ² on the true
-edges 2.9e3× the optimum annealed over 30 iterations from c² = 1000, 2.5e2× at a fixed c² = 7.8).
+The robust methods with a polish run `optimizer.robust_gnc.robust_optimize`: graduated non-convexity over
+chordal solves to decide which loop closures to trust, then `robust_polish`. The robust SGD here serves the
+methods without a polish. Annealing the scale inside the SGD was tried and is not used: while the scale is
+large the false loops bend the map, and the SGD's decaying learning rate cannot undo it (M3500 + 100 false
+loops after 100 iterations: χ² on the true edges 2.9e3× the optimum annealed over 30 iterations from
+c² = 1000, 2.5e2× at a fixed c² = 7.8); the chordal solves of `robust_gnc` read no estimate, so nothing
+of an earlier round's bend is left to undo.
 """
 
 from __future__ import annotations
@@ -125,7 +126,7 @@ def robust_cost(graph: PoseGraph, poses: FloatArray | None, kernel: str, scale: 
     """Σ ρ(u_k) over the constraints at `poses` (default: the graph's estimate); see `robust_weights`."""
     check_kernel(kernel, scale)
     terms = edge_chi2(graph, poses)
-    robust = _robust_mask(graph, protect_odometry)
+    robust = robust_mask(graph, protect_odometry)
     if scale is None:
         scale = adaptive_scale(kernel, terms[robust])
     return float(terms[~robust].sum() + kernel_cost(kernel, terms[robust], scale).sum())
@@ -142,18 +143,20 @@ def robust_weights(graph: PoseGraph, poses: FloatArray | None, kernel: str, scal
     """
     check_kernel(kernel, scale)
     terms = edge_chi2(graph, poses)
-    robust = _robust_mask(graph, protect_odometry)
+    robust = robust_mask(graph, protect_odometry)
     if scale is None:
         scale = adaptive_scale(kernel, terms[robust])
-    return _weights(graph, terms, kernel, scale, robust)
+    return masked_weights(graph, terms, kernel, scale, robust)
 
 
-def _robust_mask(graph: PoseGraph, protect_odometry: bool) -> NDArray[np.bool_]:
+def robust_mask(graph: PoseGraph, protect_odometry: bool) -> NDArray[np.bool_]:
+    """(M,) which constraints the kernel applies to: the loop closures, or all without `protect_odometry`."""
     return ~graph.is_odometry if protect_odometry else np.ones(graph.num_edges, dtype=bool)
 
 
-def _weights(graph: PoseGraph, chi2_terms: FloatArray, kernel: str, scale: float,
+def masked_weights(graph: PoseGraph, chi2_terms: FloatArray, kernel: str, scale: float,
              robust: NDArray[np.bool_]) -> FloatArray:
+    """(M,) ρ'(u) at `scale` where `robust`, 1 elsewhere."""
     weights = np.ones(graph.num_edges)
     weights[robust] = kernel_weight(kernel, chi2_terms[robust], scale)
     return weights
@@ -189,7 +192,8 @@ def robust_sgd(
     first_iteration: int = 1,
     protect_odometry: bool = True,
 ) -> Iterator[Iteration]:
-    """`iterations` SGD iterations on the robust cost, yielding Iteration("sgd", k, poses, robust cost).
+    """`iterations` SGD iterations on the robust cost, yielding Iteration(stage, k, poses, robust cost) with
+    the stage `descent` names ("sgd", "sgd-tree").
 
     The scale is fixed: `scale`, by default SGD_SCALE.
     Before every iteration the weights ρ'(u_k) are recomputed from the current poses and one iteration
@@ -206,10 +210,10 @@ def robust_sgd(
     check_kernel(kernel, scale)
     scale = SGD_SCALE if scale is None else scale
     current = _starting_poses(graph, poses)
-    robust = _robust_mask(graph, protect_odometry)
+    robust = robust_mask(graph, protect_odometry)
     ones = np.ones(graph.num_edges)
     for offset in range(iterations):
-        weights = _weights(graph, edge_chi2(graph, current), kernel, scale, robust)
+        weights = masked_weights(graph, edge_chi2(graph, current), kernel, scale, robust)
         slowdown = float(np.max(_weakest_stiffness(graph, current, ones)
                                 / _weakest_stiffness(graph, current, weights)))
         t = first_iteration + offset
@@ -219,7 +223,7 @@ def robust_sgd(
         if step is None:
             raise OptimizerError("the descent yielded no iteration")
         current = step.poses
-        yield Iteration("sgd", offset + 1, step.poses,
+        yield Iteration(step.stage, offset + 1, step.poses,
                         robust_cost(graph, current, kernel, scale, protect_odometry=protect_odometry))
 
 
@@ -249,11 +253,11 @@ def robust_polish(
     if max_reweights < 1:
         raise OptimizerError(f"max_reweights must be >= 1, got {max_reweights}")
     current = _starting_poses(graph, poses)
-    robust = _robust_mask(graph, protect_odometry)
+    robust = robust_mask(graph, protect_odometry)
     terms = edge_chi2(graph, current)
     # From an unconverged start the median χ² term is no inlier's: the first round runs at SGD_SCALE.
     round_scale = min(SGD_SCALE, adaptive_scale(kernel, terms[robust])) if scale is None else scale
-    weights = _weights(graph, terms, kernel, round_scale, robust)
+    weights = masked_weights(graph, terms, kernel, round_scale, robust)
     count = 0
     for _ in range(max_reweights):
         inner = gauss_newton(weighted_graph(graph, weights), current, max_iterations=max_iterations - count)
@@ -269,7 +273,7 @@ def robust_polish(
                 graph, step.poses, kernel, round_scale, protect_odometry=protect_odometry))
         terms = edge_chi2(graph, current)
         round_scale = adaptive_scale(kernel, terms[robust]) if scale is None else scale
-        new_weights = _weights(graph, terms, kernel, round_scale, robust)
+        new_weights = masked_weights(graph, terms, kernel, round_scale, robust)
         change = float(np.max(np.abs(new_weights - weights), initial=0.0))
         weights = new_weights
         if change <= weight_tolerance:
@@ -283,32 +287,3 @@ def robust_polish(
                                 f"(largest weight change {change:.2g})", count)
     return PolishStatus(False, f"{max_reweights} reweighting rounds and the weights still change "
                         f"(largest change {change:.2g})", count)
-
-
-def robust_optimize(
-    graph: PoseGraph,
-    kernel: str,
-    iterations: int = 100,
-    poses: FloatArray | None = None,
-    *,
-    scale: float | None = None,
-    descent: Descent = sgd,
-    polish_iterations: int = 300,
-    protect_odometry: bool = True,
-) -> Generator[Iteration, None, PolishStatus]:
-    """The robust default method: `robust_sgd` with Cauchy weights, then `robust_polish` with `kernel`.
-
-    Both at `scale` when given (by default the SGD at SGD_SCALE, the polish at `adaptive_scale`). The SGD
-    weighs with Cauchy even for "dcs" (see the module docstring); the polish then minimizes the chosen
-    kernel's cost. Yields every iteration with its robust cost in `kernel`; returns the polish's status.
-    """
-    check_kernel(kernel, scale)
-    current = _starting_poses(graph, poses)
-    for step in robust_sgd(graph, iterations, current, kernel="cauchy", scale=scale, descent=descent,
-                           protect_odometry=protect_odometry):
-        current = step.poses
-        # Reported in the polish's kernel, so that every stage's figure is the same objective.
-        yield Iteration(step.stage, step.index, step.poses,
-                        robust_cost(graph, current, kernel, scale, protect_odometry=protect_odometry))
-    return (yield from robust_polish(graph, current, kernel=kernel, scale=scale,
-                                     max_iterations=polish_iterations, protect_odometry=protect_odometry))
