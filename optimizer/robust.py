@@ -65,10 +65,13 @@ may follow the median down (M3500 + 100 false loops: 1.3 % off; with the floor o
 HONEST_MEDIAN_CHI2 = 2.366
 """Median of a χ² variable with 3 degrees of freedom."""
 SGD_SCALE = 1.0
-"""The robust SGD's fixed default scale. It only has to bring the map into the polish's basin; starting
+"""The robust SGD's fixed default scale (`--method sgd --robust`, and the reweighted polish's first round).
+It was chosen when the SGD had to bring the map into the polish's basin (the robust chain now starts from
+graduated non-convexity instead, `optimizer.robust_gnc`); starting
 from dead reckoning, the median χ² term says nothing about the inliers yet. Measured on M3500 with 100 /
 500 false loops: c² = 1 leaves the true edges at 53× / 61× the optimum (the plain SGD: 41× without false
-loops), c² = 7.8 at 106× / 2.3e4× (from which the polish does not recover)."""
+loops; re-measured with seed 1 of benchmarks/robust_bench.py: 54× / 1.5e3×), c² = 7.8 at 106× / 2.3e4×
+(from which the polish does not recover)."""
 
 WEIGHT_TOLERANCE = 1e-3
 """The robust polish stops reweighting once no weight changes by more than this."""
