@@ -226,8 +226,8 @@ def test_robust_tree_sgd_reweights_the_tree_sgd() -> None:
 
 @pytest.fixture(scope="module")
 def heavily_polluted_world() -> PollutedWorld:
-    """A 600-pose grid world with a quarter as many gross false loops as it has true ones."""
-    world = generate_grid_world(600, seed=21)
+    """A 300-pose grid world with a quarter as many gross false loops as it has true ones."""
+    world = generate_grid_world(300, seed=21)
     clean = world.graph
     false_count = int(np.count_nonzero(~clean.is_odometry)) // 4
     polluted = with_gross_false_loops(clean, false_count, seed=8)
