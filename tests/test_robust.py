@@ -294,3 +294,14 @@ def test_graduated_chordal_never_cuts_a_pose_off() -> None:
     assert np.all(np.isfinite(final))
     assert 3.0 - 1e-6 <= final[3, 0] <= 50.0 + 1e-6
     np.testing.assert_allclose(final[:3], poses[:3], atol=1e-3)  # the triangle agrees with itself
+
+
+def test_the_robust_default_does_not_depend_on_the_estimate(polluted_world: PollutedWorld) -> None:
+    # Its rounds are chordal solves, which read pose 0 only: a scrambled estimate ends at the same poses.
+    _, polluted, _ = polluted_world
+    scrambled = np.random.default_rng(0).uniform(-100.0, 100.0, polluted.poses.shape)
+    scrambled[0] = polluted.poses[0]
+    first, second = optimize(polluted, robust="dcs"), optimize(polluted.with_poses(scrambled), robust="dcs")
+    list(first)
+    list(second)
+    np.testing.assert_allclose(second.result.poses, first.result.poses, atol=1e-9)
