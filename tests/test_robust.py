@@ -11,6 +11,7 @@ import pytest
 from optimizer.cost import chi2, edge_chi2
 from optimizer.errors import OptimizerError
 from optimizer.graph import PoseGraph
+from optimizer.graph_files import read_graph
 from optimizer.gridworld import generate_grid_world
 from optimizer.initialization import chordal_initialization
 from optimizer.iteration import Iteration
@@ -30,6 +31,7 @@ from optimizer.robust_gnc import graduated_chordal, robust_optimize
 from optimizer.sgd import sgd
 from optimizer.sgd_tree import sgd_tree
 from optimizer.solve import optimize
+from tests.conftest import shared_file
 
 
 def finish(stages: Generator[Iteration, None, PolishStatus]) -> tuple[list[Iteration], PolishStatus]:
@@ -66,10 +68,12 @@ def test_weight_is_the_derivative_of_the_cost(kernel: str) -> None:
 
 
 def test_adaptive_scale_follows_the_median_up_to_honest_information() -> None:
-    # Factor × median of the χ² terms, capped at factor × 2.366 (the median of a 3-dof χ²); DCS's Φ ≥ 1.
+    # Factor × median of the χ² terms (Cauchy 10, DCS 40), capped for honest information (10 and 4 times
+    # 2.366, the median of a 3-dof χ²); DCS's Φ ≥ 1.
     assert adaptive_scale("cauchy", np.array([0.01, 0.02, 0.03, 500.0, 900.0])) == pytest.approx(10.0 * 0.03)
-    assert adaptive_scale("dcs", np.array([0.5, 0.6, 0.7])) == pytest.approx(4.0 * 0.6)
-    assert adaptive_scale("dcs", np.array([0.01, 0.02, 0.03])) == pytest.approx(1.0)
+    assert adaptive_scale("dcs", np.array([0.01, 0.02, 0.03, 500.0, 900.0])) == pytest.approx(40.0 * 0.03)
+    assert adaptive_scale("dcs", np.array([0.001, 0.002, 0.003])) == pytest.approx(1.0)
+    assert adaptive_scale("dcs", np.array([0.5, 0.6, 0.7])) == pytest.approx(4.0 * 2.366)
     assert adaptive_scale("cauchy", np.array([100.0, 200.0])) == pytest.approx(10.0 * 2.366)
     assert adaptive_scale("dcs", np.array([])) == pytest.approx(4.0 * 2.366)
 
@@ -305,3 +309,19 @@ def test_the_robust_default_does_not_depend_on_the_estimate(polluted_world: Poll
     list(first)
     list(second)
     np.testing.assert_allclose(second.result.poses, first.result.poses, atol=1e-9)
+
+
+# -------------------------------------------------------------------------------- clean real graphs
+
+@pytest.mark.parametrize("name", ["CSAIL.g2o", "FR079.g2o"])
+def test_dcs_keeps_every_true_loop_of_a_clean_real_graph(name: str) -> None:
+    # Their information is pessimistic (loop closures' median χ² term 0.09 / 0.04 at the optimum) and a
+    # few true loops reach 2.3 / 0.9: DCS's Φ (40 × the median, at least 1) leaves all of them weight 1,
+    # so the robust default ends at the plain optimum.
+    graph = read_graph(shared_file(f"posegraphs/2d/{name}")).graph
+    plain, robust = optimize(graph), optimize(graph, robust="dcs")
+    list(plain)
+    list(robust)
+    assert robust.result.converged
+    assert chi2(graph, robust.result.poses) == pytest.approx(plain.result.chi2, rel=1e-6)
+    assert np.all(robust_weights(graph, robust.result.poses, "dcs") == 1.0)
