@@ -15,12 +15,13 @@ Only loop closures are robustified (by default): outliers come from loop closing
 odometry chain lets the optimizer tear the trajectory apart at a few odometry constraints to satisfy a
 false loop (seen on M3500 with 100 false loops).
 
-DCS's weight 4Φ²/u² gives a true loop closure that dead reckoning left far off no pull at all, so the
-SGD stage weighs with Cauchy (weight c²/u) in `robust_optimize` whichever kernel the polish minimizes.
-Annealing the scale (graduated non-convexity, from a scale that keeps every weight near 1 down to the
-kernel's) was tried and is not used: while the scale is large the false loops bend the map, and the SGD's
-decaying learning rate cannot undo it (M3500 + 100 false loops after 100 iterations: χ² on the true
-edges 2.9e3× the optimum annealed over 30 iterations from c² = 1000, 2.5e2× at a fixed c² = 7.8).
+The robust methods with a polish run `optimizer.robust_gnc.robust_optimize`: graduated non-convexity over
+chordal solves to decide which loop closures to trust, then `robust_polish`. The robust SGD here serves the
+methods without a polish. Annealing the scale inside the SGD was tried and is not used: while the scale is
+large the false loops bend the map, and the SGD's decaying learning rate cannot undo it (M3500 + 100 false
+loops after 100 iterations: χ² on the true edges 2.9e3× the optimum annealed over 30 iterations from
+c² = 1000, 2.5e2× at a fixed c² = 7.8); the chordal solves of `robust_gnc` read no estimate, so nothing
+of an earlier round's bend is left to undo.
 """
 
 from __future__ import annotations
@@ -42,32 +43,51 @@ FloatArray = NDArray[np.float64]
 Kernel = Literal["cauchy", "dcs"]
 KERNELS: tuple[str, ...] = ("cauchy", "dcs")
 
-RELATIVE_SCALES: dict[str, float] = {"cauchy": 10.0, "dcs": 4.0}
-"""The default scale, in χ² units (u = eᵀΩe), is this factor times the median χ² term of the robustified
-constraints at the current poses, re-estimated every reweighting round (as the MAD scale of classic
-IRLS), and never more than the factor times 2.366, the median of a 3-dof χ² (honest information).
-Real graphs' information is often far from honest: M3500's loop closures have a median u of 0.024 at the
-optimum, a 500-pose grid world's 2.4. A fixed scale fits one and fails the other: with c² = 7.8 two of
-M3500's 100 false loops are bent onto at 40 % extra cost on the true edges (rejecting a constraint still
-costs c²·log(1 + u/c²), more than bending this map); with c² = 1 or Φ = 1 the grid world's true loops
-lose weight and its result is 23 % / 36 % off the clean optimum. Factors: with honest information,
-c² = 24 and Φ = 9.5, the smallest measured to stay within 1 % of the clean grid world's optimum with
-6 gross false loops (c² = 7.8 was 2.2 % off, Φ = 7.8 0.1 %). The median stays an inlier's as long as
-fewer than half of the loop closures are false."""
-MIN_SCALES: dict[str, float] = {"cauchy": 1e-6, "dcs": 1.0}
-"""Floor of the adaptive scale. DCS: a constraint within one standard deviation of its own information
-(u ≤ 1) is never down-weighted. Without it M3500's scale follows its pessimistic information down to
-Φ = 0.1, and DCS, whose weight falls as 4Φ²/u², then rejects true loops that are still converging
-(M3500 + 100 false loops: 10 true loops rejected, 19 % off the optimum, not converged; with the floor
-0.0 %). Cauchy's weight c²/u falls gently, while every rejected constraint keeps a pull ∝ c²: its scale
-may follow the median down (M3500 + 100 false loops: 1.3 % off; with the floor of 1, 4.8 %)."""
 HONEST_MEDIAN_CHI2 = 2.366
 """Median of a χ² variable with 3 degrees of freedom."""
+RELATIVE_SCALES: dict[str, float] = {"cauchy": 10.0, "dcs": 40.0}
+"""The default scale, in χ² units (u = eᵀΩe), is this factor times the median χ² term of the robustified
+constraints at the current poses, re-estimated every reweighting round (as the MAD scale of classic
+IRLS), between MIN_SCALES and MAX_SCALES. Real graphs' information is often far from honest: M3500's
+loop closures have a median u of 0.024 at the optimum, a 500-pose grid world's 2.4. A fixed scale fits
+one and fails the other: with c² = 7.8 two of M3500's 100 false loops are bent onto at 40 % extra cost
+on the true edges (rejecting a constraint still costs c²·log(1 + u/c²), more than bending this map);
+with c² = 1 or Φ = 1 the grid world's true loops lose weight and its result is 23 % / 36 % off the clean
+optimum. The median stays an inlier's as long as fewer than half of the loop closures are false.
+
+Cauchy: its cost grows without bound, so every rejected false loop keeps a pull ∝ c²; c² must follow the
+inliers down, and the factor is a compromise (M3500 after graduated non-convexity: factor 10 is 1.4 %
+off without false loops and 1.3 % with 100; factor 30 0.14 % / 4.1 %; factor 100 0.01 % / 12 %).
+DCS: weight 1 up to Φ and a bounded cost, so Φ can sit well above the inliers, but not so far that a
+false loop can be bent onto at a cost below Φ. Measured after graduated non-convexity, ratio of χ² on the
+true edges to the clean optimum (benchmarks/robust_bench.py; factor 4 was the earlier default):
+factor 4: CSAIL 1.61, INTEL 1.67, FR079 1.000; M3500 + 100 / 500 false loops 1.000 (seeds 1–3).
+factor 40: CSAIL 1.000, INTEL 1.042 (2 true loops weighted below 0.9), FR079 1.000; M3500 + 100 / 500
+false loops 1.000 / 1.000 (seed 1: 1.00016 at 500; seeds 2 and 3 in the benchmark).
+factor 100: CSAIL, INTEL, FR079 1.000, but M3500 + 500 false loops, seed 1: 1.0097, one false loop
+bent onto (M3500's pessimistic information makes bending the map cheap in χ² units).
+"""
+MAX_SCALES: dict[str, float] = {"cauchy": 10.0 * HONEST_MEDIAN_CHI2, "dcs": 4.0 * HONEST_MEDIAN_CHI2}
+"""Ceiling of the adaptive scale, for honest information (a median χ² term near 2.366): c² = 24 and
+Φ = 9.5, the smallest measured to stay within 1 % of the clean grid world's optimum with 6 gross false
+loops (c² = 7.8 was 2.2 % off, Φ = 7.8 0.1 %). A fixed Φ = 9.5 on M3500 (pessimistic information, so
+bending the map is cheap in χ² units) lets one of 500 false loops be bent onto: 3.3 % off (seed 2)."""
+MIN_SCALES: dict[str, float] = {"cauchy": 1e-6, "dcs": 1.0}
+"""Floor of the adaptive scale. DCS: a constraint within one standard deviation of its own information
+(u ≤ 1) is never down-weighted. Without it M3500's scale follows its pessimistic information down
+(factor 4: Φ = 0.1), and DCS, whose weight falls as 4Φ²/u², then rejected true loops that were still
+converging behind the robust SGD (M3500 + 100 false loops: 10 true loops rejected, 19 % off the optimum,
+not converged; with the floor 0.0 %). Cauchy's weight c²/u falls gently, while every rejected constraint
+keeps a pull ∝ c²: its scale may follow the median down (M3500 + 100 false loops: 1.3 % off; with the
+floor of 1, 4.8 %)."""
 SGD_SCALE = 1.0
-"""The robust SGD's fixed default scale. It only has to bring the map into the polish's basin; starting
+"""The robust SGD's fixed default scale (`--method sgd --robust`, and the reweighted polish's first round).
+It was chosen when the SGD had to bring the map into the polish's basin (the robust chain now starts from
+graduated non-convexity instead, `optimizer.robust_gnc`); starting
 from dead reckoning, the median χ² term says nothing about the inliers yet. Measured on M3500 with 100 /
 500 false loops: c² = 1 leaves the true edges at 53× / 61× the optimum (the plain SGD: 41× without false
-loops), c² = 7.8 at 106× / 2.3e4× (from which the polish does not recover)."""
+loops; re-measured with seed 1 of benchmarks/robust_bench.py: 54× / 1.5e3×), c² = 7.8 at 106× / 2.3e4×
+(from which the polish does not recover)."""
 
 WEIGHT_TOLERANCE = 1e-3
 """The robust polish stops reweighting once no weight changes by more than this."""
@@ -93,11 +113,10 @@ def check_kernel(kernel: str, scale: float | None = None) -> None:
 def adaptive_scale(kernel: str, chi2_terms: FloatArray) -> float:
     """The default scale for these χ² terms of the robustified constraints (see RELATIVE_SCALES)."""
     check_kernel(kernel)
-    factor = RELATIVE_SCALES[kernel]
     if len(chi2_terms) == 0:
-        return factor * HONEST_MEDIAN_CHI2
+        return MAX_SCALES[kernel]
     median = float(np.median(chi2_terms))
-    return float(min(factor * HONEST_MEDIAN_CHI2, max(factor * median, MIN_SCALES[kernel])))
+    return float(min(MAX_SCALES[kernel], max(RELATIVE_SCALES[kernel] * median, MIN_SCALES[kernel])))
 
 
 def kernel_cost(kernel: str, chi2_terms: FloatArray, scale: float) -> FloatArray:
@@ -125,7 +144,7 @@ def robust_cost(graph: PoseGraph, poses: FloatArray | None, kernel: str, scale: 
     """Σ ρ(u_k) over the constraints at `poses` (default: the graph's estimate); see `robust_weights`."""
     check_kernel(kernel, scale)
     terms = edge_chi2(graph, poses)
-    robust = _robust_mask(graph, protect_odometry)
+    robust = robust_mask(graph, protect_odometry)
     if scale is None:
         scale = adaptive_scale(kernel, terms[robust])
     return float(terms[~robust].sum() + kernel_cost(kernel, terms[robust], scale).sum())
@@ -142,18 +161,20 @@ def robust_weights(graph: PoseGraph, poses: FloatArray | None, kernel: str, scal
     """
     check_kernel(kernel, scale)
     terms = edge_chi2(graph, poses)
-    robust = _robust_mask(graph, protect_odometry)
+    robust = robust_mask(graph, protect_odometry)
     if scale is None:
         scale = adaptive_scale(kernel, terms[robust])
-    return _weights(graph, terms, kernel, scale, robust)
+    return masked_weights(graph, terms, kernel, scale, robust)
 
 
-def _robust_mask(graph: PoseGraph, protect_odometry: bool) -> NDArray[np.bool_]:
+def robust_mask(graph: PoseGraph, protect_odometry: bool) -> NDArray[np.bool_]:
+    """(M,) which constraints the kernel applies to: the loop closures, or all without `protect_odometry`."""
     return ~graph.is_odometry if protect_odometry else np.ones(graph.num_edges, dtype=bool)
 
 
-def _weights(graph: PoseGraph, chi2_terms: FloatArray, kernel: str, scale: float,
+def masked_weights(graph: PoseGraph, chi2_terms: FloatArray, kernel: str, scale: float,
              robust: NDArray[np.bool_]) -> FloatArray:
+    """(M,) ρ'(u) at `scale` where `robust`, 1 elsewhere."""
     weights = np.ones(graph.num_edges)
     weights[robust] = kernel_weight(kernel, chi2_terms[robust], scale)
     return weights
@@ -189,7 +210,8 @@ def robust_sgd(
     first_iteration: int = 1,
     protect_odometry: bool = True,
 ) -> Iterator[Iteration]:
-    """`iterations` SGD iterations on the robust cost, yielding Iteration("sgd", k, poses, robust cost).
+    """`iterations` SGD iterations on the robust cost, yielding Iteration(stage, k, poses, robust cost) with
+    the stage `descent` names ("sgd", "sgd-tree").
 
     The scale is fixed: `scale`, by default SGD_SCALE.
     Before every iteration the weights ρ'(u_k) are recomputed from the current poses and one iteration
@@ -206,10 +228,10 @@ def robust_sgd(
     check_kernel(kernel, scale)
     scale = SGD_SCALE if scale is None else scale
     current = _starting_poses(graph, poses)
-    robust = _robust_mask(graph, protect_odometry)
+    robust = robust_mask(graph, protect_odometry)
     ones = np.ones(graph.num_edges)
     for offset in range(iterations):
-        weights = _weights(graph, edge_chi2(graph, current), kernel, scale, robust)
+        weights = masked_weights(graph, edge_chi2(graph, current), kernel, scale, robust)
         slowdown = float(np.max(_weakest_stiffness(graph, current, ones)
                                 / _weakest_stiffness(graph, current, weights)))
         t = first_iteration + offset
@@ -219,7 +241,7 @@ def robust_sgd(
         if step is None:
             raise OptimizerError("the descent yielded no iteration")
         current = step.poses
-        yield Iteration("sgd", offset + 1, step.poses,
+        yield Iteration(step.stage, offset + 1, step.poses,
                         robust_cost(graph, current, kernel, scale, protect_odometry=protect_odometry))
 
 
@@ -249,11 +271,14 @@ def robust_polish(
     if max_reweights < 1:
         raise OptimizerError(f"max_reweights must be >= 1, got {max_reweights}")
     current = _starting_poses(graph, poses)
-    robust = _robust_mask(graph, protect_odometry)
+    robust = robust_mask(graph, protect_odometry)
     terms = edge_chi2(graph, current)
-    # From an unconverged start the median χ² term is no inlier's: the first round runs at SGD_SCALE.
-    round_scale = min(SGD_SCALE, adaptive_scale(kernel, terms[robust])) if scale is None else scale
-    weights = _weights(graph, terms, kernel, round_scale, robust)
+    round_scale = adaptive_scale(kernel, terms[robust]) if scale is None else scale
+    if scale is None and kernel == "cauchy":
+        # From an unconverged start the median χ² term is no inlier's: the first round runs at SGD_SCALE.
+        # (DCS's weight is 1 up to Φ: a start where true loops lie beyond Φ is left to the later rounds.)
+        round_scale = min(SGD_SCALE, round_scale)
+    weights = masked_weights(graph, terms, kernel, round_scale, robust)
     count = 0
     for _ in range(max_reweights):
         inner = gauss_newton(weighted_graph(graph, weights), current, max_iterations=max_iterations - count)
@@ -269,7 +294,7 @@ def robust_polish(
                 graph, step.poses, kernel, round_scale, protect_odometry=protect_odometry))
         terms = edge_chi2(graph, current)
         round_scale = adaptive_scale(kernel, terms[robust]) if scale is None else scale
-        new_weights = _weights(graph, terms, kernel, round_scale, robust)
+        new_weights = masked_weights(graph, terms, kernel, round_scale, robust)
         change = float(np.max(np.abs(new_weights - weights), initial=0.0))
         weights = new_weights
         if change <= weight_tolerance:
@@ -283,32 +308,3 @@ def robust_polish(
                                 f"(largest weight change {change:.2g})", count)
     return PolishStatus(False, f"{max_reweights} reweighting rounds and the weights still change "
                         f"(largest change {change:.2g})", count)
-
-
-def robust_optimize(
-    graph: PoseGraph,
-    kernel: str,
-    iterations: int = 100,
-    poses: FloatArray | None = None,
-    *,
-    scale: float | None = None,
-    descent: Descent = sgd,
-    polish_iterations: int = 300,
-    protect_odometry: bool = True,
-) -> Generator[Iteration, None, PolishStatus]:
-    """The robust default method: `robust_sgd` with Cauchy weights, then `robust_polish` with `kernel`.
-
-    Both at `scale` when given (by default the SGD at SGD_SCALE, the polish at `adaptive_scale`). The SGD
-    weighs with Cauchy even for "dcs" (see the module docstring); the polish then minimizes the chosen
-    kernel's cost. Yields every iteration with its robust cost in `kernel`; returns the polish's status.
-    """
-    check_kernel(kernel, scale)
-    current = _starting_poses(graph, poses)
-    for step in robust_sgd(graph, iterations, current, kernel="cauchy", scale=scale, descent=descent,
-                           protect_odometry=protect_odometry):
-        current = step.poses
-        # Reported in the polish's kernel, so that every stage's figure is the same objective.
-        yield Iteration(step.stage, step.index, step.poses,
-                        robust_cost(graph, current, kernel, scale, protect_odometry=protect_odometry))
-    return (yield from robust_polish(graph, current, kernel=kernel, scale=scale,
-                                     max_iterations=polish_iterations, protect_odometry=protect_odometry))

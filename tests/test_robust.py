@@ -8,10 +8,12 @@ from collections.abc import Generator
 import numpy as np
 import pytest
 
-from optimizer.cost import chi2
+from optimizer.cost import chi2, edge_chi2
 from optimizer.errors import OptimizerError
 from optimizer.graph import PoseGraph
+from optimizer.graph_files import read_graph
 from optimizer.gridworld import generate_grid_world
+from optimizer.initialization import chordal_initialization
 from optimizer.iteration import Iteration
 from optimizer.polish import PolishStatus, gauss_newton
 from optimizer.robust import (
@@ -20,13 +22,16 @@ from optimizer.robust import (
     kernel_cost,
     kernel_weight,
     robust_cost,
-    robust_optimize,
     robust_polish,
     robust_sgd,
     robust_weights,
     weighted_graph,
 )
+from optimizer.robust_gnc import graduated_chordal, robust_optimize
 from optimizer.sgd import sgd
+from optimizer.sgd_tree import sgd_tree
+from optimizer.solve import optimize
+from tests.conftest import shared_file
 
 
 def finish(stages: Generator[Iteration, None, PolishStatus]) -> tuple[list[Iteration], PolishStatus]:
@@ -63,10 +68,12 @@ def test_weight_is_the_derivative_of_the_cost(kernel: str) -> None:
 
 
 def test_adaptive_scale_follows_the_median_up_to_honest_information() -> None:
-    # Factor × median of the χ² terms, capped at factor × 2.366 (the median of a 3-dof χ²); DCS's Φ ≥ 1.
+    # Factor × median of the χ² terms (Cauchy 10, DCS 40), capped for honest information (10 and 4 times
+    # 2.366, the median of a 3-dof χ²); DCS's Φ ≥ 1.
     assert adaptive_scale("cauchy", np.array([0.01, 0.02, 0.03, 500.0, 900.0])) == pytest.approx(10.0 * 0.03)
-    assert adaptive_scale("dcs", np.array([0.5, 0.6, 0.7])) == pytest.approx(4.0 * 0.6)
-    assert adaptive_scale("dcs", np.array([0.01, 0.02, 0.03])) == pytest.approx(1.0)
+    assert adaptive_scale("dcs", np.array([0.01, 0.02, 0.03, 500.0, 900.0])) == pytest.approx(40.0 * 0.03)
+    assert adaptive_scale("dcs", np.array([0.001, 0.002, 0.003])) == pytest.approx(1.0)
+    assert adaptive_scale("dcs", np.array([0.5, 0.6, 0.7])) == pytest.approx(4.0 * 2.366)
     assert adaptive_scale("cauchy", np.array([100.0, 200.0])) == pytest.approx(10.0 * 2.366)
     assert adaptive_scale("dcs", np.array([])) == pytest.approx(4.0 * 2.366)
 
@@ -200,9 +207,121 @@ def test_robust_chain_ignores_false_loops(kernel: str, polluted_world: PollutedW
     weights = robust_weights(polluted, steps[-1].poses, kernel)
     assert np.all(weights[clean.num_edges:] < 0.1)
     assert np.all(weights[:clean.num_edges] > 0.1)
-    assert [step.stage for step in steps[:100]] == ["sgd"] * 100
+    rounds = [step for step in steps if step.stage == "gnc"]
+    assert rounds and steps[:len(rounds)] == rounds  # graduated non-convexity first, then the polish
+    assert {step.stage for step in steps[len(rounds):]} == {"gauss-newton"}
 
 
 def test_default_method_is_pulled_off_by_false_loops(polluted_world: PollutedWorld) -> None:
     clean, polluted, optimum = polluted_world
     assert chi2(clean, default_method(polluted)) > 1.5 * optimum
+
+
+def test_robust_tree_sgd_reweights_the_tree_sgd() -> None:
+    # With every weight 1 the reweighted tree SGD is the tree SGD itself (its first iteration).
+    graph = generate_grid_world(300, seed=3).graph
+    plain = next(iter(sgd_tree(graph, 1)))
+    robust = next(iter(robust_sgd(graph, 1, kernel="dcs", scale=1e30, descent=sgd_tree)))
+    assert robust.stage == "sgd-tree"
+    np.testing.assert_allclose(robust.poses, plain.poses, rtol=0.0, atol=1e-12)
+
+
+# ------------------------------------------------------ many false loops: a fifth of the loop closures
+
+@pytest.fixture(scope="module")
+def heavily_polluted_world() -> PollutedWorld:
+    """A 300-pose grid world with a quarter as many gross false loops as it has true ones."""
+    world = generate_grid_world(300, seed=21)
+    clean = world.graph
+    false_count = int(np.count_nonzero(~clean.is_odometry)) // 4
+    polluted = with_gross_false_loops(clean, false_count, seed=8)
+    steps = list(gauss_newton(clean, world.ground_truth, max_iterations=100))
+    return clean, polluted, steps[-1].chi2
+
+
+@pytest.mark.parametrize(("kernel", "bound"), [("dcs", 1.01), ("cauchy", 1.03)])
+def test_robust_default_reaches_the_clean_optimum_through_many_false_loops(
+        kernel: str, bound: float, heavily_polluted_world: PollutedWorld) -> None:
+    # Cauchy's cost grows without bound (log), so every rejected false loop keeps a pull ∝ c²/‖e‖: its
+    # minimum lies a little off the clean one. DCS's cost is bounded (3Φ) and its pull falls as 1/‖e‖³.
+    clean, polluted, optimum = heavily_polluted_world
+    run = optimize(polluted, robust=kernel)
+    iterations = list(run)
+    assert run.result.converged
+    assert chi2(clean, run.result.poses) <= bound * optimum
+    assert "gnc" in {iteration.stage for iteration in iterations}
+    weights = robust_weights(polluted, run.result.poses, kernel)
+    assert np.all(weights[clean.num_edges:] < 0.1)
+    assert np.all(weights[:clean.num_edges] > 0.1)
+
+
+def test_non_robust_default_is_pulled_off_by_many_false_loops(heavily_polluted_world: PollutedWorld) -> None:
+    clean, polluted, optimum = heavily_polluted_world
+    run = optimize(polluted)
+    list(run)
+    assert chi2(clean, run.result.poses) > 1.5 * optimum
+
+
+# ---------------------------------------------------------------------- graduated non-convexity itself
+
+def test_graduated_chordal_starts_unweighted_and_shrinks_to_the_target(
+        polluted_world: PollutedWorld) -> None:
+    _, polluted, _ = polluted_world
+    gnc = graduated_chordal(polluted, "dcs", scale=2.0)
+    rounds: list[Iteration] = []
+    while True:
+        try:
+            rounds.append(next(gnc))
+        except StopIteration as stop:
+            result = stop.value
+            break
+    np.testing.assert_allclose(rounds[0].poses, chordal_initialization(polluted), atol=1e-12)
+    assert [step.index for step in rounds] == list(range(1, len(rounds) + 1))
+    np.testing.assert_array_equal(result, rounds[-1].poses)
+    # The first round's scale is the largest χ² term: halving down to 2 takes ⌈log2(largest/2)⌉ rounds.
+    largest = float(edge_chi2(polluted, rounds[0].poses)[~polluted.is_odometry].max())
+    assert len(rounds) == 1 + math.ceil(math.log2(largest / 2.0))
+    assert rounds[-1].chi2 == pytest.approx(robust_cost(polluted, result, "dcs", 2.0))
+
+
+def test_graduated_chordal_never_cuts_a_pose_off() -> None:
+    # Pose 3 hangs on two constraints that disagree by 47 m: both fit badly at every scale, yet leaving
+    # both out of a solve would cut pose 3 off (without odometry protection nothing else holds it).
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    graph = PoseGraph(poses, np.array([0, 1, 0, 2, 0]), np.array([1, 2, 2, 3, 3]),
+                      np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [1.0, 0.0, 0.0],
+                                [50.0, 0.0, 0.0]]),
+                      np.repeat(np.eye(3)[None], 5, axis=0), np.arange(4))
+    rounds = list(graduated_chordal(graph, "dcs", scale=1e-3, protect_odometry=False))
+    assert len(rounds) > 10
+    final = rounds[-1].poses
+    assert np.all(np.isfinite(final))
+    assert 3.0 - 1e-6 <= final[3, 0] <= 50.0 + 1e-6
+    np.testing.assert_allclose(final[:3], poses[:3], atol=1e-3)  # the triangle agrees with itself
+
+
+def test_the_robust_default_does_not_depend_on_the_estimate(polluted_world: PollutedWorld) -> None:
+    # Its rounds are chordal solves, which read pose 0 only: a scrambled estimate ends at the same poses.
+    _, polluted, _ = polluted_world
+    scrambled = np.random.default_rng(0).uniform(-100.0, 100.0, polluted.poses.shape)
+    scrambled[0] = polluted.poses[0]
+    first, second = optimize(polluted, robust="dcs"), optimize(polluted.with_poses(scrambled), robust="dcs")
+    list(first)
+    list(second)
+    np.testing.assert_allclose(second.result.poses, first.result.poses, atol=1e-9)
+
+
+# -------------------------------------------------------------------------------- clean real graphs
+
+@pytest.mark.parametrize("name", ["CSAIL.g2o", "FR079.g2o"])
+def test_dcs_keeps_every_true_loop_of_a_clean_real_graph(name: str) -> None:
+    # Their information is pessimistic (loop closures' median χ² term 0.09 / 0.04 at the optimum) and a
+    # few true loops reach 2.3 / 0.9: DCS's Φ (40 × the median, at least 1) leaves all of them weight 1,
+    # so the robust default ends at the plain optimum.
+    graph = read_graph(shared_file(f"posegraphs/2d/{name}")).graph
+    plain, robust = optimize(graph), optimize(graph, robust="dcs")
+    list(plain)
+    list(robust)
+    assert robust.result.converged
+    assert chi2(graph, robust.result.poses) == pytest.approx(plain.result.chi2, rel=1e-6)
+    assert np.all(robust_weights(graph, robust.result.poses, "dcs") == 1.0)
