@@ -17,7 +17,7 @@ class Iteration:
 
     `stage` is one of "initial" (index 0, a starting estimate), "sgd" (the paper's), "sgd-tree" (the
     tree-parameterised SGD), "gauss-newton" (the polish, Levenberg–Marquardt-damped Gauss–Newton),
-    "gauss-seidel", or
+    "gauss-seidel", "gnc" (a round of graduated non-convexity, `optimizer.robust_gnc`), or
     "selected" (index 0: the winning candidate's result, repeated when several starts were optimized);
     `index` counts from 1 within the stage. `start` names the starting estimate the run began from
     ("estimate": the graph's own; see `optimizer.solve`). `poses` is (N, 3) with θ wrapped to [-π, π)
