@@ -662,12 +662,17 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     per_stage = ", ".join(f"{stage} {count}" for stage, count in stats.iterations.items())
     lines.append(f"  chi2 {stats.chi2_initial:.6g} -> {stats.chi2_final:.6g}"
                  + (f" after {per_stage} iterations" if per_stage else ""))
-    times = dict(stats.wall_time_s)
-    total = times.pop("total", math.nan)
-    lines.append(f"  time {total:.2f} s (" + ", ".join(f"{stage} {seconds:.2f}" for stage, seconds in
-                                                        times.items()) + ")")
-    lines.append("  wrote " + ", ".join(str(path) for path in outcome.outputs.values()))
+    lines += _time_and_outputs_lines(outcome)
     return "\n".join(lines)
+
+
+def _time_and_outputs_lines(outcome: BatchOutcome) -> list[str]:
+    assert outcome.stats is not None
+    times = dict(outcome.stats.wall_time_s)
+    total = times.pop("total", math.nan)
+    return [f"  time {total:.2f} s (" + ", ".join(f"{stage} {seconds:.2f}" for stage, seconds in
+                                                  times.items()) + ")",
+            "  wrote " + ", ".join(str(path) for path in outcome.outputs.values())]
 
 
 def _localization_summary(outcome: BatchOutcome) -> str:
@@ -685,11 +690,7 @@ def _localization_summary(outcome: BatchOutcome) -> str:
         + f"; median match score {_or_dash(found['score']['median'])}, "
           f"inliers {_or_dash(found['inlier_fraction']['median'])}",
     ]
-    times = dict(stats.wall_time_s)
-    total = times.pop("total", math.nan)
-    lines.append(f"  time {total:.2f} s (" + ", ".join(f"{stage} {seconds:.2f}" for stage, seconds in
-                                                        times.items()) + ")")
-    lines.append("  wrote " + ", ".join(str(path) for path in outcome.outputs.values()))
+    lines += _time_and_outputs_lines(outcome)
     return "\n".join(lines)
 
 

@@ -494,21 +494,26 @@ def summary(result: LogReplayResult) -> dict[str, Any]:
         "schema": SUMMARY_SCHEMA,
         "mode": result.mode,
         **continued,
-        "input": str(result.input_path),
-        "sensor": result.sensor,
-        "topic": result.topic,
-        "odometry_topic": result.odometry_topic,
-        "sensor_frame": result.sensor_frame,
-        "base_frame": result.base_frame,
+        **_source_fields(result),
         "counts": result.counts,
         "loop_closures": result.loop_closures,
         **optimization_summary(result.optimization),
         "chi2_per_iteration": [{"stage": s, "index": i, "chi2": c} for s, i, c in result.chi2_per_iteration],
-        "wall_time_s": result.wall_time,
-        "warnings": result.warnings,
-        "config": result.settings,
-        "outputs": {kind: str(path) for kind, path in result.outputs.paths().items()},
+        **_run_fields(result),
     }
+
+
+def _source_fields(result: LogReplayResult) -> dict[str, Any]:
+    """What was read: the summary's fields naming the input, its topics and frames."""
+    return {"input": str(result.input_path), "sensor": result.sensor, "topic": result.topic,
+            "odometry_topic": result.odometry_topic, "sensor_frame": result.sensor_frame,
+            "base_frame": result.base_frame}
+
+
+def _run_fields(result: LogReplayResult) -> dict[str, Any]:
+    """How the run went: the summary's closing fields (times, warnings, settings, outputs)."""
+    return {"wall_time_s": result.wall_time, "warnings": result.warnings, "config": result.settings,
+            "outputs": {kind: str(path) for kind, path in result.outputs.paths().items()}}
 
 
 MAX_PER_SCAN_ROWS = 20_000
@@ -531,12 +536,7 @@ def localization_summary(result: LogReplayResult) -> dict[str, Any]:
         "schema": SUMMARY_SCHEMA,
         "mode": "map",
         "session": str(result.session),
-        "input": str(result.input_path),
-        "sensor": result.sensor,
-        "topic": result.topic,
-        "odometry_topic": result.odometry_topic,
-        "sensor_frame": result.sensor_frame,
-        "base_frame": result.base_frame,
+        **_source_fields(result),
         "initial_pose": None if frontend.initial_pose is None else list(frontend.initial_pose),
         "counts": result.counts,
         "localization": {
@@ -553,10 +553,7 @@ def localization_summary(result: LogReplayResult) -> dict[str, Any]:
             "inlier_fraction": _percentiles(found.inlier_fraction[found.matched]),
             "rms_m": _percentiles(found.rms[found.matched]),
         },
-        "wall_time_s": result.wall_time,
-        "warnings": result.warnings,
-        "config": result.settings,
-        "outputs": {kind: str(path) for kind, path in result.outputs.paths().items()},
+        **_run_fields(result),
     }
 
 
