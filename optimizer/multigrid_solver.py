@@ -115,8 +115,8 @@ def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation) -> pyamg.Mul
     # third of its time at the same CG iteration count (13 to 1e-6 on the 10⁵-pose grid world).
     # weighting="local": the prolongation smoother's Jacobi weight from each row's Gershgorin bound instead of
     # an Arnoldi estimate of ρ(D⁻¹A) on every level, which was 70 % of the setup at 10⁶ poses (179 of 249 s,
-    # loaded) for the same CG iteration counts on the 10⁵-pose grid world; it is deterministic too (the
-    # estimate starts from a random vector).
+    # loaded) for the same CG iteration counts on the 10⁵-pose grid world, and it needs no random start
+    # vector.
     # One forward Gauss–Seidel sweep before and one backward sweep after the coarse correction keep the
     # V-cycle symmetric (what CG needs) at half the smoothing of two symmetric sweeps: about 8 % more CG
     # iterations, a quarter less time per iteration.

@@ -89,9 +89,9 @@ def test_multigrid_polish_reaches_the_direct_optimum() -> None:
 
 
 def test_multigrid_steps_are_reproducible_and_follow_every_damping_with_one_hierarchy() -> None:
-    # The hierarchy's setup is deterministic (no random start for a spectral-radius estimate): two fresh
-    # solvers on the same linearisation give the same step to the last bit. Its finest level shares H's
-    # blocks: other λ on the same linearisation, with that one hierarchy kept, still give the direct steps.
+    # Two fresh solvers on the same linearisation give the same step to the last bit. The hierarchy's
+    # finest level shares H's blocks: other λ on the same linearisation, with that one hierarchy kept,
+    # still give the direct steps.
     graph = generate_grid_world(500, seed=3).graph
     pattern = BlockPattern.of(graph)
     steps = []
