@@ -113,3 +113,17 @@ def test_multigrid_steps_are_reproducible_and_follow_every_damping_with_one_hier
         assert step is not None and direct is not None
         np.testing.assert_allclose(step, direct, rtol=1e-6, atol=1e-8 * np.abs(direct).max())
     assert solver.builds == 1
+
+
+def test_a_large_accepted_decrease_rebuilds_the_hierarchy_and_a_small_one_keeps_it() -> None:
+    graph = generate_grid_world(300, seed=5).graph
+    pattern = BlockPattern.of(graph)
+    solver = MultigridPCGSolver(pattern)
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    assert solver.builds == 1
+    solver.accepted_step(1e-4)  # the last steps of a polish: the kept hierarchy still serves
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    assert solver.builds == 1
+    solver.accepted_step(0.5)  # an early step: the poses moved far, a new hierarchy up front
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    assert solver.builds == 2
