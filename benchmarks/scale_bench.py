@@ -12,6 +12,11 @@ pose and constraint, the JSON's final χ² is finite and the .rrd is not empty.
         python benchmarks/scale_bench.py [--poses 1000000] [--runs sgd:5 sgd+gn] [--keep DIR]
 
 A run is METHOD or METHOD:ITERATIONS (`--iterations` of `replay`; none: the method's default).
+
+`--sgd-probe K` instead times K paper-SGD iterations on the generated graph in this process, wall and CPU
+(time.process_time) side by side, split into the kernel's pass over the constraints, the stiffness M
+(recomputed at iterations 1, 2, 4, 8, …) and the χ² of the yielded poses: CPU time is steadier than wall
+time on a shared machine.
 """
 
 from __future__ import annotations
@@ -163,6 +168,49 @@ def report(results: list[dict], num_poses: int, num_edges: int, file_mb: float) 
     return f"{table}\n\n{note}\n"
 
 
+def sgd_probe(num_poses: int, iterations: int) -> str:
+    """Per-iteration wall and CPU seconds of the paper's SGD, split into its parts (see the module doc)."""
+    import numpy as np
+
+    from optimizer.cost import chi2
+    from optimizer.gridworld import generate_grid_world
+    from optimizer.sgd import recomputes_stiffness
+    from optimizer.sgd_kernels import TREE_BLOCK, sgd_iteration_tree, stiffness_tree, tree_size
+
+    small = generate_grid_world(300, seed=1).graph
+    graph = generate_grid_world(num_poses, seed=GRID_WORLD_SEED).graph
+    rows = []
+    for target, count in ((small, 2), (graph, iterations)):  # the small graph compiles the kernels
+        n = target.num_poses
+        gamma, weights, amounts = np.empty(3), np.empty((n, 3)), np.empty((n, 3))
+        tree = np.empty((2 * tree_size(n, TREE_BLOCK), 3, 3))
+        base = target.poses
+        for t in range(1, count + 1):
+            times = []
+            clocks = (time.perf_counter(), time.process_time())
+            if t == 1 or recomputes_stiffness(t):
+                stiffness_tree(base, target.edge_from, target.edge_to, target.information, weights, amounts,
+                               tree, gamma, TREE_BLOCK)
+            times.append(clocks)
+            times.append((time.perf_counter(), time.process_time()))
+            poses = np.empty_like(base)
+            sgd_iteration_tree(base, target.edge_from, target.edge_to, target.measurements,
+                               target.information, weights, amounts, tree, gamma, t, TREE_BLOCK, poses)
+            times.append((time.perf_counter(), time.process_time()))
+            value = chi2(target, poses)
+            times.append((time.perf_counter(), time.process_time()))
+            base = poses
+            if target is graph:
+                parts = [(times[k + 1][0] - times[k][0], times[k + 1][1] - times[k][1]) for k in range(3)]
+                total = (times[3][0] - times[0][0], times[3][1] - times[0][1])
+                cells = [f"{wall:.3f} / {cpu:.3f}" for wall, cpu in (*parts, total)]
+                rows.append([t, *cells, f"{value:.6g}"])
+    table = markdown_table(["iteration", "stiffness s (wall / CPU)", "pass s", "χ² s", "iteration s", "χ²"],
+                           rows)
+    return (f"{table}\n\nPaper SGD (tree implementation, {TREE_BLOCK} increments per leaf) on the grid world "
+            f"N = {graph.num_poses:,}, M = {graph.num_edges:,} (seed {GRID_WORLD_SEED}); one process.\n")
+
+
 def _parse_run(text: str) -> tuple[str, int | None]:
     method, _, iterations = text.partition(":")
     return method, int(iterations) if iterations else None
@@ -174,8 +222,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", nargs="+", default=["sgd:5", "sgd+gn"],
                         help="METHOD or METHOD:ITERATIONS, each replayed in its own process")
     parser.add_argument("--keep", type=Path, help="keep the generated file and outputs in this folder")
+    parser.add_argument("--sgd-probe", type=int, metavar="K",
+                        help="time K paper-SGD iterations (wall and CPU, by part) instead of replays")
     parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.sgd_probe:
+        print(sgd_probe(args.poses, args.sgd_probe))
+        return 0
     if args.child:
         graph_path, out_dir, method, iterations = args.child
         print(json.dumps(run_replay(graph_path, out_dir, method, int(iterations) if iterations else None)))

@@ -16,7 +16,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from optimizer.graph import PoseGraph
-from optimizer.normal_equations import edge_linearisation
+from optimizer.normal_equations import linearise_edge_into_gradient
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -89,20 +89,8 @@ def assemble_blocks(poses: FloatArray, edge_from: IntArray, edge_to: IntArray, m
     omega_b = np.empty((3, 3))
     for k in range(edge_from.shape[0]):
         a, b = edge_from[k], edge_to[k]
-        edge_linearisation(poses, a, b, measurements[k], e, jac_a, jac_b)
-        info = information[k]
-        for i in range(3):
-            for j in range(3):
-                omega_a[i, j] = info[i, 0] * jac_a[0, j] + info[i, 1] * jac_a[1, j] + info[i, 2] * jac_a[2, j]
-                omega_b[i, j] = info[i, 0] * jac_b[0, j] + info[i, 1] * jac_b[1, j] + info[i, 2] * jac_b[2, j]
-        for i in range(3):
-            weighted = info[i, 0] * e[0] + info[i, 1] * e[1] + info[i, 2] * e[2]
-            if a > 0:
-                for p in range(3):
-                    gradient[3 * (a - 1) + p] += jac_a[i, p] * weighted
-            if b > 0:
-                for p in range(3):
-                    gradient[3 * (b - 1) + p] += jac_b[i, p] * weighted
+        linearise_edge_into_gradient(poses, a, b, measurements[k], information[k], e, jac_a, jac_b, omega_a,
+                                     omega_b, gradient)
         _add_block(blocks, edge_blocks[k, 0], jac_a, omega_a)
         _add_block(blocks, edge_blocks[k, 1], jac_a, omega_b)
         _add_block(blocks, edge_blocks[k, 2], jac_b, omega_a)

@@ -70,6 +70,9 @@ class DirectSolver:
             return None
         return scaled_step if np.all(np.isfinite(scaled_step)) else None
 
+    def accepted_step(self, relative_decrease: float) -> None:
+        """Told after every accepted step; nothing this solver keeps depends on how far the poses moved."""
+
 
 class ChainPCGSolver:
     """Inexact steps by conjugate gradients preconditioned with the pose chain's block-tridiagonal part.
@@ -110,6 +113,9 @@ class ChainPCGSolver:
         solution, self.last_iterations, self.last_converged = preconditioned_cg(
             apply, precondition, rhs, self.forcing, self._max_iterations)
         return solution if np.all(np.isfinite(solution)) and self.last_iterations > 0 else None
+
+    def accepted_step(self, relative_decrease: float) -> None:
+        """Told after every accepted step; nothing this solver keeps depends on how far the poses moved."""
 
 
 def preconditioned_cg(apply: Callable[[FloatArray], FloatArray],

@@ -113,6 +113,27 @@ def edge_linearisation(poses: FloatArray, a: int, b: int, z: FloatArray, e: Floa
     jac_a[1, 2] = -c * dx - s * dy
 
 
+@njit(cache=True, inline="always")
+def linearise_edge_into_gradient(poses: FloatArray, a: int, b: int, z: FloatArray, info: FloatArray,
+                                 e: FloatArray, jac_a: FloatArray, jac_b: FloatArray, omega_a: FloatArray,
+                                 omega_b: FloatArray, gradient: FloatArray) -> None:
+    """One edge's share of the normal equations before H is scattered: its Jacobians, Ω·J_a and Ω·J_b,
+    and its gradient Jᵀ Ω e added to `gradient` (pose 0, the anchor, has no variables)."""
+    edge_linearisation(poses, a, b, z, e, jac_a, jac_b)
+    for i in range(3):
+        for j in range(3):
+            omega_a[i, j] = info[i, 0] * jac_a[0, j] + info[i, 1] * jac_a[1, j] + info[i, 2] * jac_a[2, j]
+            omega_b[i, j] = info[i, 0] * jac_b[0, j] + info[i, 1] * jac_b[1, j] + info[i, 2] * jac_b[2, j]
+    for i in range(3):
+        weighted = info[i, 0] * e[0] + info[i, 1] * e[1] + info[i, 2] * e[2]
+        if a > 0:
+            for p in range(3):
+                gradient[3 * (a - 1) + p] += jac_a[i, p] * weighted
+        if b > 0:
+            for p in range(3):
+                gradient[3 * (b - 1) + p] += jac_b[i, p] * weighted
+
+
 @njit(cache=True)
 def assemble(poses: FloatArray, edge_from: IntArray, edge_to: IntArray, measurements: FloatArray,
              information: FloatArray, edge_block: IntArray, indptr: IntArray, block_count: IntArray,
@@ -127,20 +148,8 @@ def assemble(poses: FloatArray, edge_from: IntArray, edge_to: IntArray, measurem
     omega_b = np.empty((3, 3))
     for k in range(edge_from.shape[0]):
         a, b = edge_from[k], edge_to[k]
-        edge_linearisation(poses, a, b, measurements[k], e, jac_a, jac_b)
-        info = information[k]
-        for i in range(3):
-            for j in range(3):
-                omega_a[i, j] = info[i, 0] * jac_a[0, j] + info[i, 1] * jac_a[1, j] + info[i, 2] * jac_a[2, j]
-                omega_b[i, j] = info[i, 0] * jac_b[0, j] + info[i, 1] * jac_b[1, j] + info[i, 2] * jac_b[2, j]
-        for i in range(3):
-            weighted = info[i, 0] * e[0] + info[i, 1] * e[1] + info[i, 2] * e[2]
-            if a > 0:
-                for p in range(3):
-                    gradient[3 * (a - 1) + p] += jac_a[i, p] * weighted
-            if b > 0:
-                for p in range(3):
-                    gradient[3 * (b - 1) + p] += jac_b[i, p] * weighted
+        linearise_edge_into_gradient(poses, a, b, measurements[k], information[k], e, jac_a, jac_b, omega_a,
+                                     omega_b, gradient)
         if a > 0:
             _add_diagonal_block(hessian, indptr, block_count, a - 1, jac_a, omega_a)
         if b > 0:

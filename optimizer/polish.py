@@ -229,6 +229,7 @@ def gauss_newton(
         growth = 2.0
 
         change = last_change = (current_chi2 - trial_chi2) / current_chi2
+        solver.accepted_step(change)
         step_norm = float(np.linalg.norm(step))
         state_norm = float(np.linalg.norm(current[1:]))
         current, current_chi2 = trial, trial_chi2

@@ -86,3 +86,44 @@ def test_multigrid_polish_reaches_the_direct_optimum() -> None:
     assert direct_status.converged and multigrid_status.converged, (direct_status, multigrid_status)
     assert multigrid[-1].chi2 == pytest.approx(direct[-1].chi2, rel=1e-7)
     assert direct[-1].chi2 < 1e-2 * chi2(graph)  # the polish did real work from the dead reckoning
+
+
+def test_multigrid_steps_are_reproducible_and_follow_every_damping_with_one_hierarchy() -> None:
+    # Two fresh solvers on the same linearisation give the same step to the last bit. The hierarchy's
+    # finest level shares H's blocks: other λ on the same linearisation, with that one hierarchy kept,
+    # still give the direct steps.
+    graph = generate_grid_world(500, seed=3).graph
+    pattern = BlockPattern.of(graph)
+    steps = []
+    for _ in range(2):
+        solver = MultigridPCGSolver(pattern)
+        solver.forcing = 1e-10
+        step = solver.step(_linearise(graph, pattern, graph.poses), 1e-3)
+        assert step is not None
+        steps.append(step)
+    np.testing.assert_array_equal(steps[0], steps[1])
+    linearisation = _linearise(graph, pattern, graph.poses)
+    solver = MultigridPCGSolver(pattern, rebuild_growth=1e6)  # keep the first hierarchy
+    solver.forcing = 1e-10
+    upper = UpperPattern.of(graph)
+    direct_solver = DirectSolver(upper)
+    for damping in (1e-3, 0.5, 1e-6):
+        step = solver.step(linearisation, damping)
+        direct = direct_solver.step(_linearise(graph, upper, graph.poses), damping)
+        assert step is not None and direct is not None
+        np.testing.assert_allclose(step, direct, rtol=1e-6, atol=1e-8 * np.abs(direct).max())
+    assert solver.builds == 1
+
+
+def test_a_large_accepted_decrease_rebuilds_the_hierarchy_and_a_small_one_keeps_it() -> None:
+    graph = generate_grid_world(300, seed=5).graph
+    pattern = BlockPattern.of(graph)
+    solver = MultigridPCGSolver(pattern)
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    assert solver.builds == 1
+    solver.accepted_step(1e-4)  # the last steps of a polish: the kept hierarchy still serves
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    assert solver.builds == 1
+    solver.accepted_step(0.5)  # an early step: the poses moved far, a new hierarchy up front
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    assert solver.builds == 2
