@@ -113,7 +113,10 @@ class LoopClosureConfig:
     """GICP downsamples source and target to this voxel (m)."""
     max_correspondence_distance: float = 1.5
     registration_iterations: int = 30
-    threads: int = 2
+    threads: int = 1
+    """OpenMP threads of small_gicp. One: its threads spin while they wait, and on a shared 2-core machine
+    (KISS-ICP's threads beside them) that tripled the CPU of a verification (town loop: 28 registrations,
+    5.4 CPU-s with 2 threads, 1.5 with 1, measured with the machine loaded by other jobs)."""
     inlier_distance: float = 0.4
     """After registration, source points within this distance of the target are inliers (m)."""
     min_inlier_fraction: float = 0.55
