@@ -9,7 +9,7 @@ import pytest
 
 from frontends.errors import FrontendError
 from frontends.logs import Cloud3D, OdometryPose, Transform, TransformTree
-from frontends.slam3d import LidarSlam3D, se3
+from frontends.slam3d import LidarFrontend, LidarSlam3D, se3
 from frontends.slam3d.config import OdometryConfig
 from frontends.slam3d.odometry import KissOdometry, azimuth_point_times, normalized_point_times
 from frontends.slam3d.vehicle import OdometryPrior, default_base_frame, lidar_mount
@@ -205,3 +205,38 @@ def test_a_narrow_field_of_view_is_not_deskewed_from_azimuths(corner_drive: Driv
     assert step is not None and not step.deskewed
     full = KissOdometry(OdometryConfig()).register(points)
     assert full is not None and full.deskewed
+
+
+class _TfOnlyLog:
+    """What `LidarFrontend` reads of a log before the clouds, for a log with these transforms and no
+    odometry topic; counts how often the log is read for odometry."""
+
+    path = "tf_only.mcap"
+
+    def __init__(self, *transforms: Transform) -> None:
+        self.transforms = transforms
+        self.odometry_reads = 0
+
+    def odometry_topic(self, topic: str | None = None) -> str | None:
+        return topic
+
+    def transform_tree(self) -> TransformTree:
+        return _tree(*self.transforms)
+
+    def odometry(self, topic: str | None = None) -> list[OdometryPose]:
+        self.odometry_reads += 1
+        return [OdometryPose(t.stamp_ns, 0, t.parent_frame, t.child_frame, t.translation, t.rotation)
+                for t in self.transforms if not t.is_static and t.parent_frame == "odom"]
+
+
+def test_odometry_comes_from_tf_only_when_tf_has_a_moving_edge() -> None:
+    mount = _edge("base_link", "lidar", (1.0, 0.0, 1.8), IDENTITY_Q, True)
+    static_only = _TfOnlyLog(mount)
+    assert LidarFrontend(static_only, "/points")._prior is None  # type: ignore[arg-type]
+    assert static_only.odometry_reads == 0  # the tf already read has no moving edge: not read again
+    moving = [Transform("odom", "base_link", stamp, 0, np.array([0.5 * k, 0.0, 0.0]), IDENTITY_Q, False)
+              for k, stamp in enumerate((0, 100, 200))]
+    with_odometry = _TfOnlyLog(mount, *moving)
+    prior = LidarFrontend(with_odometry, "/points")._prior  # type: ignore[arg-type]
+    assert with_odometry.odometry_reads == 1 and prior is not None and len(prior) == 3
+    np.testing.assert_allclose(prior.at(150)[:3, 3], [0.75, 0.0, 0.0])

@@ -147,6 +147,8 @@ class LogReader:
         scan's valid ranges (Foxglove scans have none of their own)."""
         topics = set(topics)
         channels = [c for c in self.channels if c.topic in topics and message_kind(c) is not None]
+        if not channels:  # nothing to read: do not decompress the whole log to find that out
+            return iter(())
         decoders = build_decoders(self.path, channels, DecodeOptions(RangeLimits(*range_limits)))
         raw = guarded_iter(self.path, self._container.messages({c.id for c in channels}))
         return by_stamp(decode(self.path, raw, decoders), self.path, window_ns, max_items, counts=self.counts)

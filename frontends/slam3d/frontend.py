@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
-from frontends.logs import Cloud3D, LogReader
+from frontends.logs import Cloud3D, LogReader, TransformTree
 from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, SessionArrays
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.pose_graph3d import PolishResult
@@ -20,6 +20,15 @@ from optimizer.graph import PoseGraph
 
 MAP_VOXEL = 0.2
 """The map keeps one point per voxel of this size (m)."""
+
+
+def _odometry_prior(log: LogReader, topic: str | None, tree: TransformTree) -> OdometryPrior | None:
+    """The log's odometry (its odometry topic, else tf's dynamic odom edge) as a prior. Without an
+    odometry topic, the tf already read says whether there is a dynamic edge at all: a log with none
+    (static mounts only) is not read a second time to find no odometry in it."""
+    if topic is None and all(tree.is_static(frame) or tree.parent(frame) is None for frame in tree.frames):
+        return None
+    return OdometryPrior.from_poses(log.odometry(topic))
 
 
 class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
@@ -38,7 +47,7 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         self._clouds = 0
         self._points = 0
         self._map_points: int | None = None
-        self._prior = OdometryPrior.from_poses(log.odometry(self.odometry_topic))
+        self._prior = _odometry_prior(log, self.odometry_topic, self._tree)
         self.polish: PolishResult | None = None
         self._polished_for: bytes | None = None
 

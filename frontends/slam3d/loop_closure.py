@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import small_gicp
+from numba import njit
 from numpy.typing import NDArray
 
 from frontends.slam3d import se3
@@ -51,8 +52,19 @@ def scan_context(points: NDArray[np.floating], rings: int, sectors: int, radius:
     ring = (distance[keep] * (rings / radius)).astype(np.int64)
     bearing = np.arctan2(points[keep, 1], points[keep, 0])
     sector = np.floor((bearing + np.pi) * (sectors / (2.0 * np.pi))).astype(np.int64) % sectors
-    np.maximum.at(descriptor, ring * sectors + sector, np.maximum(height[keep], 0.0))
+    _raise_to_maxima(descriptor, ring * sectors + sector, np.maximum(height[keep], 0.0))
     return descriptor.reshape(rings, sectors)
+
+
+@njit(cache=True)
+def _raise_to_maxima(
+    bins: FloatArray, indices: NDArray[np.int64], values: FloatArray
+) -> None:  # pragma: no cover
+    """bins[i] = max(bins[i], every value at index i): `np.maximum.at`, which is unbuffered and ten times
+    slower on a keyframe's tens of thousands of points."""
+    for k in range(indices.shape[0]):
+        if values[k] > bins[indices[k]]:
+            bins[indices[k]] = values[k]
 
 
 def descriptor_distances(query: FloatArray, candidates: FloatArray) -> tuple[FloatArray, FloatArray]:

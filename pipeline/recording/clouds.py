@@ -23,6 +23,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from frontends.logs import Cloud3D
 from frontends.slam3d import CloudEstimate, LidarFrontend, Slam3DGraph, downsample
@@ -164,12 +165,15 @@ class KeyframePoseRecorder:
             return
         steps = rr.TimeColumn(ITERATION_TIMELINE, sequence=np.asarray(self._steps, dtype=np.int64))
         poses = np.stack(self._poses)  # (T, K, 4, 4)
+        # Quaternions, not 3×3 matrices: rerun converts a column of matrices one Python object at a time.
+        quaternions = Rotation.from_matrix(poses[..., :3, :3].reshape(-1, 3, 3)).as_quat()  # x, y, z, w
+        quaternions = quaternions.astype(np.float32).reshape(*poses.shape[:2], 4)
         for index in range(poses.shape[1]):
             self._recording.send_columns(
                 keyframe_entity(index),
                 indexes=[steps],
                 columns=rr.Transform3D.columns(
-                    translation=poses[:, index, :3, 3], mat3x3=poses[:, index, :3, :3]
+                    translation=poses[:, index, :3, 3], quaternion=quaternions[:, index]
                 ),
             )
         self._recording.send_columns(
