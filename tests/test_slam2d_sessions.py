@@ -13,7 +13,7 @@ import pytest
 
 from frontends.slam2d.localization import EmptyMapError, MapLocalizer
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
-from frontends.slam2d.slam import LaserSlam2D
+from frontends.slam2d.slam import LaserSlam2D, _LoopHypothesis
 from optimizer.solve import optimize
 from tests.laser_world import Run, align_to_first, between, simulate_run, square_loop
 
@@ -151,3 +151,32 @@ def test_a_second_session_that_never_matches_the_map_is_refused(mapping_run: Run
         assert estimate.keyframe == -1 and not estimate.matched
     with pytest.raises(MapPlacementError):
         slam.finish()
+
+
+def test_resumed_slam_optimizes_at_once_after_a_loop_closure_that_moves_the_map_far(mapping_run: Run) -> None:
+    """A plain SLAM waits for `optimize_every_loop_closures` loop closures before re-optimizing; a resumed
+    one does not when a loop closure corrects the estimate by more than a small correction (the new run
+    came back to the old map far off: left uncorrected, the estimate falls outside the search radius the
+    new loop closure just shrank, and the loop closures that would follow are never searched for)."""
+    first = LaserSlam2D()
+    for k in range(60):
+        first.add_scan(int(mapping_run.stamps_ns[k]), mapping_run.scans[k], mapping_run.odometry[k])
+    saved = first.finish()
+    settings = first.config.loop_closure
+    resumed = LaserSlam2D.resume(saved.keyframe_scans, saved.graph.poses, SavedConstraints.of(saved.graph))
+    plain = LaserSlam2D()
+
+    def loop(correction: tuple[float, float, float]) -> _LoopHypothesis:
+        return _LoopHypothesis(0, 5, np.zeros(3), np.eye(3), np.array(correction))
+
+    small = [loop((0.5 * settings.small_correction_linear, 0.0, 0.0))]
+    far = [loop((3.0, -3.5, 0.0)), loop((3.1, -3.4, 0.0))]
+    turned = [loop((0.0, 0.0, 2.0 * settings.small_correction_angular))]
+    for slam in (plain, resumed):
+        slam._pending_loops = settings.optimize_every_loop_closures - 1
+        assert not slam._optimization_due(small)
+        slam._pending_loops = settings.optimize_every_loop_closures
+        assert slam._optimization_due(small)
+        slam._pending_loops = 1
+    assert not plain._optimization_due(far) and not plain._optimization_due(turned)
+    assert resumed._optimization_due(far) and resumed._optimization_due(turned)

@@ -21,11 +21,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
+from frontends.loop_closing import is_small
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from frontends.slam2d.localization import LocalizationConfig, LocalizedScan, MapLocalizer
-from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
+from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph, _LoopHypothesis
 from optimizer import se2
 from optimizer.graph import PoseGraph
 
@@ -210,6 +211,17 @@ class ResumedSlam2D(LaserSlam2D):
             pairing_distance=matching.icp_max_distance,
             reach=2.0 * matching.max_range + self.config.odometry.window_linear_without_odometry + 1.0,
         )
+
+    def _optimization_due(self, accepted: Sequence[_LoopHypothesis]) -> bool:
+        """Also at once when a loop closure just accepted moves the map beyond a small correction: the
+        new run drifts through stretches the saved map never saw and comes back to it far off. Its loop
+        closure shortens the graph path to the old keyframes, and so their search radius, right away; left
+        uncorrected until `optimize_every_loop_closures` more, the estimate stays outside that radius and
+        the loop closures that would follow (old keyframes and new) are never searched for."""
+        settings = self.config.loop_closure
+        return super()._optimization_due(accepted) or any(
+            not is_small(h.correction, settings.small_correction_linear, settings.small_correction_angular)
+            for h in accepted)
 
     def finish(self) -> Slam2DGraph:
         """The joint keyframe graph, old and new; `MapPlacementError` if the new run never matched the
