@@ -9,7 +9,9 @@ scans get their map poses back from it and go through the SLAM as usual:
   relative pose the localization implies, so the chain the final optimization starts from is right);
 - the local map the new scans are matched against holds the recent new keyframes and, until there are
   enough of those, the old keyframes nearest the robot;
-- loop closures search every keyframe, old or new, as in one run; `finish` returns the joint graph.
+- loop closures search every keyframe, old or new, as in one run; one that moves the map far (the new
+  run coming back to the old map from stretches it never saw) is optimized at once, not after a few more;
+- `finish` returns the joint graph.
 """
 
 from __future__ import annotations
