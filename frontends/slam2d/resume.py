@@ -222,8 +222,16 @@ class ResumedSlam2D(LaserSlam2D):
         the loop closures that would follow (old keyframes and new) are never searched for."""
         settings = self.config.loop_closure
         return super()._optimization_due(accepted) or any(
-            not is_small(h.correction, settings.small_correction_linear, settings.small_correction_angular)
+            not is_small(self._keyframe_move(h), settings.small_correction_linear,
+                         settings.small_correction_angular)
             for h in accepted)
+
+    def _keyframe_move(self, hypothesis: _LoopHypothesis) -> FloatArray:
+        """The matched pose of the loop closure's current keyframe in the frame of its estimate. (The
+        hypothesis' correction is the move of the whole map about its origin: far from the origin a
+        fraction of a degree there is metres, where the keyframe itself barely moves.)"""
+        here = self._keyframe_poses[hypothesis.current]
+        return se2.relative(here, se2.compose(hypothesis.correction, here))
 
     def finish(self) -> Slam2DGraph:
         """The joint keyframe graph, old and new; `MapPlacementError` if the new run never matched the
