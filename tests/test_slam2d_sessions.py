@@ -13,7 +13,8 @@ import pytest
 
 from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, MapLocalizer
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
-from frontends.slam2d.slam import LaserSlam2D
+from frontends.slam2d.slam import LaserSlam2D, _LoopHypothesis
+from optimizer import se2
 from optimizer.solve import optimize
 from tests.laser_world import Run, align_to_first, between, simulate_run, square_loop
 from tests.laser_world import compose as compose_poses
@@ -231,3 +232,38 @@ def test_a_second_session_that_never_matches_the_map_is_refused(mapping_run: Run
         assert estimate.keyframe == -1 and not estimate.matched
     with pytest.raises(MapPlacementError):
         slam.finish()
+
+
+def test_resumed_slam_optimizes_at_once_after_a_loop_closure_that_moves_the_map_far() -> None:
+    """A plain SLAM waits for `optimize_every_loop_closures` loop closures before re-optimizing; a resumed
+    one does not when a loop closure moves its keyframe by more than a small correction (the new run came
+    back to the old map far off: left uncorrected, the estimate falls outside the search radius the new
+    loop closure just shrank, and the loop closures that would follow are never searched for). What counts
+    is the keyframe's own move, not the map's rotation about a far origin."""
+    rng = np.random.default_rng(3)
+    far = np.array([[50.0, 0.0, 0.0], [50.3, 0.0, 0.0]])  # 50 m from the map's origin
+    scans = [rng.uniform(-5.0, 5.0, size=(200, 2)) for _ in far]
+    saved = SavedConstraints(np.array([0]), np.array([1]), np.array([[0.3, 0.0, 0.0]]), np.eye(3)[None])
+    resumed = LaserSlam2D.resume(scans, far, saved)
+    plain = LaserSlam2D()
+    settings = plain.config.loop_closure
+
+    def loop(correction: tuple[float, float, float]) -> _LoopHypothesis:
+        return _LoopHypothesis(0, 1, np.zeros(3), np.eye(3), np.array(correction))
+
+    small = [loop((0.5 * settings.small_correction_linear, 0.0, 0.0))]
+    metres_off = [loop((3.0, -3.5, 0.0))]
+    turned = [loop((0.0, 0.0, 2.0 * settings.small_correction_angular))]
+    # Keyframe 1 turned in place by half the small angle: as a move of the map about its origin that is
+    # also a 0.46 m shift (50 m × 0.026 rad), yet the keyframe stays where it is.
+    in_place = far[1] + np.array([0.0, 0.0, 0.5 * settings.small_correction_angular])
+    about_origin = [loop(tuple(se2.compose(in_place, se2.inverse(far[1]))))]
+    for slam in (plain, resumed):
+        slam._pending_loops = settings.optimize_every_loop_closures - 1
+        assert not slam._optimization_due(small)
+        slam._pending_loops = settings.optimize_every_loop_closures
+        assert slam._optimization_due(small)
+        slam._pending_loops = 1
+    assert not any(plain._optimization_due(h) for h in (metres_off, turned, about_origin))
+    assert resumed._optimization_due(metres_off) and resumed._optimization_due(turned)
+    assert not resumed._optimization_due(about_origin)

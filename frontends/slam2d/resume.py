@@ -9,7 +9,9 @@ scans get their map poses back from it and go through the SLAM as usual:
   relative pose the localization implies, so the chain the final optimization starts from is right);
 - the local map the new scans are matched against holds the recent new keyframes and, until there are
   enough of those, the old keyframes nearest the robot;
-- loop closures search every keyframe, old or new, as in one run; `finish` returns the joint graph.
+- loop closures search every keyframe, old or new, as in one run; one that moves the map far (the new
+  run coming back to the old map from stretches it never saw) is optimized at once, not after a few more;
+- `finish` returns the joint graph.
 """
 
 from __future__ import annotations
@@ -21,11 +23,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
-from frontends.slam2d.config import Slam2DConfig
+from frontends.loop_closing import is_small
+from frontends.slam2d.config import SMALL_CORRECTION_ANGULAR, SMALL_CORRECTION_LINEAR, Slam2DConfig
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from frontends.slam2d.localization import LocalizationConfig, LocalizedScan, MapLocalizer
-from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
+from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph, _LoopHypothesis
 from optimizer import se2
 from optimizer.graph import PoseGraph
 
@@ -210,6 +213,23 @@ class ResumedSlam2D(LaserSlam2D):
             pairing_distance=matching.icp_max_distance,
             reach=2.0 * matching.max_range + self.config.odometry.window_linear_without_odometry + 1.0,
         )
+
+    def _optimization_due(self, accepted: Sequence[_LoopHypothesis]) -> bool:
+        """Also at once when a loop closure just accepted moves the map beyond a small correction: the
+        new run drifts through stretches the saved map never saw and comes back to it far off. Its loop
+        closure shortens the graph path to the old keyframes, and so their search radius, right away; left
+        uncorrected until `OPTIMIZE_EVERY_LOOP_CLOSURES` more, the estimate stays outside that radius and
+        the loop closures that would follow (old keyframes and new) are never searched for."""
+        return super()._optimization_due(accepted) or any(
+            not is_small(self._keyframe_move(h), SMALL_CORRECTION_LINEAR, SMALL_CORRECTION_ANGULAR)
+            for h in accepted)
+
+    def _keyframe_move(self, hypothesis: _LoopHypothesis) -> FloatArray:
+        """The matched pose of the loop closure's current keyframe in the frame of its estimate. (The
+        hypothesis' correction is the move of the whole map about its origin: far from the origin a
+        fraction of a degree there is metres, where the keyframe itself barely moves.)"""
+        here = self._keyframe_poses[hypothesis.current]
+        return se2.relative(here, se2.compose(hypothesis.correction, here))
 
     def finish(self) -> Slam2DGraph:
         """The joint keyframe graph, old and new; `MapPlacementError` if the new run never matched the

@@ -335,6 +335,7 @@ class LaserSlam2D:
             if all(abs(int(candidate) - c) > settings.submap_keyframes for c in candidates):
                 candidates.append(int(candidate))
         found = []
+        accepted_now: list[_LoopHypothesis] = []
         self._hypotheses.expire(current, HYPOTHESIS_KEYFRAMES)
         for candidate in candidates:
             with self.stage_times.stage("verification"):
@@ -345,11 +346,17 @@ class LaserSlam2D:
                 self._edges.add(accepted.candidate, accepted.current, accepted.measurement,
                                 accepted.information, is_loop=True)
                 found.append((accepted.candidate, accepted.current))
+                accepted_now.append(accepted)
         if found:
             self._pending_loops += len(found)
-            if self._pending_loops >= OPTIMIZE_EVERY_LOOP_CLOSURES:
+            if self._optimization_due(accepted_now):
                 self.optimize_online()
         return tuple(found)
+
+    def _optimization_due(self, accepted: Sequence[_LoopHypothesis]) -> bool:
+        """Whether the loop closures just `accepted` call for an online optimization now (a hook: the
+        resumed SLAM also optimizes when they move the map far)."""
+        return self._pending_loops >= OPTIMIZE_EVERY_LOOP_CLOSURES
 
     def _path_lengths_to(self, keyframe: int) -> FloatArray:
         """Shortest path length (m) through the graph's constraints from `keyframe` to every keyframe."""
