@@ -11,6 +11,11 @@ import math
 import numpy as np
 import pytest
 
+from frontends.slam2d.config import (
+    OPTIMIZE_EVERY_LOOP_CLOSURES,
+    SMALL_CORRECTION_ANGULAR,
+    SMALL_CORRECTION_LINEAR,
+)
 from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, MapLocalizer
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, _LoopHypothesis
@@ -235,7 +240,7 @@ def test_a_second_session_that_never_matches_the_map_is_refused(mapping_run: Run
 
 
 def test_resumed_slam_optimizes_at_once_after_a_loop_closure_that_moves_the_map_far() -> None:
-    """A plain SLAM waits for `optimize_every_loop_closures` loop closures before re-optimizing; a resumed
+    """A plain SLAM waits for `OPTIMIZE_EVERY_LOOP_CLOSURES` loop closures before re-optimizing; a resumed
     one does not when a loop closure moves its keyframe by more than a small correction (the new run came
     back to the old map far off: left uncorrected, the estimate falls outside the search radius the new
     loop closure just shrank, and the loop closures that would follow are never searched for). What counts
@@ -246,22 +251,21 @@ def test_resumed_slam_optimizes_at_once_after_a_loop_closure_that_moves_the_map_
     saved = SavedConstraints(np.array([0]), np.array([1]), np.array([[0.3, 0.0, 0.0]]), np.eye(3)[None])
     resumed = LaserSlam2D.resume(scans, far, saved)
     plain = LaserSlam2D()
-    settings = plain.config.loop_closure
 
     def loop(correction: tuple[float, float, float]) -> _LoopHypothesis:
         return _LoopHypothesis(0, 1, np.zeros(3), np.eye(3), np.array(correction))
 
-    small = [loop((0.5 * settings.small_correction_linear, 0.0, 0.0))]
+    small = [loop((0.5 * SMALL_CORRECTION_LINEAR, 0.0, 0.0))]
     metres_off = [loop((3.0, -3.5, 0.0))]
-    turned = [loop((0.0, 0.0, 2.0 * settings.small_correction_angular))]
+    turned = [loop((0.0, 0.0, 2.0 * SMALL_CORRECTION_ANGULAR))]
     # Keyframe 1 turned in place by half the small angle: as a move of the map about its origin that is
     # also a 0.46 m shift (50 m × 0.026 rad), yet the keyframe stays where it is.
-    in_place = far[1] + np.array([0.0, 0.0, 0.5 * settings.small_correction_angular])
+    in_place = far[1] + np.array([0.0, 0.0, 0.5 * SMALL_CORRECTION_ANGULAR])
     about_origin = [loop(tuple(se2.compose(in_place, se2.inverse(far[1]))))]
     for slam in (plain, resumed):
-        slam._pending_loops = settings.optimize_every_loop_closures - 1
+        slam._pending_loops = OPTIMIZE_EVERY_LOOP_CLOSURES - 1
         assert not slam._optimization_due(small)
-        slam._pending_loops = settings.optimize_every_loop_closures
+        slam._pending_loops = OPTIMIZE_EVERY_LOOP_CLOSURES
         assert slam._optimization_due(small)
         slam._pending_loops = 1
     assert not any(plain._optimization_due(h) for h in (metres_off, turned, about_origin))
