@@ -4,9 +4,11 @@ damaged, logs with absurd values in intact messages, clouds with absurd layouts.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import random
+import sqlite3
 import struct
 from collections.abc import Callable
 from pathlib import Path
@@ -204,6 +206,26 @@ def _rosbag2_garbage_db3(tmp: Path) -> Path:
     return bag
 
 
+def _rosbag2_row_values(column: str, value: object) -> Damage:
+    """A well-formed .db3 whose every 7th message row holds `value` in `column` (SQLite keeps any type in any
+    column: a damaged or hand-edited bag can hold NULL, text or a real where an integer belongs)."""
+
+    def damage(tmp: Path) -> Path:
+        bag = write_rosbag2(tmp / f"bag-{column}")
+        db3 = bag / f"bag-{column}.db3"
+        with contextlib.closing(sqlite3.connect(db3)) as connection, connection:
+            # The writer's NOT NULL constraints do not hold in a damaged file either.
+            connection.execute("PRAGMA writable_schema = ON")
+            connection.execute("UPDATE sqlite_master SET sql = replace(sql, 'NOT NULL', '') "
+                               "WHERE name = 'messages'")
+        with contextlib.closing(sqlite3.connect(db3)) as connection, connection:
+            connection.execute(f"UPDATE messages SET {column} = ? WHERE id % 7 = 3",
+                               (value,))
+        return bag
+
+    return damage
+
+
 def _rosbag2_metadata_wrong_types(tmp: Path) -> Path:
     bag = write_rosbag2(tmp / "bag3")
     text = (bag / "metadata.yaml").read_text()
@@ -247,6 +269,11 @@ DAMAGED: dict[str, Damage] = {
     "rosbag1-chunk-bytes-flipped": _rosbag1_patched("chunk_flipped", _bag_chunk_bytes_flipped),
     "rosbag2-garbage-db3": _rosbag2_garbage_db3,
     "rosbag2-metadata-wrong-types": _rosbag2_metadata_wrong_types,
+    "rosbag2-null-timestamp": _rosbag2_row_values("timestamp", None),
+    "rosbag2-text-timestamp": _rosbag2_row_values("timestamp", "soon"),
+    "rosbag2-real-timestamp": _rosbag2_row_values("timestamp", 0.5),
+    "rosbag2-null-data": _rosbag2_row_values("data", None),
+    "rosbag2-text-data": _rosbag2_row_values("data", "not a message"),
     "fifo": fifo,
 }
 

@@ -4,6 +4,7 @@ file), and memory stays bounded."""
 
 from __future__ import annotations
 
+import os
 import tracemalloc
 import warnings
 from pathlib import Path
@@ -21,7 +22,9 @@ MEMORY_BOUND = 64 << 20
 """tracemalloc peak for reading a mutated file of a few kB (bytes)."""
 
 FUZZ_SETTINGS = settings(
-    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+    # SGDSLAM_FUZZ_EXAMPLES=600 for a longer hunt than the suite's.
+    max_examples=int(os.environ.get("SGDSLAM_FUZZ_EXAMPLES", "40")), deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
 )
 
 

@@ -96,6 +96,11 @@ def test_damaged_container_ends_in_our_error_or_a_result(name: str, tmp_path: Pa
         "mcap-crc-mismatch",
         "rosbag1-header-length",
         "rosbag1-random-body",
+        "rosbag2-null-timestamp",
+        "rosbag2-text-timestamp",
+        "rosbag2-real-timestamp",
+        "rosbag2-null-data",
+        "rosbag2-text-data",
         "fifo",
     ],
 )

@@ -213,6 +213,11 @@ class Rosbag2Container:
                 )
                 try:
                     for topic_id, timestamp, data in connection.execute(query, tuple(ids)):
+                        if type(timestamp) is not int or not isinstance(data, bytes):
+                            # SQLite stores any type in any column: a damaged file can hold NULL or text.
+                            raise LogFileError(file, "damaged message table: a message's timestamp is "
+                                                     f"{_sql_type(timestamp)} and its data {_sql_type(data)}"
+                                                     " (an integer and a blob expected)")
                         read += 1
                         payload = data if decompress is None else decompress(data)
                         yield RawMessage(ids[topic_id], timestamp, payload)
@@ -325,3 +330,10 @@ def _sqlite_channels(path: Path, connection: sqlite3.Connection) -> dict[int, Ch
             topic_id, name, topic_type, serialization, topic_type, schema_encoding, data
         )
     return channels
+
+
+def _sql_type(value: object) -> str:
+    """How SQLite stored `value`, in its own words."""
+    if value is None:
+        return "NULL"
+    return {int: "integer", float: "real", str: "text", bytes: "blob"}.get(type(value), type(value).__name__)
