@@ -13,6 +13,7 @@ import pytest
 from PIL import Image
 from rerun.chunk import RrdReader
 
+from frontends.slam2d import one_per_cell_each
 from optimizer import se2
 from optimizer.graph_files import read_graph
 from optimizer.iteration import Iteration
@@ -287,3 +288,15 @@ def test_a_graph_with_loop_closures_plots_every_positive_chi2(graph_recording: t
     assert log10 == pytest.approx([np.log10(c) for c in plain if c > 0])
     notes = [row[0] for row in content["entities"]["/optimizer/stage"].columns["TextLog:text"]]
     assert recording.NO_LOOP_CLOSURES_NOTE not in notes
+
+
+def test_thinning_many_scans_in_one_call_equals_thinning_each() -> None:
+    rng = np.random.default_rng(4)
+    scans = [rng.uniform(-3.0, 3.0, size=(n, 2)) for n in (0, 1, 50, 400, 7)]
+    scans[3][::9] = np.nan  # dropped, as thin_scan drops them
+    points = np.concatenate(scans)
+    offsets = np.concatenate([[0], np.cumsum([len(s) for s in scans])])
+    keep, counts = one_per_cell_each(points, offsets, 0.5)
+    expected = [map2d.thin_scan(s, 0.5) for s in scans]
+    assert counts.tolist() == [len(e) for e in expected]
+    np.testing.assert_array_equal(points[keep].astype(np.float32), np.concatenate(expected))

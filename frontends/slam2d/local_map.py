@@ -28,8 +28,48 @@ def place(points: FloatArray, pose: FloatArray) -> FloatArray:
 def one_per_cell(points: FloatArray, cell: float, keep_last: bool = False) -> NDArray[np.int64]:
     """Indices (ascending) of the first point, or the last with `keep_last`, in each square cell of `cell`
     metres: thinning that keeps the points' order."""
-    cells = np.floor(np.asarray(points, dtype=np.float64) / cell).astype(np.int64)
-    return _one_per_key(cells[:, 0] * 2_000_003 + cells[:, 1], keep_last)
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    return _one_per_cell(points, float(cell), keep_last)
+
+
+def one_per_cell_each(points: FloatArray, offsets: NDArray[np.int64],
+                      cell: float) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+    """`one_per_cell` (first points) of each segment `points[offsets[s]:offsets[s + 1]]` in one call, the
+    non-finite points dropped: which points are kept, and how many of each segment."""
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    return _one_per_cell_each(points, np.asarray(offsets, dtype=np.int64), float(cell))
+
+
+@njit(cache=True)
+def _one_per_cell_each(points: FloatArray, offsets: NDArray[np.int64],
+                       cell: float) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+    keep = np.zeros(points.shape[0], dtype=np.bool_)
+    counts = np.zeros(offsets.shape[0] - 1, dtype=np.int64)
+    for segment in range(offsets.shape[0] - 1):
+        start, end = offsets[segment], offsets[segment + 1]
+        finite = np.empty(end - start, dtype=np.int64)
+        count = 0
+        for i in range(start, end):
+            if np.isfinite(points[i, 0]) and np.isfinite(points[i, 1]):
+                finite[count] = i
+                count += 1
+        kept = _one_per_cell(points[finite[:count]], cell, False)
+        for k in kept:
+            keep[finite[k]] = True
+        counts[segment] = kept.shape[0]
+    return keep, counts
+
+
+@njit(cache=True)
+def _one_per_cell(points: FloatArray, cell: float, keep_last: bool) -> NDArray[np.int64]:
+    # One integer per cell, distinct for every cell within ±2³¹ cells (no map spans that many); computed
+    # here rather than in numpy, whose four temporaries cost more than the table on a scan's few hundred
+    # points.
+    keys = np.empty(points.shape[0], dtype=np.int64)
+    for i in range(points.shape[0]):
+        column, row = np.floor(points[i, 0] / cell), np.floor(points[i, 1] / cell)
+        keys[i] = np.int64(column) * 4_294_967_296 + np.int64(row)
+    return _one_per_key(keys, keep_last)
 
 
 @njit(cache=True)

@@ -23,6 +23,7 @@ import rerun as rr
 from numba import njit
 from numpy.typing import NDArray
 
+from frontends.slam2d import one_per_cell
 from optimizer.iteration import Iteration
 from pipeline.recording import (
     ITERATION_TIMELINE,
@@ -71,10 +72,7 @@ def thin_scan(points: NDArray[np.floating], cell: float = SCAN_CELL) -> NDArray[
     """One point (the first) per `cell` × `cell` square, in the scan's order."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     points = points[np.all(np.isfinite(points), axis=1)]
-    cells = np.floor(points / cell).astype(np.int64)
-    # One integer per cell (np.unique over rows is ten times slower): maps span far less than 2³¹ cells.
-    _, first = np.unique(cells[:, 0] * 4_294_967_296 + cells[:, 1], return_index=True)
-    return points[np.sort(first)].astype(np.float32)
+    return points[one_per_cell(points, cell)].astype(np.float32)
 
 
 def placed_bounds(scans: Sequence[FloatArray], poses: FloatArray) -> Bounds:

@@ -18,7 +18,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
-from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, place
+from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, one_per_cell_each, place
 from optimizer import se2
 from pipeline.recording import (
     VIEWER_BACKGROUND,
@@ -28,7 +28,6 @@ from pipeline.recording import (
     map2d,
     visual_bounds,
 )
-from pipeline.recording.map2d import thin_scan
 
 SCAN_TIMELINE = "scan"
 TIME_TIMELINE = "time"
@@ -154,9 +153,9 @@ class ScanRecorder:
     def add(self, index: int, stamp_ns: int, points: FloatArray, pose: FloatArray) -> None:
         self._indices.append(index)
         self._stamps.append(int(stamp_ns))
-        self._points.append(thin_scan(points, PLAYBACK_CELL))
+        self._points.append(points)  # thinned per scan when sent, all in one compiled call
         self._poses.append(np.asarray(pose[:2], dtype=np.float32))
-        self._buffered += len(self._points[-1])
+        self._buffered += len(points)
         if self._buffered >= SCAN_BATCH_POINTS:
             self.flush()
 
@@ -167,11 +166,13 @@ class ScanRecorder:
             rr.TimeColumn(SCAN_TIMELINE, sequence=np.asarray(self._indices, dtype=np.int64)),
             rr.TimeColumn(TIME_TIMELINE, timestamp=np.asarray(self._stamps, dtype="datetime64[ns]")),
         ]
-        lengths = np.array([len(p) for p in self._points])
+        points = np.concatenate(self._points).reshape(-1, 2)
+        offsets = np.concatenate([[0], np.cumsum([len(p) for p in self._points])])
+        keep, lengths = one_per_cell_each(points, offsets, PLAYBACK_CELL)
         self._recording.send_columns(
             SCAN_ENTITY,
             indexes=indexes,
-            columns=rr.Points2D.columns(positions=np.concatenate(self._points)).partition(lengths),
+            columns=rr.Points2D.columns(positions=points[keep].astype(np.float32)).partition(lengths),
         )
         self._recording.send_columns(
             ROBOT_ENTITY, indexes=indexes, columns=rr.Points2D.columns(positions=np.stack(self._poses))
