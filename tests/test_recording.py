@@ -19,7 +19,7 @@ from optimizer.graph_files import read_graph
 from optimizer.iteration import Iteration
 from pipeline import recording
 from pipeline.keyframe_optimization import optimize_keyframes, wheel_odometry_start
-from pipeline.recording import map2d
+from pipeline.recording import map2d, scans
 from pipeline.replay_graph import replay_graph
 from tests.pipeline_fixtures import LOOP_POSES, read_recording, write_loop_graph
 
@@ -300,3 +300,25 @@ def test_thinning_many_scans_in_one_call_equals_thinning_each() -> None:
     expected = [map2d.thin_scan(s, 0.5) for s in scans]
     assert counts.tolist() == [len(e) for e in expected]
     np.testing.assert_array_equal(points[keep].astype(np.float32), np.concatenate(expected))
+
+
+def test_played_back_scans_are_placed_at_their_poses_and_thinned_per_scan(tmp_path: Path) -> None:
+    rng = np.random.default_rng(6)
+    scans_in_robot_frame = [rng.uniform(-4.0, 4.0, size=(n, 2)) for n in (120, 0, 60)]
+    poses = np.array([[1.0, 2.0, 0.3], [0.0, 0.0, 0.0], [-3.0, 0.5, -2.0]])
+    path = tmp_path / "scans.rrd"
+    stream = recording.create_recording(path, name="scans")
+    recorder = scans.ScanRecorder(stream)
+    for index, (points, pose) in enumerate(zip(scans_in_robot_frame, poses, strict=True)):
+        recorder.add(index, 10**9 * (index + 1), points, pose)
+    recorder.flush()
+    recording.close_recording(stream)
+    played = read_recording(path, timeline="scan")
+    rows = played["/world/scan"].columns["Points2D:positions"]
+    for row, points, pose in zip(rows, scans_in_robot_frame, poses, strict=True):
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        placed = points @ np.array([[c, s], [-s, c]]) + pose[:2]  # independent of `place`
+        expected = map2d.thin_scan(placed, scans.PLAYBACK_CELL)
+        np.testing.assert_allclose(np.asarray(row, dtype=float).reshape(-1, 2), expected, atol=1e-5)
+    robot = [row[0] for row in played["/world/robot"].columns["Points2D:positions"]]
+    np.testing.assert_allclose(robot, poses[:, :2], atol=1e-6)

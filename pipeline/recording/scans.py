@@ -11,6 +11,7 @@ column batches, which keeps the cost of recording a small part of a replay.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -18,7 +19,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
-from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, one_per_cell_each, place
+from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, one_per_cell_each
 from optimizer import se2
 from pipeline.recording import (
     VIEWER_BACKGROUND,
@@ -140,7 +141,8 @@ def log_loop_closures_found(
 
 
 class ScanRecorder:
-    """Buffers each processed scan (its points in the map frame and its pose) and sends them in columns."""
+    """Buffers each processed scan (its points in the robot's frame and its pose) and sends them in
+    columns, placed in the map frame and thinned a batch at a time."""
 
     def __init__(self, recording: rr.RecordingStream) -> None:
         self._recording = recording
@@ -151,10 +153,11 @@ class ScanRecorder:
         self._buffered = 0
 
     def add(self, index: int, stamp_ns: int, points: FloatArray, pose: FloatArray) -> None:
+        """A scan's `points` in the robot's frame, and the robot's `pose` in the map frame."""
         self._indices.append(index)
         self._stamps.append(int(stamp_ns))
-        self._points.append(points)  # thinned per scan when sent, all in one compiled call
-        self._poses.append(np.asarray(pose[:2], dtype=np.float32))
+        self._points.append(points)
+        self._poses.append(np.asarray(pose, dtype=np.float64))
         self._buffered += len(points)
         if self._buffered >= SCAN_BATCH_POINTS:
             self.flush()
@@ -166,17 +169,24 @@ class ScanRecorder:
             rr.TimeColumn(SCAN_TIMELINE, sequence=np.asarray(self._indices, dtype=np.int64)),
             rr.TimeColumn(TIME_TIMELINE, timestamp=np.asarray(self._stamps, dtype="datetime64[ns]")),
         ]
-        points = np.concatenate(self._points).reshape(-1, 2)
-        offsets = np.concatenate([[0], np.cumsum([len(p) for p in self._points])])
+        # Placed and thinned for the whole batch at once: per scan, numpy's call overhead was most of it.
+        counts = np.array([len(p) for p in self._points])
+        poses = np.stack(self._poses)
+        per_point = np.repeat(poses, counts, axis=0)
+        local = np.concatenate(self._points).reshape(-1, 2)
+        cos, sin = np.cos(per_point[:, 2]), np.sin(per_point[:, 2])
+        points = np.column_stack([cos * local[:, 0] - sin * local[:, 1] + per_point[:, 0],
+                                  sin * local[:, 0] + cos * local[:, 1] + per_point[:, 1]])
+        offsets = np.concatenate([[0], np.cumsum(counts)])
         keep, lengths = one_per_cell_each(points, offsets, PLAYBACK_CELL)
         self._recording.send_columns(
             SCAN_ENTITY,
             indexes=indexes,
             columns=rr.Points2D.columns(positions=points[keep].astype(np.float32)).partition(lengths),
         )
-        self._recording.send_columns(
-            ROBOT_ENTITY, indexes=indexes, columns=rr.Points2D.columns(positions=np.stack(self._poses))
-        )
+        robot = poses[:, :2].astype(np.float32)
+        self._recording.send_columns(ROBOT_ENTITY, indexes=indexes,
+                                     columns=rr.Points2D.columns(positions=robot))
         self._indices, self._stamps, self._points, self._poses = [], [], [], []
         self._buffered = 0
 
@@ -194,9 +204,10 @@ class ScanReplayRecording:
 
     def measurement(self, measurement: ScanInBase, estimate: ScanEstimate) -> None:
         scan, _ = measurement
-        if not np.all(np.isfinite(estimate.pose)):  # not placed yet (a run joining a saved map): no pose
-            return
-        self._scans.add(estimate.index, estimate.stamp_ns, place(scan.points, estimate.pose), estimate.pose)
+        x, y, theta = (float(value) for value in estimate.pose)
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(theta)):
+            return  # not placed yet (a run joining a saved map): no pose
+        self._scans.add(estimate.index, estimate.stamp_ns, scan.points, estimate.pose)
         if estimate.new_loop_closures:
             position = self._frontend.keyframe_position
             segments = np.array([[position(a), position(b)] for a, b in estimate.new_loop_closures])
