@@ -16,12 +16,16 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
+
+from frontends.slam3d.config import OdometryConfig
+from frontends.slam3d.odometry import KissOdometry, OdometryStep
 
 FloatArray = NDArray[np.float64]
 
@@ -389,3 +393,31 @@ def loop_drive() -> Drive:
     """Once around `town_loop` and about 12 m further (the start is seen again), 8 m/s after a 1 s
     start-up, a 32 × 720 LiDAR mounted 1.8 m up and pitched 2°. Cached: several test modules use it."""
     return drive(town_loop(), sweeps=LOOP_SWEEPS, step=LOOP_STEP, lidar=Lidar(columns=720))
+
+
+class DistortedOdometry:
+    """KISS-ICP whose every pose is then moved by `distortion(distance driven)` (a 4×4 transform applied
+    in the odometry frame): a drift that grows with the distance, as real LiDAR odometry drifts, which the
+    loop closures (and, for height, only the SE(3) polish) must take out."""
+
+    def __init__(self, distortion: Callable[[float], FloatArray],
+                 config: OdometryConfig | None = None) -> None:
+        self._inner = KissOdometry(config)
+        self._distortion = distortion
+        self._travel = 0.0
+        self._previous: FloatArray | None = None
+
+    def register(
+        self,
+        points: FloatArray,
+        point_times: FloatArray | None = None,
+        motion_guess: FloatArray | None = None,
+    ) -> OdometryStep | None:
+        step = self._inner.register(points, point_times, motion_guess)
+        if step is None:
+            return None
+        if self._previous is not None:
+            self._travel += float(np.linalg.norm(step.pose[:3, 3] - self._previous[:3, 3]))
+        self._previous = step.pose
+        drift = self._distortion(self._travel)
+        return OdometryStep(drift @ step.pose, step.points, drift @ step.points_pose, step.deskewed)
