@@ -44,7 +44,7 @@ from pipeline.api import (
 )
 from pipeline.config import ReplayConfig
 from pipeline.errors import OutputError, PipelineError
-from pipeline.outputs import recover_outputs, stop_signals_held
+from pipeline.outputs import raise_interrupt, recover_outputs, stop_signals_held
 
 OutcomeCallback = Callable[["BatchOutcome"], None]
 
@@ -301,19 +301,7 @@ def _on_worker_stop_signal(signum: int, frame: FrameType | None) -> None:
     if _worker_stopping and signum != signal.SIGALRM:
         return
     _worker_stopping = True
-    if _in_finaliser(frame):
-        # An exception raised in a __del__ is printed and dropped: try again once the finaliser returned.
-        signal.setitimer(signal.ITIMER_REAL, 0.05)
-        return
-    raise KeyboardInterrupt
-
-
-def _in_finaliser(frame: FrameType | None) -> bool:
-    while frame is not None:
-        if frame.f_code.co_name == "__del__":
-            return True
-        frame = frame.f_back
-    return False
+    raise_interrupt(frame)
 
 
 def _run_in_worker(path: Path, config: ReplayConfig, out_dir: Path) -> BatchOutcome:

@@ -833,6 +833,8 @@ def main() -> NoReturn:
     """Console-script entry point."""
     from threadpoolctl import threadpool_limits
 
+    from pipeline.outputs import raise_interrupt
+
     # Our linear algebra is many small vectors and 3×3 blocks: BLAS threads only add hand-off latency,
     # and on a busy machine their spinning made one 10k-element dot product take 8 ms instead of 5 µs.
     terminated: list[int] = []
@@ -841,12 +843,7 @@ def main() -> NoReturn:
         # SIGTERM is cleaned up like Ctrl-C (staged outputs removed, workers stopped), then reported as such.
         if signum == signal.SIGTERM:
             terminated.append(signum)
-        if _in_finaliser(frame):
-            # An exception raised in a __del__ is printed and dropped, and the interrupt lost: try again
-            # in a moment, once the finaliser has returned.
-            signal.setitimer(signal.ITIMER_REAL, 0.05)
-            return
-        raise KeyboardInterrupt
+        raise_interrupt(frame)
 
     for number in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
         signal.signal(number, on_signal)
@@ -870,14 +867,6 @@ def main() -> NoReturn:
     if terminated and code == EXIT_INTERRUPTED:
         code = 128 + signal.SIGTERM
     _exit_now(code)
-
-
-def _in_finaliser(frame: FrameType | None) -> bool:
-    while frame is not None:
-        if frame.f_code.co_name == "__del__":
-            return True
-        frame = frame.f_back
-    return False
 
 
 def _exit_now(code: int | str | None) -> NoReturn:

@@ -127,24 +127,22 @@ _BOUNDS: dict[tuple[str, str], dict[str, float]] = {
 }
 """Bounds of the numbers that need not be strictly positive (every other number must be)."""
 
-_FLOORS: dict[tuple[str, str], float] = {
-    ("slam2d.matching", "resolution"): 0.005,
-    ("slam2d.odometry", "angular_step"): 0.01,
-    ("slam2d.loop_closure", "angular_step"): 0.01,
-    ("slam3d.odometry", "voxel_size"): 0.01,
-    ("slam3d.keyframes", "cloud_voxel"): 0.01,
-    ("slam3d.loop_closure", "registration_voxel"): 0.01,
+_LIMITS: dict[tuple[str, str], tuple[float | None, float | None]] = {
+    # floors: steps and cells finer than these (m, degrees) multiply the work and memory of a search or a
+    # grid far beyond any use
+    ("slam2d.matching", "resolution"): (0.005, None),
+    ("slam2d.odometry", "angular_step"): (0.01, None),
+    ("slam2d.loop_closure", "angular_step"): (0.01, None),
+    ("slam3d.odometry", "voxel_size"): (0.01, None),
+    ("slam3d.keyframes", "cloud_voxel"): (0.01, None),
+    ("slam3d.loop_closure", "registration_voxel"): (0.01, None),
+    ("slam2d.matching", "max_range"): (None, 1000.0),
+    ("slam2d.keyframes", "max_turn_rate"): (None, 3600.0),
+    ("slam3d.odometry", "max_range"): (None, 1000.0),
+    ("slam3d.odometry", "min_range"): (None, 1000.0),
+    ("slam3d.se3_polish", "max_iterations"): (None, 1000.0),
 }
-"""Steps and cells finer than these (m, degrees) multiply the work and memory of a search or a grid far
-beyond any use."""
-
-_CEILINGS: dict[tuple[str, str], float] = {
-    ("slam2d.matching", "max_range"): 1000.0,
-    ("slam2d.keyframes", "max_turn_rate"): 3600.0,
-    ("slam3d.odometry", "max_range"): 1000.0,
-    ("slam3d.odometry", "min_range"): 1000.0,
-    ("slam3d.se3_polish", "max_iterations"): 1000.0,
-}
+"""(floor, ceiling) of a number, where they differ from `_BOUNDS` and `_MAX_NUMBER` / `_MAX_ANGLE`."""
 _MAX_NUMBER = 10_000.0
 """Every other number's upper bound (metres, counts, scales): far above any use, and low enough that no
 value in range can overflow a computation or size an allocation beyond the memory bound."""
@@ -154,10 +152,12 @@ _MAX_ANGLE = 360.0
 
 def _bounds(section: str, name: str) -> dict[str, float]:
     bounds = dict(_BOUNDS.get((section, name), _POSITIVE))
-    if (section, name) in _FLOORS:
+    floor, ceiling = _LIMITS.get((section, name), (None, None))
+    if floor is not None:
         bounds.pop("gt", None)
-        bounds["ge"] = _FLOORS[section, name]
-    ceiling = _CEILINGS.get((section, name), _MAX_ANGLE if is_angle_field(name) else _MAX_NUMBER)
+        bounds["ge"] = floor
+    if ceiling is None:
+        ceiling = _MAX_ANGLE if is_angle_field(name) else _MAX_NUMBER
     bounds["le"] = min(bounds.get("le", ceiling), ceiling)
     return bounds
 

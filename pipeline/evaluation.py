@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from optimizer import se2
 from pipeline.errors import PipelineError
-from pipeline.trajectory_io import DataFileError, parse_floats, parse_stamp_ns, read_data_lines, read_tum
+from pipeline.trajectory_io import DataFileError, read_rows, read_tum
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -31,9 +31,6 @@ DEFAULT_TOLERANCE_NS = 1_000_000
 
 _PLANAR_TOLERANCE = 1e-9
 """z, roll and pitch of a 2D relation are 0; anything beyond rounding means a 3D file."""
-
-_RELATION_FIELDS = ("x", "y", "z", "roll", "pitch", "yaw")
-
 
 class RelationsFileError(DataFileError):
     """A relations file is missing, unreadable, empty or has a malformed line."""
@@ -106,30 +103,18 @@ def read_relations(path: str | Path) -> Relations:
     stamps are parsed exactly to nanoseconds. Only planar relations are accepted (z = roll = pitch = 0):
     the metric here is the 2D one. Raises `RelationsFileError` naming `file:line`, or the file when empty.
     """
-    path = Path(path)
-    lines = read_data_lines(path, RelationsFileError)
-    if not lines:
-        raise RelationsFileError(path, "no relations (expected lines 't1 t2 x y z roll pitch yaw')")
-    first = np.empty(len(lines), dtype=np.int64)
-    second = np.empty(len(lines), dtype=np.int64)
-    values = np.empty((len(lines), 6))
-    for index, (number, fields) in enumerate(lines):
-        if len(fields) != 8:
-            raise RelationsFileError(
-                path, f"expected 8 fields 't1 t2 x y z roll pitch yaw', found {len(fields)}", number
-            )
-        try:
-            first[index] = parse_stamp_ns(fields[0])
-            second[index] = parse_stamp_ns(fields[1])
-            values[index] = parse_floats(fields[2:], _RELATION_FIELDS)
-        except ValueError as exc:
-            raise RelationsFileError(path, str(exc), number) from None
+    rows = read_rows(path, RelationsFileError, stamp_columns=2,
+                     value_names=("x", "y", "z", "roll", "pitch", "yaw"),
+                     layout="'t1 t2 x y z roll pitch yaw'",
+                     nothing="no relations (expected lines 't1 t2 x y z roll pitch yaw')")
+    values = rows.values
     not_planar = np.flatnonzero(np.any(np.abs(values[:, 2:5]) > _PLANAR_TOLERANCE, axis=1))
     if len(not_planar):
         raise RelationsFileError(
             path, "a 3D relation (z, roll or pitch not 0): only planar relations are supported",
-            lines[not_planar[0]][0],
+            int(rows.lines[not_planar[0]]),
         )
+    first, second = rows.stamps_ns[:, 0].copy(), rows.stamps_ns[:, 1].copy()
     return Relations(first, second, values[:, [0, 1, 5]].copy())
 
 

@@ -25,6 +25,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
 from typing import TYPE_CHECKING, Any
 
 from optimizer.errors import OptimizerError
@@ -147,6 +148,18 @@ def stop_signals_held(*, redeliver: bool = True) -> Iterator[None]:
             signal.raise_signal(number)
 
 
+def raise_interrupt(frame: FrameType | None) -> None:
+    """From a stop signal's handler: raise `KeyboardInterrupt`, which unwinds the run and removes its staged
+    outputs. An exception raised in a `__del__` is printed and dropped, and the interrupt lost: there, arm
+    SIGALRM (whose handler must call this too) to try again in a moment, once the finaliser has returned."""
+    while frame is not None:
+        if frame.f_code.co_name == "__del__":
+            signal.setitimer(signal.ITIMER_REAL, 0.05)
+            return
+        frame = frame.f_back
+    raise KeyboardInterrupt
+
+
 def _folder_error(directory: Path, error: OSError) -> OutputError:
     return OutputError(f"{directory}: cannot write in the folder: {error.strerror or error}")
 
@@ -233,12 +246,6 @@ def output_stem(path: str | Path) -> str:
     the file's stem (whether or not it exists yet)."""
     path = Path(path)
     return path.name if path.is_dir() else path.stem
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write `text` (UTF-8) to `path` through a temporary file and an atomic rename."""
-    with staged_outputs(path) as (temporary,):
-        write_text(temporary, text)
 
 
 def write_text(path: Path, text: str) -> None:

@@ -213,7 +213,38 @@ def parse_floats(fields: list[str], names: tuple[str, ...]) -> list[float]:
     return values
 
 
-_TUM_FIELDS = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
+@dataclass(frozen=True)
+class DataRows:
+    """The rows of a data file: the 1-based `lines` they stand on, their stamps (R, stamp columns) in
+    exact nanoseconds, and their other fields (R, value columns) as finite floats."""
+
+    lines: IntArray
+    stamps_ns: IntArray
+    values: FloatArray
+
+
+def read_rows(path: str | Path, error: type[DataFileError], *, stamp_columns: int,
+              value_names: tuple[str, ...], layout: str, nothing: str) -> DataRows:
+    """Read a whitespace-separated data file (`#` comments) whose every line holds `stamp_columns` stamps,
+    then the values named `value_names`. Raises `error` naming `file:line` for a malformed line (wrong
+    field count, described by `layout`; a stamp or number that does not parse or is not finite), and
+    naming the file, with `nothing`, when it holds no row."""
+    path = Path(path)
+    lines = read_data_lines(path, error)
+    if not lines:
+        raise error(path, nothing)
+    width = stamp_columns + len(value_names)
+    stamps = np.empty((len(lines), stamp_columns), dtype=np.int64)
+    values = np.empty((len(lines), len(value_names)))
+    for index, (number, fields) in enumerate(lines):
+        if len(fields) != width:
+            raise error(path, f"expected {width} fields {layout}, found {len(fields)}", number)
+        try:
+            stamps[index] = [parse_stamp_ns(text) for text in fields[:stamp_columns]]
+            values[index] = parse_floats(fields[stamp_columns:], value_names)
+        except ValueError as exc:
+            raise error(path, str(exc), number) from None
+    return DataRows(np.array([number for number, _ in lines], dtype=np.int64), stamps, values)
 
 
 def read_tum(path: str | Path) -> Trajectory:
@@ -222,26 +253,15 @@ def read_tum(path: str | Path) -> Trajectory:
     Raises `TrajectoryFileError` naming `file:line` for a malformed line (wrong field count, a number that
     does not parse or is not finite, a zero quaternion) and naming the file when it holds no pose.
     """
-    path = Path(path)
-    lines = read_data_lines(path, TrajectoryFileError)
-    if not lines:
-        raise TrajectoryFileError(path, "no poses (expected lines 'timestamp tx ty tz qx qy qz qw')")
-    stamps = np.empty(len(lines), dtype=np.int64)
-    values = np.empty((len(lines), 7))
-    for index, (number, fields) in enumerate(lines):
-        if len(fields) != 8:
-            raise TrajectoryFileError(
-                path, f"expected 8 fields 'timestamp tx ty tz qx qy qz qw', found {len(fields)}", number
-            )
-        try:
-            stamps[index] = parse_stamp_ns(fields[0])
-            values[index] = parse_floats(fields[1:], _TUM_FIELDS)
-        except ValueError as exc:
-            raise TrajectoryFileError(path, str(exc), number) from None
+    rows = read_rows(path, TrajectoryFileError, stamp_columns=1,
+                     value_names=("tx", "ty", "tz", "qx", "qy", "qz", "qw"),
+                     layout="'timestamp tx ty tz qx qy qz qw'",
+                     nothing="no poses (expected lines 'timestamp tx ty tz qx qy qz qw')")
+    values = rows.values
     zero = np.flatnonzero(~np.any(values[:, 3:] != 0.0, axis=1))
     if len(zero):
-        raise TrajectoryFileError(path, "the quaternion is zero", lines[zero[0]][0])
-    return Trajectory(stamps, values[:, :3].copy(), values[:, 3:].copy())
+        raise TrajectoryFileError(path, "the quaternion is zero", int(rows.lines[zero[0]]))
+    return Trajectory(rows.stamps_ns[:, 0].copy(), values[:, :3].copy(), values[:, 3:].copy())
 
 
 def write_kitti_poses(path: str | Path, transforms: ArrayLike) -> None:
@@ -259,23 +279,15 @@ def write_kitti_poses(path: str | Path, transforms: ArrayLike) -> None:
     write_text(Path(path), "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows.tolist()))
 
 
-_KITTI_FIELDS = ("r11", "r12", "r13", "tx", "r21", "r22", "r23", "ty", "r31", "r32", "r33", "tz")
-
-
 def read_kitti_poses(path: str | Path) -> FloatArray:
     """(S, 4, 4) poses of a KITTI-format file (12 numbers a line, `#` comments tolerated). Raises
     `TrajectoryFileError` naming `file:line` for a malformed line, and the file when it holds no pose."""
-    path = Path(path)
-    lines = read_data_lines(path, TrajectoryFileError)
-    if not lines:
-        raise TrajectoryFileError(path, "no poses (expected lines of 12 numbers: a 3×4 matrix row-major)")
-    out = np.zeros((len(lines), 4, 4))
+    rows = read_rows(path, TrajectoryFileError, stamp_columns=0,
+                     value_names=("r11", "r12", "r13", "tx", "r21", "r22", "r23", "ty", "r31", "r32", "r33",
+                                  "tz"),
+                     layout="(a 3×4 matrix)",
+                     nothing="no poses (expected lines of 12 numbers: a 3×4 matrix row-major)")
+    out = np.zeros((len(rows.values), 4, 4))
     out[:, 3, 3] = 1.0
-    for index, (number, fields) in enumerate(lines):
-        if len(fields) != 12:
-            raise TrajectoryFileError(path, f"expected 12 fields (a 3×4 matrix), found {len(fields)}", number)
-        try:
-            out[index, :3, :] = np.reshape(parse_floats(fields, _KITTI_FIELDS), (3, 4))
-        except ValueError as exc:
-            raise TrajectoryFileError(path, str(exc), number) from None
+    out[:, :3, :] = rows.values.reshape(-1, 3, 4)
     return out

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.errors import OutputError
-from pipeline.outputs import atomic_write_text, json_text, prepare_output_dir, staged_outputs
+from pipeline.outputs import json_text, prepare_output_dir, staged_outputs
 
 
 def test_staged_outputs_rename_all_on_success(tmp_path: Path) -> None:
@@ -86,14 +86,6 @@ def test_staged_outputs_require_every_file(tmp_path: Path) -> None:
             staged_outputs(tmp_path / "a.txt", tmp_path / "b.txt") as (first, _):
         first.write_text("only one")
     assert list(tmp_path.iterdir()) == []
-
-
-def test_atomic_write_text_replaces_whole_file(tmp_path: Path) -> None:
-    path = tmp_path / "summary.json"
-    path.write_text("old")
-    atomic_write_text(path, "χ² new\n")
-    assert path.read_text(encoding="utf-8") == "χ² new\n"
-    assert [entry.name for entry in tmp_path.iterdir()] == ["summary.json"]
 
 
 def test_prepare_output_dir(tmp_path: Path) -> None:
