@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from frontends.slam2d import one_per_cell
 from optimizer.iteration import Iteration
 from pipeline.recording import (
+    DEFAULT_BATCH_BYTES,
     ITERATION_TIMELINE,
     KEYFRAMES_ENTITY,
     MAP_COLOR,
@@ -34,6 +35,7 @@ from pipeline.recording import (
     OCCUPANCY_DRAW_ORDER,
     VIEWER_BACKGROUND,
     Bounds,
+    FloatArray,
 )
 
 OCCUPANCY_ENTITY = "world/occupancy"
@@ -50,14 +52,10 @@ OCCUPANCY_VIEW_COLORS = {
     GRID_UNKNOWN: (*VIEWER_BACKGROUND, 255),  # the viewer draws transparent image pixels black
 }
 
-DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
-
 SHOWN_MOVE = 0.05
 """A keyframe's transform gets a new row once it moved this far (m) from its last row …"""
 SHOWN_TURN = 0.0025
 """… or turned this much (rad: 5 cm at 20 m range): about a pixel of a building-sized map framed whole."""
-
-FloatArray = NDArray[np.float64]
 
 
 def keyframe_entity(index: int) -> str:

@@ -22,8 +22,10 @@ from numpy.typing import NDArray
 from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, one_per_cell_each
 from optimizer import se2
 from pipeline.recording import (
+    LINE_WIDTH,
     VIEWER_BACKGROUND,
     Bounds,
+    FloatArray,
     IterationSink,
     default_blueprint,
     map2d,
@@ -33,23 +35,14 @@ from pipeline.recording import (
 SCAN_TIMELINE = "scan"
 TIME_TIMELINE = "time"
 
-SCAN_ENTITY = "world/scan"
-ROBOT_ENTITY = "world/robot"
+SCAN_ENTITY, ROBOT_ENTITY = "world/scan", "world/robot"
 FOUND_LOOP_CLOSURES_ENTITY = "world/loop_closures_found"
-ODOMETRY_TRAJECTORY_ENTITY = "world/odometry_trajectory"
-FINAL_TRAJECTORY_ENTITY = "world/final_trajectory"
-
-SCAN_COLOR = (255, 210, 90, 255)
-ROBOT_COLOR = (90, 230, 120, 255)
-ODOMETRY_COLOR = (190, 150, 255, 200)
+ODOMETRY_TRAJECTORY_ENTITY, FINAL_TRAJECTORY_ENTITY = "world/odometry_trajectory", "world/final_trajectory"
+# Colours of the legend's rows; each entity's other looks are set where it is logged.
+SCAN_COLOR, ODOMETRY_COLOR = (255, 210, 90, 255), (190, 150, 255, 200)
 FINAL_TRAJECTORY_COLOR = (255, 140, 30, 255)
-FOUND_LOOP_COLOR = (255, 80, 220, 255)
-SCAN_POINT_RADIUS = rr.Radius.ui_points(1.0)
-ROBOT_RADIUS = rr.Radius.ui_points(2.0)
-LINE_WIDTH = rr.Radius.ui_points(1.25)
-FOUND_LOOP_WIDTH = rr.Radius.ui_points(2.5)
 
-HIDDEN_BY_DEFAULT = ("world/final_trajectory", "world/odometry_trajectory")
+HIDDEN_BY_DEFAULT = (FINAL_TRAJECTORY_ENTITY, ODOMETRY_TRAJECTORY_ENTITY)
 """Static trajectories the map view starts with switched off: drawn over the animated estimate they
 would hide it."""
 PLAYBACK_ENTITIES = (SCAN_ENTITY, ROBOT_ENTITY, FOUND_LOOP_CLOSURES_ENTITY)
@@ -92,38 +85,23 @@ PLAYBACK_CELL = 0.1
 """Each played-back scan keeps one point per cell of this size (m): the accumulated scans are drawn over
 the whole map, where a pixel is several centimetres, and they were the recording's largest part."""
 
-FloatArray = NDArray[np.float64]
-
 
 def log_scan_styles(recording: rr.RecordingStream) -> None:
-    recording.log(
-        SCAN_ENTITY, rr.Points2D.from_fields(colors=[SCAN_COLOR], radii=[SCAN_POINT_RADIUS], draw_order=20.0),
-        static=True,
-    )
-    recording.log(
-        ROBOT_ENTITY, rr.Points2D.from_fields(colors=[ROBOT_COLOR], radii=[ROBOT_RADIUS], draw_order=40.0),
-        static=True,
-    )
+    for entity, color, radius, draw_order in ((SCAN_ENTITY, SCAN_COLOR, 1.0, 20.0),
+                                              (ROBOT_ENTITY, (90, 230, 120, 255), 2.0, 40.0)):
+        recording.log(entity, rr.Points2D.from_fields(colors=[color], radii=[rr.Radius.ui_points(radius)],
+                                                      draw_order=draw_order), static=True)
 
 
-def log_odometry_trajectory(recording: rr.RecordingStream, poses: FloatArray) -> None:
-    """What wheel odometry alone believed (static, beside the SLAM estimate)."""
-    if len(poses) >= 2:
-        recording.log(
-            ODOMETRY_TRAJECTORY_ENTITY,
-            rr.LineStrips2D([poses[:, :2].astype(np.float32)], colors=[ODOMETRY_COLOR], radii=[LINE_WIDTH]),
-            static=True,
-        )
+def log_static_trajectory(recording: rr.RecordingStream, entity: str, poses: FloatArray,
+                          color: tuple[int, ...]) -> None:
+    """A trajectory beside the SLAM estimate: what wheel odometry alone believed, the final poses."""
+    recording.log(entity, rr.LineStrips2D([poses[:, :2].astype(np.float32)], colors=[color],
+                                          radii=[LINE_WIDTH]), static=True)
 
 
 def log_final_trajectory(recording: rr.RecordingStream, poses: FloatArray) -> None:
-    recording.log(
-        FINAL_TRAJECTORY_ENTITY,
-        rr.LineStrips2D(
-            [poses[:, :2].astype(np.float32)], colors=[FINAL_TRAJECTORY_COLOR], radii=[LINE_WIDTH]
-        ),
-        static=True,
-    )
+    log_static_trajectory(recording, FINAL_TRAJECTORY_ENTITY, poses, FINAL_TRAJECTORY_COLOR)
 
 
 def log_loop_closures_found(
@@ -134,8 +112,8 @@ def log_loop_closures_found(
     recording.set_time(TIME_TIMELINE, timestamp=np.datetime64(int(stamp_ns), "ns"))
     recording.log(
         FOUND_LOOP_CLOSURES_ENTITY,
-        rr.LineStrips2D(segments.astype(np.float32), colors=[FOUND_LOOP_COLOR], radii=[FOUND_LOOP_WIDTH],
-                        draw_order=45.0),
+        rr.LineStrips2D(segments.astype(np.float32), colors=[(255, 80, 220, 255)],
+                        radii=[rr.Radius.ui_points(2.5)], draw_order=45.0),
     )
     recording.reset_time()
 
@@ -218,7 +196,9 @@ class ScanReplayRecording:
         if self._frontend.odometry_poses:
             # In the map frame, which starts at the first scan: the odometry seen from its own first pose.
             track = np.array(self._frontend.odometry_poses)
-            log_odometry_trajectory(self._recording, se2.relative(track[0], track))
+            if len(track) >= 2:
+                log_static_trajectory(self._recording, ODOMETRY_TRAJECTORY_ENTITY,
+                                      se2.relative(track[0], track), ODOMETRY_COLOR)
 
     def iteration_sink(self) -> IterationSink | None:
         return None
