@@ -17,6 +17,7 @@ it never prints or exits. The heavy modules (rerun, numba) are imported on the f
 from __future__ import annotations
 
 import dataclasses
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
@@ -230,32 +231,22 @@ def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: S
                                slam3d=config.to_slam3d(), on_measurement=on_scan, on_iteration=on_iteration,
                                session=session)
     graph = detail.frontend.keyframe_graph(detail.keyframe_poses)
-    if detail.optimization is None:  # localized in a saved map: its graph, unchanged, nothing optimized
-        saved_chi2 = float(chi2(graph))
-        stats = ReplayStats(
-            poses=graph.num_poses, constraints=graph.num_edges,
-            loop_closures=int((~graph.is_odometry).sum()), loop_closures_rejected=0,
-            scans=detail.measurements, iterations={}, chi2_initial=saved_chi2, chi2_final=saved_chi2,
-            wall_time_s=dict(detail.wall_time), converged=True,
-            stop_reason="localization in a saved map: nothing optimized",
-        )
-        return ReplayResult(path, "log", graph, detail.planar_poses, detail.stamps_ns, stats,
-                            detail.outputs.paths(), module.summary(detail), detail)
-    iterations: dict[str, int] = {}
-    for stage, _, _ in detail.chi2_per_iteration[1:]:
-        iterations[stage] = iterations.get(stage, 0) + 1
+    optimization = detail.optimization  # None: localized in a saved map, its graph unchanged
+    chi2_final = float(chi2(graph))
     stats = ReplayStats(
         poses=graph.num_poses,
         constraints=graph.num_edges,
-        loop_closures=detail.loop_closures["accepted"],
-        loop_closures_rejected=detail.loop_closures["rejected"],
+        loop_closures=(int((~graph.is_odometry).sum()) if optimization is None
+                       else detail.loop_closures["accepted"]),
+        loop_closures_rejected=0 if optimization is None else detail.loop_closures["rejected"],
         scans=detail.measurements,
-        iterations=iterations,
-        chi2_initial=detail.chi2_per_iteration[0][2],
-        chi2_final=float(chi2(graph)),
+        iterations=dict(Counter(stage for stage, _, _ in detail.chi2_per_iteration[1:])),
+        chi2_initial=chi2_final if optimization is None else detail.chi2_per_iteration[0][2],
+        chi2_final=chi2_final,
         wall_time_s=dict(detail.wall_time),
-        converged=detail.optimization.converged,
-        stop_reason=detail.optimization.reason,
+        converged=True if optimization is None else optimization.converged,
+        stop_reason=("localization in a saved map: nothing optimized" if optimization is None
+                     else optimization.reason),
     )
     return ReplayResult(path, "log", graph, detail.planar_poses, detail.stamps_ns, stats,
                         detail.outputs.paths(), module.summary(detail), detail)

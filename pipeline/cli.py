@@ -263,21 +263,13 @@ def run(
              "localization.")] = None,
 ) -> None:
     """Replay logs (or optimise pose graphs), recording every iteration, and write the results to DIR."""
-    overrides: dict[str, dict[str, Any]] = {"optimizer": {}, "input": {}}
-    if method is not None:
-        overrides["optimizer"]["method"] = str(method.value)
-    if iterations is not None:
-        overrides["optimizer"]["iterations"] = iterations
-    if robust is not None:
-        overrides["optimizer"]["robust"] = str(robust.value)
-    if scan_topic is not None:
-        overrides["input"]["scan_topic"] = scan_topic
-    if odom_topic is not None:
-        overrides["input"]["odom_topic"] = odom_topic
-    if base_frame is not None:
-        overrides["input"]["base_frame"] = base_frame
-    if repair_information:
-        overrides["input"]["repair_information"] = True
+    # The options that set configuration keys (named alike: --scan-topic sets [input] scan_topic), given.
+    overrides = _given({
+        "optimizer": {"method": method and method.value, "iterations": iterations,
+                      "robust": robust and robust.value},
+        "input": {"scan_topic": scan_topic, "odom_topic": odom_topic, "base_frame": base_frame,
+                  "repair_information": repair_information or None},
+    })
     try:
         config = _load_config(config_file, overrides)
     except KNOWN_ERRORS as error:
@@ -290,13 +282,11 @@ def run(
     session_options = _session_options(map_session, continue_session, initial_pose, sources or [],
                                        several=inputs_from is not None or ray_address is not None)
     if session_options:
-        _refuse_options_without_use(sources or [], None, scan_topic, odom_topic, base_frame,
-                                    repair_information)
+        _refuse_options_without_use(sources or [], None, overrides["input"])
         if map_session is not None:
-            for option, value in (("--method", method), ("--iterations", iterations), ("--robust", robust)):
-                if value is not None:
-                    _fail(PipelineError(f"{option} has nothing to optimize with --map (localization only: "
-                                        "the saved map is not changed)"))
+            for key in overrides["optimizer"]:
+                _fail(PipelineError(f"{_option(key)} has nothing to optimize with --map (localization only: "
+                                    "the saved map is not changed)"))
         outcomes = _run_in_process(sources or [], config, out, show_progress, several=False,
                                    replay_options=session_options)
         _report(outcomes, quiet=quiet, as_json=as_json)
@@ -305,8 +295,7 @@ def run(
     ray = _ray_options(ray_address, cpus_per_task, retries, jobs)
     if inputs_from is not None:
         sources = [*(sources or []), *_listed_inputs(inputs_from, out)]
-    _refuse_options_without_use(sources or [], inputs_from, scan_topic, odom_topic, base_frame,
-                                repair_information)
+    _refuse_options_without_use(sources or [], inputs_from, overrides["input"])
     if not sources:
         with sample_input() as sample:
             if ray is not None:
@@ -352,20 +341,29 @@ def _exit_for(outcomes: Sequence[BatchOutcome], *, quiet: bool, allow_unconverge
         raise typer.Exit(EXIT_UNCONVERGED)
 
 
-def _refuse_options_without_use(sources: Sequence[Path], inputs_from: Path | None, scan_topic: str | None,
-                                odom_topic: str | None, base_frame: str | None,
-                                repair_information: bool) -> None:
-    """Options that apply to no input named on the command line are errors, not silently ignored."""
+def _given(options: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Section → key → value of the options given (None: not given)."""
+    return {section: {key: value for key, value in values.items() if value is not None}
+            for section, values in options.items()}
+
+
+def _option(key: str) -> str:
+    """The option that sets configuration key `key`."""
+    return "--" + key.replace("_", "-")
+
+
+def _refuse_options_without_use(sources: Sequence[Path], inputs_from: Path | None,
+                                input_options: dict[str, Any]) -> None:
+    """Options that apply to no input named on the command line are errors, not silently ignored.
+    `input_options`: the [input] keys given as options."""
     if inputs_from is not None:  # what the list holds is not known yet
         return
     kinds = {input_kind(path) for path in sources} if sources else {"log"}  # no input: the sample log
-    if "graph" not in kinds and repair_information:
+    if "graph" not in kinds and "repair_information" in input_options:
         _fail(PipelineError("--repair-information applies to pose-graph inputs only, and no input is one"))
     if "log" not in kinds:
-        for option, value in (("--scan-topic", scan_topic), ("--odom-topic", odom_topic),
-                              ("--base-frame", base_frame)):
-            if value is not None:
-                _fail(PipelineError(f"{option} applies to logs only, and every input is a pose graph"))
+        for key in (key for key in input_options if key != "repair_information"):
+            _fail(PipelineError(f"{_option(key)} applies to logs only, and every input is a pose graph"))
 
 
 _NUMBER = r"\s*[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\s*"
