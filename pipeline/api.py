@@ -16,7 +16,6 @@ it never prints or exits. The heavy modules (rerun, numba) are imported on the f
 
 from __future__ import annotations
 
-import dataclasses
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
@@ -214,8 +213,7 @@ def _replay_graph_file(path: Path, config: ReplayConfig, out_dir: Path,
         stop_reason=detail.optimization.reason,
     )
     return ReplayResult(path, "graph", graph.with_poses(detail.poses), detail.poses, None, stats,
-                        _outputs(detail.outputs),
-                        module.summary(detail), detail)
+                        detail.outputs.paths(), module.summary(detail), detail)
 
 
 def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: ScanCallback | None,
@@ -250,11 +248,6 @@ def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: S
     )
     return ReplayResult(path, "log", graph, detail.planar_poses, detail.stamps_ns, stats,
                         detail.outputs.paths(), module.summary(detail), detail)
-
-
-def _outputs(outputs: Any) -> dict[str, Path]:
-    """The output paths of a replay's outputs dataclass, by field name ("rrd", "g2o", …)."""
-    return {item.name: getattr(outputs, item.name) for item in dataclasses.fields(outputs)}
 
 
 def expected_scans(path: str | Path, scan_topic: str | None = None) -> int | None:

@@ -108,17 +108,15 @@ def one_line(error: BaseException) -> str:
     return " ".join(str(error).split()) or type(error).__name__
 
 
-def duplicate_outputs(paths: Sequence[Path]) -> list[tuple[Path, Path]]:
-    """Pairs of inputs whose outputs would have the same names (same stem): one would overwrite the other."""
+def refuse_clashing_outputs(paths: Sequence[Path], out_dir: str | Path) -> None:
+    """Raise `PipelineError` naming the first two inputs whose outputs would have the same names (same
+    stem) in `out_dir`: one would overwrite the other."""
     first_with_stem: dict[str, Path] = {}
-    clashes = []
     for path in paths:
-        stem = output_stem(path)
-        if stem in first_with_stem:
-            clashes.append((first_with_stem[stem], path))
-        else:
-            first_with_stem[stem] = path
-    return clashes
+        first = first_with_stem.setdefault(output_stem(path), path)
+        if first is not path:
+            raise PipelineError(f"{first} and {path} would write the same outputs ({output_stem(path)}.*) in "
+                                f"{out_dir}; replay them into different folders (--out)")
 
 
 def run_one(
@@ -185,11 +183,7 @@ def run_batch(
     if ray is not None and jobs > 1:
         raise PipelineError("choose jobs (worker processes here) or ray (tasks on a cluster), not both")
     inputs = [Path(path) for path in paths]
-    clashes = duplicate_outputs(inputs)
-    if clashes:
-        first, second = clashes[0]
-        raise PipelineError(f"{first} and {second} would write the same outputs ({output_stem(first)}.*) "
-                            "in one folder; replay them into different folders (--out)")
+    refuse_clashing_outputs(inputs, out_dir)
     config = config if config is not None else ReplayConfig()
     if ray is not None:
         from pipeline.ray_batch import run_batch_on_ray

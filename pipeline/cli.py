@@ -303,13 +303,12 @@ def run(
             else:
                 outcomes = _run_in_process([sample], config, out, show_progress, several=False)
     else:
-        from pipeline.batch import duplicate_outputs
+        from pipeline.batch import refuse_clashing_outputs
 
-        clashes = duplicate_outputs(sources)
-        if clashes:
-            first, second = clashes[0]
-            _fail(PipelineError(f"{first} and {second} would write the same outputs in {out}; "
-                                "replay them separately with different --out folders"))
+        try:
+            refuse_clashing_outputs(sources, out)
+        except PipelineError as error:
+            _fail(error)
         if ray is not None or (jobs > 1 and len(sources) > 1):
             outcomes = _run_in_pool(sources, config, out, jobs, show_progress, ray)
         else:

@@ -26,6 +26,7 @@ from optimizer.iteration import Iteration
 from optimizer.solve import OptimizationResult, optimize
 from pipeline import recording
 from pipeline.recording import IterationSink, map2d, scans
+from pipeline.replay_graph import optimization_recorder, record_optimization
 
 IterationCallback = Callable[[Iteration], None]
 
@@ -63,55 +64,33 @@ def optimize_keyframes(
     to `stream`; the lowest final χ² wins. The graphs hold the same constraints around different
     estimates. With `keyframe_scans` (each keyframe's 2D points in its own frame) the walls are recorded
     moving with the keyframes, and the blueprint frames the final map."""
-    record_started = time.perf_counter()
-    loops = ~from_odometry.is_odometry
-    recording.log_styles(stream)
-    recording.log_legend(stream, scans.LEGEND_ROWS if keyframe_scans is not None else {})
+    started = time.perf_counter()
     first_start = from_odometry.poses if wheel_odometry is None else wheel_odometry
-    recording.log_initial_trajectory(stream, first_start)
     recording.log_run_properties(stream, {
         "method": method,
         "keyframes": from_odometry.num_poses,
         "constraints": from_odometry.num_edges,
-        "loop_closures": int(loops.sum()),
+        "loop_closures": int((~from_odometry.is_odometry).sum()),
     }, name=recording.OPTIMIZATION_PROPERTY)
     # Log replays draw the trajectory only when it moved as much as the walls must to be redrawn.
-    recorder = recording.IterationRecorder(
-        stream, from_odometry.edge_from[loops], from_odometry.edge_to[loops],
-        still_move=map2d.SHOWN_MOVE if keyframe_scans is not None else None,
-    )
+    recorder = optimization_recorder(stream, from_odometry, first_start,
+                                     legend=scans.LEGEND_ROWS if keyframe_scans is not None else None,
+                                     still_move=map2d.SHOWN_MOVE if keyframe_scans is not None else None)
     sinks: list[IterationSink] = [] if sink is None else [sink]
     if keyframe_scans is not None:
         sinks.append(map2d.KeyframeMapRecorder(stream, keyframe_scans))
-    if not loops.any():
-        recording.log_note(stream, recording.NO_LOOP_CLOSURES_NOTE)
-    record_seconds = time.perf_counter() - record_started
-    trace: list[tuple[str, int, float]] = []
-    final = from_odometry.poses
     starts = {"odometry": from_odometry.poses, "online": online.poses}
     if wheel_odometry is not None:
         starts = {WHEEL_ODOMETRY_START: np.asarray(wheel_odometry, dtype=np.float64), **starts}
     optimization = optimize(from_odometry, method=method, iterations=iterations, starts=starts,
                             robust=robust)
-    for iteration in optimization:
-        record_started = time.perf_counter()
-        step = recorder.add(iteration)
-        for each in sinks:
-            each.add(step, iteration)
-        record_seconds += time.perf_counter() - record_started
-        trace.append((iteration.stage, iteration.index, float(iteration.chi2)))
-        final = iteration.poses
-        if on_iteration is not None:
-            on_iteration(iteration)
-    record_started = time.perf_counter()
-    recorder.flush()
-    for each in sinks:
-        each.flush()
+    run = record_optimization(optimization, recorder, sinks, on_iteration)
     if keyframe_scans is not None:
-        bounds = map2d.placed_bounds(keyframe_scans, np.asarray(final))
+        bounds = map2d.placed_bounds(keyframe_scans, run.final_poses)
         recording.send_blueprint(stream, scans.log_replay_blueprint(bounds))
-    record_seconds += time.perf_counter() - record_started
-    return KeyframeOptimization(tuple(trace), np.array(final), optimization.result, record_seconds)
+    record_seconds = time.perf_counter() - started - sum(run.optimize_time.values())
+    trace = tuple((record.stage, record.index, record.chi2) for record in run.trace)
+    return KeyframeOptimization(trace, run.final_poses, run.result, record_seconds)
 
 
 def wheel_odometry_start(

@@ -5,8 +5,9 @@ Library code: it raises `OptimizerError` (bad input) or `PipelineError` (outputs
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,10 +18,10 @@ from numpy.typing import NDArray
 from optimizer.graph import PoseGraph
 from optimizer.graph_files import GraphFile, read_graph, write_g2o
 from optimizer.iteration import ESTIMATE, Iteration
-from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult, optimize
+from optimizer.solve import DEFAULT_METHOD, METHODS, Optimization, OptimizationResult, optimize
 from pipeline import recording
 from pipeline.errors import PipelineError
-from pipeline.outputs import json_text, optimization_summary, staged_outputs_in, write_text
+from pipeline.outputs import json_text, optimization_summary, output_stem, staged_outputs_in, write_text
 
 ProgressCallback = Callable[[Iteration], None]
 """Called with every iteration as the optimizer yields it (the initial estimate first)."""
@@ -51,11 +52,12 @@ class ReplayOutputs:
 
     @classmethod
     def for_input(cls, out_dir: Path, input_path: Path) -> ReplayOutputs:
-        stem = input_path.stem
+        stem = output_stem(input_path)
         return cls(out_dir / f"{stem}.g2o", out_dir / f"{stem}.json", out_dir / f"{stem}.rrd")
 
-    def as_tuple(self) -> tuple[Path, Path, Path]:
-        return self.g2o, self.json, self.rrd
+    def paths(self) -> dict[str, Path]:
+        """Kind ("g2o", "json", "rrd") → path, as the log replay's outputs give them."""
+        return {"g2o": self.g2o, "json": self.json, "rrd": self.rrd}
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,7 +142,8 @@ def replay_graph(
     graph_file = read_graph(path, repair_information=repair_information)
     loaded = time.perf_counter()
     outputs = ReplayOutputs.for_input(out_dir, path)
-    with staged_outputs_in(out_dir, *outputs.as_tuple()) as (g2o_temporary, json_temporary, rrd_temporary):
+    staged = staged_outputs_in(out_dir, *outputs.paths().values())
+    with staged as (g2o_temporary, json_temporary, rrd_temporary):
         run = _optimize_and_record(graph_file, rrd_temporary, method, iterations, progress, robust)
         optimized = time.perf_counter()
         write_g2o(g2o_temporary, graph_file.graph, run.final_poses)
@@ -172,15 +175,65 @@ def replay_graph(
 
 
 @dataclass(frozen=True, eq=False)
-class _RecordedRun:
+class RecordedOptimization:
+    """An optimization run to its end with every iteration recorded (`record_optimization`)."""
+
     trace: tuple[IterationRecord, ...]
     final_poses: NDArray[np.float64]
     result: OptimizationResult
     optimize_time: dict[str, float]
     """Seconds spent inside the optimizer, per optimizer stage."""
     record_seconds: float
-    """Seconds of the run outside the optimizer: logging to the recording (including closing it) and the
-    progress callback."""
+    """Seconds outside the optimizer: logging to the recording and the `on_iteration` callback."""
+
+
+def optimization_recorder(stream: Any, graph: PoseGraph, initial_poses: NDArray[np.float64], *,
+                          legend: Mapping[str, tuple[tuple[int, ...], str]] | None = None,
+                          still_move: float | None = None,
+                          still_fraction: float | None = None) -> recording.IterationRecorder:
+    """Start the optimization part of a recording of `graph` (styles, legend, the starting estimate
+    `initial_poses`, a note when it has no loop closure) and the recorder of its iterations."""
+    recording.log_styles(stream)
+    recording.log_legend(stream, legend or {})
+    recording.log_initial_trajectory(stream, initial_poses)
+    loops = ~graph.is_odometry
+    if not loops.any():
+        recording.log_note(stream, recording.NO_LOOP_CLOSURES_NOTE)
+    return recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops],
+                                       still_move=still_move, still_fraction=still_fraction)
+
+
+def record_optimization(optimization: Optimization, recorder: recording.IterationRecorder,
+                        sinks: Sequence[recording.IterationSink] = (),
+                        on_iteration: ProgressCallback | None = None) -> RecordedOptimization:
+    """Run `optimization`, adding every iteration to `recorder` and `sinks` (flushed at the end) and
+    passing it to `on_iteration`, timing the optimizer apart from the rest."""
+    started = time.perf_counter()
+    trace: list[IterationRecord] = []
+    optimize_time: dict[str, float] = {}
+    final_poses = None
+    iterator = iter(optimization)
+    while True:
+        step_started = time.perf_counter()
+        iteration = next(iterator, None)
+        if iteration is None:
+            break
+        stage_seconds = time.perf_counter() - step_started
+        optimize_time[iteration.stage] = optimize_time.get(iteration.stage, 0.0) + stage_seconds
+        step = recorder.add(iteration)
+        for sink in sinks:
+            sink.add(step, iteration)
+        trace.append(IterationRecord(step, iteration.stage, iteration.index, float(iteration.chi2),
+                                     iteration.start))
+        final_poses = iteration.poses
+        if on_iteration is not None:
+            on_iteration(iteration)
+    recorder.flush()
+    for sink in sinks:
+        sink.flush()
+    record_seconds = time.perf_counter() - started - sum(optimize_time.values())
+    return RecordedOptimization(tuple(trace), np.array(final_poses, dtype=np.float64), optimization.result,
+                                optimize_time, record_seconds)
 
 
 def _optimize_and_record(
@@ -190,12 +243,9 @@ def _optimize_and_record(
     iterations: int | None,
     progress: ProgressCallback | None,
     robust: str | None = None,
-) -> _RecordedRun:
+) -> RecordedOptimization:
     """Run the optimizer and log every iteration to a recording saved at `rrd_path`."""
     graph = graph_file.graph
-    trace: list[IterationRecord] = []
-    optimize_time: dict[str, float] = {}
-    final_poses = graph.poses
     started = time.perf_counter()
     stream = recording.create_recording(rrd_path, name=graph_file.path.stem)
     try:
@@ -206,38 +256,17 @@ def _optimize_and_record(
             "poses": graph.num_poses,
             "constraints": graph.num_edges,
         })
-        recording.log_styles(stream)
-        recording.log_legend(stream)
-        recording.log_initial_trajectory(stream, graph.poses)
-        loops = ~graph.is_odometry
-        recorder = recording.IterationRecorder(stream, graph.edge_from[loops], graph.edge_to[loops],
-                                               still_fraction=recording.STILL_FRACTION)
-        if not loops.any():
-            recording.log_note(stream, recording.NO_LOOP_CLOSURES_NOTE)
-        optimization = optimize(graph, method=method, iterations=iterations, robust=robust)
-        iterator = iter(optimization)
-        while True:
-            step_started = time.perf_counter()
-            iteration = next(iterator, None)
-            if iteration is None:
-                break
-            stage_seconds = time.perf_counter() - step_started
-            optimize_time[iteration.stage] = optimize_time.get(iteration.stage, 0.0) + stage_seconds
-            step = recorder.add(iteration)
-            trace.append(IterationRecord(step, iteration.stage, iteration.index, float(iteration.chi2),
-                                         iteration.start))
-            final_poses = iteration.poses
-            if progress is not None:
-                progress(iteration)
-        recorder.flush()
+        recorder = optimization_recorder(stream, graph, graph.poses, still_fraction=recording.STILL_FRACTION)
+        run = record_optimization(optimize(graph, method=method, iterations=iterations, robust=robust),
+                                  recorder, on_iteration=progress)
         # The default view frames the final graph (the starting estimate may sprawl far beyond it).
-        bounds = recording.world_bounds(final_poses)
+        bounds = recording.world_bounds(run.final_poses)
         recording.send_blueprint(stream, recording.default_blueprint(bounds=bounds))
     finally:
         recording.close_recording(stream)
-    record_seconds = time.perf_counter() - started - sum(optimize_time.values())
-    return _RecordedRun(tuple(trace), np.array(final_poses, dtype=np.float64), optimization.result,
-                        optimize_time, record_seconds)
+    # Creating, framing and closing the recording count as recording too.
+    record_seconds = time.perf_counter() - started - sum(run.optimize_time.values())
+    return dataclasses.replace(run, record_seconds=record_seconds)
 
 
 def summary(result: GraphReplayResult) -> dict[str, Any]:
@@ -265,6 +294,6 @@ def summary(result: GraphReplayResult) -> dict[str, Any]:
         ],
         "wall_time_s": dict(result.wall_time),
         "optimize_time_s": dict(result.optimize_time),
-        "outputs": {kind: str(getattr(result.outputs, kind)) for kind in ("g2o", "json", "rrd")},
+        "outputs": {kind: str(path) for kind, path in result.outputs.paths().items()},
     }
 

@@ -321,18 +321,10 @@ def log_legend(recording: rr.RecordingStream, extra: Mapping[str, tuple[tuple[in
 def log_styles(recording: rr.RecordingStream) -> None:
     """Static colours, widths, draw order, labels and series names; the per-iteration columns then carry
     geometry only."""
-    recording.log(
-        TRAJECTORY_ENTITY,
-        rr.LineStrips2D.from_fields(colors=[TRAJECTORY_COLOR], radii=[LINE_WIDTH],
-                                    draw_order=TRAJECTORY_DRAW_ORDER),
-        static=True,
-    )
-    recording.log(
-        LOOP_CLOSURES_ENTITY,
-        rr.LineStrips2D.from_fields(colors=[LOOP_CLOSURE_COLOR], radii=[LINE_WIDTH],
-                                    draw_order=LOOP_CLOSURE_DRAW_ORDER),
-        static=True,
-    )
+    for entity, color, draw_order in ((TRAJECTORY_ENTITY, TRAJECTORY_COLOR, TRAJECTORY_DRAW_ORDER),
+                                      (LOOP_CLOSURES_ENTITY, LOOP_CLOSURE_COLOR, LOOP_CLOSURE_DRAW_ORDER)):
+        recording.log(entity, rr.LineStrips2D.from_fields(colors=[color], radii=[LINE_WIDTH],
+                                                          draw_order=draw_order), static=True)
     recording.log(CHI2_ENTITY, rr.SeriesLines(names="χ²"), static=True)
     recording.log(LOG10_CHI2_ENTITY, rr.SeriesLines(names="log10 χ²"), static=True)
 
