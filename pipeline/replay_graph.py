@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,11 +101,8 @@ class GraphReplayResult:
     def iterations_per_stage(self) -> dict[str, int]:
         """Number of iterations of each optimizer stage over every candidate, in the order they ran (without
         the starting estimates and the selection)."""
-        counts: dict[str, int] = {}
-        for record in self.iterations:
-            if record.stage not in ("initial", "selected"):
-                counts[record.stage] = counts.get(record.stage, 0) + 1
-        return counts
+        return dict(Counter(record.stage for record in self.iterations
+                            if record.stage not in ("initial", "selected")))
 
     @property
     def num_loop_closures(self) -> int:
