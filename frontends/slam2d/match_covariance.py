@@ -6,15 +6,15 @@ or a few clutter points make it look sharp along the corridor, while the score, 
 on the map, barely changes over a metre there. `score_plateau` samples the score over translations
 around the match (at its heading) and returns the spread of the ones scoring within `PLATEAU_RATIO` of the
 best: a few centimetres where the scan pins the pose, the length of the look-alike stretch where it does
-not. `slide_to_prior` then lets the prediction (wheel odometry) decide the pose along such a stretch and
-widens the match's covariance by the plateau, so neither the scan's estimate nor the keyframe graph trusts
-a match along the direction it cannot measure.
+not. `slide_to_prior` then lets the prediction (wheel odometry) decide the pose along such a stretch, when
+the prediction lies on the plateau itself, and widens the match's covariance by the plateau, so neither
+the scan's estimate nor the keyframe graph trusts a match along the direction it cannot measure.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -72,6 +72,18 @@ class ScorePlateau:
     covariance: FloatArray
     """(2, 2) spread (m²) of the translations whose score is within `PLATEAU_RATIO` of the best sampled."""
     best_score: float
+    members: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    """(P, 2) the plateau's sampled translations (m), relative to the pose it was sampled around."""
+    spacing: float = 0.0
+    """Distance between samples (m)."""
+
+    def holds(self, offset: FloatArray) -> bool:
+        """Whether a translation `offset` (m) from the sampled pose lies on the plateau (its nearest sample
+        is a member)."""
+        if len(self.members) == 0:
+            return False
+        distance = np.abs(self.members - np.asarray(offset)[:2]).max(axis=1)
+        return bool(distance.min() <= 0.5 * self.spacing + 1e-9)
 
     @property
     def long_axis(self) -> tuple[float, FloatArray]:
@@ -99,7 +111,7 @@ def score_plateau(points: FloatArray, grid: LikelihoodGrid, pose: FloatArray, *,
     rows, columns = np.nonzero(scores >= ratio * best)
     offsets = np.column_stack([columns - steps, rows - steps]) * (step_cells * grid.resolution)
     centred = offsets - offsets.mean(axis=0)
-    return ScorePlateau(centred.T @ centred / len(offsets), best)
+    return ScorePlateau(centred.T @ centred / len(offsets), best, offsets, step_cells * grid.resolution)
 
 
 def slide_to_prior(pose: FloatArray, information: FloatArray, prior: FloatArray,
@@ -107,8 +119,11 @@ def slide_to_prior(pose: FloatArray, information: FloatArray, prior: FloatArray,
     """The match (`pose`, `information`) with a sliding plateau taken into account: along the plateau's long
     axis the pose moves toward the prior as a Gaussian fusion of the two weighs them (the match's
     variance there being the plateau's), across it and in heading it stays; the information is that of
-    the match's covariance widened by the plateau. A plateau that is no slide changes nothing."""
-    if not plateau.is_slide:
+    the match's covariance widened by the plateau. A plateau that is no slide, or a prior off the
+    plateau, changes nothing."""
+    # Only a prediction the scan cannot tell from the match decides: one off the plateau (wheel odometry
+    # that slipped, a constant-velocity guess at a turn) is worse than the match, which then stands.
+    if not plateau.is_slide or not plateau.holds(np.asarray(prior[:2]) - np.asarray(pose[:2])):
         return pose, information
     sigma, axis = plateau.long_axis
     prior_variance = float(axis @ np.linalg.inv(prior_information)[:2, :2] @ axis)
