@@ -14,7 +14,7 @@ the scan's estimate nor the keyframe graph trusts a match along the direction it
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -67,23 +67,52 @@ def _plateau_scores(values: NDArray[np.float32], origin: FloatArray, resolution:
     return scores
 
 
+@njit(cache=True)
+def _plateau_covariance(scores: FloatArray, threshold: float, spacing: float) -> FloatArray:
+    """(2, 2) covariance (m²) of the sample offsets whose score reaches `threshold`."""
+    reach = (scores.shape[0] - 1) // 2
+    count = 0
+    sx = sy = sxx = sxy = syy = 0.0
+    for j in range(scores.shape[0]):
+        for i in range(scores.shape[1]):
+            if scores[j, i] >= threshold:
+                x = (i - reach) * spacing
+                y = (j - reach) * spacing
+                count += 1
+                sx += x
+                sy += y
+                sxx += x * x
+                sxy += x * y
+                syy += y * y
+    covariance = np.zeros((2, 2))
+    if count > 0:
+        mx = sx / count
+        my = sy / count
+        covariance[0, 0] = sxx / count - mx * mx
+        covariance[0, 1] = covariance[1, 0] = sxy / count - mx * my
+        covariance[1, 1] = syy / count - my * my
+    return covariance
+
+
 @dataclass(frozen=True, eq=False)
 class ScorePlateau:
     covariance: FloatArray
     """(2, 2) spread (m²) of the translations whose score is within `PLATEAU_RATIO` of the best sampled."""
     best_score: float
-    members: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
-    """(P, 2) the plateau's sampled translations (m), relative to the pose it was sampled around."""
-    spacing: float = 0.0
+    scores: FloatArray
+    """(2r + 1, 2r + 1) the sampled scores, rows along y, the sampled pose in the middle."""
+    spacing: float
     """Distance between samples (m)."""
+    ratio: float
 
     def holds(self, offset: FloatArray) -> bool:
         """Whether a translation `offset` (m) from the sampled pose lies on the plateau (its nearest sample
         is a member)."""
-        if len(self.members) == 0:
-            return False
-        distance = np.abs(self.members - np.asarray(offset)[:2]).max(axis=1)
-        return bool(distance.min() <= 0.5 * self.spacing + 1e-9)
+        reach = (self.scores.shape[0] - 1) // 2
+        i = round(float(offset[0]) / self.spacing) + reach
+        j = round(float(offset[1]) / self.spacing) + reach
+        inside = 0 <= i < self.scores.shape[1] and 0 <= j < self.scores.shape[0]
+        return bool(inside and self.best_score > 0.0 and self.scores[j, i] >= self.ratio * self.best_score)
 
     @property
     def long_axis(self) -> tuple[float, FloatArray]:
@@ -93,6 +122,9 @@ class ScorePlateau:
 
     @property
     def is_slide(self) -> bool:
+        # The long axis' variance is at most the trace: most matches are rejected without a decomposition.
+        if np.trace(self.covariance) <= PLATEAU_SIGMA**2:
+            return False
         return self.long_axis[0] > PLATEAU_SIGMA
 
 
@@ -102,16 +134,13 @@ def score_plateau(points: FloatArray, grid: LikelihoodGrid, pose: FloatArray, *,
     """The plateau of the score of `points` (robot frame) on `grid` around `pose` (x, y, θ), over
     translations within ± `reach` m sampled every `step_cells` cells, at the pose's heading."""
     steps = max(int(round(reach / (step_cells * grid.resolution))), 1)
+    spacing = step_cells * grid.resolution
     scores = _plateau_scores(grid.values, np.asarray(grid.origin, dtype=np.float64), float(grid.resolution),
                              np.ascontiguousarray(points, dtype=np.float64),
                              np.asarray(pose, dtype=np.float64), step_cells, steps)
     best = float(scores.max())
-    if best <= 0.0:
-        return ScorePlateau(np.zeros((2, 2)), best)
-    rows, columns = np.nonzero(scores >= ratio * best)
-    offsets = np.column_stack([columns - steps, rows - steps]) * (step_cells * grid.resolution)
-    centred = offsets - offsets.mean(axis=0)
-    return ScorePlateau(centred.T @ centred / len(offsets), best, offsets, step_cells * grid.resolution)
+    covariance = _plateau_covariance(scores, ratio * best, spacing) if best > 0.0 else np.zeros((2, 2))
+    return ScorePlateau(covariance, best, scores, spacing, ratio)
 
 
 def slide_to_prior(pose: FloatArray, information: FloatArray, prior: FloatArray,
