@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from frontends.slam2d.config import OdometryConfig, Slam2DConfig
-from frontends.slam2d.icp import scan_normals
+from frontends.slam2d.icp import refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from frontends.slam2d.match_covariance import PLATEAU_SIGMA, score_plateau
 from frontends.slam2d.slam import LaserSlam2D, Slam2DGraph
@@ -132,4 +132,19 @@ def test_a_scan_does_not_slide_along_a_corridor_to_a_misplaced_feature() -> None
     covariance = np.linalg.inv(information)
     # The match's σ along the corridor says it measured nothing there; across, the walls pin it.
     assert math.sqrt(covariance[0, 0]) > PLATEAU_SIGMA
+    assert math.sqrt(covariance[1, 1]) < 0.05
+
+
+def test_a_loop_closure_along_a_corridor_is_weak_along_it_only() -> None:
+    """A loop closure's match on the same look-alike stretch: its information along the corridor is the
+    plateau's (it cannot say where along the corridor the two keyframes are), across it the walls'."""
+    submap, scan = local_map_and_scan(0.5)
+    matching = Slam2DConfig().matching
+    refined = refine_point_to_line(scan, submap.grid, submap.points, submap.normals,
+                                   np.array([0.5, 0.0, 0.0]), max_distance=matching.icp_max_distance,
+                                   sigma=matching.point_sigma)
+    along_icp = math.sqrt(np.linalg.inv(matching.information_scale * refined.information)[0, 0])
+    covariance = np.linalg.inv(LaserSlam2D()._loop_information(scan, submap, refined))
+    assert along_icp < PLATEAU_SIGMA  # the fin alone makes ICP sure of itself along the corridor …
+    assert math.sqrt(covariance[0, 0]) > 2 * PLATEAU_SIGMA  # … the score is not
     assert math.sqrt(covariance[1, 1]) < 0.05

@@ -159,7 +159,12 @@ def slide_to_prior(pose: FloatArray, information: FloatArray, prior: FloatArray,
     gap = float(axis @ (np.asarray(prior[:2]) - np.asarray(pose[:2])))
     moved = np.array(pose, dtype=np.float64)
     moved[:2] += axis * gap * sigma**2 / (sigma**2 + prior_variance)
+    return moved, widened(information, plateau)
+
+
+def widened(information: FloatArray, plateau: ScorePlateau) -> FloatArray:
+    """The (3, 3) information of a match whose translation is also uncertain by the plateau's spread."""
     covariance = np.linalg.inv(information)
     covariance[:2, :2] += plateau.covariance
-    widened = np.linalg.inv(covariance)
-    return moved, 0.5 * (widened + widened.T)
+    result = np.linalg.inv(covariance)
+    return 0.5 * (result + result.T)

@@ -38,9 +38,9 @@ from frontends.slam2d.config import (
 )
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import match_unambiguous
-from frontends.slam2d.icp import refine_point_to_line, scan_normals
+from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
-from frontends.slam2d.match_covariance import score_plateau, slide_to_prior
+from frontends.slam2d.match_covariance import score_plateau, slide_to_prior, widened
 from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
 from optimizer.graph import PoseGraph
@@ -418,9 +418,17 @@ class LaserSlam2D:
         refined = verified.icp
         z = se2.relative(self._keyframe_poses[candidate], refined.pose)
         correction = se2.compose(refined.pose, se2.inverse(here))
-        return _LoopHypothesis(
-            candidate, current, z, matching.information_scale * refined.information, correction
-        )
+        information = self._loop_information(query, submap, refined)
+        return _LoopHypothesis(candidate, current, z, information, correction)
+
+    def _loop_information(self, query: FloatArray, submap: Submap, refined: IcpResult) -> FloatArray:
+        """The loop closure's information: the ICP Hessian's, widened along a score plateau (a stretch of
+        corridor the query fits anywhere along, `match_covariance`): in the submap's frame, as the match."""
+        information = self.config.matching.information_scale * refined.information
+        plateau = score_plateau(query, submap.grid, refined.pose)
+        if not plateau.is_slide:
+            return information
+        return widened(information, plateau)
 
     def _query_points(self, current: int) -> FloatArray:
         """The current keyframe's scan with the previous few, in its frame, thinned."""
