@@ -180,6 +180,7 @@ class ResumedSlam2D(LaserSlam2D):
                             information, is_loop=True)
         new = self._old_count
         self._last_odometry = odometry
+        self._keyframe_odometry = odometry
         self._last_motion = np.zeros(3)
         self._scan_stamps.append(stamp)
         self._scan_keyframes.append(new)

@@ -38,8 +38,9 @@ from frontends.slam2d.config import (
 )
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import match_unambiguous
-from frontends.slam2d.icp import refine_point_to_line, scan_normals
+from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
+from frontends.slam2d.match_covariance import score_plateau, slide_to_prior, widened
 from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
 from optimizer.graph import PoseGraph
@@ -143,6 +144,8 @@ class LaserSlam2D:
         self._scan_offsets: list[FloatArray] = []
         self._last_pose = np.zeros(3)
         self._last_odometry: FloatArray | None = None
+        self._keyframe_odometry: FloatArray | None = None
+        """The wheel odometry at the last keyframe (None: that scan had none)."""
         self._last_motion = np.zeros(3)
         self._local_map: Submap | None = None
         self._pending_loops = 0
@@ -187,6 +190,7 @@ class LaserSlam2D:
         if not self._keyframe_poses:
             pose, matched, information = np.zeros(3), True, np.eye(3)
             self._add_keyframe(pose, points, None, information)
+            self._keyframe_odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
         else:
             reliable = odometry_interval <= RELIABLE_ODOMETRY_INTERVAL
             with self.stage_times.stage("matching"):
@@ -205,7 +209,9 @@ class LaserSlam2D:
             if (moved and not turning_fast) or (
                 self._local_map is None and len(points) >= matching.min_points
             ):
+                information = self._step_information(information, odometry, reliable)
                 self._add_keyframe(pose, points, step, information)
+                self._keyframe_odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
                 with self.stage_times.stage("loop_search"):
                     new_loops = self._close_loops()
                 pose = self._last_pose  # the loop closures may have moved it
@@ -262,9 +268,29 @@ class LaserSlam2D:
             if coarse is not None and refined.inlier_fraction >= settings.min_inlier_fraction:
                 pose, matched = refined.pose, True
                 information = matching.information_scale * refined.information
+                # Along a look-alike stretch the prediction decides (`match_covariance`).
+                pose, information = slide_to_prior(pose, information, prior, prior_information,
+                                                   score_plateau(points, local.grid, pose))
         self._last_motion = se2.relative(self._last_pose, pose)
         self._last_pose = pose
         return pose, matched, information
+
+    def _step_information(self, information: FloatArray, odometry: FloatArray | None,
+                          reliable: bool) -> FloatArray:
+        """The information of the constraint from the last keyframe to a new one: the match's, and the
+        wheel odometry's over the whole step.
+
+        Along a direction the scan does not pin (a featureless corridor, a hall seen across), the match
+        follows the odometry prior of its last scan, weighed by `information_scale` like the ICP Hessian
+        it sits in: a σ of a quarter metre per keyframe there. The optimizer then bends such stretches
+        freely, by metres, to absorb the misfit of loop closures elsewhere, while the wheels measured the
+        step to centimetres. Fused with the odometry's own information over the step, the constraint is
+        weak along such a direction only as far as the odometry is."""
+        if odometry is None or self._keyframe_odometry is None:
+            return information
+        _, odometry_information = predicted_motion(self.config.odometry, self._keyframe_odometry, odometry,
+                                                   reliable, self._last_motion)
+        return information + odometry_information
 
     # -------------------------------------------------------------------------------------- keyframes
 
@@ -392,9 +418,17 @@ class LaserSlam2D:
         refined = verified.icp
         z = se2.relative(self._keyframe_poses[candidate], refined.pose)
         correction = se2.compose(refined.pose, se2.inverse(here))
-        return _LoopHypothesis(
-            candidate, current, z, matching.information_scale * refined.information, correction
-        )
+        information = self._loop_information(query, submap, refined)
+        return _LoopHypothesis(candidate, current, z, information, correction)
+
+    def _loop_information(self, query: FloatArray, submap: Submap, refined: IcpResult) -> FloatArray:
+        """The loop closure's information: the ICP Hessian's, widened along a score plateau (a stretch of
+        corridor the query fits anywhere along, `match_covariance`): in the submap's frame, as the match."""
+        information = self.config.matching.information_scale * refined.information
+        plateau = score_plateau(query, submap.grid, refined.pose)
+        if not plateau.is_slide:
+            return information
+        return widened(information, plateau)
 
     def _query_points(self, current: int) -> FloatArray:
         """The current keyframe's scan with the previous few, in its frame, thinned."""

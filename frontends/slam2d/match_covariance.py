@@ -1,0 +1,170 @@
+"""How far a scan match could slide: the plateau of the correlative score around it (after Olson 2009,
+"Real-time correlative scan matching", which reads a match's covariance off the score surface).
+
+The ICP Hessian says how sharply the paired points pin a pose *at* the match; in a corridor a door frame
+or a few clutter points make it look sharp along the corridor, while the score, the fit of the whole scan
+on the map, barely changes over a metre there. `score_plateau` samples the score over translations
+around the match (at its heading) and returns the spread of the ones scoring within `PLATEAU_RATIO` of the
+best: a few centimetres where the scan pins the pose, the length of the look-alike stretch where it does
+not. `slide_to_prior` then lets the prediction (wheel odometry) decide the pose along such a stretch, when
+the prediction lies on the plateau itself, and widens the match's covariance by the plateau, so neither
+the scan's estimate nor the keyframe graph trusts a match along the direction it cannot measure.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from frontends.slam2d.grid import LikelihoodGrid
+
+FloatArray = NDArray[np.float64]
+
+PLATEAU_RATIO = 0.9
+"""Translations scoring at least this share of the best belong to the plateau: the loop closures'
+`ambiguity_ratio`, the same notion of a look-alike (a rival pose)."""
+PLATEAU_REACH = 0.6
+"""The plateau is sampled within ± this (m) of the match in x and y: past a corridor's typical sliding
+distance per scan, short of the next room."""
+PLATEAU_STEP_CELLS = 2
+"""Samples every 2 grid cells (10 cm at 5 cm): a sharp match's plateau is one sample, a slide many."""
+PLATEAU_SIGMA = 0.1
+"""A plateau whose spread along its long axis exceeds this σ (m) is a slide; below, the match pins the pose
+and is left as ICP made it (a blob of a sample or two is the score's own width, not an ambiguity)."""
+
+
+@njit(cache=True)
+def _plateau_scores(values: NDArray[np.float32], origin: FloatArray, resolution: float, points: FloatArray,
+                    pose: FloatArray, step: int, reach: int) -> FloatArray:
+    """Mean likelihood of the points at `pose` shifted by (i, j)·`step` cells, i, j in [−reach, reach]:
+    (2·reach + 1)² scores, rows along y."""
+    height, width = values.shape
+    count = points.shape[0]
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    cells_x = np.empty(count, dtype=np.int64)
+    cells_y = np.empty(count, dtype=np.int64)
+    for k in range(count):
+        cells_x[k] = int(math.floor((pose[0] + c * points[k, 0] - s * points[k, 1] - origin[0]) / resolution))
+        cells_y[k] = int(math.floor((pose[1] + s * points[k, 0] + c * points[k, 1] - origin[1]) / resolution))
+    side = 2 * reach + 1
+    scores = np.zeros((side, side))
+    for j in range(side):
+        dy = (j - reach) * step
+        for i in range(side):
+            dx = (i - reach) * step
+            total = 0.0
+            for k in range(count):
+                cx = cells_x[k] + dx
+                cy = cells_y[k] + dy
+                if 0 <= cx < width and 0 <= cy < height:
+                    total += values[cy, cx]
+            scores[j, i] = total / max(count, 1)
+    return scores
+
+
+@njit(cache=True)
+def _plateau_covariance(scores: FloatArray, threshold: float, spacing: float) -> FloatArray:
+    """(2, 2) covariance (m²) of the sample offsets whose score reaches `threshold`."""
+    reach = (scores.shape[0] - 1) // 2
+    count = 0
+    sx = sy = sxx = sxy = syy = 0.0
+    for j in range(scores.shape[0]):
+        for i in range(scores.shape[1]):
+            if scores[j, i] >= threshold:
+                x = (i - reach) * spacing
+                y = (j - reach) * spacing
+                count += 1
+                sx += x
+                sy += y
+                sxx += x * x
+                sxy += x * y
+                syy += y * y
+    covariance = np.zeros((2, 2))
+    if count > 0:
+        mx = sx / count
+        my = sy / count
+        covariance[0, 0] = sxx / count - mx * mx
+        covariance[0, 1] = covariance[1, 0] = sxy / count - mx * my
+        covariance[1, 1] = syy / count - my * my
+    return covariance
+
+
+@dataclass(frozen=True, eq=False)
+class ScorePlateau:
+    covariance: FloatArray
+    """(2, 2) spread (m²) of the translations whose score is within `PLATEAU_RATIO` of the best sampled."""
+    best_score: float
+    scores: FloatArray
+    """(2r + 1, 2r + 1) the sampled scores, rows along y, the sampled pose in the middle."""
+    spacing: float
+    """Distance between samples (m)."""
+    ratio: float
+
+    def holds(self, offset: FloatArray) -> bool:
+        """Whether a translation `offset` (m) from the sampled pose lies on the plateau (its nearest sample
+        is a member)."""
+        reach = (self.scores.shape[0] - 1) // 2
+        i = round(float(offset[0]) / self.spacing) + reach
+        j = round(float(offset[1]) / self.spacing) + reach
+        inside = 0 <= i < self.scores.shape[1] and 0 <= j < self.scores.shape[0]
+        return bool(inside and self.best_score > 0.0 and self.scores[j, i] >= self.ratio * self.best_score)
+
+    @property
+    def long_axis(self) -> tuple[float, FloatArray]:
+        """σ (m) along the plateau's long axis, and that axis (a unit vector in the map frame)."""
+        variances, axes = np.linalg.eigh(self.covariance)
+        return float(math.sqrt(max(variances[1], 0.0))), axes[:, 1]
+
+    @property
+    def is_slide(self) -> bool:
+        # The long axis' variance is at most the trace: most matches are rejected without a decomposition.
+        if np.trace(self.covariance) <= PLATEAU_SIGMA**2:
+            return False
+        return self.long_axis[0] > PLATEAU_SIGMA
+
+
+def score_plateau(points: FloatArray, grid: LikelihoodGrid, pose: FloatArray, *,
+                  reach: float = PLATEAU_REACH, step_cells: int = PLATEAU_STEP_CELLS,
+                  ratio: float = PLATEAU_RATIO) -> ScorePlateau:
+    """The plateau of the score of `points` (robot frame) on `grid` around `pose` (x, y, θ), over
+    translations within ± `reach` m sampled every `step_cells` cells, at the pose's heading."""
+    steps = max(int(round(reach / (step_cells * grid.resolution))), 1)
+    spacing = step_cells * grid.resolution
+    scores = _plateau_scores(grid.values, np.asarray(grid.origin, dtype=np.float64), float(grid.resolution),
+                             np.ascontiguousarray(points, dtype=np.float64),
+                             np.asarray(pose, dtype=np.float64), step_cells, steps)
+    best = float(scores.max())
+    covariance = _plateau_covariance(scores, ratio * best, spacing) if best > 0.0 else np.zeros((2, 2))
+    return ScorePlateau(covariance, best, scores, spacing, ratio)
+
+
+def slide_to_prior(pose: FloatArray, information: FloatArray, prior: FloatArray,
+                   prior_information: FloatArray, plateau: ScorePlateau) -> tuple[FloatArray, FloatArray]:
+    """The match (`pose`, `information`) with a sliding plateau taken into account: along the plateau's long
+    axis the pose moves toward the prior as a Gaussian fusion of the two weighs them (the match's
+    variance there being the plateau's), across it and in heading it stays; the information is that of
+    the match's covariance widened by the plateau. A plateau that is no slide, or a prior off the
+    plateau, changes nothing."""
+    # Only a prediction the scan cannot tell from the match decides: one off the plateau (wheel odometry
+    # that slipped, a constant-velocity guess at a turn) is worse than the match, which then stands.
+    if not plateau.is_slide or not plateau.holds(np.asarray(prior[:2]) - np.asarray(pose[:2])):
+        return pose, information
+    sigma, axis = plateau.long_axis
+    prior_variance = float(axis @ np.linalg.inv(prior_information)[:2, :2] @ axis)
+    gap = float(axis @ (np.asarray(prior[:2]) - np.asarray(pose[:2])))
+    moved = np.array(pose, dtype=np.float64)
+    moved[:2] += axis * gap * sigma**2 / (sigma**2 + prior_variance)
+    return moved, widened(information, plateau)
+
+
+def widened(information: FloatArray, plateau: ScorePlateau) -> FloatArray:
+    """The (3, 3) information of a match whose translation is also uncertain by the plateau's spread."""
+    covariance = np.linalg.inv(information)
+    covariance[:2, :2] += plateau.covariance
+    result = np.linalg.inv(covariance)
+    return 0.5 * (result + result.T)
