@@ -39,8 +39,8 @@ from optimizer import se2
 from optimizer.errors import OptimizerError
 from optimizer.graph import PoseGraph
 from optimizer.initialization import (
-    _floored_translational,
     chordal_initialization,
+    floored_translational,
     positions_given_headings,
     rotation_weights,
 )
@@ -85,7 +85,7 @@ class ReducedRotationForm:
         n = graph.num_poses
         a, b = graph.edge_from, graph.edge_to
         kappa = rotation_weights(graph.information)
-        translational = _floored_translational(graph.information)
+        translational = floored_translational(graph.information)
         tau = 0.5 * (translational[:, 0, 0] + translational[:, 1, 1])
         turn = np.exp(1j * graph.measurements[:, 2])
         step = graph.measurements[:, 0] + 1j * graph.measurements[:, 1]
