@@ -814,6 +814,10 @@ def bench_best_known(graphs: dict[str, BenchmarkGraph], cache_path: Path, refres
                             "candidates": run["candidates"]}
             if improves(run["chi2"], cached["chi2"]):
                 cached = {**cached, "chi2": run["chi2"], "found_by": f"ours {method} from file estimate"}
+        print(f"best-known: {name}: best {cached['chi2']:.6g}; " + "; ".join(
+            f"{method} {run['chi2']:.6g} in {run['seconds']:.2f} s, candidates " + ", ".join(
+                f"{start} {c['chi2']:.6g} ({c['seconds']:.2f} s)" for start, c in run["candidates"].items())
+            for method, run in ours.items()), file=sys.stderr, flush=True)  # progress of a long run
         cache[name] = cached
         cache_path.parent.mkdir(parents=True, exist_ok=True)
         cache_path.write_text(json.dumps(cache, indent=1))  # after every graph: a long run keeps its part
