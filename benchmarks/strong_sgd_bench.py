@@ -14,8 +14,9 @@ world and the 10⁵-pose timing.
 Two diagnostic sections: "limits", both SGDs after 10⁴ iterations on the small shared graphs (where they
 end, not how fast); "basin", on σθ = 0.3 worlds, Levenberg–Marquardt from the ground truth's headings with
 positions solved for them (`optimizer.initialization.positions_given_headings`) against LM from the chordal
-start (rotation-only headings, positions solved the same way): which basin the polish reaches is decided
-by the headings alone.
+start (rotation-only headings, positions solved the same way) and LM from the planar SE-Sync headings
+(`optimizer.planar_sync`, headings that use the translations; positions solved the same way): which basin
+the polish reaches is decided by the headings alone.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from optimizer.graph_files import read_graph  # noqa: E402
 from optimizer.gridworld import generate_grid_world  # noqa: E402
 from optimizer.initialization import chordal_initialization, positions_given_headings  # noqa: E402
 from optimizer.iteration import Iteration  # noqa: E402
+from optimizer.planar_sync import planar_sync  # noqa: E402
 from optimizer.polish import gauss_newton  # noqa: E402
 from optimizer.sgd import sgd  # noqa: E402
 from optimizer.sgd_tree import sgd_tree, spanning_tree  # noqa: E402
@@ -164,16 +166,21 @@ def basin_table() -> None:
     print(f"## σθ = {BASIN_SIGMA} worlds: the headings decide the basin\n")
     print("Every start is polished by LM (≤ 1000 steps). Positions are solved for the given headings "
           "(`positions_given_headings`); the chordal start is the same with rotation-only headings.\n")
-    print("| seed | LM from truth | truth headings + positions: start χ² | → LM | chordal: start χ² | → LM |")
-    print("|---:|---:|---:|---:|---:|---:|")
+    print("| seed | LM from truth | truth headings + positions: start χ² | → LM | chordal: start χ² | → LM "
+          "| sync: start χ² | → LM | sync s (loaded or not: see uptime) | Q products |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for seed in BASIN_SEEDS:
         world = generate_grid_world(3500, seed=seed, odometry_sigma=(0.02, 0.02, BASIN_SIGMA))
         graph = world.graph
         truth_headings = positions_given_headings(graph, world.ground_truth)
         chordal = chordal_initialization(graph)
+        started = time.perf_counter()
+        sync = planar_sync(graph)
+        seconds = time.perf_counter() - started
         print(f"| {seed} | {_polished(graph, world.ground_truth):.6g} | {chi2(graph, truth_headings):.6g} | "
               f"{_polished(graph, truth_headings):.6g} | {chi2(graph, chordal):.6g} | "
-              f"{_polished(graph, chordal):.6g} |", flush=True)
+              f"{_polished(graph, chordal):.6g} | {chi2(graph, sync.poses):.6g} | "
+              f"{_polished(graph, sync.poses):.6g} | {seconds:.2f} | {sync.evaluations} |", flush=True)
     print()
 
 

@@ -92,7 +92,7 @@ def rotation_weights(information: FloatArray) -> FloatArray:
     sharp once the translation is known. For the diagonal information of most files the two are equal.
     """
     information = np.asarray(information, dtype=np.float64)
-    translational = _floored_translational(information)
+    translational = floored_translational(information)
     coupling = information[:, :2, 2]
     solved = np.linalg.solve(translational, coupling[:, :, None])[:, :, 0]
     marginal = information[:, 2, 2] - np.einsum("mi,mi->m", coupling, solved)
@@ -134,7 +134,7 @@ def _estimate_positions(graph: PoseGraph, pattern: _BlockPattern, poses: FloatAr
     a, b = graph.edge_from, graph.edge_to
     theta = poses[:, 2]
     angle_error = se2.wrap_angle(theta[b] - theta[a] - graph.measurements[:, 2])
-    translational = _floored_translational(graph.information)
+    translational = floored_translational(graph.information)
     shift = np.linalg.solve(translational, graph.information[:, :2, 2:3])[:, :, 0] * angle_error[:, None]
     measured_rotation = _rotation_matrices(graph.measurements[:, 2])
     local_target = np.einsum("mji,mj->mi", measured_rotation, graph.measurements[:, :2]) - shift
@@ -172,7 +172,7 @@ def _floored(values: FloatArray) -> FloatArray:
     return np.maximum(values, INFORMATION_FLOOR * reference)
 
 
-def _floored_translational(information: FloatArray) -> FloatArray:
+def floored_translational(information: FloatArray) -> FloatArray:
     """Ω_tt of every constraint, its smaller eigenvalue raised to the floor so that it can be inverted."""
     xx = information[:, 0, 0]
     yy = information[:, 1, 1]

@@ -10,7 +10,10 @@ The default, "sgd+gn", is built for the paper's case, a poor initial estimate: t
 tree-parameterised SGD from where it ended, then the polish; and, as a second candidate, the chordal
 initialisation polished directly. Measured on M3500-shaped worlds whose odometry headings carry σθ = 0.2
 rad of noise, the paper's SGD alone leaves the polish 240–530 times above the minimum; after the tree SGD
-(or from the chordal start) it reaches it (benchmarks/optimizer_bench.py, best-known section).
+(or from the chordal start) it reaches it (benchmarks/optimizer_bench.py, best-known section). When those
+two candidates end in different minima (several basins within reach), a third: headings from the planar
+SE-Sync relaxation, which uses the translations (`optimizer.planar_sync`), positions solved for them,
+polished; at σθ = 0.3 only that one reaches the best-known minimum.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from optimizer.gauss_seidel import gauss_seidel
 from optimizer.graph import PoseGraph
 from optimizer.initialization import chordal_initialization
 from optimizer.iteration import ESTIMATE, Iteration
+from optimizer.planar_sync import sync_initialization
 from optimizer.polish import DEFAULT_MAX_ITERATIONS, PolishStatus, gauss_newton
 from optimizer.robust import KERNELS, check_kernel, robust_sgd
 from optimizer.robust_gnc import robust_optimize
@@ -43,6 +47,16 @@ graphs (the tree's depth, the factor's fill): above this many poses the default 
 the polish only."""
 CHORDAL = "chordal"
 """Name of the chordal initialisation among the starts."""
+SYNC = "sync"
+"""Name of the planar SE-Sync start among the starts."""
+LARGEST_FOR_SYNC = 5_000
+"""The sync start's low-rank solve takes thousands of products with the reduced form (each a pair of
+triangular solves of the translation Laplacian): several seconds at 3 500 poses (benchmarks/
+strong_sgd_bench.py --only basin). Above this many poses it is skipped: measured only up to 3 500."""
+SYNC_DISAGREEMENT = 1e-3
+"""The sync start runs only when the earlier candidates' final χ² differ by more than this fraction: when
+the SGD path and the chordal start polish into the same minimum, a third start has not been seen to find a
+lower one, and it would cost more than both."""
 
 
 def _paper_sgd(graph: PoseGraph, iterations: int, poses: FloatArray) -> Iterator[Iteration]:
@@ -74,10 +88,12 @@ class Method:
     descent: Descent | None
     polish: bool
     chordal_start: bool = False
+    sync_start: bool = False
+    """Adds the planar SE-Sync start (polished directly) when the other candidates disagree."""
 
 
 METHOD_TABLE: dict[str, Method] = {
-    "sgd+gn": Method(_paper_then_tree_sgd, polish=True, chordal_start=True),
+    "sgd+gn": Method(_paper_then_tree_sgd, polish=True, chordal_start=True, sync_start=True),
     "sgd": Method(_paper_sgd, polish=False),
     "sgd-tree+gn": Method(_tree_sgd, polish=True),
     "sgd-tree": Method(_tree_sgd, polish=False),
@@ -174,6 +190,8 @@ class Optimization:
         # Only when the caller left the starts to the method: given starts are the candidates wanted.
         self._with_chordal = (self._method.chordal_start and robust is None and starts is None
                               and 2 <= graph.num_poses <= LARGEST_FOR_EXTRA_STAGES)
+        self._with_sync = (self._with_chordal and self._method.sync_start
+                           and graph.num_poses <= LARGEST_FOR_SYNC)
         self._result: OptimizationResult | None = None
 
     @property
@@ -188,9 +206,9 @@ class Optimization:
         plans = [(name, start, True) for name, start in self._starts.items()]
         if self._with_chordal:
             plans.append((CHORDAL, None, False))
-        for name, start, descend in plans:
+        for name, start, descend in self._with_sync_plan(plans, candidates):
             if start is None:
-                start = chordal_initialization(self._graph)
+                start = (chordal_initialization if name == CHORDAL else sync_initialization)(self._graph)
             last = Iteration("initial", 0, start, chi2(self._graph, start), start=name)
             yield last
             count = 0
@@ -216,6 +234,17 @@ class Optimization:
             yield Iteration("selected", 0, best.poses, best.chi2, start=best.start)
         self._result = OptimizationResult(np.array(best.poses), float(best.chi2), winner.converged,
                                           winner.reason, winner.start, tuple(candidates))
+
+    def _with_sync_plan(self, plans: list[tuple[str, FloatArray | None, bool]],
+                        candidates: list[Candidate]) -> Iterator[tuple[str, FloatArray | None, bool]]:
+        """`plans`, then the sync start if wanted and the candidates that ran (filled in meanwhile)
+        disagree."""
+        yield from plans
+        if not self._with_sync:
+            return
+        finals = [candidate.chi2 for candidate in candidates]
+        if min(finals) < max(finals) * (1.0 - SYNC_DISAGREEMENT):
+            yield SYNC, None, False
 
     def _stages(self, poses: FloatArray, descend: bool) -> Iterator[Iteration]:
         """The method's iterations from `poses` (the descent skipped unless `descend`); returns the polish's

@@ -7,11 +7,15 @@ import pytest
 
 from optimizer import se2
 from optimizer.cost import chi2
+from optimizer.errors import OptimizerError
 from optimizer.graph import PoseGraph, reverse_constraints
 from optimizer.graph_files import read_graph
 from optimizer.gridworld import generate_grid_world
 from optimizer.initialization import chordal_initialization, positions_given_headings, rotation_weights
+from optimizer.planar_sync import ReducedRotationForm, planar_sync
 from optimizer.polish import gauss_newton
+from optimizer.sgd import sgd
+from optimizer.sgd_tree import sgd_tree
 from tests.conftest import shared_file
 
 
@@ -188,3 +192,81 @@ def test_real_graphs_start_reaches_the_best_known_minimum(name: str, best_known:
     # Best known minima: the figures the optimizer benchmark checks (g2o/GTSAM agree on them).
     graph = read_graph(shared_file(f"posegraphs/2d/{name}")).graph
     assert gauss_newton_chi2(graph, chordal_initialization(graph)) == pytest.approx(best_known, rel=1e-3)
+
+
+# ------------------------------------------------------------------------------- planar SE-Sync headings
+
+
+def isotropic_cost_minimised_over_positions(graph: PoseGraph, headings: np.ndarray) -> float:
+    """min over positions (pose 0 at the origin) of Σ τ|t_b − t_a − z·r_a|² + κ|r_b − e^{iθ}r_a|², by a
+    dense least-squares solve: the cost `ReducedRotationForm` must equal without forming positions."""
+    information = graph.information
+    kappa = rotation_weights(information)
+    tau = 0.5 * (information[:, 0, 0] + information[:, 1, 1])
+    a, b = graph.edge_from, graph.edge_to
+    r = np.exp(1j * headings)
+    step = graph.measurements[:, 0] + 1j * graph.measurements[:, 1]
+    incidence = np.zeros((graph.num_edges, graph.num_poses))
+    incidence[np.arange(graph.num_edges), b] += 1.0
+    incidence[np.arange(graph.num_edges), a] -= 1.0
+    weights = np.sqrt(tau)[:, None]
+    target = step * r[a]
+    positions = np.linalg.lstsq(weights * incidence[:, 1:], np.sqrt(tau) * target, rcond=None)[0]
+    translation = np.sum(tau * np.abs(incidence[:, 1:] @ positions - target) ** 2)
+    rotation = np.sum(kappa * np.abs(r[b] - np.exp(1j * graph.measurements[:, 2]) * r[a]) ** 2)
+    return float(translation + rotation)
+
+
+def test_reduced_form_is_the_isotropic_cost_with_the_positions_eliminated() -> None:
+    world = generate_grid_world(60, seed=3, odometry_sigma=(0.05, 0.05, 0.3))
+    reverse = np.random.default_rng(4).random(world.graph.num_edges) < 0.4
+    graph = with_reversed_edges(world.graph, reverse, world.graph.poses)
+    form = ReducedRotationForm(graph)
+    for seed in range(3):
+        headings = np.random.default_rng(seed).uniform(-np.pi, np.pi, graph.num_poses)
+        r = np.exp(1j * headings)
+        reduced = float(np.real(np.vdot(r, form.apply(r[:, None])[:, 0])))
+        assert reduced == pytest.approx(isotropic_cost_minimised_over_positions(graph, headings), rel=1e-9)
+
+
+def test_sync_recovers_a_noise_free_world_with_reversed_edges_from_a_useless_estimate() -> None:
+    world = generate_grid_world(1_500, seed=7, add_noise=False)
+    reverse = np.random.default_rng(6).random(world.graph.num_edges) < 0.4
+    scrambled = np.random.default_rng(0).uniform(-50, 50, size=world.ground_truth.shape)
+    scrambled[0] = world.ground_truth[0]
+    graph = with_reversed_edges(world.graph, reverse, scrambled)
+    result = planar_sync(graph)
+    assert pose_difference(result.poses, world.ground_truth) < 1e-6
+    assert result.rounded_cost < 1e-8 * graph.num_edges
+
+
+def test_sync_headings_reach_a_lower_minimum_than_every_rotation_only_start() -> None:
+    # σθ = 0.3: the headings are known mainly through the odometry translations. Rotation-only estimates
+    # (chordal; the paper's SGD then the tree SGD, which is the default's own path) lead the polish into
+    # higher basins; the relaxation that sees the translations leads it to the truth's.
+    world = generate_grid_world(600, seed=5, odometry_sigma=(0.02, 0.02, 0.3))
+    graph = world.graph
+    from_sync = gauss_newton_chi2(graph, planar_sync(graph).poses)
+    descended = graph.poses
+    for step in sgd_tree(graph, 100, sgd_final(graph)):
+        descended = step.poses
+    rotation_only = min(gauss_newton_chi2(graph, chordal_initialization(graph)),
+                        gauss_newton_chi2(graph, descended))
+    from_truth_headings = gauss_newton_chi2(graph, positions_given_headings(graph, world.ground_truth))
+    assert from_sync < 0.97 * rotation_only
+    assert from_sync <= 1.001 * from_truth_headings
+
+
+def sgd_final(graph: PoseGraph) -> np.ndarray:
+    poses = graph.poses
+    for step in sgd(graph, 100):
+        poses = step.poses
+    return poses
+
+
+def test_sync_of_a_single_pose_and_a_bad_rank() -> None:
+    graph = PoseGraph(np.array([[1.0, 2.0, 7.0]]), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+                      np.zeros((0, 3)), np.zeros((0, 3, 3)), np.array([7]))
+    np.testing.assert_allclose(planar_sync(graph).poses, [[1.0, 2.0, se2.wrap_angle(7.0)]])
+    with pytest.raises(OptimizerError):
+        planar_sync(graph, rank=0)

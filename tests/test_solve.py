@@ -166,3 +166,31 @@ def test_a_robust_kernel_goes_with_the_sgd_methods_only() -> None:
     run = optimize(graph, "sgd+gn", iterations=5, robust="cauchy")
     starts = {iteration.start for iteration in run}
     assert starts == {"estimate"}  # no chordal candidate: the robust objective is another problem
+
+
+def test_the_default_adds_the_sync_start_when_its_candidates_disagree_and_it_wins() -> None:
+    # σθ = 0.3: the SGD path and the chordal start polish into different, higher minima; the sync start
+    # (headings that use the translations) reaches the basin of the truth's headings. Without it the
+    # default ends at the lower of the other two.
+    world = generate_grid_world(600, seed=5, odometry_sigma=(0.02, 0.02, 0.3))
+    graph = world.graph
+    run = optimize(graph)
+    iterations = list(run)
+    result = run.result
+    assert [candidate.start for candidate in result.candidates] == [ESTIMATE, "chordal", "sync"]
+    others = [candidate.chi2 for candidate in result.candidates[:2]]
+    assert abs(others[0] - others[1]) > 1e-3 * max(others)
+    assert result.winner == "sync" and result.converged
+    assert result.chi2 < 0.97 * min(others)
+    truth_basin = world.ground_truth
+    for step in gauss_newton(graph, world.ground_truth):
+        truth_basin = step.poses
+    assert result.chi2 == pytest.approx(chi2(graph, truth_basin), rel=1e-3)
+    assert iterations[-1].start == "sync"
+
+
+def test_the_default_skips_the_sync_start_when_its_candidates_agree() -> None:
+    graph = generate_grid_world(400, seed=2).graph  # mild noise: every start reaches the same minimum
+    run = optimize(graph)
+    list(run)
+    assert [candidate.start for candidate in run.result.candidates] == [ESTIMATE, "chordal"]
