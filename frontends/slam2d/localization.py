@@ -392,7 +392,8 @@ class MapLocalizer:
                 return
         self._rolling.append(_RollingScan(Keyframe(points, scan_normals(points)), self._pose.copy(),
                                           self._travelled))
-        while self._travelled - self._rolling[0].travelled > settings.rolling_map_length:
+        while (len(self._rolling) > 1
+               and self._travelled - self._rolling[0].travelled > settings.rolling_map_length):
             self._rolling.popleft()
         if self._travelled - self._rolling_built_at >= settings.rolling_map_rebuild:
             self._rolling_submap = None
