@@ -25,13 +25,15 @@
     errors there may be the reference's (or the odometry slipped: CSAIL's is poor).
 
     Reported: scans of the second half; seconds to the first global fix; share of scans localized when
-    processed (a map pose given at once: matched, or predicted from the last match by odometry) and share
-    matched (the map confirmed the pose), both among the scans more than 10 s after the start; median and
-    95 % translational error of the localized scans after 10 s, and the median over those in places the
-    first half saw well (the scan at its reference pose scores ≥ 0.5 on the map: the split is the
-    reference's, not the localizer's), with their share; global fixes and local re-acquisitions;
-    scans per second of `MapLocalizer.localize` (global search included) over process CPU time and over
-    wall time (the two differ on a loaded machine: CPU time is the localizer's own cost).
+    processed (a map-frame pose given at once), split by how: map-matched (the saved map placed the scan),
+    tracked on the rolling local map (recent scans at their tracked poses with the nearest saved keyframes:
+    outside the saved map), predicted by odometry (no match), all among the scans more than 10 s after the
+    start; median / 95 % translational error of the localized scans after 10 s, overall and per state
+    (same scans), and the median over those in places the first half saw well (the scan at its reference
+    pose scores ≥ 0.5 on the map: the split is the reference's, not the localizer's), with their share;
+    global fixes and local re-acquisitions; scans per second of `MapLocalizer.localize` (global search
+    included) over process CPU time and over wall time (the two differ on a loaded machine: CPU time is
+    the localizer's own cost).
 (b) Continue. The second half goes to `LaserSlam2D.resume` on the first half's saved graph (odometry
     origin dropped); the joint graph is optimized once. ACES: every scan of both halves is scored against
     aces.relations; the single run's figure is the reference (target: within 10 %). CSAIL (no ground
@@ -207,26 +209,46 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     results = [localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval) for s in second]
     seconds, cpu_seconds = time.perf_counter() - started, time.process_time() - started_cpu
     localized = np.array([r.localized for r in results])
-    matched = np.array([r.matched for r in results])
+    states = {"matched": np.array([r.matched for r in results]),
+              "tracked": np.array([r.tracked for r in results]),
+              "predicted": np.array([r.predicted for r in results])}
     poses = np.array([r.pose for r in results])
     stamps = np.array([s.stamp_ns for s in second])
     settled = stamps >= stamps[0] + int(SETTLE_SECONDS * 1e9)
-    scored = localized & settled
-    errors = np.hypot(*(poses[scored, :2] - reference[scored, :2]).T)
+    errors = np.full(len(second), np.nan)
+    errors[localized] = np.hypot(*(poses[localized, :2] - reference[localized, :2]).T)
     first_fix = next((r.index for r in results if r.global_fix), -1)
     fix_seconds = (stamps[first_fix] - stamps[0]) * 1e-9 if first_fix >= 0 else float("nan")
-    median, p95 = (np.median(errors), np.percentile(errors, 95)) if len(errors) else (np.nan, np.nan)
     # Where the first half saw the place well: the reference pose puts the scan on the map's walls.
+    scored = localized & settled
     covered = map_fit(localizer.map.grid, second, reference, localizer.config.matching.max_range)[scored]
     covered = covered >= COVERED_FIT
-    covered_median = np.median(errors[covered]) if covered.any() else np.nan
+    covered_median = np.median(errors[scored][covered]) if covered.any() else np.nan
+    shares = [f"{100 * (state & settled).sum() / settled.sum():.1f}" for state in states.values()]
     return (name, "full-run poses" if full_run_poses else "half map", f"{len(second)}", f"{fix_seconds:.1f}",
-            f"{100 * localized[settled].mean():.1f}", f"{100 * matched[settled].mean():.1f}",
-            f"{median:.3f}", f"{p95:.3f}", f"{covered_median:.3f} ({100 * covered.mean():.0f} %)",
-            f"{sum(r.global_fix for r in results)}",
+            f"{100 * localized[settled].mean():.1f}", *shares, error_figures(errors[scored]),
+            *(error_figures(errors[state & settled]) for state in states.values()),
+            f"{covered_median:.3f} ({100 * covered.mean():.0f} %)", f"{sum(r.global_fix for r in results)}",
             f"{sum(r.relocalized for r in results)}", f"{len(second) / cpu_seconds:.0f}",
             f"{len(second) / seconds:.0f}", f"{np.median(residual):.3f} / {residual.max():.3f}",
             f"{reference_slips(reference, second)}")
+
+
+def error_figures(errors: FloatArray) -> str:
+    """"median / 95 %" of translational errors (m), or "-" when there are none."""
+    if len(errors) == 0:
+        return "-"
+    return f"{np.median(errors):.3f} / {np.percentile(errors, 95):.3f}"
+
+
+LOCALIZATION_HEADER = (
+    "| log | map | scans | first fix after (s) | localized after 10 s (%) | map-matched (%) "
+    "| tracked on the rolling map (%) | predicted by odometry (%) | error, localized: median / 95 % (m) "
+    "| map-matched (m) | tracked (m) | predicted (m) "
+    "| median error where the map covers the place (m) (share of scans) | global fixes "
+    "| local re-acquisitions | scans/s (CPU) | scans/s (wall) "
+    "| alignment residual, median / max (m) | reference slips |"
+)
 
 
 def continue_rows(mapped: Mapped, relations_path: Path) -> list[tuple[str, ...]]:
@@ -299,12 +321,8 @@ def main() -> None:
             mapped = Mapped.of(read_scans(args.shared / LOGS[name]))
             print(f"## {name} (a) Localization: second half in the first half's map, no initial pose, "
                   "odometry origin dropped\n")
-            print("| log | map | scans | first fix after (s) | localized after 10 s (%) "
-                  "| matched after 10 s (%) | median error (m) | 95 % error (m) "
-                  "| median error where the map covers the place (m) (share of scans) | global fixes "
-                  "| local re-acquisitions | scans/s (CPU) | scans/s (wall) "
-                  "| alignment residual, median / max (m) | reference slips |")
-            print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+            print(LOCALIZATION_HEADER)
+            print("|---" * LOCALIZATION_HEADER.count(" | ") + "|---|")
             for full_run_poses in (False, True):
                 row = localization_row(name, mapped, full_run_poses=full_run_poses)
                 print("| " + " | ".join(row) + " |", flush=True)

@@ -518,7 +518,7 @@ def _run_fields(result: LogReplayResult) -> dict[str, Any]:
 
 MAX_PER_SCAN_ROWS = 20_000
 """A localization summary lists at most this many scans one by one (every k-th of a longer log)."""
-SCAN_STATES = {"matched": "m", "predicted": "p", "recovered": "r", "never": "-"}
+SCAN_STATES = {"matched": "m", "tracked": "t", "predicted": "p", "recovered": "r", "never": "-"}
 """One character per scan in a localization summary's `per_scan.state`."""
 
 
@@ -544,6 +544,7 @@ def localization_summary(result: LogReplayResult) -> dict[str, Any]:
             "with_pose": int(found.has_pose.sum()),
             "localized_when_processed": int(found.localized.sum()),
             "matched": int(found.matched.sum()),
+            "tracked_outside_map": int(found.tracked_outside.sum()),
             "recovered_by_a_global_fix": int(found.recovered.sum()),
             "never_localized": int((~found.has_pose).sum()),
             "never_localized_note": "scans never placed in the map have no pose and are not in the TUM file",
@@ -559,8 +560,9 @@ def localization_summary(result: LogReplayResult) -> dict[str, Any]:
 
 def localization_summary_text(result: LogReplayResult) -> str:
     """`localization_summary` as JSON text, with `per_scan`: one row of compact arrays per quantity
-    (the scan's stamp, state — m matched, p predicted by odometry without a match, r pose recovered by a
-    later global fix, - never localized — score, inlier fraction, ICP rms), each on one line."""
+    (the scan's stamp, state — m matched, t tracked outside the saved map on the rolling local map of the
+    recent scans, p predicted by odometry without a match, r pose recovered by a later global fix, - never
+    localized — score, inlier fraction, ICP rms), each on one line."""
     assert isinstance(result.frontend, LocalizingLaserFrontend)
     found = result.frontend.localizations
     stride = -(-len(found.stamps_ns) // MAX_PER_SCAN_ROWS)
@@ -568,6 +570,7 @@ def localization_summary_text(result: LogReplayResult) -> str:
     state = np.full(len(found.stamps_ns), SCAN_STATES["never"])
     state[found.recovered] = SCAN_STATES["recovered"]
     state[found.localized] = SCAN_STATES["predicted"]
+    state[found.tracked_outside] = SCAN_STATES["tracked"]
     state[found.matched] = SCAN_STATES["matched"]
     per_scan = {
         "stride": int(stride),

@@ -16,6 +16,7 @@ from frontends.slam2d.config import (
     SMALL_CORRECTION_ANGULAR,
     SMALL_CORRECTION_LINEAR,
 )
+from frontends.slam2d.local_map import place
 from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, MapLocalizer
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, _LoopHypothesis
@@ -148,10 +149,12 @@ def test_a_kidnapped_robot_is_found_again(
     odometry none the wiser. Seen from inside, one corridor looks like another: at the prediction the scans
     still fit the map, worse than a true track's, then ever worse as the doors and the clutter disagree;
     once nothing has matched well for `max_dead_reckoning` metres (shortened here from 30 m, so the test
-    stays short) the robot is lost, and the global search finds it again."""
+    stays short) the robot is lost, and the global search finds it again. Its estimate drives on east out of
+    the map, where by default the rolling local map would track it on its own scans (see
+    `LocalizationConfig.map_reach`): `map_reach` = inf keeps every rolling track counted as dead reckoning."""
     before, after = range(10, 60), range(130, 300)
     scans, odometry, truth = kidnapped_drive(new_run, before, after)
-    settings = LocalizationConfig(max_dead_reckoning=4.0)
+    settings = LocalizationConfig(max_dead_reckoning=4.0, map_reach=math.inf)
     localizer = MapLocalizer(*localizer_map, initial_pose=truth[0], settings=settings)
     results = [localizer.localize(int(new_run.stamps_ns[0]) + k * 300_000_000, scan, odo)
                for k, (scan, odo) in enumerate(zip(scans, odometry, strict=True))]
@@ -167,6 +170,38 @@ def test_a_kidnapped_robot_is_found_again(
     after_fix = slice(fixes[0], None)
     assert all(r.localized and r.matched for r in results[after_fix])
     assert position_errors(poses[after_fix], truth[after_fix]).max() < 0.05
+
+
+def test_outside_the_saved_map_the_rolling_local_map_tracks_the_robot(mapping_run: Run, new_run: Run) -> None:
+    """The saved map holds only the south corridor (its keyframes' points south of y = 2.5 m); the robot
+    drives the whole loop. Out of the south corridor nothing of the map is in sight: the recent scans
+    (the rolling local map) carry the pose, tracked rather than predicted, and the odometry's metres of
+    drift never show; back in the south corridor the saved map matches again. The map is not changed."""
+    keyframes = [k for k in range(0, len(mapping_run.truth), MAP_EVERY) if mapping_run.truth[k, 1] < 2.0]
+    scans = [mapping_run.scans[k][place(mapping_run.scans[k], mapping_run.truth[k])[:, 1] < 2.5]
+             for k in keyframes]
+    localizer = MapLocalizer(scans, mapping_run.truth[keyframes], initial_pose=new_run.truth[0])
+    saved_points = localizer.map.points.copy()
+    results = [localizer.localize(int(stamp), scan, odo)
+               for stamp, scan, odo in zip(new_run.stamps_ns, new_run.scans, new_run.odometry, strict=True)]
+    assert all(r.localized for r in results)
+    assert not any(r.global_fix for r in results)
+    outside = new_run.truth[:, 1] > 5.0  # the east, north and west corridors: no map point within 2.5 m
+    tracked = np.array([r.tracked for r in results])
+    matched = np.array([r.matched for r in results])
+    assert not (tracked & matched).any()
+    assert tracked[outside].mean() > 0.95, "outside the map, the rolling local map carries the pose"
+    assert not any(r.predicted for r in results)
+    poses = np.array([r.pose for r in results])
+    errors = position_errors(poses, new_run.truth)
+    drift = position_errors(align_to_first(new_run.odometry, new_run.truth), new_run.truth)
+    assert drift[outside].max() > 2.0, "the odometry alone would be metres off outside the map"
+    assert errors[outside].max() < 0.1
+    back = np.flatnonzero(new_run.truth[:, 1] < 2.0)
+    back = back[back > np.flatnonzero(outside).max()]  # the south corridor again, at the end of the drive
+    assert len(back) > 30 and matched[back].all(), "back in the saved map, its matches place the scans"
+    assert errors[back].max() < 0.05
+    np.testing.assert_array_equal(localizer.map.points, saved_points)
 
 
 def test_a_map_without_points_is_refused() -> None:

@@ -68,6 +68,31 @@ class LocalizationConfig:
     """The query of a local re-acquisition: the current scan and this many earlier ones, each at least
     `relocalize_every` metres from the next (a few metres of context; one scan of a corridor is
     ambiguous along it)."""
+    rolling_map_length: float = 20.0
+    """The rolling local map (slam_toolbox's localization mode keeps one too) holds the scans of the last
+    this many metres driven, at their tracked poses; a scan the saved map cannot place (its match scores
+    below `min_match_score`, or fails ICP's tests) is matched on it. Never written into the saved map. …"""
+    rolling_map_spacing: float = 0.3
+    """… one scan every this many metres (m) (or after a turn of 12°) …"""
+    rolling_map_saved_keyframes: int = 10
+    """… with the saved keyframes nearest to its newest scan, at most this many …"""
+    rolling_map_reach: float = 10.0
+    """… within this distance (m): where the robot leaves the saved map, the map's last walls and the
+    new ones are matched together."""
+    rolling_map_rebuild: float = 0.5
+    """Its grid is built again only once the robot drove this far (m) since the last build (a build costs
+    as much as a dozen matches; the scans that joined meanwhile overlap what it holds)."""
+    map_reach: float = 3.0
+    """A pose tracked on the rolling local map farther than this (m) from every saved keyframe is outside
+    the saved map: it never counts towards `max_dead_reckoning`, and local re-acquisition is tried there
+    only every `relocalize_every_outside`. Nearer, a rolling track counts as dead reckoning. The price: a
+    kidnapped robot whose estimate drives out of the map (through its walls) is tracked there on its own
+    scans and never declared lost (a whole-map search there finds look-alike corridors: the north one of
+    the test world in a map of the south one). A robot that never leaves its map may set this to inf to
+    keep kidnap recovery everywhere."""
+    relocalize_every_outside: float = 2.0
+    """Local re-acquisition while tracked outside the saved map (`map_reach`) is tried only every this many
+    metres: the map may still have seen the place from afar, but mostly there is nothing to find."""
     max_lost_keyframes: int = 300
     """While lost, the scans are tracked in their own frame; that track restarts after this many keyframes
     (only the last few make a query; the rest would only cost memory)."""

@@ -121,6 +121,14 @@ class ScanLocalizations:
     """ICP residual (m) of the paired points (inf when none)."""
     global_fixes: IntArray
     """The scans at which a global localization was accepted."""
+    tracked: BoolArray | None = None
+    """Not matched to the saved map but to the rolling local map (recent scans at their tracked poses with
+    the saved keyframes nearby: outside the saved map); `score`/`inlier_fraction`/`rms` are that match's.
+    None: all False."""
+
+    @property
+    def tracked_outside(self) -> BoolArray:
+        return np.zeros(len(self.stamps_ns), dtype=bool) if self.tracked is None else self.tracked
 
     @property
     def has_pose(self) -> BoolArray:
@@ -143,8 +151,8 @@ class LocalizingLaserFrontend(LaserFrontend):
         self.initial_pose = None if initial_pose is None else tuple(float(v) for v in initial_pose)
         self._localizer = MapLocalizer(saved.keyframe_scans, saved.keyframe_poses, self.config,
                                        initial_pose=self.initial_pose)
-        self._rows: list[tuple[int, bool, bool, float, float, float]] = []
-        """(stamp, localized, matched, score, inlier fraction, rms) per scan."""
+        self._rows: list[tuple[int, bool, bool, float, float, float, bool]] = []
+        """(stamp, localized, matched, score, inlier fraction, rms, tracked) per scan."""
         self._poses: list[FloatArray] = []
         self._recovered: list[int] = []
         self._fixes: list[int] = []
@@ -154,7 +162,7 @@ class LocalizingLaserFrontend(LaserFrontend):
                  odometry_interval: float) -> ScanEstimate:
         found = self._localizer.localize(stamp_ns, points, odometry, odometry_interval)
         self._rows.append((found.stamp_ns, found.localized, found.matched, found.score, found.inlier_fraction,
-                           found.rms))
+                           found.rms, found.tracked))
         self._poses.append(found.pose.copy())
         if found.global_fix:
             self._fixes.append(found.index)
@@ -169,15 +177,15 @@ class LocalizingLaserFrontend(LaserFrontend):
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
         if not self._counts["scans_with_tf_mount"] and self.sensor_frame != self.base_frame:
             self.base_frame = None
-        stamps, localized, matched, score, inliers, rms = (np.array(column) for column in zip(*self._rows,
-                                                                                              strict=True))
+        columns = (np.array(column) for column in zip(*self._rows, strict=True))
+        stamps, localized, matched, score, inliers, rms, tracked = columns
         recovered = np.zeros(len(stamps), dtype=bool)
         recovered[self._recovered] = True
         recovered &= ~localized
         self._localizations = ScanLocalizations(
             stamps.astype(np.int64), np.array(self._poses).reshape(-1, 3), localized.astype(bool),
             matched.astype(bool), recovered, score.astype(np.float64), inliers.astype(np.float64),
-            rms.astype(np.float64), np.array(self._fixes, dtype=np.int64))
+            rms.astype(np.float64), np.array(self._fixes, dtype=np.int64), tracked.astype(bool))
         if not self._localizations.has_pose.any():
             raise MapPlacementError(
                 f"none of the {len(stamps)} scans of {self._log.path} could be placed in the saved map of "
@@ -218,6 +226,7 @@ class LocalizingLaserFrontend(LaserFrontend):
                 "scans_localized": int(found.has_pose.sum()),
                 "scans_localized_when_processed": int(found.localized.sum()),
                 "scans_matched": int(found.matched.sum()),
+                "scans_tracked_outside_map": int(found.tracked_outside.sum()),
                 "scans_recovered": int(found.recovered.sum()),
                 "scans_never_localized": int((~found.has_pose).sum()),
                 "global_fixes": len(found.global_fixes)}
