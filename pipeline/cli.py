@@ -848,7 +848,9 @@ def main() -> NoReturn:
     try:
         with threadpool_limits(limits=1, user_api="blas"):
             code = app(prog_name=PROGRAM, standalone_mode=False)
-    except typer.Abort:  # Ctrl-C, or SIGTERM (see on_sigterm)
+    # Ctrl-C or SIGTERM: typer turns it into Abort, but one that comes before typer runs (while
+    # threadpool_limits is entered) is still the bare KeyboardInterrupt.
+    except (typer.Abort, KeyboardInterrupt):
         code = EXIT_INTERRUPTED
     except Exception as error:
         # A bad option or value (click's UsageError family, whichever click typer uses): one line naming

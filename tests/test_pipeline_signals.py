@@ -76,6 +76,36 @@ def test_a_stopped_replay_leaves_old_or_new_outputs(city: Path, tmp_path: Path, 
     assert _state(city, out) in ("old", "new")
 
 
+@pytest.mark.parametrize("signal_number", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_signal_before_the_command_runs_is_a_quiet_interrupt(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], signal_number: int) -> None:
+    """The signal lands while the BLAS thread limit is being set, before typer can turn it into Abort."""
+    import threadpoolctl
+
+    import pipeline.cli as cli
+
+    @contextlib.contextmanager
+    def signalled_on_entry(**_limits: object):  # type: ignore[no-untyped-def]
+        os.kill(os.getpid(), signal_number)
+        yield
+
+    def exit_code(code: int) -> None:
+        raise SystemExit(code)
+
+    stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGALRM)
+    previous = {number: signal.getsignal(number) for number in stop_signals}
+    monkeypatch.setattr(threadpoolctl, "threadpool_limits", signalled_on_entry)
+    monkeypatch.setattr(cli, "_exit_now", exit_code)
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            cli.main()
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    assert stopped.value.code == 128 + signal_number
+    assert "Traceback" not in capsys.readouterr().err
+
+
 # --- a batch's workers stop with their parent ------------------------------------------------------------
 
 BATCH_STEMS = ("north", "south")
