@@ -1,6 +1,7 @@
-"""What the 2D path's speed work must keep: the exhaustive search returns the brute-force optimum, a grid's
-cached pyramid is `max_pyramid`, a keyframe placed from its cache is `place`, and the stage timers charge
-nested stages once (checked on a fake clock, not timed)."""
+"""What the 2D path's speed work must keep: the exhaustive search returns the brute-force optimum, the
+matcher without odometry the optimum of the window the motion needs, a grid's cached pyramid is
+`max_pyramid`, a keyframe placed from its cache is `place`, and the stage timers charge nested stages once
+(checked on a fake clock, not timed)."""
 
 from __future__ import annotations
 
@@ -341,7 +342,8 @@ def test_matching_without_odometry_finds_the_optimum_of_the_window_the_motion_ne
     match = _match_without_odometry(scan, grid, prior, wide)
     assert match is not None
     # The search reads the scan thinned to one point per cell; its optimum is the brute-force optimum of
-    # those points over the narrow window when that optimum lies inside it, else over the wide window.
+    # those points over the narrow window when the prediction was close (that optimum in the window's
+    # inner half), else over the wide window.
     thinned = scan[one_per_cell(scan, COARSE_THINNING)]
     assert len(thinned) < len(scan)
     window = SearchWindow(NARROW_WINDOW_LINEAR, NARROW_WINDOW_ANGULAR, wide.angular_step) if narrow else wide
