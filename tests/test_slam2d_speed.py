@@ -1,6 +1,7 @@
-"""What the 2D path's speed work must keep: the exhaustive search returns the brute-force optimum, a grid's
-cached pyramid is `max_pyramid`, a keyframe placed from its cache is `place`, and the stage timers charge
-nested stages once (checked on a fake clock, not timed)."""
+"""What the 2D path's speed work must keep: the exhaustive search returns the brute-force optimum, the
+matcher without odometry the optimum of the window the motion needs, a grid's cached pyramid is
+`max_pyramid`, a keyframe placed from its cache is `place`, and the stage timers charge nested stages once
+(checked on a fake clock, not timed)."""
 
 from __future__ import annotations
 
@@ -24,9 +25,15 @@ from frontends.slam2d.grid import build_likelihood_grid, max_pyramid
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.log_input import OdometryTrack, scans_in_base_frame
-from frontends.slam2d.slam import LaserSlam2D
+from frontends.slam2d.slam import (
+    COARSE_THINNING,
+    NARROW_WINDOW_ANGULAR,
+    NARROW_WINDOW_LINEAR,
+    LaserSlam2D,
+    _match_without_odometry,
+)
 from frontends.slam2d.stage_times import StageTimes
-from tests.laser_world import simulate_scan, square_loop
+from tests.laser_world import between, simulate_scan, square_loop
 
 RESOLUTION = 0.05
 SIGMA = 0.06
@@ -287,3 +294,62 @@ def test_one_point_per_cell_keeps_the_first_or_last_of_each_cell_in_order(
         if keep_last or key not in chosen:
             chosen[key] = index
     assert kept.tolist() == sorted(chosen.values())
+
+
+def every_pose_scored(points: np.ndarray, values: np.ndarray, origin: np.ndarray, centre: np.ndarray,
+                      window: SearchWindow) -> tuple[float, np.ndarray]:
+    """`brute_force_best` with all translations of a rotation scored at once (wide windows)."""
+    reach = math.ceil(window.linear / RESOLUTION - 1e-9)
+    count = int(math.floor(window.angular / window.angular_step))
+    height, width = values.shape
+    shifts = np.arange(-reach, reach + 1)
+    best_score, best_pose = -1.0, np.zeros(3)
+    for a in range(-count, count + 1):
+        theta = centre[2] + window.angular_step * a
+        c, s = math.cos(theta), math.sin(theta)
+        base_x = np.floor((centre[0] + c * points[:, 0] - s * points[:, 1] - origin[0]) / RESOLUTION)
+        base_y = np.floor((centre[1] + s * points[:, 0] + c * points[:, 1] - origin[1]) / RESOLUTION)
+        cx = base_x.astype(np.int64)[None, None, :] + shifts[None, :, None]  # (1, tx, point)
+        cy = base_y.astype(np.int64)[None, None, :] + shifts[:, None, None]  # (ty, 1, point)
+        inside = (cx >= 0) & (cy >= 0) & (cx < width) & (cy < height)
+        read = np.where(inside, values[np.clip(cy, 0, height - 1), np.clip(cx, 0, width - 1)], 0.0)
+        scores = read.astype(np.float64).sum(axis=2) / len(points)  # (ty, tx)
+        ty, tx = np.unravel_index(int(np.argmax(scores)), scores.shape)  # the first best in (ty, tx) order
+        if scores[ty, tx] > best_score + 1e-12:
+            best_score = float(scores[ty, tx])
+            best_pose = np.array([centre[0] + shifts[tx] * RESOLUTION, centre[1] + shifts[ty] * RESOLUTION,
+                                  theta])
+    return best_score, best_pose
+
+
+@pytest.mark.parametrize(
+    ("error", "narrow"),
+    [
+        (np.array([0.05, -0.05, math.radians(2.0)]), True),  # the prediction was close
+        (np.array([0.35, 0.1, math.radians(3.0)]), False),  # moved farther than the narrow window
+        (np.array([0.0, 0.05, math.radians(22.0)]), False),  # turned farther than the narrow window
+    ],
+)
+def test_matching_without_odometry_finds_the_optimum_of_the_window_the_motion_needs(
+        error: np.ndarray, narrow: bool) -> None:
+    world = square_loop().segments
+    keyframe_pose, scan_pose = np.array([6.5, 9.0, 0.3]), np.array([6.8, 8.9, 0.45])
+    grid = build_likelihood_grid(simulate_scan(world, keyframe_pose)[:, :2], RESOLUTION, SIGMA, margin=1.0)
+    scan = simulate_scan(world, scan_pose, beams=1440)[:, :2]  # denser than the cells near the walls
+    truth = between(keyframe_pose, scan_pose)
+    prior = truth - error
+    wide = SearchWindow(0.5, math.radians(35.0), math.radians(0.5))
+    match = _match_without_odometry(scan, grid, prior, wide)
+    assert match is not None
+    # The search reads the scan thinned to one point per cell; its optimum is the brute-force optimum of
+    # those points over the narrow window when the prediction was close (that optimum in the window's
+    # inner half), else over the wide window.
+    thinned = scan[one_per_cell(scan, COARSE_THINNING)]
+    assert len(thinned) < len(scan)
+    window = SearchWindow(NARROW_WINDOW_LINEAR, NARROW_WINDOW_ANGULAR, wide.angular_step) if narrow else wide
+    score, pose = every_pose_scored(thinned, grid.values, grid.origin, prior, window)
+    assert match.score == pytest.approx(score, abs=1e-9)
+    np.testing.assert_allclose(match.pose, pose, atol=1e-12)
+    # Either way, within a cell and a step of the truth.
+    assert np.all(np.abs(match.pose[:2] - truth[:2]) <= RESOLUTION + 1e-9)
+    assert abs(match.pose[2] - truth[2]) <= wide.angular_step + 1e-9

@@ -193,6 +193,52 @@ def _top_level(
     return scores, keys
 
 
+@njit(cache=True, inline="always")
+def _block_cell(cell: int, span: int, size: int) -> int:
+    """The cell `_score` reads for a point whose block [cell, cell + span) is shifted there: the edge cell
+    where the block only partly overlaps the grid, −1 where it misses it."""
+    if cell < 0:
+        return 0 if cell + span > 0 else -1
+    return cell if cell < size else -1
+
+
+@njit(cache=True)
+def _child_scores(
+    values: NDArray[np.float32],
+    cells_x: NDArray[np.int64],
+    cells_y: NDArray[np.int64],
+    tx: int,
+    ty: int,
+    half: int,
+    wanted: NDArray[np.bool_],
+    out: FloatArray,
+) -> None:
+    """`_score` of the four children (tx + half·(c & 1), ty + half·(c >> 1)) with span `half`, in one pass
+    over the points (each child's total sums them in `_score`'s order); −1 for a child not `wanted`."""
+    height, width = values.shape
+    total0 = total1 = total2 = total3 = 0.0
+    for i in range(cells_x.shape[0]):
+        left = _block_cell(cells_x[i] + tx, half, width)
+        right = _block_cell(cells_x[i] + tx + half, half, width)
+        bottom = _block_cell(cells_y[i] + ty, half, height)
+        top = _block_cell(cells_y[i] + ty + half, half, height)
+        if bottom >= 0:
+            if left >= 0:
+                total0 += values[bottom, left]
+            if right >= 0:
+                total1 += values[bottom, right]
+        if top >= 0:
+            if left >= 0:
+                total2 += values[top, left]
+            if right >= 0:
+                total3 += values[top, right]
+    count = max(cells_x.shape[0], 1)
+    out[0] = total0 / count if wanted[0] else -1.0
+    out[1] = total1 / count if wanted[1] else -1.0
+    out[2] = total2 / count if wanted[2] else -1.0
+    out[3] = total3 / count if wanted[3] else -1.0
+
+
 @njit(cache=True)
 def _branch_and_bound(
     levels: tuple[NDArray[np.float32], ...],
@@ -238,6 +284,7 @@ def _branch_and_bound(
     best = (0, 0, 0, min_score)
     found = False
     child_scores = np.empty(4)
+    wanted = np.empty(4, dtype=np.bool_)
     order = np.empty(4, dtype=np.int64)
     while size > 0:
         size -= 1
@@ -256,10 +303,9 @@ def _branch_and_bound(
         for c in range(4):
             cx = tx + half * (c & 1)
             cy = ty + half * (c >> 1)
-            if cx > reach or cy > reach or _excluded(cx, cy, half, exclude_x, exclude_y, exclude_radius):
-                child_scores[c] = -1.0
-            else:
-                child_scores[c] = _score(levels[level - 1], cells_x[a], cells_y[a], cx, cy, half)
+            wanted[c] = not (cx > reach or cy > reach
+                             or _excluded(cx, cy, half, exclude_x, exclude_y, exclude_radius))
+        _child_scores(levels[level - 1], cells_x[a], cells_y[a], tx, ty, half, wanted, child_scores)
         # Ascending, ties in index order (what argsort gives on four values), by insertion.
         for c in range(4):
             j = c

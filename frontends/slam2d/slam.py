@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -36,8 +37,9 @@ from frontends.slam2d.config import (
     OdometryConfig,
     Slam2DConfig,
 )
-from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
+from frontends.slam2d.correlative import Match, SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import match_unambiguous
+from frontends.slam2d.grid import LikelihoodGrid
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.match_covariance import score_plateau, slide_to_prior, widened
@@ -52,6 +54,11 @@ FloatArray = NDArray[np.float64]
 
 REOPTIMIZE_ITERATIONS = 15
 ODOMETRY_BRANCH_AND_BOUND_LEVELS = 3
+COARSE_THINNING = 0.05
+"""Without odometry the correlative search reads one scan point per cell of this size (m)."""
+NARROW_WINDOW_LINEAR = 0.2
+NARROW_WINDOW_ANGULAR = math.radians(10.0)
+"""Without odometry the window searched first around the constant-velocity prediction (± m, ± rad)."""
 BRANCH_AND_BOUND_LEVELS = 4
 """Coarsest candidates span 2⁴ cells (0.8 m at 5 cm). The optimum does not depend on it; the work does:
 a 3.2 m block bounds every pose inside it by nearly the best score anywhere (some wall is always that
@@ -129,6 +136,36 @@ def predicted_motion(settings: OdometryConfig, last_odometry: FloatArray | None,
         sigma_linear = settings.constant_velocity_sigma_linear
         sigma_angular = settings.constant_velocity_sigma_angular
     return motion, np.diag([sigma_linear**-2, sigma_linear**-2, sigma_angular**-2])
+
+
+def _match_without_odometry(
+    points: FloatArray, grid: LikelihoodGrid, prior: FloatArray, window: SearchWindow
+) -> Match | None:
+    """The correlative start for ICP when only constant velocity predicts the motion.
+
+    The search reads one point per `COARSE_THINNING` cell (dense returns near the robot count once; ICP
+    then uses them all). The narrow window around the prediction is searched first, exhaustively: the
+    prediction is usually close, and an optimum inside the narrow window is taken (the wide window's
+    optimum may lie elsewhere: a look-alike pose farther from the prediction, which the old search would
+    have taken). Only an optimum in the narrow window's outer half (the motion changed more than usual) calls
+    for the wide window, by branch and bound, which then only has to beat the narrow optimum."""
+    coarse_points = np.ascontiguousarray(points[one_per_cell(points, COARSE_THINNING)])
+    narrow_window = SearchWindow(min(NARROW_WINDOW_LINEAR, window.linear),
+                                 min(NARROW_WINDOW_ANGULAR, window.angular), window.angular_step)
+    narrow = match_exhaustive(coarse_points, grid, prior, narrow_window)
+    cells = round(float(np.max(np.abs(narrow.pose[:2] - prior[:2]))) / grid.resolution)
+    steps = round(abs(float(narrow.pose[2] - prior[2])) / window.angular_step)
+    # Beyond half the narrow window the prediction was off by more than it usually is (a quick turn, a
+    # jolt), and the narrow window may have cut the true optimum off.
+    far = (2 * cells >= math.ceil(narrow_window.linear / grid.resolution - 1e-9)
+           or 2 * steps >= math.floor(narrow_window.angular / window.angular_step))
+    if far and narrow_window != window:
+        # Anything better than the narrow optimum: the wide optimum itself, with far less to explore.
+        wide = match_branch_and_bound(coarse_points, grid, prior, window, narrow.score * (1.0 - 1e-12),
+                                      levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS)
+        if wide is not None:
+            return wide
+    return narrow if narrow.score > 0.0 else None  # nothing scores: as the branch and bound says
 
 
 class LaserSlam2D:
@@ -248,10 +285,8 @@ class LaserSlam2D:
             )
             if has_odometry:
                 coarse = match_exhaustive(points, self._local_map.grid, prior, window)
-            else:  # a wide window: branch and bound finds the same optimum for a fraction of the work
-                coarse = match_branch_and_bound(
-                    points, self._local_map.grid, prior, window, 0.0, levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS
-                )
+            else:
+                coarse = _match_without_odometry(points, self._local_map.grid, prior, window)
             local = self._local_map
             start = prior if coarse is None else coarse.pose
             refined = refine_point_to_line(
