@@ -13,14 +13,17 @@ every iteration, trajectory and map files.
    for clouds), `<stem>.json` (counts, timings, χ² per iteration, convergence, warnings) and
    `<stem>.rrd`, published together on success (`pipeline.outputs`).
 
-A replay may start from a saved session (`SessionStart`, `pipeline.session_file`; 2D laser sessions):
+A replay may start from a saved session (`SessionStart`, `pipeline.session_file`; 2D laser and 3D
+point-cloud sessions):
 - `continue`: the frontend table's session factory gives a frontend that continues the saved keyframe graph
-  (`frontends.slam2d.session_frontends.ContinuingLaserFrontend`); everything else is as above, and the
-  trajectory, the graph, the map and the new session hold both runs;
-- `map`: localization only (`LocalizingLaserFrontend`): the scans stream through the localizer and the
-  recording as in step 2, nothing is optimized, and the outputs are `<stem>.tum` (the scans placed in the
-  saved map, in its frame), `<stem>.json` (per-scan match quality, `localization_summary`) and
-  `<stem>.rrd` (the saved map with the new run on it); the saved map is not changed or written again.
+  (`frontends.slam2d.session_frontends.ContinuingLaserFrontend`, `frontends.slam3d.session_frontends.
+  ContinuingLidarFrontend`); everything else is as above, and the trajectory, the graph, the map and the
+  new session hold both runs;
+- `map`: localization only (`LocalizingLaserFrontend`, `LocalizingLidarFrontend`): the measurements
+  stream through the localizer and the recording as in step 2, nothing is optimized, and the outputs are
+  `<stem>.tum` (and `<stem>.kitti` for clouds: the measurements placed in the saved map, in its frame),
+  `<stem>.json` (per-measurement match quality, `localization_summary`) and `<stem>.rrd` (the saved map
+  with the new run on it); the saved map is not changed or written again.
 
 Warnings raised on the way are counted (`pipeline.warning_tally`), written to the summary and raised once
 each afterwards. Library code: raises `FrontendError`, `OptimizerError` or `PipelineError`, never prints.

@@ -41,6 +41,10 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
+SUBMAP_CACHE = 32
+"""Registration targets of global localization kept for reuse (the most recently used)."""
+
+
 @dataclass(frozen=True)
 class CloudLocalizationConfig:
     target_keyframes: int = 12
@@ -58,7 +62,7 @@ class CloudLocalizationConfig:
     """… and to move the prediction less than this (m, rad): farther is a slip onto another surface."""
     max_dead_reckoning: float = 30.0
     """Without a match for this many metres the run is lost: global localization again."""
-    global_every: float = 1.0
+    global_every: float = 2.0
     """A global localization is tried at every this many metres driven while not localized."""
     global_candidates: int = 3
     """Saved keyframes (the nearest descriptors, apart from each other) verified per attempt."""
@@ -121,6 +125,7 @@ class CloudLocalizer:
         self._lost: list[tuple[int, FloatArray]] = []
         """(index, odometry pose) of clouds processed since the run was last localized."""
         self._last_attempt: FloatArray | None = None
+        self._submaps: dict[int, RegistrationTarget] = {}
 
     @property
     def localized(self) -> bool:
@@ -224,7 +229,7 @@ class CloudLocalizer:
                 candidates.append((int(k), float(headings[k])))
         best = None
         for anchor, heading in candidates:
-            verdict = verify_loop(RegistrationTarget(self._submap(anchor), loop), points,
+            verdict = verify_loop(self._submap_target(anchor), points,
                                   [self._heading_guess(anchor, odometry_pose, heading)], loop)
             if verdict.match is not None and (best is None
                                               or verdict.match.inlier_fraction > best[1].inlier_fraction):
@@ -244,12 +249,20 @@ class CloudLocalizer:
                               recovered_indices=np.array([i for i, _ in lost], dtype=np.int64),
                               recovered_poses=recovered)
 
-    def _submap(self, anchor: int) -> FloatArray:
-        """The saved keyframes around `anchor` (by index, as the SLAM's loop closures), in its frame."""
-        reach = self.config.loop_closure.submap_keyframes
-        around = range(max(0, anchor - reach), min(len(self._poses) - 1, anchor + reach) + 1)
-        return np.concatenate([se3.transform_points(se3.relative(self._poses[anchor], self._poses[k]),
-                                                    self._clouds[k]) for k in around])
+    def _submap_target(self, anchor: int) -> RegistrationTarget:
+        """The saved keyframes around `anchor` (by index, as the SLAM's loop closures), in its frame, made
+        once: a run outside the map tries the same few look-alike places again and again."""
+        target = self._submaps.pop(anchor, None)
+        if target is None:
+            reach = self.config.loop_closure.submap_keyframes
+            around = range(max(0, anchor - reach), min(len(self._poses) - 1, anchor + reach) + 1)
+            points = np.concatenate([se3.transform_points(se3.relative(self._poses[anchor], self._poses[k]),
+                                                          self._clouds[k]) for k in around])
+            target = RegistrationTarget(points, self.config.loop_closure)
+        self._submaps[anchor] = target  # the most recently used last
+        while len(self._submaps) > SUBMAP_CACHE:
+            del self._submaps[next(iter(self._submaps))]
+        return target
 
     def _heading_guess(self, anchor: int, odometry_pose: FloatArray, heading: float) -> FloatArray:
         """The cloud's pose in the anchor's frame at the anchor's position, turned by the descriptor's
