@@ -3,7 +3,7 @@
 The simulated town loop (tests/lidar_world.py) is driven three times, each a log of its own recorded
 apart (its own stamps; its KISS-ICP odometry starts at its own first cloud, so the odometry origin says
 nothing about where it is in the map):
-- `first`: the first ~60 m of the loop (of ~100 m), mapped by a plain replay;
+- `first`: the first ~60 m of the loop (of ~116 m), mapped by a plain replay;
 - `inside`: 20 clouds from 20 m on, all inside the first map: localized with `--map`;
 - `second`: from 75 m on (a stretch the first map never drove through) round into the mapped start of the
   loop: localized with `--map` (no initial pose: global localization must find it) and continued with
@@ -38,6 +38,9 @@ STEP = 0.8
 SLACK = 0.1
 """What a localization may add (m) to the error of the map it localizes in: the map's own clouds are
 placed with that error, and a registration onto them cannot do better than they are."""
+UNMAPPED_TOLERANCE = 1.0
+"""Position error (m) allowed of clouds placed by odometry alone from where global localization placed the
+run, over an unmapped stretch of up to ~45 m (KISS-ICP drifts ~1 % here)."""
 LOOP_TOLERANCE = 0.5
 """Position error (m) allowed of a drive round the whole loop mapped with its loop closures (as for a
 plain replay of the loop in tests/test_pipeline_cloud.py)."""
@@ -76,7 +79,7 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> Logs:
     world, lidar = town_loop(), Lidar(columns=720)
     first_drive = drive(world, sweeps=80, step=STEP, lidar=lidar, seed=1)
     inside_drive = drive(world, sweeps=20, step=STEP, start=20.0, lidar=lidar, seed=3)
-    second_drive = drive(world, sweeps=55, step=STEP, start=75.0, lidar=lidar, seed=2)
+    second_drive = drive(world, sweeps=75, step=STEP, start=75.0, lidar=lidar, seed=2)
     first, inside, second = folder / "first.mcap", folder / "inside.mcap", folder / "second.mcap"
     write_cloud_log(first, first_drive)
     write_cloud_log(inside, inside_drive, later_ns=2 * HOUR_NS)
@@ -165,7 +168,7 @@ def test_map_finds_a_log_that_starts_outside_the_saved_map(logs: Logs, tmp_path:
     # Clouds placed after the fact through the odometry carry its drift over the unmapped stretch.
     in_map = np.array([state == "m" for state in summary["per_scan"]["state"]])[has_pose]
     assert errors[in_map].max() < logs.map_error + SLACK
-    assert errors.max() < 1.0
+    assert errors.max() < UNMAPPED_TOLERANCE
 
 
 def test_map_with_an_initial_pose_tracks_from_the_first_cloud(logs: Logs, tmp_path: Path) -> None:
@@ -202,8 +205,14 @@ def test_continue_maps_both_logs_into_one_trajectory_and_a_larger_session(logs: 
     truth = logs.truth_in_map_frame(logs.first_drive, logs.second_drive)
     poses = trajectory.planar()
     errors = position_errors(poses, truth)
-    # The joint graph spreads the unmapped stretch's drift over the loop it closes: not the first map's error.
-    assert errors.max() < LOOP_TOLERANCE, f"max error {errors.max():.3f} m at cloud {errors.argmax()}"
+    # The new clouds before the one placed in the map hang off it by odometry alone (no loop closure reaches
+    # the stretch neither run mapped): their error is the odometry's drift back from the placement, up to
+    # ~45 m of it. Every other cloud is in the joint graph, whose loop closures spread the drift.
+    placed = old + summary["session"]["placement"]["scan"]
+    before = np.arange(len(errors)) >= old
+    before &= np.arange(len(errors)) < placed
+    assert errors[before].max(initial=0.0) < UNMAPPED_TOLERANCE
+    assert errors[~before].max() < LOOP_TOLERANCE, f"max error {errors[~before].max():.3f} m"
     assert heading_errors(poses, truth).max() < math.radians(1.5)
     assert len(read_kitti_poses(tmp_path / "second.kitti")) == old + new
 
@@ -230,13 +239,16 @@ def test_continue_maps_both_logs_into_one_trajectory_and_a_larger_session(logs: 
 
 def test_sessions_of_the_other_sensor_kind_are_refused(logs: Logs, tmp_path: Path) -> None:
     laser_log = tmp_path / "laser.mcap"
-    write_drive(laser_log, part=slice(0, 40))
-    laser = pipeline.replay(laser_log, out_dir=tmp_path / "laser_out")
+    write_drive(laser_log, part=slice(0, 5))
+    laser_session = tmp_path / "laser.session"
+    with laser_session.open("wb") as stream:
+        write_session(stream, {"sensor_kind": "scan"}, {"keyframe_poses": np.zeros((1, 3))},
+                      [np.zeros((4, 2))])
     out = tmp_path / "out"
     line = one_error_line(run_replay(laser_log, "--out", out, "--map", logs.session))
     assert "3D point clouds" in line and "2D laser scans" in line and str(logs.session) in line
-    line = one_error_line(run_replay(logs.inside, "--out", out, "--continue", laser.outputs["session"]))
-    assert "3D point clouds" in line and "2D laser scans" in line
+    line = one_error_line(run_replay(logs.inside, "--out", out, "--continue", laser_session))
+    assert "3D point clouds" in line and "2D laser scans" in line and str(laser_session) in line
     assert file_names(out) == set()
 
 
