@@ -179,6 +179,8 @@ class CloudLocalizer:
         target = self._target_near(prediction[:2, 3])
         if target is None:
             return None
+        if len(points) == 0:
+            return None
         source = prepare_source(points, self.config.loop_closure)
         if source.size() == 0:
             return None
@@ -215,6 +217,8 @@ class CloudLocalizer:
         settings = self.settings
         if self._last_attempt is not None and np.linalg.norm(
                 odometry_pose[:2, 3] - self._last_attempt[:2, 3]) < settings.global_every:
+            return self._unmatched(index, stamp_ns, odometry_pose)
+        if len(points) == 0:
             return self._unmatched(index, stamp_ns, odometry_pose)
         self._last_attempt = odometry_pose
         loop = self.config.loop_closure

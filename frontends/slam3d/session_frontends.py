@@ -115,14 +115,15 @@ class _LocalizingSlam3D(LidarSlam3D):
         super().__init__(config, sensor_to_base=sensor_to_base)
         self.localizer = localizer
         self.found: list[LocalizedCloud] = []
+        self._last_odometry: FloatArray | None = None
 
     def _add_step(self, index: int, stamp_ns: int, step: OdometryStep | None) -> CloudEstimate:
-        if step is None:
+        if step is None:  # as in the SLAM, a cloud the odometry could not register keeps the last pose
             self._untracked += 1
-            found = self.localizer.localize(index, stamp_ns, None, np.zeros((0, 3)))
+            found = self.localizer.localize(index, stamp_ns, self._last_odometry, np.zeros((0, 3)))
         else:
-            found = self.localizer.localize(index, stamp_ns, self._base_pose(step),
-                                            self._keyframe_points(step))
+            self._last_odometry = self._base_pose(step)
+            found = self.localizer.localize(index, stamp_ns, self._last_odometry, self._keyframe_points(step))
         self.found.append(found)
         return CloudEstimate(index, stamp_ns, found.pose.copy(), found.matched, -1, ())
 
