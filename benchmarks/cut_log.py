@@ -1,10 +1,12 @@
-"""Cut a ROS 2 MCAP laser log in two at its middle scan, as two recordings of the same building made apart:
-the second part's odometry (/odom and the odom → base /tf) re-expressed from its own first pose.
+"""Cut a ROS 2 MCAP log (laser scans or point clouds) in two at its middle scan or cloud, as two recordings
+of the same place made apart: the second part's odometry (/odom and the odom → base /tf), when the log has
+one, re-expressed from its own first pose.
 
     python benchmarks/cut_log.py ../shared/data/logs/aces/aces.mcap /tmp/aces   # aces_first/second.mcap
     replay /tmp/aces/aces_first.mcap -o /tmp/aces/rec
     replay /tmp/aces/aces_second.mcap -o /tmp/aces/rec_map --map /tmp/aces/rec/aces_first.session
     replay /tmp/aces/aces_second.mcap -o /tmp/aces/rec_cont --continue /tmp/aces/rec/aces_first.session
+    python benchmarks/cut_log.py ../shared/data/logs/kitti/kitti_city.mcap /tmp/kitti   # clouds, no odometry
 
 Messages are copied as they are (schemas, channels, stamps); /tf_static goes into both parts. Only the
 odometry of the second part is decoded and written again (rosbags' CDR serializer, as the tests' logs).
@@ -26,6 +28,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from tests._frontends_fixtures import ros_typestore  # noqa: E402
+
+SENSOR_SCHEMAS = ("sensor_msgs/msg/LaserScan", "sensor_msgs/msg/PointCloud2")
+"""The log is cut at the middle message of its sensor topic (the first topic of one of these types)."""
 
 Row = tuple[Any, Any, Any]
 """(schema, channel, message) as the mcap reader gives them."""
@@ -95,12 +100,14 @@ def write_part(path: Path, rows: list[Row], rebased: Rebased | None) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("log", type=Path, help="a ROS 2 MCAP with /scan, /odom, /tf, /tf_static")
+    parser.add_argument("log", type=Path, help="a ROS 2 MCAP with LaserScan or PointCloud2 messages "
+                                               "(and optionally /odom, /tf, /tf_static)")
     parser.add_argument("out", type=Path, help="folder for <stem>_first.mcap and <stem>_second.mcap")
     args = parser.parse_args()
     with args.log.open("rb") as stream:
         rows = list(make_reader(stream).iter_messages(log_time_order=True))
-    scan_times = [message.log_time for _, channel, message in rows if channel.topic == "/scan"]
+    sensor_topic = next(channel.topic for schema, channel, _ in rows if schema.name in SENSOR_SCHEMAS)
+    scan_times = [message.log_time for _, channel, message in rows if channel.topic == sensor_topic]
     cut = scan_times[len(scan_times) // 2]
     static = [row for row in rows if row[1].topic == "/tf_static"]
     moving = [row for row in rows if row[1].topic != "/tf_static"]
@@ -110,11 +117,12 @@ def main() -> None:
     second = [r for r in moving if r[2].log_time >= cut]
     # /odom and /tf carry the same odometry: both seen from the part's first /odom pose.
     rebased = Rebased()
-    first_odometry = next(r for r in second if r[1].topic == "/odom")
-    rebased_data(ros_typestore(False), rebased, first_odometry[0], "/odom", first_odometry[2].data)
+    first_odometry = next((r for r in second if r[1].topic == "/odom"), None)
+    if first_odometry is not None:
+        rebased_data(ros_typestore(False), rebased, first_odometry[0], "/odom", first_odometry[2].data)
     write_part(args.out / f"{stem}_second.mcap", static + second, rebased)
-    print(f"{len(scan_times)} scans; cut at {cut * 1e-9:.3f} s: {args.out}/{stem}_first.mcap, "
-          f"{args.out}/{stem}_second.mcap")
+    print(f"{len(scan_times)} messages on {sensor_topic}; cut at {cut * 1e-9:.3f} s: "
+          f"{args.out}/{stem}_first.mcap, {args.out}/{stem}_second.mcap")
 
 
 if __name__ == "__main__":

@@ -13,14 +13,17 @@ every iteration, trajectory and map files.
    for clouds), `<stem>.json` (counts, timings, χ² per iteration, convergence, warnings) and
    `<stem>.rrd`, published together on success (`pipeline.outputs`).
 
-A replay may start from a saved session (`SessionStart`, `pipeline.session_file`; 2D laser sessions):
+A replay may start from a saved session (`SessionStart`, `pipeline.session_file`; 2D laser and 3D
+point-cloud sessions):
 - `continue`: the frontend table's session factory gives a frontend that continues the saved keyframe graph
-  (`frontends.slam2d.session_frontends.ContinuingLaserFrontend`); everything else is as above, and the
-  trajectory, the graph, the map and the new session hold both runs;
-- `map`: localization only (`LocalizingLaserFrontend`): the scans stream through the localizer and the
-  recording as in step 2, nothing is optimized, and the outputs are `<stem>.tum` (the scans placed in the
-  saved map, in its frame), `<stem>.json` (per-scan match quality, `localization_summary`) and
-  `<stem>.rrd` (the saved map with the new run on it); the saved map is not changed or written again.
+  (`frontends.slam2d.session_frontends.ContinuingLaserFrontend`, `frontends.slam3d.session_frontends.
+  ContinuingLidarFrontend`); everything else is as above, and the trajectory, the graph, the map and the
+  new session hold both runs;
+- `map`: localization only (`LocalizingLaserFrontend`, `LocalizingLidarFrontend`): the measurements
+  stream through the localizer and the recording as in step 2, nothing is optimized, and the outputs are
+  `<stem>.tum` (and `<stem>.kitti` for clouds: the measurements placed in the saved map, in its frame),
+  `<stem>.json` (per-measurement match quality, `localization_summary`) and `<stem>.rrd` (the saved map
+  with the new run on it); the saved map is not changed or written again.
 
 Warnings raised on the way are counted (`pipeline.warning_tally`), written to the summary and raised once
 each afterwards. Library code: raises `FrontendError`, `OptimizerError` or `PipelineError`, never prints.
@@ -44,6 +47,7 @@ from frontends.protocol import Estimate, FrontendOptions, LogFrontend
 from frontends.slam2d import LaserFrontend, OccupancyGrid, Slam2DConfig
 from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
 from frontends.slam3d import LidarFrontend, Slam3DConfig, planar
+from frontends.slam3d.session_frontends import ContinuingLidarFrontend, LocalizingLidarFrontend
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
@@ -64,12 +68,14 @@ from pipeline.ply import write_map_pcd, write_ply
 from pipeline.recording import IterationSink
 from pipeline.recording.clouds import CloudReplayRecording
 from pipeline.recording.localization import MapLocalizationRecording
+from pipeline.recording.localization3d import CloudLocalizationRecording
 from pipeline.recording.scans import ScanReplayRecording
 from pipeline.session_file import (
     SENSOR_WORDS,
     SessionContent,
     read_session,
     saved_map_2d,
+    saved_map_3d,
     session_sensor_kind,
     source_description,
     write_session_file,
@@ -112,6 +118,9 @@ class _MapFile:
     write: Callable[[Path, Any, ReplayOutputs], None]
     """(staged path, the frontend's map export, the outputs' published paths)."""
 
+
+LocalizingFrontend = LocalizingLaserFrontend | LocalizingLidarFrontend
+"""The frontend of a localization in a saved map, of scans or of clouds."""
 
 ReplayMode = Literal["slam", "continue", "map"]
 """A plain log replay, mapping continued from a session, or localization in a session's map."""
@@ -170,7 +179,7 @@ class _Sensor:
     from_session: Callable[[LogReader, str, Any, FrontendOptions, SessionStart], Any] | None = None
     """The frontend of a replay that starts from a saved session: continuing it (a `LogFrontend`) or
     localizing in it (a `LocalizingLaserFrontend`); None: not built for this sensor."""
-    localization_recording: type[MapLocalizationRecording] | None = None
+    localization_recording: type[MapLocalizationRecording] | type[CloudLocalizationRecording] | None = None
     """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
 
 
@@ -187,6 +196,14 @@ def _laser_frontend_from_session(log: LogReader, topic: str, config: Slam2DConfi
     return LocalizingLaserFrontend(log, topic, saved, config, options, initial_pose=session.initial_pose)
 
 
+def _lidar_frontend_from_session(log: LogReader, topic: str, config: Slam3DConfig | None,
+                                 options: FrontendOptions, session: SessionStart) -> LidarFrontend:
+    saved = saved_map_3d(session.path, session.content)
+    if session.mode == "continue":
+        return ContinuingLidarFrontend(log, topic, saved, config, options)
+    return LocalizingLidarFrontend(log, topic, saved, config, options, initial_pose=session.initial_pose)
+
+
 _SENSORS = {
     "scan": _Sensor(LaserFrontend, ScanReplayRecording, (
         _MapFile("map_png", "_map.png", lambda path, grid, _: write_png(path, picture_with_scale_bar(grid))),
@@ -196,7 +213,8 @@ _SENSORS = {
     "cloud": _Sensor(LidarFrontend, CloudReplayRecording, (
         _MapFile("ply", ".ply", lambda path, points, _: write_ply(path, points)),
         _MapFile("pcd", ".pcd", lambda path, points, _: write_map_pcd(path, points)),
-    ), kitti_poses=True),
+    ), kitti_poses=True, from_session=_lidar_frontend_from_session,
+        localization_recording=CloudLocalizationRecording),
 }
 
 
@@ -227,9 +245,10 @@ class ReplayOutputs:
         """The outputs of a replay of `input_path`; localization in a saved map ("map") writes only the
         trajectory, the summary and the recording."""
         stem = output_stem(input_path)
-        if mode == "map":
-            return cls(**{suffix: out_dir / f"{stem}.{suffix}" for suffix in ("tum", "json", "rrd")})
         chosen = _SENSORS[sensor]
+        if mode == "map":
+            kinds = ("tum", "json", "rrd", "kitti") if chosen.kitti_poses else ("tum", "json", "rrd")
+            return cls(**{suffix: out_dir / f"{stem}.{suffix}" for suffix in kinds})
         files = {suffix: out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd", "session")}
         if chosen.kitti_poses:
             files["kitti"] = out_dir / f"{stem}.kitti"
@@ -369,6 +388,8 @@ class _Run:
                 timings["record_close"] = time.perf_counter() - close_started
             write_started = time.perf_counter()
             write_tum(staged["tum"], frontend.stamps_ns, result.poses)
+            if localizing and outputs.kitti is not None:
+                write_kitti_poses(staged["kitti"], result.poses)
             if not localizing:
                 self.write_map_outputs(frontend, log, kind, topic, result, outputs, staged)
             timings["write"] = time.perf_counter() - write_started
@@ -410,7 +431,7 @@ class _Run:
                                         "continued_from": earlier.get("continued_from")}
         write_session_file(staged["session"], header, arrays, keyframe_points)
 
-    def stream(self, frontend: LogFrontend | LocalizingLaserFrontend, recorder: FrontendRecording,
+    def stream(self, frontend: LogFrontend | LocalizingFrontend, recorder: FrontendRecording,
                timings: dict[str, float]) -> int:
         """Stream the measurements through the frontend and the recording; how many there were."""
         started = time.perf_counter()
@@ -432,7 +453,7 @@ class _Run:
         timings["record_scans"] = record_seconds
         return count
 
-    def localize(self, frontend: LocalizingLaserFrontend, topic: str, recorder: MapLocalizationRecording,
+    def localize(self, frontend: LocalizingFrontend, topic: str, recorder: FrontendRecording,
                  stream: Any, timings: dict[str, float]) -> _Optimized:
         """Localize every measurement in the saved map, recording the new run on it (nothing optimized)."""
         count = self.stream(frontend, recorder, timings)
@@ -487,7 +508,8 @@ def summary(result: LogReplayResult) -> dict[str, Any]:
     if result.optimization is None:
         return localization_summary(result)
     continued = {}
-    if result.session is not None and isinstance(result.frontend, ContinuingLaserFrontend):
+    if result.session is not None and isinstance(result.frontend,
+                                                 (ContinuingLaserFrontend, ContinuingLidarFrontend)):
         continued = {"session": {"continued_from": str(result.session),
                                  "placement": result.frontend.placement()}}
     return {
@@ -526,7 +548,7 @@ def localization_summary(result: LogReplayResult) -> dict[str, Any]:
     """The JSON summary of a localization in a saved map, without its per-scan table (`per_scan`, see
     `localization_summary_text`)."""
     frontend = result.frontend
-    assert isinstance(frontend, LocalizingLaserFrontend)
+    assert isinstance(frontend, (LocalizingLaserFrontend, LocalizingLidarFrontend))
     found = frontend.localizations
     stamps = found.stamps_ns
     fixes = [{"scan": int(k), "stamp_ns": int(stamps[k]), "score": float(found.score[k])}
@@ -563,7 +585,7 @@ def localization_summary_text(result: LogReplayResult) -> str:
     (the scan's stamp, state — m matched, t tracked outside the saved map on the rolling local map of the
     recent scans, p predicted by odometry without a match, r pose recovered by a later global fix, - never
     localized — score, inlier fraction, ICP rms), each on one line."""
-    assert isinstance(result.frontend, LocalizingLaserFrontend)
+    assert isinstance(result.frontend, (LocalizingLaserFrontend, LocalizingLidarFrontend))
     found = result.frontend.localizations
     stride = -(-len(found.stamps_ns) // MAX_PER_SCAN_ROWS)
     rows = np.arange(0, len(found.stamps_ns), stride)

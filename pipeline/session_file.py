@@ -32,6 +32,7 @@ from pipeline.errors import OutputError, PipelineError
 
 if TYPE_CHECKING:
     from frontends.slam2d.session_frontends import SavedMap2D
+    from frontends.slam3d.session_frontends import SavedMap3D
 
 SESSION_FORMAT = "sgdslam.session"
 SESSION_VERSION = 1
@@ -273,3 +274,53 @@ def _checked(path: Path, label: str, arrays: Mapping[str, NDArray[Any]], shape: 
             raise SessionError(f"{path}: damaged session file ({label}: values not finite)")
         return array.astype(np.float64)
     return array
+
+
+CLOUD_SESSION_ARRAYS = ("keyframe_poses", "keyframe_stamps_ns", "edge_from", "edge_to", "relative",
+                        "information", "is_loop", "cloud_stamps_ns", "cloud_keyframes", "cloud_offsets")
+"""The arrays a 3D point-cloud session must hold (`frontends.slam3d.LidarFrontend.session_content`; it
+also writes `keyframe_planar_poses` and, since the sessions that continue, `sensor_to_base`, the
+LiDAR's mount, which older files lack)."""
+
+
+def saved_map_3d(path: Path, content: SessionContent) -> SavedMap3D:
+    """The keyframe map of a 3D point-cloud session, checked for consistency: `SessionError` naming the
+    file and the array when one is missing or does not fit the others."""
+    from frontends.slam3d.resume import SavedGraph3D
+    from frontends.slam3d.session_frontends import SavedMap3D
+
+    arrays = content.arrays
+    missing = [name for name in CLOUD_SESSION_ARRAYS if name not in arrays]
+    if missing:
+        raise SessionError(f"{path}: damaged session file (no {', '.join(missing)})")
+    poses = _checked(path, "keyframe_poses", arrays, (-1, 4, 4), np.floating)
+    keyframes = len(poses)
+    if keyframes == 0:
+        raise SessionError(f"{path}: damaged session file (no keyframes)")
+    if len(content.keyframe_points) != keyframes:
+        raise SessionError(f"{path}: damaged session file ({len(content.keyframe_points)} keyframe clouds "
+                           f"for {keyframes} keyframe poses)")
+    clouds = tuple(_checked(path, f"keyframe_points[{index}]", {"": points}, (-1, 3), np.floating, name="")
+                   for index, points in enumerate(content.keyframe_points))
+    edge_from = _checked(path, "edge_from", arrays, (-1,), np.integer)
+    edges = len(edge_from)
+    edge_to = _checked(path, "edge_to", arrays, (edges,), np.integer)
+    ends = np.concatenate([edge_from, edge_to])
+    if edges and (ends.min() < 0 or ends.max() >= keyframes):
+        raise SessionError(f"{path}: damaged session file (constraints between keyframes that do not exist)")
+    stamps = _checked(path, "cloud_stamps_ns", arrays, (-1,), np.integer)
+    cloud_keyframes = _checked(path, "cloud_keyframes", arrays, (len(stamps),), np.integer)
+    if len(stamps) and (cloud_keyframes.min() < 0 or cloud_keyframes.max() >= keyframes):
+        raise SessionError(f"{path}: damaged session file (clouds of keyframes that do not exist)")
+    mount = (_checked(path, "sensor_to_base", arrays, (4, 4), np.floating)
+             if "sensor_to_base" in arrays else None)
+    graph = SavedGraph3D(
+        clouds, poses,
+        _checked(path, "keyframe_stamps_ns", arrays, (keyframes,), np.integer).astype(np.int64),
+        edge_from.astype(np.int64), edge_to.astype(np.int64),
+        _checked(path, "relative", arrays, (edges, 4, 4), np.floating),
+        _checked(path, "information", arrays, (edges, 6, 6), np.floating),
+        _checked(path, "is_loop", arrays, (edges,), np.bool_),
+        stamps.astype(np.int64), cloud_keyframes.astype(np.int64),
+        _checked(path, "cloud_offsets", arrays, (len(stamps), 4, 4), np.floating))
+    return SavedMap3D(graph, mount)

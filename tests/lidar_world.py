@@ -332,16 +332,17 @@ BASE_FRAME = "base_link"
 
 
 def write_cloud_log(
-    path: Path, drive: Drive, *, with_times: bool = True, with_mount: bool = True
+    path: Path, drive: Drive, *, with_times: bool = True, with_mount: bool = True, later_ns: int = 0
 ) -> NDArray[np.int64]:
     """The drive as a ROS 2 MCAP: `/points` sensor_msgs/PointCloud2 (x, y, z, intensity float32, and a
-    float32 `time` field in seconds since the stamp when `with_times`), stamped at each sweep's start,
-    and `/tf_static` base_link → lidar (the mount) when `with_mount`. Returns the stamps."""
+    float32 `time` field in seconds since the stamp when `with_times`), stamped at each sweep's start
+    (from `START_NS` + `later_ns`: a recording made later), and `/tf_static` base_link → lidar (the
+    mount) when `with_mount`. Returns the stamps."""
     from scipy.spatial.transform import Rotation
 
     from tests._frontends_fixtures import ros2_mcap
 
-    stamps = START_NS + np.arange(len(drive.clouds), dtype=np.int64) * int(SWEEP_PERIOD * 1e9)
+    stamps = START_NS + later_ns + np.arange(len(drive.clouds), dtype=np.int64) * int(SWEEP_PERIOD * 1e9)
     names = ["x", "y", "z", "intensity", *(["time"] if with_times else [])]
     point_dtype = np.dtype([(name, "<f4") for name in names])
     with ros2_mcap(path) as (messages, add):

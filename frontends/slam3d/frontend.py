@@ -48,6 +48,8 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         self._points = 0
         self._map_points: int | None = None
         self._prior = _odometry_prior(log, self.odometry_topic, self._tree)
+        self.sensor_to_base = np.eye(4)
+        """The LiDAR's mount on the base (from tf at the first cloud; identity without one)."""
         self.polish: PolishResult | None = None
         self._polished_for: bytes | None = None
 
@@ -60,12 +62,17 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
             requested = self.base_frame
             mount = lidar_mount(self._tree, measurement.frame_id, measurement.stamp_ns, requested)
             self.base_frame = mount.base_frame if mount.from_tf or requested is not None else None
-            self._slam = LidarSlam3D(self.config, sensor_to_base=mount.sensor_to_base)
+            self.sensor_to_base = np.asarray(mount.sensor_to_base, dtype=np.float64)
+            self._slam = self._make_slam(self.sensor_to_base)
             self._prior = self._prior_of_base(mount, measurement.stamp_ns)
         self._clouds += 1
         self._points += len(measurement.points)
         odometry_pose = None if self._prior is None else self._prior.at(measurement.stamp_ns)
         return self._slam.add_cloud(measurement, odometry_pose)
+
+    def _make_slam(self, sensor_to_base: FloatArray) -> LidarSlam3D:
+        """The SLAM the clouds go to (a session's frontends start it from a saved map)."""
+        return LidarSlam3D(self.config, sensor_to_base=sensor_to_base)
 
     def _prior_of_base(self, mount: LidarMount, stamp_ns: int) -> OdometryPrior | None:
         """The odometry as poses of the mount's base frame; None when tf cannot relate the two."""
@@ -108,7 +115,8 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
                   "keyframe_stamps_ns": result.keyframe_stamps_ns, "edge_from": result.edge_from,
                   "edge_to": result.edge_to, "relative": result.relative, "information": result.information,
                   "is_loop": result.is_loop, "cloud_stamps_ns": result.cloud_stamps_ns,
-                  "cloud_keyframes": result.cloud_keyframes, "cloud_offsets": result.cloud_offsets}
+                  "cloud_keyframes": result.cloud_keyframes, "cloud_offsets": result.cloud_offsets,
+                  "sensor_to_base": self.sensor_to_base}
         return arrays, result.keyframe_clouds
 
     def map_export(self, planar_poses: FloatArray) -> NDArray[np.float32]:

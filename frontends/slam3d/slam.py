@@ -31,7 +31,7 @@ from frontends.errors import FrontendError
 from frontends.logs.types import Cloud3D
 from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune, path_lengths
 from frontends.slam3d import planar, pose_graph3d, se3
-from frontends.slam3d.config import Slam3DConfig
+from frontends.slam3d.config import LoopClosureConfig, Slam3DConfig
 from frontends.slam3d.loop_closure import (
     LoopMatch,
     RegistrationTarget,
@@ -39,7 +39,7 @@ from frontends.slam3d.loop_closure import (
     scan_context,
     verify_loop,
 )
-from frontends.slam3d.odometry import KissOdometry, Odometry, downsample
+from frontends.slam3d.odometry import KissOdometry, Odometry, OdometryStep, downsample
 from frontends.slam3d.pose_graph3d import PolishResult
 from optimizer import se2
 from optimizer.graph import PoseGraph
@@ -51,6 +51,15 @@ REOPTIMIZE_ITERATIONS = 15
 DESCRIPTOR_GUESS_MIN_ANGLE = np.radians(5.0)
 """The descriptor's heading is tried as a second registration start when it differs this much from the
 estimate's (otherwise the two starts are the same)."""
+
+
+def keyframe_descriptor(pose: FloatArray, points: FloatArray, settings: LoopClosureConfig) -> FloatArray:
+    """The Scan Context descriptor of a cloud (points in the base frame) seen levelled: its roll and pitch
+    in `pose` (4×4) taken out."""
+    levelled = se3.transform_points(se3.relative(planar.level(pose), pose), points)
+    return scan_context(
+        levelled, settings.descriptor_rings, settings.descriptor_sectors, settings.descriptor_radius
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,6 +184,9 @@ class LidarSlam3D:
             raise ValueError(f"sensor_to_base must be 4×4, got {self._mount.shape}")
         self._mount_inverse = se3.inverse(self._mount)
         self._odometry = odometry or KissOdometry(self.config.odometry)
+        self._odometry_origin = np.eye(4)
+        """Pose of the odometry frame in the frame keyframe odometry poses are kept in: identity, but for a
+        SLAM resumed on a saved map (`frontends.slam3d.resume`), where it places the new run in the map."""
         self._map_from_odometry = np.eye(4)
         self._keyframe_odometry: list[FloatArray] = []
         self._keyframe_poses: list[FloatArray] = []
@@ -216,29 +228,42 @@ class LidarSlam3D:
         if step is not None:
             # the guess is relative to the last registered cloud: no odometry there, no guess next time
             self._last_odometry_pose = odometry
+        return self._add_step(index, int(cloud.stamp_ns), step)
+
+    def _base_pose(self, step: OdometryStep) -> FloatArray:
+        """4×4 pose of the base at a registered cloud, in the frame keyframe odometry poses are kept in."""
+        return self._odometry_origin @ self._mount @ step.pose @ self._mount_inverse
+
+    def _keyframe_points(self, step: OdometryStep) -> FloatArray:
+        """The registered cloud as a keyframe keeps it: downsampled, in the base frame at its stamp."""
+        points = downsample(step.points, self.config.keyframes.cloud_voxel)
+        # deskewed points are in the sensor frame at the sweep's end: bring them to the base at the stamp
+        to_base = self._mount @ se3.relative(step.pose, step.points_pose)
+        return se3.transform_points(to_base, points)
+
+    def _add_step(self, index: int, stamp_ns: int, step: OdometryStep | None) -> CloudEstimate:
+        """The cloud `index` registered by the odometry (None: too few points): keyframe, loop closures,
+        its offset from its keyframe."""
         if step is None:
             self._untracked += 1
             if not self._keyframe_poses:
                 self._dropped += 1
-                return CloudEstimate(index, cloud.stamp_ns, np.eye(4), False, -1, ())
+                return CloudEstimate(index, stamp_ns, np.eye(4), False, -1, ())
             base = self._last_base
         else:
-            base = self._mount @ step.pose @ self._mount_inverse
+            base = self._base_pose(step)
         new_loops: tuple[tuple[int, int], ...] = ()
         if step is not None and self._is_new_keyframe(base):
-            points = downsample(step.points, self.config.keyframes.cloud_voxel)
-            # deskewed points are in the sensor frame at the sweep's end: bring them to the base at the stamp
-            to_base = self._mount @ se3.relative(step.pose, step.points_pose)
-            self._add_keyframe(base, cloud.stamp_ns, se3.transform_points(to_base, points))
+            self._add_keyframe(base, stamp_ns, self._keyframe_points(step))
             new_loops = self._close_loops()
         self._last_base = base
         keyframe = len(self._keyframe_poses) - 1
         offset = se3.relative(self._keyframe_odometry[keyframe], base)
-        self._cloud_stamps.append(int(cloud.stamp_ns))
+        self._cloud_stamps.append(int(stamp_ns))
         self._cloud_keyframes.append(keyframe)
         self._cloud_offsets.append(offset)
         pose = self._keyframe_poses[keyframe] @ offset
-        return CloudEstimate(index, cloud.stamp_ns, pose, step is not None, keyframe, new_loops)
+        return CloudEstimate(index, stamp_ns, pose, step is not None, keyframe, new_loops)
 
     def _is_new_keyframe(self, base: FloatArray) -> bool:
         if not self._keyframe_odometry:
@@ -251,26 +276,25 @@ class LidarSlam3D:
 
     # -------------------------------------------------------------------------------------- keyframes
 
-    def _add_keyframe(self, base: FloatArray, stamp_ns: int, points: FloatArray) -> None:
+    def _add_keyframe(self, base: FloatArray, stamp_ns: int, points: FloatArray,
+                      information: FloatArray | None = None) -> None:
+        """`information`: of the constraint from the previous keyframe (default: the odometry's)."""
         settings = self.config.loop_closure
         count = len(self._keyframe_odometry)
         travel = 0.0
         if count:
             step = se3.relative(self._keyframe_odometry[-1], base)
             length = float(np.linalg.norm(step[:3, 3]))
-            self._edges.add(count - 1, count, step, self._odometry_information(step), is_loop=False)
+            if information is None:
+                information = self._odometry_information(step)
+            self._edges.add(count - 1, count, step, information, is_loop=False)
             travel = self._keyframe_travel[-1] + length
         self._keyframe_odometry.append(base.copy())
         self._keyframe_poses.append(self._map_from_odometry @ base)
         self._keyframe_stamps.append(int(stamp_ns))
         self._keyframe_clouds.append(points.astype(np.float32))
         self._keyframe_travel.append(travel)
-        levelled = se3.transform_points(se3.relative(planar.level(base), base), points)
-        self._keyframe_descriptors.append(
-            scan_context(
-                levelled, settings.descriptor_rings, settings.descriptor_sectors, settings.descriptor_radius
-            )
-        )
+        self._keyframe_descriptors.append(keyframe_descriptor(base, points, settings))
 
     def _odometry_information(self, step: FloatArray) -> FloatArray:
         settings = self.config.keyframes

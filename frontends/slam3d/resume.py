@@ -1,0 +1,160 @@
+"""Continue 3D mapping from a saved keyframe graph: the new run's keyframes join the old graph.
+
+The new run's odometry (KISS-ICP, from its own first cloud) says nothing about where it starts in the old
+map, so its first clouds go to a `CloudLocalizer` over the old keyframes (global localization) and wait.
+Once one is placed:
+- the odometry frame is placed in the map (`LidarSlam3D._odometry_origin`), so every new keyframe's
+  odometry pose, and with it the height, roll and pitch the planar optimum is lifted with, is in the
+  map's frame;
+- the placed cloud becomes keyframe K (K old keyframes), tied to the old keyframe it matched by the match
+  (a loop closure, which the χ² check may reject like any other) and to keyframe K−1 by a very weak
+  constraint that only keeps the chain of consecutive keyframes whole;
+- the clouds that waited hang off keyframe K by their odometry (they come before it in time);
+- loop closures search every keyframe, old or new, as in one run: the old keyframes are "far back along
+  the path" from the start (their descriptors are recomputed from the saved clouds);
+- `finish` returns the joint graph, every cloud of both runs in it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from frontends.slam2d.resume import MapPlacementError
+from frontends.slam3d import se3
+from frontends.slam3d.config import Slam3DConfig
+from frontends.slam3d.localization import CloudLocalizationConfig, CloudLocalizer, LocalizedCloud
+from frontends.slam3d.odometry import Odometry, OdometryStep
+from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph, keyframe_descriptor
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+BRIDGE_SIGMA_LINEAR = 100.0
+BRIDGE_SIGMA_ANGULAR = 10.0
+"""σ (m, rad) of the constraint between the old run's last keyframe and the new run's first: it carries no
+information (the runs are unrelated in time), it only keeps the chain of consecutive keyframes whole."""
+
+
+@dataclass(frozen=True, eq=False)
+class SavedGraph3D:
+    """A saved 3D keyframe graph and how its clouds hang off it (what a session holds)."""
+
+    keyframe_clouds: tuple[NDArray[np.floating], ...]
+    """Each keyframe's cloud (N, 3) in its base frame."""
+    keyframe_poses: FloatArray
+    """(K, 4, 4) optimized keyframe poses in the map frame."""
+    keyframe_stamps_ns: IntArray
+    edge_from: IntArray
+    edge_to: IntArray
+    relative: FloatArray
+    """(M, 4, 4) pose of `edge_to` in the frame of `edge_from`."""
+    information: FloatArray
+    """(M, 6, 6)."""
+    is_loop: NDArray[np.bool_]
+    cloud_stamps_ns: IntArray
+    cloud_keyframes: IntArray
+    cloud_offsets: FloatArray
+    """(S, 4, 4) each cloud's base pose in its keyframe's frame."""
+
+
+class ResumedLidarSlam3D(LidarSlam3D):
+    """`LidarSlam3D` started from a saved keyframe graph (see the module's docstring)."""
+
+    def __init__(self, saved: SavedGraph3D, config: Slam3DConfig | None = None, *,
+                 sensor_to_base: ArrayLike | None = None, odometry: Odometry | None = None,
+                 localization: CloudLocalizationConfig | None = None) -> None:
+        super().__init__(config, sensor_to_base=sensor_to_base, odometry=odometry)
+        poses = np.asarray(saved.keyframe_poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(saved.keyframe_clouds) != len(poses):
+            raise MapPlacementError(f"{len(saved.keyframe_clouds)} keyframe clouds for {len(poses)} poses")
+        self.saved = saved
+        self._placer: CloudLocalizer | None = CloudLocalizer(saved.keyframe_clouds, poses, self.config,
+                                                             localization)
+        self._old_count = len(poses)
+        # The saved (optimized) poses stand for the old keyframes' odometry too: the planar optimum is
+        # lifted with their height, roll and pitch, and their clouds' offsets are relative to them.
+        self._keyframe_odometry = [p.copy() for p in poses]
+        self._keyframe_poses = [p.copy() for p in poses]
+        self._keyframe_stamps = [int(s) for s in saved.keyframe_stamps_ns]
+        self._keyframe_clouds = [np.asarray(c, dtype=np.float32) for c in saved.keyframe_clouds]
+        loop = self.config.loop_closure
+        self._keyframe_descriptors = [keyframe_descriptor(p, np.asarray(c, dtype=np.float64), loop)
+                                      for p, c in zip(poses, saved.keyframe_clouds, strict=True)]
+        steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+        self._keyframe_travel = np.concatenate([[0.0], np.cumsum(steps)]).tolist()
+        for a, b, z, information, loop_closure in zip(saved.edge_from, saved.edge_to, saved.relative,
+                                                      saved.information, saved.is_loop, strict=True):
+            self._edges.add(int(a), int(b), z, np.asarray(information, dtype=np.float64), bool(loop_closure))
+        self._cloud_stamps = [int(s) for s in saved.cloud_stamps_ns]
+        self._cloud_keyframes = [int(k) for k in saved.cloud_keyframes]
+        self._cloud_offsets = [np.asarray(o, dtype=np.float64) for o in saved.cloud_offsets]
+        self._waiting: list[tuple[int, int, FloatArray | None]] = []
+        """(index, stamp, odometry base pose or None) of the new clouds before the run was placed."""
+        self.clouds_unplaced = 0
+        """New clouds before the first one the odometry registered: no pose, left out."""
+        self.placement: LocalizedCloud | None = None
+
+    @property
+    def placed(self) -> bool:
+        return self._placer is None
+
+    def _add_step(self, index: int, stamp_ns: int, step: OdometryStep | None) -> CloudEstimate:
+        if self._placer is None:
+            return super()._add_step(index, stamp_ns, step)
+        odometry_pose = None if step is None else self._base_pose(step)
+        self._waiting.append((index, stamp_ns, odometry_pose))
+        waiting = CloudEstimate(index, stamp_ns, np.full((4, 4), np.nan), False, -1, ())
+        if step is None:
+            self._untracked += 1
+            return waiting
+        found = self._placer.localize(index, stamp_ns, odometry_pose, self._keyframe_points(step))
+        if not found.localized:
+            return waiting
+        assert odometry_pose is not None
+        self.placement = found
+        self._placer = None
+        self._odometry_origin = found.pose @ se3.inverse(odometry_pose)
+        self._start_new_run(stamp_ns, step, found)
+        return CloudEstimate(index, stamp_ns, found.pose.copy(), True, self._old_count, ())
+
+    def _start_new_run(self, stamp_ns: int, step: OdometryStep, found: LocalizedCloud) -> None:
+        base = self._base_pose(step)
+        bridge = np.diag([BRIDGE_SIGMA_LINEAR**-2] * 3 + [BRIDGE_SIGMA_ANGULAR**-2] * 3)
+        information = found.information if np.any(found.information) else bridge
+        new = self._old_count
+        if found.anchor == new - 1:  # the match itself ties the chain: one constraint, not a loop
+            self._add_keyframe(base, stamp_ns, self._keyframe_points(step), information)
+        else:
+            self._add_keyframe(base, stamp_ns, self._keyframe_points(step), bridge)
+            self._edges.add(found.anchor, new, found.relative, information, is_loop=True)
+        # every old keyframe is "far back along the path" from the new run's: loop closures may reach them
+        loop = self.config.loop_closure
+        travel = self._keyframe_travel
+        travel[-1] = max(travel[-1], travel[-2] + loop.min_travel)
+        self._last_base = base
+        previous: FloatArray | None = None
+        for _, waiting_stamp, odometry_pose in self._waiting[:-1]:
+            if odometry_pose is not None:  # odometry poses of waiting clouds: from before the placement
+                previous = self._odometry_origin @ odometry_pose
+            if previous is None:
+                self.clouds_unplaced += 1  # before any registered cloud: no pose to give it
+                continue
+            self._cloud_stamps.append(waiting_stamp)
+            self._cloud_keyframes.append(new)
+            self._cloud_offsets.append(se3.relative(base, previous))
+        self._cloud_stamps.append(stamp_ns)
+        self._cloud_keyframes.append(new)
+        self._cloud_offsets.append(np.eye(4))
+        self._waiting = []
+
+    def finish(self) -> Slam3DGraph:
+        """The joint keyframe graph, old and new; `MapPlacementError` if the new run never matched the
+        saved map (then its clouds cannot be placed in it)."""
+        if self._placer is not None:
+            raise MapPlacementError(
+                f"none of the {len(self._waiting)} new clouds could be placed in the saved map of "
+                f"{self._old_count} keyframes: no unambiguous match")
+        return super().finish()
