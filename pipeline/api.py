@@ -4,7 +4,7 @@
     result = replay("run.mcap", ReplayConfig(optimizer={"method": "sgd"}), out_dir="results")
     result.poses, result.graph, result.stats.chi2_final, result.outputs["rrd"]
 
-    # sessions (2D laser logs): localize in a saved map, or continue mapping it
+    # sessions (laser or cloud logs): localize in a saved map, or continue mapping it
     replay("second.mcap", map="recordings/first.session")            # second.{tum,json,rrd}
     replay("second.mcap", map="recordings/first.session", initial_pose=(3.5, -1.2, 1.57))
     replay("second.mcap", continue_from="recordings/first.session")  # both runs, a new second.session
@@ -160,7 +160,7 @@ def replay(
     frontend processes it (logs only); `on_iteration` with every optimizer `Iteration`, the initial
     estimate first. A log's warnings are raised as `LogWarning`s once the replay is done.
 
-    Sessions (a `<stem>.session` a log replay wrote; 2D laser logs): `map` localizes the log in the
+    Sessions (a `<stem>.session` a log replay wrote; laser or cloud logs): `map` localizes the log in the
     session's map without changing it (`initial_pose` (x, y, yaw) where the log starts in it, else found
     by global localization) and writes `<stem>.{tum,json,rrd}`: the scans placed in the map, in its frame,
     and per-scan match quality; `continue_from` continues mapping it with the log: one joint optimization,

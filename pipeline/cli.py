@@ -163,8 +163,8 @@ Examples:
 Outputs, in DIR: <stem>.g2o (optimised poses), <stem>.json (counts, chi2 per iteration, wall time per
 stage), <stem>.rrd (every iteration on the timeline `iteration`) and, for logs, <stem>.tum (one pose per
 scan or cloud at its sensor stamp), the map: <stem>_map.png (laser scans) or <stem>.ply (point
-clouds), and <stem>.session (what --map and --continue start from). Sessions (2D laser logs, one log at a
-time): --map localizes the log in the saved map without changing it and writes <stem>.tum (every scan
+clouds), and <stem>.session (what --map and --continue start from). Sessions (scans or clouds, one log
+at a time): --map localizes the log in the saved map without changing it and writes <stem>.tum (every scan
 placed in the map, in its frame; scans never placed are counted in the JSON, not written), <stem>.json
 (per-scan match quality) and <stem>.rrd (the saved map with the new run on it); --continue maps on from
 the session: the .tum holds every scan of both runs (the session's first) at its jointly optimised pose,
@@ -249,12 +249,12 @@ def run(
                               "applied) and exit.")] = False,
     map_session: Annotated[Path | None, typer.Option(
         "--map", metavar="SESSION", show_default=False,
-        help="Localize the one log INPUT in the map of SESSION (a .session a replay wrote; 2D laser): the "
+        help="Localize the one log INPUT in the map of SESSION (a .session a replay wrote): the "
              "map is not changed. Writes <stem>.tum (in the map's frame), .json (match quality per scan) "
              "and .rrd (the saved map with the new run).")] = None,
     continue_session: Annotated[Path | None, typer.Option(
         "--continue", metavar="SESSION", show_default=False,
-        help="Continue mapping SESSION with the one log INPUT (2D laser): new keyframes, loop closures "
+        help="Continue mapping SESSION with the one log INPUT: new keyframes, loop closures "
              "between the runs, one joint optimization; the outputs hold both runs, and a new session.")
     ] = None,
     initial_pose: Annotated[str | None, typer.Option(
