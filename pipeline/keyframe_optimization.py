@@ -12,6 +12,7 @@ With the keyframe scans (2D), the recording draws the walls moving with every it
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -91,6 +92,10 @@ def optimize_keyframes(
     starts = {"odometry": from_odometry.poses, "online": online.poses}
     if wheel_odometry is not None:
         starts = {WHEEL_ODOMETRY_START: np.asarray(wheel_odometry, dtype=np.float64), **starts}
+    chain = _is_a_chain(from_odometry)
+    if chain:
+        # Nothing to descend: the polish's convergence test proves the start optimal in one or two steps.
+        method, iterations, robust = CHAIN_METHOD, None, None
     optimization = optimize(from_odometry, method=method, iterations=iterations, starts=starts,
                             robust=robust)
     for iteration in optimization:
@@ -111,7 +116,23 @@ def optimize_keyframes(
         bounds = map2d.placed_bounds(keyframe_scans, np.asarray(final))
         recording.send_blueprint(stream, scans.log_replay_blueprint(bounds))
     record_seconds += time.perf_counter() - record_started
-    return KeyframeOptimization(tuple(trace), np.array(final), optimization.result, record_seconds)
+    result = optimization.result
+    if chain:
+        result = dataclasses.replace(result, reason=f"{CHAIN_REASON} ({result.reason})")
+    return KeyframeOptimization(tuple(trace), np.array(final), result, record_seconds)
+
+
+CHAIN_METHOD = "gn"
+"""What optimizes a keyframe graph without loop closures, whatever the method asked for."""
+CHAIN_REASON = "no loop closures: the odometry chain is the optimum, the polish alone confirmed it"
+"""The stop reason's prefix then (the JSON summary's `stop_reason`)."""
+
+
+def _is_a_chain(graph: PoseGraph) -> bool:
+    """Whether the constraints are one odometry chain (K − 1 of them, each between consecutive poses):
+    composing them is the optimum (χ² = 0), so descending from it (SGD: 400 iterations on KITTI) proves
+    nothing the polish's convergence test does not."""
+    return graph.num_edges == graph.num_poses - 1 and bool(graph.is_odometry.all())
 
 
 def wheel_odometry_start(
