@@ -95,6 +95,7 @@ def optimize_keyframes(
     chain = _is_a_chain(from_odometry)
     if chain:
         # Nothing to descend: the polish's convergence test proves the start optimal in one or two steps.
+        recording.log_note(stream, f"{CHAIN_REASON}; {method} was not run")
         method, iterations, robust = CHAIN_METHOD, None, None
     optimization = optimize(from_odometry, method=method, iterations=iterations, starts=starts,
                             robust=robust)

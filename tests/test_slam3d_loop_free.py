@@ -13,6 +13,7 @@ from optimizer.graph import PoseGraph
 from pipeline import recording
 from pipeline.keyframe_optimization import CHAIN_REASON, optimize_keyframes
 from tests.optimizer_fixtures import square_loop_graph
+from tests.pipeline_fixtures import read_recording
 
 
 def _chain(count: int, seed: int) -> tuple[PoseGraph, np.ndarray]:
@@ -43,6 +44,9 @@ def test_a_chain_is_confirmed_by_the_polish_alone_whatever_the_method(tmp_path: 
     assert optimized.result.converged
     np.testing.assert_allclose(optimized.poses, composed, atol=1e-9)
     assert all(candidate.chi2 < 1e-12 for candidate in optimized.result.candidates)
+    stage_log = read_recording(tmp_path / "chain.rrd")["/optimizer/stage"]
+    notes = [row[0] for row in stage_log.columns["TextLog:text"]]
+    assert f"{CHAIN_REASON}; {method} was not run" in notes
 
 
 def test_a_graph_with_loop_closures_runs_the_requested_descent(tmp_path: Path) -> None:
