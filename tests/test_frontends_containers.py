@@ -12,6 +12,7 @@ import pytest
 
 from frontends.errors import TopicSelectionError
 from frontends.logs import LogInfo, open_log
+from frontends.logs.containers import mcap_file
 from tests._frontends_fixtures import (
     ANGLE_INCREMENT,
     ANGLE_MIN,
@@ -104,6 +105,23 @@ def test_info_comes_from_the_index(logs: dict[str, Path], name: str) -> None:
             "/tf_static": ("tf2_msgs/msg/TFMessage", 1),
         }
     assert [t.name for t in info.topics] == sorted(counts)
+
+
+@pytest.mark.parametrize("name", ["mcap-ros2", "mcap-ros1", "foxglove-protobuf", "foxglove-json"])
+def test_a_whole_mcap_is_read_through_its_summary_and_index_without_a_linear_pass(
+    logs: dict[str, Path], name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the mcap writer ends these files with a summary and chunk indexes: opening, the info and every
+    # message must come from them, never from a pass decompressing the whole file (issue 12: KITTI was
+    # read twice because the summary read failed silently)
+    def no_linear_pass(*_: object) -> None:
+        raise AssertionError("a linear pass over an indexed MCAP")
+
+    monkeypatch.setattr(mcap_file._LinearReader, "records", no_linear_pass)
+    with open_log(logs[name]) as log:
+        assert log.info().end_ns == max(c.log_time_ns for c in CLOUDS + SCANS + POSES)
+        assert len(list(log.clouds())) == len(CLOUDS)
+        assert len(list(log.scans())) == len(SCANS)
 
 
 def test_info_json_shape(logs: dict[str, Path]) -> None:

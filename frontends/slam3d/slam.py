@@ -41,6 +41,7 @@ from frontends.slam3d.loop_closure import (
 )
 from frontends.slam3d.odometry import KissOdometry, Odometry, OdometryStep, downsample
 from frontends.slam3d.pose_graph3d import PolishResult
+from frontends.slam3d.voxel_map import place_one_per_voxel
 from optimizer import se2
 from optimizer.graph import PoseGraph
 
@@ -147,11 +148,10 @@ class Slam3DGraph:
 
     def map_points(self, keyframe_poses: ArrayLike, voxel: float) -> NDArray[np.float32]:
         """(P, 3) the keyframe clouds placed at 4×4 `keyframe_poses`, one point per voxel of this size."""
-        placed = [
-            se3.transform_points(pose, cloud)
-            for pose, cloud in zip(np.asarray(keyframe_poses), self.keyframe_clouds, strict=True)
-        ]
-        return downsample(np.concatenate(placed), voxel).astype(np.float32)
+        poses = np.asarray(keyframe_poses)
+        if len(poses) != len(self.keyframe_clouds):
+            raise ValueError(f"{len(poses)} poses for {len(self.keyframe_clouds)} keyframe clouds")
+        return place_one_per_voxel(poses, self.keyframe_clouds, voxel)
 
 
 @dataclass(frozen=True, eq=False)

@@ -274,6 +274,11 @@ class _ReadsCutToFile(io.RawIOBase):
     def seekable(self) -> bool:
         return True
 
+    def close(self) -> None:
+        """Left open: the `mcap` package wraps this in a new BufferedReader for every record stream (the
+        footer, then the summary) and each one closes it when collected, which made every summary read
+        fail and every MCAP fall back to linear passes; the caller's `with` closes the real file."""
+
     def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
         return self._stream.seek(offset, whence)
 
