@@ -11,8 +11,6 @@ tree-parameterised SGD from where it ended, then the polish; and, as a second ca
 initialisation polished directly. Measured on M3500-shaped worlds whose odometry headings carry σθ = 0.2
 rad of noise, the paper's SGD alone leaves the polish 240–530 times above the minimum; after the tree SGD
 (or from the chordal start) it reaches it (benchmarks/optimizer_bench.py, best-known section).
-Above `LARGEST_FOR_EXTRA_STAGES` poses the default is the paper's SGD until an iteration lowers χ² by
-less than `SGD_HANDOVER_DECREASE` (`iterations` then caps it), then the polish.
 """
 
 from __future__ import annotations
@@ -43,13 +41,6 @@ LARGEST_FOR_EXTRA_STAGES = 200_000
 """The tree SGD's iteration and the chordal start's factorisation grow faster than linearly on large
 graphs (the tree's depth, the factor's fill): above this many poses the default runs the paper's SGD and
 the polish only."""
-SGD_HANDOVER_DECREASE = 0.01
-"""Above `LARGEST_FOR_EXTRA_STAGES` poses the default's SGD hands over to the polish after an iteration that
-lowered χ² by less than this fraction (0 ≤ decrease < 1 %; an increase is SGD still finding the basin and
-goes on). One iteration costs about a second at 10⁶ poses, one polish step a few, and the polish takes χ²
-down by orders of magnitude per step: on the 10⁵-pose grid world the paper's SGD lowers χ² 60-fold in its
-first iteration, then stalls (a relative 1e-13 per iteration up to iteration 9, 1-2 % after), and the polish
-reaches the same optimum from iteration 2 as from iteration 100 (benchmarks/scale_bench.py)."""
 CHORDAL = "chordal"
 """Name of the chordal initialisation among the starts."""
 
@@ -59,25 +50,12 @@ def _paper_sgd(graph: PoseGraph, iterations: int, poses: FloatArray) -> Iterator
 
 
 def _paper_then_tree_sgd(graph: PoseGraph, iterations: int, poses: FloatArray) -> Iterator[Iteration]:
-    if graph.num_poses > LARGEST_FOR_EXTRA_STAGES:
-        yield from _paper_sgd_until_it_stalls(graph, iterations, poses)
-        return
     last = poses
     for iteration in sgd(graph, iterations, poses):
         last = iteration.poses
         yield iteration
-    yield from sgd_tree(graph, iterations, last)
-
-
-def _paper_sgd_until_it_stalls(graph: PoseGraph, iterations: int, poses: FloatArray) -> Iterator[Iteration]:
-    """The paper's SGD for at most `iterations`, handing over once an iteration pays less than
-    `SGD_HANDOVER_DECREASE` of χ²."""
-    previous = chi2(graph, poses)
-    for iteration in sgd(graph, iterations, poses):
-        yield iteration
-        if 0.0 <= previous - iteration.chi2 < SGD_HANDOVER_DECREASE * previous:
-            return
-        previous = iteration.chi2
+    if graph.num_poses <= LARGEST_FOR_EXTRA_STAGES:
+        yield from sgd_tree(graph, iterations, last)
 
 
 def _tree_sgd(graph: PoseGraph, iterations: int, poses: FloatArray) -> Iterator[Iteration]:
