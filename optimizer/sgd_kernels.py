@@ -224,16 +224,13 @@ def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
 
 
 @njit(cache=True, inline="always")
-def _tree_pose(k: int, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray, tree: np.ndarray,
-               block: int, out: np.ndarray) -> None:
-    """p_k = p⁰_k + Σ_{i≤k} w_i C_i: the tree's walk from the root to k's block, then k's block."""
+def _finish_tree_pose(k: int, node: int, lo: int, hi: int, l0: float, l1: float, l2: float, s0: float,
+                      s1: float, s2: float, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
+                      tree: np.ndarray, block: int, out: np.ndarray) -> None:
+    """p_k = p⁰_k + Σ_{i≤k} w_i C_i, continuing the walk to k's block from `node` (interval lo..hi−1), with
+    l = Σ LAZY of the ancestors of `node` (itself excluded) and s = the prefix sum gathered so far."""
     size = tree.shape[0] // 2
     target = k // block
-    node = 1
-    lo = 0
-    hi = size
-    l0 = l1 = l2 = 0.0  # Σ LAZY of the ancestors of the current node, current node included
-    s0 = s1 = s2 = 0.0
     while node < size:
         l0 += tree[node, LAZY, 0]
         l1 += tree[node, LAZY, 1]
@@ -259,6 +256,41 @@ def _tree_pose(k: int, base: np.ndarray, weights: np.ndarray, amounts: np.ndarra
     out[0] = base[k, 0] + s0
     out[1] = base[k, 1] + s1
     out[2] = base[k, 2] + s2
+
+
+@njit(cache=True, inline="always")
+def _tree_pose_pair(a: int, b: int, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
+                    tree: np.ndarray, block: int, out_a: np.ndarray, out_b: np.ndarray) -> None:
+    """p_k = p⁰_k + Σ_{i≤k} w_i C_i for k = a and k = b: the tree's walk from the root to k's block, then
+    k's block. The path both walks share is walked once: most constraints join nearby poses, whose walks
+    part only near the leaves. Each sum adds the same terms in the same order as a walk of its own."""
+    size = tree.shape[0] // 2
+    target_a = a // block
+    target_b = b // block
+    node = 1
+    lo = 0
+    hi = size
+    l0 = l1 = l2 = 0.0
+    s0 = s1 = s2 = 0.0
+    while node < size:
+        mid = (lo + hi) >> 1
+        if (target_a >= mid) != (target_b >= mid):
+            break
+        l0 += tree[node, LAZY, 0]
+        l1 += tree[node, LAZY, 1]
+        l2 += tree[node, LAZY, 2]
+        left = 2 * node
+        if target_a >= mid:
+            s0 += tree[left, ACCUMULATED, 0] + l0 * tree[left, WEIGHT, 0]
+            s1 += tree[left, ACCUMULATED, 1] + l1 * tree[left, WEIGHT, 1]
+            s2 += tree[left, ACCUMULATED, 2] + l2 * tree[left, WEIGHT, 2]
+            node = left + 1
+            lo = mid
+        else:
+            node = left
+            hi = mid
+    _finish_tree_pose(a, node, lo, hi, l0, l1, l2, s0, s1, s2, base, weights, amounts, tree, block, out_a)
+    _finish_tree_pose(b, node, lo, hi, l0, l1, l2, s0, s1, s2, base, weights, amounts, tree, block, out_b)
 
 
 @njit(cache=True, inline="always")
@@ -383,8 +415,7 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
     for k in range(edge_from.shape[0]):
         a = edge_from[k]
         b = edge_to[k]
-        _tree_pose(a, base, weights, amounts, tree, block, pa)
-        _tree_pose(b, base, weights, amounts, tree, block, pb)
+        _tree_pose_pair(a, b, base, weights, amounts, tree, block, pa, pb)
         _weighted_residual(pa, pb, measurements[k], information[k], w_global, r, d)
         lo = min(a, b)
         hi = max(a, b)
