@@ -228,29 +228,13 @@ def saved_map_2d(path: Path, content: SessionContent) -> SavedMap2D:
     from frontends.slam2d.session_frontends import SavedMap2D
 
     arrays = content.arrays
-    missing = [name for name in SCAN_SESSION_ARRAYS if name not in arrays]
-    if missing:
-        raise SessionError(f"{path}: damaged session file (no {', '.join(missing)})")
-    poses = _checked(path, "keyframe_poses", arrays, (-1, 3), np.floating)
+    poses, scans = _checked_keyframes(path, content, SCAN_SESSION_ARRAYS, (3,), 2, "scans")
     keyframes = len(poses)
-    if len(content.keyframe_points) != keyframes:
-        raise SessionError(f"{path}: damaged session file ({len(content.keyframe_points)} keyframe scans "
-                           f"for {keyframes} keyframe poses)")
-    scans = []
-    for index, points in enumerate(content.keyframe_points):
-        scans.append(_checked(path, f"keyframe_points[{index}]", {"": points}, (-1, 2), np.floating, name=""))
-    edge_from = _checked(path, "edge_from", arrays, (-1,), np.integer)
+    edge_from, edge_to = _checked_edges(path, arrays, keyframes)
     edges = len(edge_from)
-    edge_to = _checked(path, "edge_to", arrays, (edges,), np.integer)
-    ends = np.concatenate([edge_from, edge_to])
-    if edges and (ends.min() < 0 or ends.max() >= keyframes):
-        raise SessionError(f"{path}: damaged session file (constraints between keyframes that do not exist)")
-    stamps = _checked(path, "scan_stamps_ns", arrays, (-1,), np.integer)
-    scan_keyframes = _checked(path, "scan_keyframes", arrays, (len(stamps),), np.integer)
-    if len(stamps) and (scan_keyframes.min() < 0 or scan_keyframes.max() >= keyframes):
-        raise SessionError(f"{path}: damaged session file (scans of keyframes that do not exist)")
+    stamps, scan_keyframes = _checked_members(path, arrays, "scan", keyframes)
     return SavedMap2D(
-        tuple(scans), poses,
+        scans, poses,
         SavedConstraints(edge_from.astype(np.int64), edge_to.astype(np.int64),
                          _checked(path, "measurements", arrays, (edges, 3), np.floating),
                          _checked(path, "information", arrays, (edges, 3, 3), np.floating),
@@ -258,6 +242,46 @@ def saved_map_2d(path: Path, content: SessionContent) -> SavedMap2D:
         SavedScans(stamps.astype(np.int64), scan_keyframes.astype(np.int64),
                    _checked(path, "scan_offsets", arrays, (len(stamps), 3), np.floating)),
     )
+
+
+def _checked_keyframes(
+    path: Path, content: SessionContent, required: Sequence[str], pose_shape: tuple[int, ...],
+    point_dims: int, what: str,
+) -> tuple[NDArray[np.float64], tuple[NDArray[np.float64], ...]]:
+    """The keyframe poses, (K, *pose_shape), and each keyframe's points, (n, point_dims), once every
+    `required` array is there and there are as many point sets as poses."""
+    missing = [name for name in required if name not in content.arrays]
+    if missing:
+        raise SessionError(f"{path}: damaged session file (no {', '.join(missing)})")
+    poses = _checked(path, "keyframe_poses", content.arrays, (-1, *pose_shape), np.floating)
+    if len(content.keyframe_points) != len(poses):
+        raise SessionError(f"{path}: damaged session file ({len(content.keyframe_points)} keyframe {what} "
+                           f"for {len(poses)} keyframe poses)")
+    points = tuple(_checked(path, f"keyframe_points[{index}]", {"": each}, (-1, point_dims), np.floating,
+                            name="") for index, each in enumerate(content.keyframe_points))
+    return poses, points
+
+
+def _checked_edges(path: Path, arrays: Mapping[str, NDArray[Any]],
+                   keyframes: int) -> tuple[NDArray[Any], NDArray[Any]]:
+    """`edge_from`, `edge_to`: equally long, between keyframes that exist."""
+    edge_from = _checked(path, "edge_from", arrays, (-1,), np.integer)
+    edge_to = _checked(path, "edge_to", arrays, (len(edge_from),), np.integer)
+    ends = np.concatenate([edge_from, edge_to])
+    if len(ends) and (ends.min() < 0 or ends.max() >= keyframes):
+        raise SessionError(f"{path}: damaged session file (constraints between keyframes that do not exist)")
+    return edge_from, edge_to
+
+
+def _checked_members(path: Path, arrays: Mapping[str, NDArray[Any]], sensor: str,
+                     keyframes: int) -> tuple[NDArray[Any], NDArray[Any]]:
+    """`<sensor>_stamps_ns` and `<sensor>_keyframes` (which keyframe each scan or cloud hangs off): equally
+    long, of keyframes that exist."""
+    stamps = _checked(path, f"{sensor}_stamps_ns", arrays, (-1,), np.integer)
+    owners = _checked(path, f"{sensor}_keyframes", arrays, (len(stamps),), np.integer)
+    if len(stamps) and (owners.min() < 0 or owners.max() >= keyframes):
+        raise SessionError(f"{path}: damaged session file ({sensor}s of keyframes that do not exist)")
+    return stamps, owners
 
 
 def _checked(path: Path, label: str, arrays: Mapping[str, NDArray[Any]], shape: tuple[int, ...],
@@ -290,28 +314,13 @@ def saved_map_3d(path: Path, content: SessionContent) -> SavedMap3D:
     from frontends.slam3d.session_frontends import SavedMap3D
 
     arrays = content.arrays
-    missing = [name for name in CLOUD_SESSION_ARRAYS if name not in arrays]
-    if missing:
-        raise SessionError(f"{path}: damaged session file (no {', '.join(missing)})")
-    poses = _checked(path, "keyframe_poses", arrays, (-1, 4, 4), np.floating)
+    poses, clouds = _checked_keyframes(path, content, CLOUD_SESSION_ARRAYS, (4, 4), 3, "clouds")
     keyframes = len(poses)
     if keyframes == 0:
         raise SessionError(f"{path}: damaged session file (no keyframes)")
-    if len(content.keyframe_points) != keyframes:
-        raise SessionError(f"{path}: damaged session file ({len(content.keyframe_points)} keyframe clouds "
-                           f"for {keyframes} keyframe poses)")
-    clouds = tuple(_checked(path, f"keyframe_points[{index}]", {"": points}, (-1, 3), np.floating, name="")
-                   for index, points in enumerate(content.keyframe_points))
-    edge_from = _checked(path, "edge_from", arrays, (-1,), np.integer)
+    edge_from, edge_to = _checked_edges(path, arrays, keyframes)
     edges = len(edge_from)
-    edge_to = _checked(path, "edge_to", arrays, (edges,), np.integer)
-    ends = np.concatenate([edge_from, edge_to])
-    if edges and (ends.min() < 0 or ends.max() >= keyframes):
-        raise SessionError(f"{path}: damaged session file (constraints between keyframes that do not exist)")
-    stamps = _checked(path, "cloud_stamps_ns", arrays, (-1,), np.integer)
-    cloud_keyframes = _checked(path, "cloud_keyframes", arrays, (len(stamps),), np.integer)
-    if len(stamps) and (cloud_keyframes.min() < 0 or cloud_keyframes.max() >= keyframes):
-        raise SessionError(f"{path}: damaged session file (clouds of keyframes that do not exist)")
+    stamps, cloud_keyframes = _checked_members(path, arrays, "cloud", keyframes)
     mount = (_checked(path, "sensor_to_base", arrays, (4, 4), np.floating)
              if "sensor_to_base" in arrays else None)
     graph = SavedGraph3D(
