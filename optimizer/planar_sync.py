@@ -32,7 +32,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.optimize import minimize
 from scipy.sparse.linalg import splu
 
 from optimizer import se2
@@ -174,6 +173,9 @@ def _solve_at_rank(form: ReducedRotationForm, start: ComplexArray) -> tuple[Comp
         radial = np.real(np.sum(np.conj(y) * gradient, axis=1))[:, None]
         gradient = (gradient - radial * y) / norms
         return cost / scale, np.concatenate([gradient.real.ravel(), gradient.imag.ravel()]) / scale
+
+    # Imported here: scipy.optimize adds about 0.2 s to every command's start-up; few graphs need this.
+    from scipy.optimize import minimize
 
     flat = np.concatenate([start.real.ravel(), start.imag.ravel()])
     solution = minimize(cost_and_gradient, flat, jac=True, method="L-BFGS-B",
