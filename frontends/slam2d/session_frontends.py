@@ -134,6 +134,26 @@ class ScanLocalizations:
     def has_pose(self) -> BoolArray:
         return self.localized | self.recovered
 
+    @property
+    def placed_stamps_ns(self) -> IntArray:
+        """The stamps of the measurements placed in the map (the others have no pose)."""
+        return self.stamps_ns[self.has_pose]
+
+    @property
+    def placed_poses(self) -> FloatArray:
+        """The map-frame pose of every measurement at `placed_stamps_ns`."""
+        return self.poses[self.has_pose]
+
+    def counts(self) -> dict[str, int]:
+        """The JSON summary's localization counts (named "scans" for clouds too, as in 2D)."""
+        return {"scans_localized": int(self.has_pose.sum()),
+                "scans_localized_when_processed": int(self.localized.sum()),
+                "scans_matched": int(self.matched.sum()),
+                "scans_tracked_outside_map": int(self.tracked_outside.sum()),
+                "scans_recovered": int(self.recovered.sum()),
+                "scans_never_localized": int((~self.has_pose).sum()),
+                "global_fixes": len(self.global_fixes)}
+
 
 class LocalizingLaserFrontend(LaserFrontend):
     """Localization only in a saved map: see the module docstring and `frontends.slam2d.localization`.
@@ -201,13 +221,11 @@ class LocalizingLaserFrontend(LaserFrontend):
     @property
     def stamps_ns(self) -> IntArray:
         """The stamps of the scans placed in the map (the others have no pose)."""
-        found = self.localizations
-        return found.stamps_ns[found.has_pose]
+        return self.localizations.placed_stamps_ns
 
     def localized_poses(self) -> FloatArray:
         """(S, 3) the map-frame pose of every scan at `stamps_ns`."""
-        found = self.localizations
-        return found.poses[found.has_pose]
+        return self.localizations.placed_poses
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         graph = self.saved.graph()
@@ -220,16 +238,8 @@ class LocalizingLaserFrontend(LaserFrontend):
         return None
 
     def counts(self) -> dict[str, int]:
-        found = self.localizations
         return {**self._counts, **self._input_counts, **self._log.counts,
-                "map_keyframes": len(self.saved.keyframe_poses),
-                "scans_localized": int(found.has_pose.sum()),
-                "scans_localized_when_processed": int(found.localized.sum()),
-                "scans_matched": int(found.matched.sum()),
-                "scans_tracked_outside_map": int(found.tracked_outside.sum()),
-                "scans_recovered": int(found.recovered.sum()),
-                "scans_never_localized": int((~found.has_pose).sum()),
-                "global_fixes": len(found.global_fixes)}
+                "map_keyframes": len(self.saved.keyframe_poses), **self.localizations.counts()}
 
     def loop_closures(self) -> dict[str, Any]:
         return {"accepted": 0, "rejected": 0, "candidates": {"accepted": 0, "unconfirmed": 0}}

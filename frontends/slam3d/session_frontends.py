@@ -188,13 +188,11 @@ class LocalizingLidarFrontend(LidarFrontend):
     @property
     def stamps_ns(self) -> IntArray:
         """The stamps of the clouds placed in the map (the others have no pose)."""
-        found = self.localizations
-        return found.stamps_ns[found.has_pose]
+        return self.localizations.placed_stamps_ns
 
     def localized_poses(self) -> FloatArray:
         """(S, 4, 4) the map-frame pose of every cloud at `stamps_ns`."""
-        found = self.localizations
-        return found.poses[found.has_pose]
+        return self.localizations.placed_poses
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         return self.saved.planar_graph(planar_poses)
@@ -205,13 +203,7 @@ class LocalizingLidarFrontend(LidarFrontend):
     def counts(self) -> dict[str, int]:
         found = self.localizations
         return {"clouds": len(found.stamps_ns), **self._log.counts,
-                "map_keyframes": len(self.saved.graph.keyframe_poses),
-                "scans_localized": int(found.has_pose.sum()),
-                "scans_localized_when_processed": int(found.localized.sum()),
-                "scans_matched": int(found.matched.sum()),
-                "scans_recovered": int(found.recovered.sum()),
-                "scans_never_localized": int((~found.has_pose).sum()),
-                "global_fixes": len(found.global_fixes)}
+                "map_keyframes": len(self.saved.graph.keyframe_poses), **found.counts()}
 
     def loop_closures(self) -> dict[str, Any]:
         return {"accepted": 0, "rejected": 0, "candidates": {"accepted": 0, "unconfirmed": 0}}
