@@ -57,6 +57,9 @@ SYNC_DISAGREEMENT = 1e-3
 """The sync start runs only when the earlier candidates' final χ² differ by more than this fraction: when
 the SGD path and the chordal start polish into the same minimum, a third start has not been seen to find a
 lower one, and it would cost more than both."""
+BUILT_STARTS: dict[str, Callable[[PoseGraph], FloatArray]] = {CHORDAL: chordal_initialization,
+                                                              SYNC: sync_initialization}
+"""The starts the default builds from the graph alone, by name."""
 
 
 def _paper_sgd(graph: PoseGraph, iterations: int, poses: FloatArray) -> Iterator[Iteration]:
@@ -208,7 +211,7 @@ class Optimization:
             plans.append((CHORDAL, None, False))
         for name, start, descend in self._with_sync_plan(plans, candidates):
             if start is None:
-                start = (chordal_initialization if name == CHORDAL else sync_initialization)(self._graph)
+                start = BUILT_STARTS[name](self._graph)
             last = Iteration("initial", 0, start, chi2(self._graph, start), start=name)
             yield last
             count = 0
