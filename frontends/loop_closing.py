@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -41,6 +42,10 @@ class Constraints:
     measurement: list[FloatArray] = field(default_factory=list)
     information: list[FloatArray] = field(default_factory=list)
     is_loop: list[bool] = field(default_factory=list)
+    planar_length: list[float] = field(default_factory=list)
+    """Length of each planar measurement's (x, y, θ) translation, kept as constraints are added: the path
+    lengths of every loop search need them, and converting the measurements each time cost more than the
+    search itself (NaN for other measurements)."""
 
     def add(self, a: int, b: int, measurement: FloatArray, information: FloatArray, is_loop: bool) -> None:
         self.first.append(a)
@@ -48,9 +53,12 @@ class Constraints:
         self.measurement.append(np.asarray(measurement, dtype=np.float64))
         self.information.append(0.5 * (information + information.T))
         self.is_loop.append(is_loop)
+        planar = self.measurement_shape == (3,)
+        self.planar_length.append(float(np.hypot(measurement[0], measurement[1])) if planar else math.nan)
 
     def remove(self, index: int) -> None:
-        for column in (self.first, self.second, self.measurement, self.information, self.is_loop):
+        for column in (self.first, self.second, self.measurement, self.information, self.is_loop,
+                       self.planar_length):
             del column[index]
 
     def arrays(self) -> tuple[IntArray, IntArray, FloatArray, FloatArray, NDArray[np.bool_]]:

@@ -167,32 +167,6 @@ def _excluded(tx: int, ty: int, span: int, exclude_x: int, exclude_y: int, radiu
     return dx * dx + dy * dy <= radius * radius
 
 
-@njit(cache=True)
-def _top_level(
-    levels: tuple[NDArray[np.float32], ...],
-    cells_x: NDArray[np.int64],
-    cells_y: NDArray[np.int64],
-    reach: int,
-) -> tuple[FloatArray, NDArray[np.int64]]:
-    """Scores of every candidate (angle, tx, ty) of the coarsest level, and those keys."""
-    top = len(levels) - 1
-    span = 1 << top
-    starts = np.arange(-reach, reach + 1, span)
-    count = cells_x.shape[0] * starts.shape[0] * starts.shape[0]
-    scores = np.empty(count)
-    keys = np.empty((count, 3), dtype=np.int64)
-    k = 0
-    for a in range(cells_x.shape[0]):
-        for ty in starts:
-            for tx in starts:
-                scores[k] = _score(levels[top], cells_x[a], cells_y[a], tx, ty, span)
-                keys[k, 0] = a
-                keys[k, 1] = tx
-                keys[k, 2] = ty
-                k += 1
-    return scores, keys
-
-
 @njit(cache=True, inline="always")
 def _block_cell(cell: int, span: int, size: int) -> int:
     """The cell `_score` reads for a point whose block [cell, cell + span) is shifted there: the edge cell
@@ -200,6 +174,51 @@ def _block_cell(cell: int, span: int, size: int) -> int:
     if cell < 0:
         return 0 if cell + span > 0 else -1
     return cell if cell < size else -1
+
+
+@njit(cache=True)
+def _top_level(
+    levels: tuple[NDArray[np.float32], ...],
+    cells_x: NDArray[np.int64],
+    cells_y: NDArray[np.int64],
+    reach: int,
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Scores of every candidate (angle, tx, ty) of the coarsest level, and those keys.
+
+    Each point adds its cells of all translations at once (the cell `_score` reads, clamped alike), so its
+    row is read for all of them together; every total sums the points in `_score`'s order: equal scores."""
+    top = len(levels) - 1
+    span = 1 << top
+    values = levels[top]
+    height, width = values.shape
+    starts = np.arange(-reach, reach + 1, span)
+    side = starts.shape[0]
+    angles, count = cells_x.shape
+    scores = np.empty(angles * side * side)
+    keys = np.empty((angles * side * side, 3), dtype=np.int64)
+    totals = np.empty((side, side))
+    columns = np.empty(side, dtype=np.int64)
+    k = 0
+    for a in range(angles):
+        totals[:] = 0.0
+        for i in range(count):
+            for t in range(side):
+                columns[t] = _block_cell(cells_x[a, i] + starts[t], span, width)
+            for j in range(side):
+                row = _block_cell(cells_y[a, i] + starts[j], span, height)
+                if row < 0:
+                    continue
+                for t in range(side):
+                    if columns[t] >= 0:
+                        totals[j, t] += values[row, columns[t]]
+        for j in range(side):
+            for t in range(side):
+                scores[k] = totals[j, t] / max(count, 1)
+                keys[k, 0] = a
+                keys[k, 1] = starts[t]
+                keys[k, 2] = starts[j]
+                k += 1
+    return scores, keys
 
 
 @njit(cache=True)

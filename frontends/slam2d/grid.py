@@ -65,9 +65,11 @@ def build_likelihood_grid(
 ) -> LikelihoodGrid:
     """A grid covering `points` plus `margin` on every side, each point stamped with a Gaussian of σ and
     its index within max(3σ, `pairing_distance`)."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    low = points.min(axis=0) - margin
-    high = points.max(axis=0) + margin
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    # numpy's reductions along axis 0 of an (N, 2) array cost ~0.1 ms each, as much as a tenth of the stamping
+    low, high = _bounds(points) if len(points) else (points.min(axis=0), points.max(axis=0))
+    low = low - margin
+    high = high + margin
     cells = np.ceil((high - low) / resolution) + 1
     if not np.all(np.isfinite(cells)) or float(cells[0]) * float(cells[1]) > MAX_LIKELIHOOD_CELLS:
         raise MapExtentError(
@@ -82,6 +84,24 @@ def build_likelihood_grid(
     radius_cells = max(1, math.ceil(max(3.0 * sigma, pairing_distance) / resolution))
     _stamp(points, low, resolution, sigma, radius_cells, values, nearest)
     return LikelihoodGrid(low, resolution, values, nearest)
+
+
+@njit(cache=True)
+def _bounds(points: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Column minima and maxima of (N ≥ 1, 2) points, NaN when a column holds one (as numpy's)."""
+    low = points[0].copy()
+    high = points[0].copy()
+    for i in range(1, points.shape[0]):
+        for axis in range(2):
+            value = points[i, axis]
+            if value != value:
+                low[axis] = value
+                high[axis] = value
+            elif value < low[axis]:
+                low[axis] = value
+            elif value > high[axis]:
+                high[axis] = value
+    return low, high
 
 
 @njit(cache=True)

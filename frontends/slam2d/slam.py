@@ -424,9 +424,8 @@ class LaserSlam2D:
         edges = self._edges  # only the columns needed: `arrays()` would stack every information matrix too
         first = np.array(edges.first, dtype=np.int64)
         second = np.array(edges.second, dtype=np.int64)
-        steps = np.array(edges.measurement, dtype=np.float64).reshape(-1, 3)
-        return path_lengths(len(self._keyframe_poses), first, second, np.hypot(steps[:, 0], steps[:, 1]),
-                            keyframe)
+        lengths = np.array(edges.planar_length, dtype=np.float64)
+        return path_lengths(len(self._keyframe_poses), first, second, lengths, keyframe)
 
     def _verify_loop(self, candidate: int, current: int, radius: float) -> _LoopHypothesis | None:
         settings = self.config.loop_closure
