@@ -13,8 +13,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from frontends.errors import MapExtentError
 from frontends.logs.types import Scan2D, Transform
-from frontends.slam2d import stage_times
+from frontends.loop_closing import Constraints
+from frontends.slam2d import correlative, stage_times
 from frontends.slam2d.correlative import (
     SearchWindow,
     match_branch_and_bound,
@@ -353,3 +355,51 @@ def test_matching_without_odometry_finds_the_optimum_of_the_window_the_motion_ne
     # Either way, within a cell and a step of the truth.
     assert np.all(np.abs(match.pose[:2] - truth[:2]) <= RESOLUTION + 1e-9)
     assert abs(match.pose[2] - truth[2]) <= wide.angular_step + 1e-9
+
+
+def test_top_level_scores_are_each_candidates_sum_of_its_points_clamped_blocks() -> None:
+    """Every coarsest candidate's score is the mean, over the points, of the coarsest level at the point's
+    shifted cell: a block starting left of (or below) the grid but reaching into it reads the edge cell,
+    one wholly outside reads nothing (written from the definition, point by point)."""
+    rng = np.random.default_rng(7)
+    values = rng.random((37, 29)).astype(np.float32)
+    levels = tuple(max_pyramid(values, 3))
+    span = 8
+    cells_x = rng.integers(-12, 40, size=(3, 25)).astype(np.int64)
+    cells_y = rng.integers(-12, 48, size=(3, 25)).astype(np.int64)
+    reach = 13
+    scores, keys = correlative._top_level(levels, cells_x, cells_y, reach)
+    top = levels[-1]
+    height, width = top.shape
+
+    def clamped(cell: int, size: int) -> int:
+        if cell < 0:
+            return 0 if cell + span > 0 else -1
+        return cell if cell < size else -1
+
+    assert len(scores) == 3 * len(range(-reach, reach + 1, span)) ** 2
+    for score, (a, tx, ty) in zip(scores, keys, strict=True):
+        total = 0.0
+        for x, y in zip(cells_x[a], cells_y[a], strict=True):
+            column, row = clamped(int(x + tx), width), clamped(int(y + ty), height)
+            if column >= 0 and row >= 0:
+                total += float(top[row, column])
+        assert score == pytest.approx(total / cells_x.shape[1], rel=1e-12, abs=1e-15)
+
+
+def test_a_grid_spans_its_points_plus_the_margin_and_refuses_non_finite_points() -> None:
+    points = np.array([[3.0, -2.0], [-1.5, 4.0], [0.25, 7.5]])
+    grid = build_likelihood_grid(points, RESOLUTION, SIGMA, margin=1.0)
+    np.testing.assert_array_equal(grid.origin, [-2.5, -3.0])
+    assert grid.values.shape == (math.ceil(11.5 / RESOLUTION) + 1, math.ceil(6.5 / RESOLUTION) + 1)
+    with pytest.raises(MapExtentError):
+        build_likelihood_grid(np.vstack([points, [np.nan, 0.0]]), RESOLUTION, SIGMA, margin=1.0)
+
+
+def test_constraint_lengths_follow_their_constraints_through_removals() -> None:
+    constraints = Constraints(measurement_shape=(3,), information_size=3)
+    for k, (x, y) in enumerate([(3.0, 4.0), (0.3, 0.0), (-6.0, 8.0), (0.0, -0.5)]):
+        constraints.add(k, k + 1, np.array([x, y, 0.1]), np.eye(3), is_loop=k == 2)
+    constraints.remove(1)
+    assert constraints.planar_length == [5.0, 10.0, 0.5]
+    assert constraints.first == [0, 2, 3]
