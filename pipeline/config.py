@@ -82,7 +82,6 @@ class ConfigError(PipelineError):
         self.path = None if path is None else Path(path)
         self.line = line
         self.key = key
-        self.reason = message
         where = "configuration" if self.path is None else str(self.path)
         if line is not None:
             where += f":{line}"
@@ -316,9 +315,7 @@ class InputSection(_Section):
 
 class ReplayConfig(_Section):
     """Everything a replay can be told: `ReplayConfig(optimizer={"method": "sgd"})`, or `load_config(path)`.
-
-    Frozen; `model_copy(update=...)` does not validate, so build a changed one with `with_updates`.
-    """
+    Frozen; `model_copy(update=...)` does not validate: build a changed one with `config_from_mapping`."""
 
     input: InputSection = Field(default_factory=InputSection)
     optimizer: OptimizerSection = Field(default_factory=OptimizerSection)
@@ -332,10 +329,6 @@ class ReplayConfig(_Section):
     def to_slam3d(self) -> Slam3DConfig:
         """The 3D frontend's frozen dataclass (angles in radians)."""
         return _to_dataclass(self.slam3d, Slam3DConfig)  # type: ignore[no-any-return]
-
-    def with_updates(self, updates: Mapping[str, Mapping[str, Any]]) -> ReplayConfig:
-        """A validated copy with some keys replaced, e.g. `{"optimizer": {"method": "gn"}}`."""
-        return config_from_mapping(_merge(self.to_mapping(), updates))
 
     def to_mapping(self) -> dict[str, dict[str, Any]]:
         """Section → key → value as in the file (degrees), sections in file order, unset values left out."""
