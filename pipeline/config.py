@@ -199,12 +199,10 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
         fields[item.name] = (annotation, Field(default, **_bounds(section, item.name)))
 
     validators: dict[str, Any] = {}
-    for (rule_section, key), other in _AT_LEAST.items():
-        if rule_section == section:
-            validators[f"_at_least_{key}"] = field_validator(key)(_order_check(other, at_least=True))
-    for (rule_section, key), other in _AT_MOST.items():
-        if rule_section == section:
-            validators[f"_at_most_{key}"] = field_validator(key)(_order_check(other, at_least=False))
+    for rules, at_least in ((_AT_LEAST, True), (_AT_MOST, False)):
+        for (rule_section, key), other in rules.items():
+            if rule_section == section:
+                validators[f"_{key}_against_{other}"] = _order_check(key, other, at_least=at_least)
     derived = {key: (other, getattr(defaults, key)) for (s, key), other in _AT_LEAST.items() if s == section}
     if derived:
         validators["_derived_defaults"] = model_validator(mode="before")(_derive_at_least(derived))
@@ -215,7 +213,9 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
     return model
 
 
-def _order_check(other: str, *, at_least: bool) -> Callable[[type, float, ValidationInfo], float]:
+def _order_check(key: str, other: str, *, at_least: bool) -> Any:
+    """A validator of `key`: at least (or at most) `other`, when that passed its own validation."""
+
     def check(cls: type, value: float, info: ValidationInfo) -> float:
         bound = info.data.get(other)  # absent when it failed its own validation: reported there
         if bound is not None and (value < bound if at_least else value > bound):
@@ -223,7 +223,7 @@ def _order_check(other: str, *, at_least: bool) -> Callable[[type, float, Valida
             raise ValueError(f"must be {relation} {other} ({bound:g})")
         return value
 
-    return check
+    return field_validator(key)(check)
 
 
 def _derive_at_least(derived: dict[str, tuple[str, float]]) -> Callable[[type, Any], Any]:
