@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
-from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -51,38 +50,23 @@ _LOG_SUFFIXES = frozenset({".mcap", ".bag", ".db3", ".yaml"})
 
 InputKind = Literal["log", "graph"]
 
-SAMPLE_DESCRIPTION = "the bundled sample log (the first 1000 scans of the real MIT CSAIL laser log)"
-"""What `replay` without an input runs, in words (for help texts); changes together with `sample_input`."""
 
-
-def sample_input() -> AbstractContextManager[Path]:
-    """The input of `replay` without arguments: a context manager giving its file-system path."""
-    from pipeline.bundled import sample_log
-
-    return sample_log()
-
-
-def is_graph_file(path: Path) -> bool:
-    """A pose-graph file by its suffix, or a text file whose first data line starts with a graph tag."""
+def input_kind(path: str | Path) -> InputKind:
+    """"graph" for a pose-graph file (by its suffix, or a text file whose first data line starts with a graph
+    tag), "log" for anything else (a log, or a folder holding a ROS 2 bag)."""
+    path = Path(path)
     if path.suffix.lower() in GRAPH_SUFFIXES:
-        return True
+        return "graph"
     if not path.is_file() or path.suffix.lower() in _LOG_SUFFIXES:
-        return False
+        return "log"
     try:
         with path.open("rb") as file:
             head = file.read(4096).decode("utf-8", errors="replace")
     except OSError:
-        return False
-    for line in head.splitlines():
-        fields = line.split()
-        if fields and not fields[0].startswith("#"):
-            return fields[0] in GRAPH_TAGS
-    return False
-
-
-def input_kind(path: str | Path) -> InputKind:
-    """"graph" for a pose-graph file, "log" for anything else (a log, or a folder holding a ROS 2 bag)."""
-    return "graph" if is_graph_file(Path(path)) else "log"
+        return "log"
+    lines = (fields for fields in map(str.split, head.splitlines())
+             if fields and not fields[0].startswith("#"))
+    return "graph" if next(lines, [""])[0] in GRAPH_TAGS else "log"
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,8 @@ from pathlib import Path
 
 SAMPLE_LOG = "csail_sample.mcap"
 """The default input of `replay`: the first 1000 scans of the real MIT CSAIL laser log, with loops."""
+SAMPLE_DESCRIPTION = "the bundled sample log (the first 1000 scans of the real MIT CSAIL laser log)"
+"""What `replay` without an input runs, in words (for help texts)."""
 
 
 def sample_log() -> AbstractContextManager[Path]:

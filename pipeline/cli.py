@@ -35,12 +35,12 @@ from typer.core import TyperCommand, TyperGroup
 
 from optimizer.robust import KERNELS
 from optimizer.solve import MAX_ITERATIONS, METHODS
-from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, SAMPLE_DESCRIPTION, input_kind, sample_input
+from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, input_kind
+from pipeline.bundled import SAMPLE_DESCRIPTION, sample_log
 from pipeline.errors import PipelineError
 from pipeline.evaluation import DEFAULT_TOLERANCE_NS, RelationsResult, evaluate_files
 
 if TYPE_CHECKING:
-    from rich.console import Console
     from rich.progress import Progress, TaskID
 
     from frontends.protocol import Estimate
@@ -264,12 +264,12 @@ def run(
 ) -> None:
     """Replay logs (or optimise pose graphs), recording every iteration, and write the results to DIR."""
     # The options that set configuration keys (named alike: --scan-topic sets [input] scan_topic), given.
-    overrides = _given({
-        "optimizer": {"method": method and method.value, "iterations": iterations,
-                      "robust": robust and robust.value},
-        "input": {"scan_topic": scan_topic, "odom_topic": odom_topic, "base_frame": base_frame,
-                  "repair_information": repair_information or None},
-    })
+    options = {"optimizer": {"method": method and method.value, "iterations": iterations,
+                             "robust": robust and robust.value},
+               "input": {"scan_topic": scan_topic, "odom_topic": odom_topic, "base_frame": base_frame,
+                         "repair_information": repair_information or None}}
+    overrides = {section: {key: value for key, value in values.items() if value is not None}
+                 for section, values in options.items()}
     try:
         config = _load_config(config_file, overrides)
     except KNOWN_ERRORS as error:
@@ -281,43 +281,28 @@ def run(
     show_progress = not quiet and sys.stderr.isatty()
     session_options = _session_options(map_session, continue_session, initial_pose, sources or [],
                                        several=inputs_from is not None or ray_address is not None)
-    if session_options:
-        _refuse_options_without_use(sources or [], None, overrides["input"])
-        if map_session is not None:
-            for key in overrides["optimizer"]:
-                _fail(PipelineError(f"{_option(key)} has nothing to optimize with --map (localization only: "
-                                    "the saved map is not changed)"))
-        outcomes = _run_in_process(sources or [], config, out, show_progress, several=False,
-                                   replay_options=session_options)
-        _report(outcomes, quiet=quiet, as_json=as_json)
-        _exit_for(outcomes, quiet=quiet, allow_unconverged=allow_unconverged)
-        return
     ray = _ray_options(ray_address, cpus_per_task, retries, jobs)
+    _refuse_options_without_use(sources or [], inputs_from, overrides["input"])
+    for key in overrides["optimizer"] if map_session is not None else ():
+        _fail(PipelineError(f"{_option(key)} has nothing to optimize with --map (localization only: the "
+                            "saved map is not changed)"))
     if inputs_from is not None:
         sources = [*(sources or []), *_listed_inputs(inputs_from, out)]
-    _refuse_options_without_use(sources or [], inputs_from, overrides["input"])
-    if not sources:
-        with sample_input() as sample:
-            if ray is not None:
-                outcomes = _run_in_pool([sample], config, out, jobs, show_progress, ray)
-            else:
-                outcomes = _run_in_process([sample], config, out, show_progress, several=False)
-    else:
-        from pipeline.batch import refuse_clashing_outputs
+    from pipeline.batch import refuse_clashing_outputs
 
+    with sample_log() if not sources else contextlib.nullcontext() as sample:
+        inputs = sources or [sample]
         try:
-            refuse_clashing_outputs(sources, out)
+            refuse_clashing_outputs(inputs, out)
         except PipelineError as error:
             _fail(error)
-        if ray is not None or (jobs > 1 and len(sources) > 1):
-            outcomes = _run_in_pool(sources, config, out, jobs, show_progress, ray)
+        if ray is not None or (jobs > 1 and len(inputs) > 1):
+            outcomes = _run_in_pool(inputs, config, out, jobs, show_progress, ray)
         else:
-            outcomes = _run_in_process(sources, config, out, show_progress,
-                                       several=len(sources) > 1 or inputs_from is not None)
-    summary_error = None
-    summary_path = None
-    if len(outcomes) > 1 or ray is not None or inputs_from is not None:
-        summary_path, summary_error = _write_batch_summary(out, outcomes)
+            outcomes = _run_in_process(inputs, config, out, show_progress, replay_options=session_options,
+                                       several=len(inputs) > 1 or inputs_from is not None)
+    batch = len(outcomes) > 1 or ray is not None or inputs_from is not None
+    summary_path, summary_error = _write_batch_summary(out, outcomes) if batch else (None, None)
     _report(outcomes, quiet=quiet, as_json=as_json, summary_path=summary_path)
     if summary_error is not None:
         typer.echo(f"{PROGRAM}: error: {summary_error}", err=True)
@@ -338,12 +323,6 @@ def _exit_for(outcomes: Sequence[BatchOutcome], *, quiet: bool, allow_unconverge
                    f"(outputs written with \"converged\": false{advice})", err=True)
     if unconverged and not allow_unconverged:
         raise typer.Exit(EXIT_UNCONVERGED)
-
-
-def _given(options: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    """Section → key → value of the options given (None: not given)."""
-    return {section: {key: value for key, value in values.items() if value is not None}
-            for section, values in options.items()}
 
 
 def _option(key: str) -> str:
@@ -447,10 +426,7 @@ def _write_batch_summary(out: Path, outcomes: Sequence[BatchOutcome]) -> tuple[P
 def _load_config(path: Path | None, overrides: dict[str, dict[str, Any]]) -> ReplayConfig:
     from pipeline.config import config_from_mapping, load_config
 
-    overrides = {section: values for section, values in overrides.items() if values}
-    if path is not None:
-        return load_config(path, overrides)
-    return config_from_mapping(overrides)
+    return load_config(path, overrides) if path is not None else config_from_mapping(overrides)
 
 
 def _fail(error: BaseException) -> NoReturn:
@@ -718,14 +694,10 @@ def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None = N
                       str(stats.poses), str(stats.loop_closures),
                       f"{stats.chi2_initial:.4g} -> {stats.chi2_final:.4g}",
                       f"{stats.wall_time_s.get('total', math.nan):.2f}")
-    _stderr_console().print(table)
-
-
-def _stderr_console() -> Console:
     from rich.console import Console
 
     # Not a terminal (a pipe, a file, a test): wide enough that paths and messages stay on their lines.
-    return Console(stderr=True, width=None if sys.stderr.isatty() else 200)
+    Console(stderr=True, width=None if sys.stderr.isatty() else 200).print(table)
 
 
 _INFO_EPILOG = f"""\b

@@ -82,7 +82,6 @@ class ConfigError(PipelineError):
         self.path = None if path is None else Path(path)
         self.line = line
         self.key = key
-        self.reason = message
         where = "configuration" if self.path is None else str(self.path)
         if line is not None:
             where += f":{line}"
@@ -200,12 +199,10 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
         fields[item.name] = (annotation, Field(default, **_bounds(section, item.name)))
 
     validators: dict[str, Any] = {}
-    for (rule_section, key), other in _AT_LEAST.items():
-        if rule_section == section:
-            validators[f"_at_least_{key}"] = field_validator(key)(_order_check(other, at_least=True))
-    for (rule_section, key), other in _AT_MOST.items():
-        if rule_section == section:
-            validators[f"_at_most_{key}"] = field_validator(key)(_order_check(other, at_least=False))
+    for rules, at_least in ((_AT_LEAST, True), (_AT_MOST, False)):
+        for (rule_section, key), other in rules.items():
+            if rule_section == section:
+                validators[f"_{key}_against_{other}"] = _order_check(key, other, at_least=at_least)
     derived = {key: (other, getattr(defaults, key)) for (s, key), other in _AT_LEAST.items() if s == section}
     if derived:
         validators["_derived_defaults"] = model_validator(mode="before")(_derive_at_least(derived))
@@ -216,7 +213,9 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
     return model
 
 
-def _order_check(other: str, *, at_least: bool) -> Callable[[type, float, ValidationInfo], float]:
+def _order_check(key: str, other: str, *, at_least: bool) -> Any:
+    """A validator of `key`: at least (or at most) `other`, when that passed its own validation."""
+
     def check(cls: type, value: float, info: ValidationInfo) -> float:
         bound = info.data.get(other)  # absent when it failed its own validation: reported there
         if bound is not None and (value < bound if at_least else value > bound):
@@ -224,7 +223,7 @@ def _order_check(other: str, *, at_least: bool) -> Callable[[type, float, Valida
             raise ValueError(f"must be {relation} {other} ({bound:g})")
         return value
 
-    return check
+    return field_validator(key)(check)
 
 
 def _derive_at_least(derived: dict[str, tuple[str, float]]) -> Callable[[type, Any], Any]:
@@ -316,9 +315,7 @@ class InputSection(_Section):
 
 class ReplayConfig(_Section):
     """Everything a replay can be told: `ReplayConfig(optimizer={"method": "sgd"})`, or `load_config(path)`.
-
-    Frozen; `model_copy(update=...)` does not validate, so build a changed one with `with_updates`.
-    """
+    Frozen; `model_copy(update=...)` does not validate: build a changed one with `config_from_mapping`."""
 
     input: InputSection = Field(default_factory=InputSection)
     optimizer: OptimizerSection = Field(default_factory=OptimizerSection)
@@ -332,10 +329,6 @@ class ReplayConfig(_Section):
     def to_slam3d(self) -> Slam3DConfig:
         """The 3D frontend's frozen dataclass (angles in radians)."""
         return _to_dataclass(self.slam3d, Slam3DConfig)  # type: ignore[no-any-return]
-
-    def with_updates(self, updates: Mapping[str, Mapping[str, Any]]) -> ReplayConfig:
-        """A validated copy with some keys replaced, e.g. `{"optimizer": {"method": "gn"}}`."""
-        return config_from_mapping(_merge(self.to_mapping(), updates))
 
     def to_mapping(self) -> dict[str, dict[str, Any]]:
         """Section → key → value as in the file (degrees), sections in file order, unset values left out."""

@@ -14,10 +14,10 @@ import dataclasses
 import logging
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Protocol
+from typing import Any
 
 from pipeline.api import input_kind, output_stem
 from pipeline.batch import BatchOutcome, OutcomeCallback, RayOptions, one_line, run_one_on_this_host
@@ -32,11 +32,8 @@ CANCEL_GRACE_S = 10.0
 workers are killed."""
 
 
-class ReplayOne(Protocol):
-    """What a task runs for its input (`run_one_on_this_host`, or a wrapper of it)."""
-
-    def __call__(self, path: str | Path, config: ReplayConfig | None = None, *, out_dir: str | Path = ...,
-                 catch_unexpected: bool = True) -> BatchOutcome: ...
+ReplayOne = Callable[..., BatchOutcome]
+"""What a task runs for its input: `run_one_on_this_host`, or a wrapper taking its arguments."""
 
 
 def import_ray() -> ModuleType:
