@@ -151,10 +151,12 @@ def test_a_kidnapped_robot_is_found_again(
     once nothing has matched well for `max_dead_reckoning` metres (shortened here from 30 m, so the test
     stays short) the robot is lost, and the global search finds it again. Its estimate drives on east out of
     the map, where by default the rolling local map would track it on its own scans (see
-    `LocalizationConfig.map_reach`): `map_reach` = inf keeps every rolling track counted as dead reckoning."""
+    `LocalizationConfig.map_reach`): `count_rolling_tracks_near_map` with `map_reach` = inf keeps every
+    rolling track counted as dead reckoning."""
     before, after = range(10, 60), range(130, 300)
     scans, odometry, truth = kidnapped_drive(new_run, before, after)
-    settings = LocalizationConfig(max_dead_reckoning=4.0, map_reach=math.inf)
+    settings = LocalizationConfig(max_dead_reckoning=4.0, map_reach=math.inf,
+                                  count_rolling_tracks_near_map=True)
     localizer = MapLocalizer(*localizer_map, initial_pose=truth[0], settings=settings)
     results = [localizer.localize(int(new_run.stamps_ns[0]) + k * 300_000_000, scan, odo)
                for k, (scan, odo) in enumerate(zip(scans, odometry, strict=True))]
@@ -306,3 +308,30 @@ def test_resumed_slam_optimizes_at_once_after_a_loop_closure_that_moves_the_map_
     assert not any(plain._optimization_due(h) for h in (metres_off, turned, about_origin))
     assert resumed._optimization_due(metres_off) and resumed._optimization_due(turned)
     assert not resumed._optimization_due(about_origin)
+
+
+def test_a_stretch_the_map_saw_only_from_afar_is_tracked_not_lost(mapping_run: Run, new_run: Run) -> None:
+    """The saved map lost every point between y = 5 m and y = 15 m (the middle of the east and west
+    corridors: the first run saw them only from their ends), but keeps its keyframes there. Driving through,
+    the map's matches are weak or fail, and the rolling local map (the recent scans with those keyframes)
+    explains the scans: that is tracking, not dead reckoning, so the robot is never lost, even with
+    `max_dead_reckoning` (shortened here to 4 m) below the 8 m of the gap; and it stays on the truth."""
+    keyframes = list(range(0, len(mapping_run.truth), MAP_EVERY))
+    scans = []
+    for k in keyframes:
+        world_y = place(mapping_run.scans[k], mapping_run.truth[k])[:, 1]
+        scans.append(mapping_run.scans[k][(world_y <= 5.0) | (world_y >= 15.0)])
+    settings = LocalizationConfig(max_dead_reckoning=4.0)
+    localizer = MapLocalizer(scans, mapping_run.truth[keyframes], initial_pose=new_run.truth[0],
+                             settings=settings)
+    results = [localizer.localize(int(stamp), scan, odo)
+               for stamp, scan, odo in zip(new_run.stamps_ns, new_run.scans, new_run.odometry, strict=True)]
+    gap = (new_run.truth[:, 1] > 6.0) & (new_run.truth[:, 1] < 14.0)
+    assert gap.sum() > 80, "both corridors' middles are driven"
+    in_gap = [r for r, g in zip(results, gap, strict=True) if g]
+    assert not any(r.matched and r.score >= settings.min_tracking_score for r in in_gap)
+    assert np.mean([r.tracked for r in in_gap]) > 0.5, "the rolling local map tracks there"
+    assert all(r.localized for r in results)
+    assert not any(r.global_fix for r in results)
+    poses = np.array([r.pose for r in results])
+    assert position_errors(poses, new_run.truth).max() < 0.05

@@ -15,8 +15,9 @@ matching) with the points and normals ICP pairs with.
   `rolling_map_length` metres at their tracked poses, with the saved keyframes nearest to them, never
   written into the saved map. A scan the saved map cannot place is matched on it instead: outside the saved
   map the robot stays tracked in its frame (`LocalizedScan.tracked`), drifting slowly, and back in the
-  map the map's own matches (or the local re-acquisition) take over again. Tracked far from every saved
-  keyframe (`map_reach`), the pose is not dead reckoning: it is never declared lost for it.
+  map the map's own matches (or the local re-acquisition) take over again. A pose tracked there is not
+  dead reckoning: it is never declared lost for it (near the saved keyframes too, unless
+  `count_rolling_tracks_near_map`).
 - Local re-acquisition: after a few misses, at every `relocalize_every` metres, the last few scans
   (placed by their tracked poses, which odometry keeps consistent with each other) are searched around
   the prediction by branch and bound, in a window growing with the distance driven since the last good
@@ -218,7 +219,7 @@ class MapLocalizer:
         self._rolling_built_at = 0.0
         self._dead_reckoned = 0.0
         """Distance driven since the last good match on the saved map, outside the stretches tracked on the
-        rolling local map far from the saved keyframes (see `LocalizationConfig.map_reach`)."""
+        rolling local map (see `LocalizationConfig.count_rolling_tracks_near_map`)."""
         self.stage_times = StageTimes()
         """Where `localize` spent its time: tracking, local re-acquisition, global localization."""
 
@@ -268,12 +269,15 @@ class MapLocalizer:
             return result
         self._since_good += moved
         self._misses += 1
-        # Far from every saved keyframe, a pose tracked on the rolling local map is what slam_toolbox's
-        # localization gives: nothing in the saved map to look for, nor to disagree with. Near them, the
-        # map should match: a track that goes on only against its own recent scans is a robot carried
-        # elsewhere (its scans fit themselves anywhere), so it counts towards being lost as dead reckoning.
+        # A pose tracked on the rolling local map is what slam_toolbox's localization gives: the scan is
+        # explained (by the recent scans and the saved keyframes nearby), so it is not dead reckoning, also
+        # near the saved keyframes, where the first run may have seen the place only from afar (CSAIL: 40 m
+        # along walls its map glimpsed, declared lost, then placed 5 m off by a look-alike room). Opt-in
+        # (`count_rolling_tracks_near_map`): near them, a track only on its own recent scans counts, so a
+        # robot carried elsewhere inside the map (its scans fit themselves anywhere) is found again.
         outside = result.tracked and not self._near_map(result.pose)
-        if not outside:
+        explained = result.tracked and (outside or not settings.count_rolling_tracks_near_map)
+        if not explained:
             self._dead_reckoned += moved
         first_attempt = self._misses == settings.relocalize_after
         every = settings.relocalize_every_outside if outside else settings.relocalize_every
@@ -284,7 +288,7 @@ class MapLocalizer:
             if found is not None:
                 return found
         lost = (self._dead_reckoned > settings.max_dead_reckoning if has_odometry
-                else self._misses >= settings.lost_after_unmatched and not outside)
+                else self._misses >= settings.lost_after_unmatched and not explained)
         if lost:
             self._lose()
         return result

@@ -40,7 +40,8 @@ class LocalizationConfig:
     max_dead_reckoning: float = 30.0
     """With wheel odometry, scans that match nothing (the robot drove out of the saved map, or people hide
     the walls) keep the odometry's pose; tracking is declared lost only once it moved this far (m) since
-    the last match scoring `min_tracking_score`: back in the map, the tracking window or the local
+    the last match scoring `min_tracking_score`, not counting the scans the rolling local map tracked
+    (`count_rolling_tracks_near_map`): back in the map, the tracking window or the local
     re-acquisition finds the walls again, which a global search in a place the map does not show never
     would (and it costs seconds)."""
     min_tracking_score: float = 0.5
@@ -84,12 +85,20 @@ class LocalizationConfig:
     as much as a dozen matches; the scans that joined meanwhile overlap what it holds)."""
     map_reach: float = 3.0
     """A pose tracked on the rolling local map farther than this (m) from every saved keyframe is outside
-    the saved map: it never counts towards `max_dead_reckoning`, and local re-acquisition is tried there
-    only every `relocalize_every_outside`. Nearer, a rolling track counts as dead reckoning. The price: a
-    kidnapped robot whose estimate drives out of the map (through its walls) is tracked there on its own
-    scans and never declared lost (a whole-map search there finds look-alike corridors: the north one of
-    the test world in a map of the south one). A robot that never leaves its map may set this to inf to
-    keep kidnap recovery everywhere."""
+    the saved map: local re-acquisition is tried there only every `relocalize_every_outside`, and it never
+    counts towards `max_dead_reckoning` (nearer, see `count_rolling_tracks_near_map`)."""
+    count_rolling_tracks_near_map: bool = False
+    """Whether a pose tracked on the rolling local map within `map_reach` of a saved keyframe counts
+    towards `max_dead_reckoning`. False (slam_toolbox's localization mode, AMCL): a scan the rolling local
+    map explains is not dead reckoning anywhere, and the localizer is declared lost only after
+    `max_dead_reckoning` metres that neither the saved map (matching well) nor the rolling local map
+    explained. A first run that saw a part of the building only from afar leaves weak map matches there and
+    rolling tracks beside its keyframes: counted, 40 m of them on CSAIL declared the robot lost, and the
+    whole-map search then placed it 5 m off in a look-alike room. True: a robot carried elsewhere inside
+    its map, whose scans keep fitting its own recent scans, is declared lost there and found again; with
+    `map_reach` = inf everywhere (the price otherwise: a kidnapped estimate driving out of the map, through
+    its walls, is tracked there on its own scans and never lost; a whole-map search there finds look-alike
+    corridors: the north one of the test world in a map of the south one)."""
     relocalize_every_outside: float = 2.0
     """Local re-acquisition while tracked outside the saved map (`map_reach`) is tried only every this many
     metres: the map may still have seen the place from afar, but mostly there is nothing to find."""
