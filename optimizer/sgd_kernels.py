@@ -71,6 +71,28 @@ def _weighted_residual(pa: np.ndarray, pb: np.ndarray, z: np.ndarray, info: np.n
 
 
 @njit(cache=True, inline="always")
+def _weighted_residual_one_rotation(pa: np.ndarray, pb: np.ndarray, z: np.ndarray, info: np.ndarray,
+                                    r: np.ndarray, d: np.ndarray) -> None:
+    """`_weighted_residual` with cos, sin of θ_a computed once and W = R Ω Rᵀ kept in registers: the same
+    operations in the same order (so bit-identical), without the second cos, sin and W's stores."""
+    c = math.cos(pa[2])
+    s = math.sin(pa[2])
+    r[0] = pa[0] + c * z[0] - s * z[1] - pb[0]
+    r[1] = pa[1] + s * z[0] + c * z[1] - pb[1]
+    r[2] = _wrap(pa[2] + z[2] - pb[2])
+    ro00 = c * info[0, 0] - s * info[1, 0]
+    ro01 = c * info[0, 1] - s * info[1, 1]
+    ro10 = s * info[0, 0] + c * info[1, 0]
+    ro11 = s * info[0, 1] + c * info[1, 1]
+    d[0] = 2.0 * ((ro00 * c - ro01 * s) * r[0] + (ro00 * s + ro01 * c) * r[1]
+                  + (c * info[0, 2] - s * info[1, 2]) * r[2])
+    d[1] = 2.0 * ((ro10 * c - ro11 * s) * r[0] + (ro10 * s + ro11 * c) * r[1]
+                  + (s * info[0, 2] + c * info[1, 2]) * r[2])
+    d[2] = 2.0 * ((info[2, 0] * c - info[2, 1] * s) * r[0] + (info[2, 0] * s + info[2, 1] * c) * r[1]
+                  + info[2, 2] * r[2])
+
+
+@njit(cache=True, inline="always")
 def _clamped_step(loop_length: int, d_j: float, r_j: float, gamma_j: float, t: int) -> float:
     """β = (b − a)·d_j·α with α = 1/(γ_j t), clamped so that it never overshoots the residual."""
     beta = loop_length * d_j / (gamma_j * t)
@@ -411,12 +433,11 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
     d = np.empty(3)
     total_weight = np.empty(3)
     amount = np.empty(3)
-    w_global = np.empty((3, 3))
     for k in range(edge_from.shape[0]):
         a = edge_from[k]
         b = edge_to[k]
         _tree_pose_pair(a, b, base, weights, amounts, tree, block, pa, pb)
-        _weighted_residual(pa, pb, measurements[k], information[k], w_global, r, d)
+        _weighted_residual_one_rotation(pa, pb, measurements[k], information[k], r, d)
         lo = min(a, b)
         hi = max(a, b)
         sign = 1.0 if a < b else -1.0
