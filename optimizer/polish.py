@@ -236,6 +236,9 @@ def gauss_newton(
 
         # Nielsen's update: shrink λ the more the linear model predicted the actual decrease.
         predicted = _predicted_decrease(graph, current, linearisation, step)
+        # H is not needed past here: let it go before the next one is assembled (360 MB at 10⁶ poses), unless
+        # the solver keeps it (a multigrid hierarchy kept for the next step shares its blocks).
+        del linearisation
         gain = (current_chi2 - trial_chi2) / predicted if predicted > 0.0 else 0.0
         damping = max(damping * max(_MIN_SHRINK, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
         growth = 2.0
