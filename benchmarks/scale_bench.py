@@ -261,6 +261,8 @@ def stage_probe(graph_path: Path, out_dir: Path) -> str:
         entry = stages.setdefault(stage, [0.0, 0])
         entry[0] += now - marks["cpu"]
         entry[1] += 1
+        print(f"{stage} {iteration.index}: χ² {iteration.chi2:.10g}, {now - marks['cpu']:.1f} CPU s",
+              file=sys.stderr, flush=True)
         marks["cpu"] = now
 
     started_cpu, started = time.process_time(), time.perf_counter()
