@@ -120,17 +120,11 @@ class ChainPCGSolver:
 
 def preconditioned_cg(apply: Callable[[FloatArray], FloatArray],
                       precondition: Callable[[FloatArray, FloatArray], None], rhs: FloatArray,
-                      forcing: float, max_iterations: int, *,
-                      model_forcing: float | None = None) -> tuple[FloatArray, int, bool]:
-    """Conjugate gradients on A·x = rhs from x = 0: (x, iterations, whether it converged).
+                      forcing: float, max_iterations: int) -> tuple[FloatArray, int, bool]:
+    """Conjugate gradients on A·x = rhs from x = 0: (x, iterations, whether ‖r‖ ≤ `forcing`·‖rhs‖ held).
 
-    `apply(v)` returns A·v; `precondition(r, out)` writes M⁻¹·r into `out`. It has converged when
-    ‖r‖ ≤ `forcing`·‖rhs‖, or, with `model_forcing`, when the quadratic model q(x) = ½xᵀAx − rhsᵀx stops
-    falling: i·(q_{i−1} − q_i) ≤ `model_forcing`·|q_i| (Nash & Sofer's truncated-Newton test). The
-    residual test weighs every eigen-direction of A alike, so the directions of small eigenvalues (a large
-    graph's global bending) barely show in ‖r‖ while their error still costs χ²; the model test weighs
-    them by what they cost. It stops early, not converged, when a direction has no positive curvature
-    (A is then not positive definite to rounding).
+    `apply(v)` returns A·v; `precondition(r, out)` writes M⁻¹·r into `out`. It stops early, not converged,
+    when a direction has no positive curvature (A is then not positive definite to rounding).
     """
     solution = np.zeros_like(rhs)
     residual = rhs.copy()
@@ -141,7 +135,6 @@ def preconditioned_cg(apply: Callable[[FloatArray], FloatArray],
     target = forcing * float(np.linalg.norm(rhs))
     converged = False
     iterations = 0
-    model = 0.0  # q(x_i) = −½ rhsᵀx_i for CG iterates from 0
     while iterations < max_iterations:
         iterations += 1
         moved = apply(direction)
@@ -151,15 +144,9 @@ def preconditioned_cg(apply: Callable[[FloatArray], FloatArray],
         alpha = rho / curvature
         solution += alpha * direction
         residual -= alpha * moved
-        if model_forcing is None:
-            if float(np.linalg.norm(residual)) <= target:
-                converged = True
-                break
-        else:
-            previous_model, model = model, -0.5 * float(rhs @ solution)
-            if iterations * (previous_model - model) <= model_forcing * abs(model):
-                converged = True
-                break
+        if float(np.linalg.norm(residual)) <= target:
+            converged = True
+            break
         precondition(residual, preconditioned)
         rho_next = float(residual @ preconditioned)
         direction *= rho_next / rho

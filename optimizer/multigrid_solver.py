@@ -33,12 +33,6 @@ hierarchy up front: on the 10⁵- and 10⁶-pose grid worlds the kept one then a
 rebuild), while after the small decreases of the last steps it converged within its budget."""
 
 
-MODEL_FORCING = 1e-2
-"""CG stops once the model's last decrease, times the iteration count, is below this fraction of the
-model's value so far (Nash & Sofer): the residual test stopped steps at 10⁶ poses before the global bending
-was solved, and the polish then crept down by 3·10⁻⁶ of χ² per step (`preconditioned_cg`)."""
-
-
 class MultigridPCGSolver:
     """Inexact steps by CG on S·H·S + λ·I (BSR, 3×3 blocks) with a smoothed-aggregation V-cycle.
 
@@ -59,8 +53,6 @@ class MultigridPCGSolver:
         self._preconditioner: sp.linalg.LinearOperator | None = None
         self._iterations_after_build = 0
         self.forcing = 1e-2
-        self.model_forcing: float | None = MODEL_FORCING
-        """CG's stopping test on the quadratic model (`preconditioned_cg`); None: the residual test."""
         self.last_iterations = 0
         self.last_converged = True
         self.builds = 0
@@ -114,8 +106,7 @@ class MultigridPCGSolver:
         def precondition(residual: FloatArray, out: FloatArray) -> None:
             out[:] = preconditioner @ residual
 
-        return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations,
-                                 model_forcing=self.model_forcing)
+        return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations)
 
 
 def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation) -> pyamg.MultilevelSolver:
