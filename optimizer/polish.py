@@ -156,11 +156,14 @@ def gauss_newton(
     """Levenberg–Marquardt on the χ² of `graph`, from `poses` (default: the graph's estimate).
 
     Yields Iteration("gauss-newton", k, poses, χ²) after every accepted step, k from 1; rejected trial
-    steps (χ² did not decrease, so λ is raised and the step recomputed) are not yielded. Pose 0 stays fixed.
+    steps (χ² did not decrease, so λ is raised and the step recomputed) are not yielded; with an inexact
+    (CG) solver a step that does not lower χ² is first halved up to `_BACKTRACKS` times, and λ is raised to
+    at least its curvature. Pose 0 stays fixed.
     Returns a `PolishStatus` (`status = yield from gauss_newton(...)`). It has converged when either
     - an accepted near-Gauss–Newton step (λ ≤ 1 in the scaled system; a solved, not truncated, linear
-      system) changed χ² by less than `relative_tolerance` of its value and moved the poses by less than
-      `step_tolerance`·(‖x‖ + `step_tolerance`) (Euclidean norms over all free coordinates), or
+      system; taken whole, not shortened by the inexact solvers' line search) changed χ² by less than
+      `relative_tolerance` of its value and moved the poses by less than `step_tolerance`·(‖x‖ +
+      `step_tolerance`) (Euclidean norms over all free coordinates), or
     - the Jacobi-scaled gradient is negligible: gᵀ·diag(H)⁻¹·g ≤ `gradient_tolerance`·χ².
     It has not converged when `max_iterations` steps were taken first, or when λ grew past 1e12 without a
     decrease while the gradient test fails (a stall, not an optimum). `linear_solver` "direct" is qdldl's

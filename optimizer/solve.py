@@ -13,7 +13,9 @@ rad of noise, the paper's SGD alone leaves the polish 240–530 times above the 
 (or from the chordal start) it reaches it (benchmarks/optimizer_bench.py, best-known section). When those
 two candidates end in different minima (several basins within reach), a third: headings from the planar
 SE-Sync relaxation, which uses the translations (`optimizer.planar_sync`), positions solved for them,
-polished; at σθ = 0.3 only that one reaches the best-known minimum.
+polished; at σθ = 0.3 only that one reaches the best-known minimum. Above `LARGEST_FOR_EXTRA_STAGES` poses
+the default is the paper's SGD, handed over to the polish once its χ² stalls (`until_stalled`), then the
+polish.
 """
 
 from __future__ import annotations
