@@ -208,7 +208,6 @@ def gauss_newton(
             solver.forcing = INEXACT_FORCING
         backtracked = False
         while True:
-            overshoot = 0.0
             scaled_step = solver.step(linearisation, damping)
             if scaled_step is not None:
                 step = linearisation.scale * scaled_step
@@ -216,7 +215,6 @@ def gauss_newton(
                 if not (trial_chi2 < current_chi2) and not solver.exact:
                     # An inexact solve costs tens of products with H: before paying another at a larger
                     # λ, try shorter steps along the one found, one χ² evaluation each.
-                    overshoot = _curvature(graph, current, linearisation, step)
                     for _ in range(_BACKTRACKS):
                         step = 0.5 * step
                         trial, trial_chi2 = _trial(graph, current, step)
@@ -225,9 +223,7 @@ def gauss_newton(
                             break
                 if trial_chi2 < current_chi2:
                     break
-            # After an overshooting inexact step, λ at least its curvature: doubling λ from near its floor
-            # took several more solves, each as costly as the step (10⁶-pose grid world).
-            damping = max(damping * growth, overshoot)
+            damping *= growth
             growth *= 2.0
             if damping > _MAX_LAMBDA:
                 near_newton_gain = _near_newton_gain(graph, current, current_chi2, linearisation, solver)
@@ -243,16 +239,11 @@ def gauss_newton(
 
         # Nielsen's update: shrink λ the more the linear model predicted the actual decrease.
         predicted = _predicted_decrease(graph, current, linearisation, step)
-        gain = (current_chi2 - trial_chi2) / predicted if predicted > 0.0 else 0.0
-        damping = max(damping * max(_MIN_SHRINK, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
-        if backtracked:
-            # The full step overshot: λ at least its curvature halves the next step along it, as the line
-            # search did. Left to Nielsen's rule on the shortened step's gain, λ kept shrinking and the
-            # polish crept down by one shortened step after another (10⁶-pose grid world).
-            damping = max(damping, overshoot)
         # H is not needed past here: let it go before the next one is assembled (360 MB at 10⁶ poses), unless
         # the solver keeps it (a multigrid hierarchy kept for the next step shares its blocks).
         del linearisation
+        gain = (current_chi2 - trial_chi2) / predicted if predicted > 0.0 else 0.0
+        damping = max(damping * max(_MIN_SHRINK, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
         growth = 2.0
 
         change = last_change = (current_chi2 - trial_chi2) / current_chi2
@@ -270,13 +261,6 @@ def gauss_newton(
                 and step_damping <= 1.0 and solved and not backtracked):
             return PolishStatus(True, f"relative χ² change {change:.1e} < {relative_tolerance:.0e}, step "
                                       f"{step_norm:.1e} (‖x‖ {state_norm:.1e})", index)
-
-
-def _curvature(graph: PoseGraph, poses: FloatArray, linearisation: Linearisation, step: FloatArray) -> float:
-    """yᵀ(S·H·S)y / yᵀy for the scaled step y = S⁻¹·step: the damping that halves a step along y."""
-    scaled = step / linearisation.scale
-    return quadratic_form(poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information,
-                          step) / max(float(scaled @ scaled), np.finfo(np.float64).tiny)
 
 
 def _trial(graph: PoseGraph, current: FloatArray, step: FloatArray) -> tuple[FloatArray, float]:
