@@ -30,7 +30,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:  # run as a script: import this checkout's packages
@@ -211,6 +213,75 @@ def sgd_probe(num_poses: int, iterations: int) -> str:
             f"N = {graph.num_poses:,}, M = {graph.num_edges:,} (seed {GRID_WORLD_SEED}); one process.\n")
 
 
+class _StageClock:
+    """CPU seconds (time.process_time) and calls per named stage, gathered by wrapping functions."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self.calls: dict[str, int] = {}
+        self.peak_mb: dict[str, float] = {}
+
+    def wrap(self, owner: object, name: str, stage: str,
+             count: Callable[[Any], int] | None = None) -> None:
+        function = getattr(owner, name)
+
+        def timed(*args: object, **kwargs: object) -> object:
+            started = time.process_time()
+            result = function(*args, **kwargs)
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.process_time() - started
+            self.calls[stage] = self.calls.get(stage, 0) + (count(result) if count else 1)
+            self.peak_mb[stage] = max(self.peak_mb.get(stage, 0.0), _vm_kib("VmHWM") / 1024)
+            return result
+
+        setattr(owner, name, timed)
+
+
+def stage_probe(graph_path: Path, out_dir: Path) -> str:
+    """The default replay of `graph_path` in this process, CPU seconds split by stage (see `main`)."""
+    from optimizer import graph_files, multigrid_solver, polish
+    from pipeline import recording, replay_graph
+
+    clock = _StageClock()
+    clock.wrap(replay_graph, "read_graph", "read (parse + graph build)")
+    clock.wrap(replay_graph, "write_g2o", "write .g2o")
+    clock.wrap(polish, "_linearise", "polish: linearise (H, g)")
+    clock.wrap(multigrid_solver, "_hierarchy", "polish: AMG hierarchy builds")
+    clock.wrap(multigrid_solver, "preconditioned_cg", "polish: CG (iterations)",
+               count=lambda result: result[1])
+    clock.wrap(polish, "_trial", "polish: trial χ²")
+    clock.wrap(recording.IterationRecorder, "add", "record: iterations")
+    clock.wrap(recording.IterationRecorder, "flush", "record: flush (final whole)")
+    del graph_files
+    stages: dict[str, list[float]] = {}
+    marks = {"cpu": time.process_time()}
+
+    def progress(iteration: Any) -> None:
+        now = time.process_time()
+        stage = iteration.stage
+        entry = stages.setdefault(stage, [0.0, 0])
+        entry[0] += now - marks["cpu"]
+        entry[1] += 1
+        print(f"{stage} {iteration.index}: χ² {iteration.chi2:.10g}, {now - marks['cpu']:.1f} CPU s",
+              file=sys.stderr, flush=True)
+        marks["cpu"] = now
+
+    started_cpu, started = time.process_time(), time.perf_counter()
+    result = replay_graph.replay_graph(graph_path, out_dir=out_dir, progress=progress)
+    total_cpu, total_wall = time.process_time() - started_cpu, time.perf_counter() - started
+    rows = [[stage, f"{seconds:.1f}", str(clock.calls[stage]), f"{clock.peak_mb[stage]:.0f}"]
+            for stage, seconds in clock.seconds.items()]
+    rows += [[f"between yields: {stage} (optimizer + recording)", f"{seconds:.1f}", str(count), ""]
+             for stage, (seconds, count) in stages.items()]
+    rows.append(["whole replay_graph", f"{total_cpu:.1f} (wall {total_wall:.1f})", "",
+                 f"{_vm_kib('VmHWM') / 1024:.0f}"])
+    table = markdown_table(["stage", "CPU s", "calls", "peak RSS MB so far"], rows)
+    summary = json.loads(Path(result.outputs.json).read_text())
+    return (f"{table}\n\nN = {result.graph.num_poses:,}, M = {result.graph.num_edges:,}; iterations "
+            f"{summary['iterations']}; χ² {summary['chi2_initial']:.6g} → {summary['chi2_final']:.10g}; "
+            f"converged {summary['converged']} ({summary['stop_reason']}). One process; CPU seconds by "
+            "time.process_time; the peak column is VmHWM after the stage's last call.\n")
+
+
 def _parse_run(text: str) -> tuple[str, int | None]:
     method, _, iterations = text.partition(":")
     return method, int(iterations) if iterations else None
@@ -224,6 +295,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep", type=Path, help="keep the generated file and outputs in this folder")
     parser.add_argument("--sgd-probe", type=int, metavar="K",
                         help="time K paper-SGD iterations (wall and CPU, by part) instead of replays")
+    parser.add_argument("--stage-probe", action="store_true",
+                        help="run the default replay in this process and split its CPU time by stage")
+    parser.add_argument("--graph", type=Path, help="use this g2o file instead of generating one")
     parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.sgd_probe:
@@ -237,9 +311,20 @@ def main(argv: list[str] | None = None) -> int:
     folder = Path(tempfile.mkdtemp(prefix="scale_bench_")) if args.keep is None else args.keep
     folder.mkdir(parents=True, exist_ok=True)
     try:
-        graph_path, num_poses, num_edges, seconds = generate(args.poses, folder)
+        if args.graph is not None:
+            from optimizer.graph_files import read_graph
+
+            graph_path, seconds = args.graph, 0.0
+            counted = read_graph(graph_path).graph
+            num_poses, num_edges = counted.num_poses, counted.num_edges
+            del counted
+        else:
+            graph_path, num_poses, num_edges, seconds = generate(args.poses, folder)
         file_mb = graph_path.stat().st_size / 2**20
-        print(f"generated {graph_path} ({file_mb:.0f} MB) in {seconds:.1f} s", file=sys.stderr)
+        print(f"graph {graph_path} ({file_mb:.0f} MB), {seconds:.1f} s to generate", file=sys.stderr)
+        if args.stage_probe:
+            print(stage_probe(graph_path, folder / "out_stage_probe"))
+            return 0
         results = []
         for run in args.runs:
             method, iterations = _parse_run(run)

@@ -96,6 +96,7 @@ class MultigridPCGSolver:
         `_REBUILD_AFTER_DECREASE`)."""
         if relative_decrease > _REBUILD_AFTER_DECREASE:
             self._preconditioner = None
+            self._linearisation = None  # nothing refers to its blocks any more: they can go
 
     def _solve(self, matrix: sp.bsr_matrix, rhs: FloatArray,
                max_iterations: int) -> tuple[FloatArray, int, bool]:

@@ -13,12 +13,15 @@ rad of noise, the paper's SGD alone leaves the polish 240–530 times above the 
 (or from the chordal start) it reaches it (benchmarks/optimizer_bench.py, best-known section). When those
 two candidates end in different minima (several basins within reach), a third: headings from the planar
 SE-Sync relaxation, which uses the translations (`optimizer.planar_sync`), positions solved for them,
-polished; at σθ = 0.3 only that one reaches the best-known minimum.
+polished; at σθ = 0.3 only that one reaches the best-known minimum. Above `LARGEST_FOR_EXTRA_STAGES` poses
+the default is the paper's SGD, handed over to the polish once its χ² stalls (`until_stalled`), then the
+polish.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 
@@ -60,6 +63,29 @@ lower one, and it would cost more than both."""
 BUILT_STARTS: dict[str, Callable[[PoseGraph], FloatArray]] = {CHORDAL: chordal_initialization,
                                                               SYNC: sync_initialization}
 """The starts the default builds from the graph alone, by name."""
+HANDOVER_GAIN = 0.01
+"""Where the paper's SGD hands straight to the polish (the default above `LARGEST_FOR_EXTRA_STAGES` poses,
+when `iterations` is not given), it stops once an iteration, after its χ² has begun to fall, lowers χ² by
+less than this fraction of its value: SGD's steps shrink as 1/t, and its χ² then falls by about c/t per
+iteration (c ≈ 0.4 on the 10⁶-pose grid world), far slower than the polish's steps, each of which takes the
+whole linearised problem at once. Its first iterations may leave χ² unchanged (all steps clamped to the
+residuals: the 10⁶-pose grid world's iterations 2–8); that plateau is not a stall (`until_stalled`)."""
+
+
+def until_stalled(iterations: Iterator[Iteration], gain: float = HANDOVER_GAIN) -> Iterator[Iteration]:
+    """`iterations` (of one descent, from its first) until one lowers χ² by less than `gain` of the χ²
+    before it, that iteration included, counting only once an iteration after the first has lowered χ² by
+    at least `gain` (SGD's χ² has begun to fall). A descent whose χ² never begins to fall runs to its end."""
+    previous = math.inf
+    descending = False
+    for count, iteration in enumerate(iterations, start=1):
+        yield iteration
+        value = float(iteration.chi2)
+        lowered = previous - value >= gain * previous if math.isfinite(previous) else False
+        if descending and not lowered:
+            return
+        descending = descending or (count >= 2 and lowered)
+        previous = value
 
 
 def _paper_sgd(graph: PoseGraph, iterations: int, poses: FloatArray) -> Iterator[Iteration]:
@@ -93,10 +119,14 @@ class Method:
     chordal_start: bool = False
     sync_start: bool = False
     """Adds the planar SE-Sync start (polished directly) when the other candidates disagree."""
+    handover_when_stalled: bool = False
+    """Where the paper's SGD is the descent's only stage (above `LARGEST_FOR_EXTRA_STAGES` poses) and
+    `iterations` was not given, it hands over to the polish once it stalls (`until_stalled`)."""
 
 
 METHOD_TABLE: dict[str, Method] = {
-    "sgd+gn": Method(_paper_then_tree_sgd, polish=True, chordal_start=True, sync_start=True),
+    "sgd+gn": Method(_paper_then_tree_sgd, polish=True, chordal_start=True, sync_start=True,
+                     handover_when_stalled=True),
     "sgd": Method(_paper_sgd, polish=False),
     "sgd-tree+gn": Method(_tree_sgd, polish=True),
     "sgd-tree": Method(_tree_sgd, polish=False),
@@ -172,6 +202,9 @@ class Optimization:
         self._graph = graph
         self._method = METHOD_TABLE[method]
         self._sweeps = DEFAULT_ITERATIONS if iterations is None else iterations
+        # Given iterations are run as given; the default count is a cap once SGD alone precedes the polish.
+        self._until_stalled = (self._method.handover_when_stalled and iterations is None
+                               and graph.num_poses > LARGEST_FOR_EXTRA_STAGES)
         # With the polish alone, `iterations` caps the polish.
         self._polish_cap = (iterations if self._method.descent is None and iterations is not None
                             else polish_iterations)
@@ -259,7 +292,8 @@ class Optimization:
             yield from robust_sgd(self._graph, self._sweeps, poses, kernel=self._robust)
             return None
         if descend and self._method.descent is not None:
-            for iteration in self._method.descent(self._graph, self._sweeps, poses):
+            descent = self._method.descent(self._graph, self._sweeps, poses)
+            for iteration in until_stalled(descent) if self._until_stalled else descent:
                 poses = iteration.poses
                 yield iteration
         if not self._method.polish:
