@@ -188,20 +188,19 @@ def _write_map_yaml(path: Path, grid: OccupancyGrid, outputs: ReplayOutputs) -> 
     write_text(path, map_server_yaml(grid, outputs.map_pgm.name))
 
 
-def _laser_frontend_from_session(log: LogReader, topic: str, config: Slam2DConfig | None,
-                                 options: FrontendOptions, session: SessionStart) -> LaserFrontend:
-    saved = saved_map_2d(session.path, session.content)
-    if session.mode == "continue":
-        return ContinuingLaserFrontend(log, topic, saved, config, options)
-    return LocalizingLaserFrontend(log, topic, saved, config, options, initial_pose=session.initial_pose)
+def _session_frontends(saved_map: Callable[[Path, Any], Any], continuing: Callable[..., Any],
+                       localizing: Callable[..., Any]) -> Callable[..., Any]:
+    """A sensor's `from_session`: its saved map read from the session, then the frontend continuing it or
+    localizing in it."""
 
+    def frontend(log: LogReader, topic: str, config: Any, options: FrontendOptions,
+                 session: SessionStart) -> Any:
+        saved = saved_map(session.path, session.content)
+        if session.mode == "continue":
+            return continuing(log, topic, saved, config, options)
+        return localizing(log, topic, saved, config, options, initial_pose=session.initial_pose)
 
-def _lidar_frontend_from_session(log: LogReader, topic: str, config: Slam3DConfig | None,
-                                 options: FrontendOptions, session: SessionStart) -> LidarFrontend:
-    saved = saved_map_3d(session.path, session.content)
-    if session.mode == "continue":
-        return ContinuingLidarFrontend(log, topic, saved, config, options)
-    return LocalizingLidarFrontend(log, topic, saved, config, options, initial_pose=session.initial_pose)
+    return frontend
 
 
 _SENSORS = {
@@ -209,11 +208,13 @@ _SENSORS = {
         _MapFile("map_png", "_map.png", lambda path, grid, _: write_png(path, picture_with_scale_bar(grid))),
         _MapFile("map_pgm", "_map.pgm", lambda path, grid, _: write_bytes(path, map_server_pgm(grid))),
         _MapFile("map_yaml", "_map.yaml", _write_map_yaml),
-    ), from_session=_laser_frontend_from_session, localization_recording=MapLocalizationRecording),
+    ), from_session=_session_frontends(saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend),
+        localization_recording=MapLocalizationRecording),
     "cloud": _Sensor(LidarFrontend, CloudReplayRecording, (
         _MapFile("ply", ".ply", lambda path, points, _: write_ply(path, points)),
         _MapFile("pcd", ".pcd", lambda path, points, _: write_map_pcd(path, points)),
-    ), kitti_poses=True, from_session=_lidar_frontend_from_session,
+    ), kitti_poses=True,
+        from_session=_session_frontends(saved_map_3d, ContinuingLidarFrontend, LocalizingLidarFrontend),
         localization_recording=CloudLocalizationRecording),
 }
 

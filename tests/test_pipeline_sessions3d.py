@@ -147,7 +147,8 @@ def test_map_localizes_a_log_inside_the_saved_map_without_an_initial_pose(logs: 
     assert entities["/world3d/saved_map"].static_rows == 1
     assert entities["/world3d/final_trajectory"].static_rows == 1
     matched = [k for k, state in enumerate(per_scan["state"]) if state == "m"]
-    assert entities["/localization/score"].steps == matched
+    assert entities["/localization/inlier_fraction"].steps == matched
+    assert "/localization/score" not in entities, "a cloud's score is its inlier fraction: one curve"
     assert "/optimizer/log10_chi2" not in entities
 
 

@@ -65,14 +65,19 @@ def log_localization_legend(recording: rr.RecordingStream) -> None:
                   static=True)
 
 
-def send_match_quality(recording: rr.RecordingStream, localizations: ScanLocalizations) -> None:
-    """Each matched scan's correlative score and ICP inlier fraction, on the `scan` timeline."""
+MATCH_SERIES_2D = ("score", "inlier_fraction")
+"""A laser match has two measures: the correlative score and the ICP inlier fraction."""
+
+
+def send_match_quality(recording: rr.RecordingStream, localizations: ScanLocalizations,
+                       series: tuple[str, ...] = MATCH_SERIES_2D) -> None:
+    """Each matched scan's `series` (fields of `localizations`), on the `scan` timeline."""
     matched = np.flatnonzero(localizations.matched & np.isfinite(localizations.score))
     if len(matched) == 0:
         return
     index = [rr.TimeColumn(scan_recording.SCAN_TIMELINE, sequence=matched.astype(np.int64))]
-    for name, values in (("score", localizations.score), ("inlier_fraction", localizations.inlier_fraction)):
-        shown = np.asarray(values, dtype=np.float64)[matched]
+    for name in series:
+        shown = np.asarray(getattr(localizations, name), dtype=np.float64)[matched]
         recording.send_columns(f"{MATCH_QUALITY_ENTITY}/{name}", indexes=index,
                                columns=rr.Scalars.columns(scalars=shown))
 

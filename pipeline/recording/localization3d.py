@@ -3,8 +3,9 @@
 - `world3d/saved_map` (static): the saved keyframe clouds at their saved poses, one point per voxel;
 - `world3d/final_trajectory` (static): every localized cloud's position, a line in the map;
 - `world3d/robot` on `scan`: the base's axes at each cloud placed when processed;
-- `localization/score` and `localization/inlier_fraction` on `scan`: how well each matched cloud fit the
-  saved map (`pipeline.recording.localization.send_match_quality`).
+- `localization/inlier_fraction` on `scan`: how well each matched cloud fit the saved map, the share of its
+  points near the map after registration (`pipeline.recording.localization.send_match_quality`; a cloud's
+  score is that same fraction, so it is drawn once).
 Nothing is optimized: there is no `iteration` timeline and no χ² plot.
 """
 
@@ -99,4 +100,4 @@ class CloudLocalizationRecording:
                                             colors=[TRAJECTORY_COLOR], radii=[LINE_WIDTH]), static=True)
         self._recording.log(LEGEND_ENTITY, rr.TextDocument(LEGEND, media_type=rr.MediaType.MARKDOWN),
                             static=True)
-        send_match_quality(self._recording, self._frontend.localizations)
+        send_match_quality(self._recording, self._frontend.localizations, ("inlier_fraction",))
