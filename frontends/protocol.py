@@ -121,6 +121,40 @@ class LogFrontend(Protocol):
         ...
 
 
+class _PlacedMeasurements(Protocol):
+    @property
+    def placed_stamps_ns(self) -> IntArray: ...
+
+    @property
+    def placed_poses(self) -> FloatArray: ...
+
+
+LocalizationsT = TypeVar("LocalizationsT", bound=_PlacedMeasurements)
+
+
+class SavedMapLocalization(Generic[LocalizationsT]):
+    """What a frontend localizing in a saved map has whatever its sensor (put before its `LogFrontendBase`
+    subclass): after `finish`, `localizations` says how every measurement ended, and `stamps_ns` /
+    `localized_poses` are the measurements with a pose."""
+
+    _localizations: LocalizationsT | None = None
+
+    @property
+    def localizations(self) -> LocalizationsT:
+        if self._localizations is None:
+            raise FrontendError("the frontend has not finished")
+        return self._localizations
+
+    @property
+    def stamps_ns(self) -> IntArray:
+        """The stamps of the measurements placed in the map (the others have no pose)."""
+        return self.localizations.placed_stamps_ns
+
+    def localized_poses(self) -> FloatArray:
+        """The map-frame pose of every measurement at `stamps_ns`: (S, 3), or (S, 4, 4) in 3D."""
+        return self.localizations.placed_poses
+
+
 class _SlamResult(Protocol):
     @property
     def odometry_chain(self) -> FloatArray: ...

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
 from frontends.logs import LogReader
-from frontends.protocol import FloatArray, FrontendOptions, IntArray
+from frontends.protocol import FloatArray, FrontendOptions, IntArray, SavedMapLocalization
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.frontend import LaserFrontend
 from frontends.slam2d.localization import MapLocalizer
@@ -155,7 +155,7 @@ class ScanLocalizations:
                 "global_fixes": len(self.global_fixes)}
 
 
-class LocalizingLaserFrontend(LaserFrontend):
+class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFrontend):
     """Localization only in a saved map: see the module docstring and `frontends.slam2d.localization`.
 
     After `finish`, `localizations` says how every scan ended, `stamps_ns` / `localized_poses` are the
@@ -211,21 +211,6 @@ class LocalizingLaserFrontend(LaserFrontend):
                 f"none of the {len(stamps)} scans of {self._log.path} could be placed in the saved map of "
                 f"{len(self.saved.keyframe_poses)} keyframes: no unambiguous match"
                 + ("" if self.initial_pose is not None else " (an --initial-pose x,y,yaw may help)"))
-
-    @property
-    def localizations(self) -> ScanLocalizations:
-        if self._localizations is None:
-            raise FrontendError("the frontend has not finished")
-        return self._localizations
-
-    @property
-    def stamps_ns(self) -> IntArray:
-        """The stamps of the scans placed in the map (the others have no pose)."""
-        return self.localizations.placed_stamps_ns
-
-    def localized_poses(self) -> FloatArray:
-        """(S, 3) the map-frame pose of every scan at `stamps_ns`."""
-        return self.localizations.placed_poses
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         graph = self.saved.graph()

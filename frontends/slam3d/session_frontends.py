@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
 from frontends.logs import LogReader
-from frontends.protocol import FloatArray, FrontendOptions, IntArray
+from frontends.protocol import FloatArray, FrontendOptions, SavedMapLocalization
 from frontends.slam2d.resume import MapPlacementError
 from frontends.slam2d.session_frontends import ScanLocalizations
 from frontends.slam3d import planar, se3
@@ -128,7 +128,7 @@ class _LocalizingSlam3D(LidarSlam3D):
         return CloudEstimate(index, stamp_ns, found.pose.copy(), found.matched, -1, ())
 
 
-class LocalizingLidarFrontend(LidarFrontend):
+class LocalizingLidarFrontend(SavedMapLocalization[CloudLocalizations], LidarFrontend):
     """Localization only in a saved map: see the module docstring and `frontends.slam3d.localization`.
 
     After `finish`, `localizations` says how every cloud ended, `stamps_ns` / `localized_poses` are the
@@ -178,21 +178,6 @@ class LocalizingLidarFrontend(LidarFrontend):
     @property
     def result(self) -> Slam3DGraph:
         raise FrontendError("a localization in a saved map makes no keyframe graph of its own")
-
-    @property
-    def localizations(self) -> CloudLocalizations:
-        if self._localizations is None:
-            raise FrontendError("the frontend has not finished")
-        return self._localizations
-
-    @property
-    def stamps_ns(self) -> IntArray:
-        """The stamps of the clouds placed in the map (the others have no pose)."""
-        return self.localizations.placed_stamps_ns
-
-    def localized_poses(self) -> FloatArray:
-        """(S, 4, 4) the map-frame pose of every cloud at `stamps_ns`."""
-        return self.localizations.placed_poses
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         return self.saved.planar_graph(planar_poses)
