@@ -121,6 +121,26 @@ class LogFrontend(Protocol):
         ...
 
 
+@dataclass(frozen=True, eq=False)
+class LocalizedMeasurement:
+    """What a localizer in a saved map concluded about one measurement (scan or cloud) when it processed it;
+    each sensor's record adds its own fields after these."""
+
+    index: int
+    stamp_ns: int
+    pose: FloatArray
+    """In the map frame: (x, y, θ), or the base's 4×4 pose in 3D; NaN while not localized."""
+    localized: bool
+    matched: bool
+    """It matched the saved map (False: the pose is the odometry's prediction, or unknown)."""
+    score: float
+    """How well it matched, in [0, 1] (NaN when not matched)."""
+    inlier_fraction: float
+    """Share of its points paired with the map (0 when not matched)."""
+    rms: float
+    """Residual of the paired points (m); inf when none."""
+
+
 class _PlacedMeasurements(Protocol):
     @property
     def placed_stamps_ns(self) -> IntArray: ...

@@ -39,9 +39,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
+from frontends.protocol import FloatArray, IntArray, LocalizedMeasurement
 from frontends.slam2d.config import (
     LOOP_QUERY_KEYFRAMES,
     LOOP_QUERY_THINNING,
@@ -58,9 +58,6 @@ from frontends.slam2d.localization_config import LocalizationConfig
 from frontends.slam2d.slam import ODOMETRY_BRANCH_AND_BOUND_LEVELS, LaserSlam2D, predicted_motion
 from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 __all__ = ["EmptyMapError", "LocalizationConfig", "LocalizedScan", "MapLocalizer"]
 
@@ -93,20 +90,10 @@ class EmptyMapError(FrontendError):
 
 
 @dataclass(frozen=True, eq=False)
-class LocalizedScan:
-    index: int
-    stamp_ns: int
-    pose: FloatArray
-    """(x, y, θ) in the map frame; NaN while the robot is not localized."""
-    localized: bool
-    matched: bool
-    """This scan matched the map (False: the pose is the prediction, or unknown)."""
-    score: float
-    """Correlative score of the match (mean likelihood of the points on the map, in [0, 1]); NaN if none."""
-    inlier_fraction: float
-    """Share of the scan's points ICP paired with the map (0 when not matched)."""
-    rms: float
-    """ICP residual of the paired points (m); inf when none."""
+class LocalizedScan(LocalizedMeasurement):
+    """A scan's `LocalizedMeasurement`: `score` is the correlative score (mean likelihood of the points on
+    the map), `inlier_fraction` the share ICP paired, `rms` ICP's residual."""
+
     information: FloatArray
     """(3, 3) information of the pose, as the SLAM weighs its constraints (zeros when not matched)."""
     global_fix: bool = False

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
 from frontends.loop_closing import is_small
+from frontends.protocol import FloatArray, IntArray
 from frontends.slam2d.config import SMALL_CORRECTION_ANGULAR, SMALL_CORRECTION_LINEAR, Slam2DConfig
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
@@ -31,9 +32,6 @@ from frontends.slam2d.localization import LocalizationConfig, LocalizedScan, Map
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph, _LoopHypothesis
 from optimizer import se2
 from optimizer.graph import PoseGraph
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 BRIDGE_SIGMA_LINEAR = 100.0
 BRIDGE_SIGMA_ANGULAR = 10.0

@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
+from frontends.protocol import FloatArray, IntArray, LocalizedMeasurement
 from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.loop_closure import (
@@ -36,10 +37,6 @@ from frontends.slam3d.loop_closure import (
 )
 from frontends.slam3d.slam import keyframe_descriptor
 from optimizer import se2
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
-
 
 SUBMAP_CACHE = 32
 """Registration targets of global localization kept for reuse (the most recently used)."""
@@ -70,19 +67,10 @@ class CloudLocalizationConfig:
 
 
 @dataclass(frozen=True, eq=False)
-class LocalizedCloud:
-    index: int
-    stamp_ns: int
-    pose: FloatArray
-    """4×4 pose of the base in the map frame; NaN while the run is not localized."""
-    localized: bool
-    matched: bool
-    """This cloud matched the map (False: the pose is the odometry's prediction, or unknown)."""
-    score: float
-    """The fit's inlier fraction (3D has no correlative score); NaN when not matched."""
-    inlier_fraction: float
-    rms: float
-    """Inlier residual of the fit (m); inf when none."""
+class LocalizedCloud(LocalizedMeasurement):
+    """A cloud's `LocalizedMeasurement`: `pose` is the base's 4×4 pose; `score` is the fit's inlier fraction
+    (3D has no correlative score); `rms` the inlier residual of the fit."""
+
     global_fix: bool = False
     anchor: int = -1
     """With a global fix: the saved keyframe it matched, `relative` the cloud's pose in its frame and

@@ -22,15 +22,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from frontends.protocol import FloatArray, IntArray
 from frontends.slam2d.resume import MapPlacementError
 from frontends.slam3d import se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.localization import CloudLocalizationConfig, CloudLocalizer, LocalizedCloud
 from frontends.slam3d.odometry import Odometry, OdometryStep
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph, keyframe_descriptor
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 BRIDGE_SIGMA_LINEAR = 100.0
 BRIDGE_SIGMA_ANGULAR = 10.0

@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from frontends.errors import FrontendError
 from frontends.logs.types import Cloud3D
 from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune, path_lengths
+from frontends.protocol import FloatArray, IntArray
 from frontends.slam3d import planar, pose_graph3d, se3
 from frontends.slam3d.config import LoopClosureConfig, Slam3DConfig
 from frontends.slam3d.loop_closure import (
@@ -44,9 +45,6 @@ from frontends.slam3d.pose_graph3d import PolishResult
 from frontends.slam3d.voxel_map import place_one_per_voxel
 from optimizer import se2
 from optimizer.graph import PoseGraph
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 REOPTIMIZE_ITERATIONS = 15
 DESCRIPTOR_GUESS_MIN_ANGLE = np.radians(5.0)
