@@ -10,7 +10,7 @@ import warnings
 from pathlib import Path
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from frontends.errors import FrontendError, LogWarning
@@ -99,6 +99,9 @@ def check_reading(path: Path) -> None:
     changes=mutations,
     cut=st.one_of(st.none(), st.floats(min_value=0.05, max_value=1.0)),
 )
+# Found by the suite: in the MCAP these bytes make a summary schema's string length huge, and a buffered
+# reader allocated it (1.6 GB) before the read was cut to the file's size.
+@example(changes=[(0.38638707174016723, b"\x00\x00")], cut=None)
 def test_mutated_file_ends_in_result_or_our_error(
     container: str,
     changes: list[tuple[float, bytes]],

@@ -260,9 +260,11 @@ class McapContainer:
                 )
 
 
-class _ReadsCutToFile(io.RawIOBase):
+class _ReadsCutToFile(io.BufferedIOBase):
     """A file whose reads never ask for more than it holds: the `mcap` package reads a string by its
-    length field, and Python allocates the whole request before reading."""
+    length field, and Python allocates the whole request before reading. Buffered, not raw: the `mcap`
+    package wraps a raw stream in a `BufferedReader`, whose `read(n)` allocates n bytes before asking
+    this file (a damaged length field then cost 1.6 GB)."""
 
     def __init__(self, stream: BinaryIO) -> None:
         super().__init__()
@@ -275,9 +277,8 @@ class _ReadsCutToFile(io.RawIOBase):
         return True
 
     def close(self) -> None:
-        """Left open: the `mcap` package wraps this in a new BufferedReader for every record stream (the
-        footer, then the summary) and each one closes it when collected, which made every summary read
-        fail and every MCAP fall back to linear passes; the caller's `with` closes the real file."""
+        """Left open: the caller's `with` closes the real file (a reader of the `mcap` package closing this
+        when collected once made every summary read fail and every MCAP fall back to linear passes)."""
 
     def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
         return self._stream.seek(offset, whence)
