@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from frontends.slam2d.localization import MapLocalizer
 from frontends.slam2d.slam import LaserSlam2D
-from tests.laser_world import between, compose, simulate_scan, square_loop
+from tests.laser_world import between, compose, simulate_run, simulate_scan, square_loop
 
 TURN_PER_SCAN = 0.25
 """Radians the robot turns in place between two scans (CSAIL turns about this fast)."""
@@ -63,3 +64,20 @@ def test_odometry_that_holds_while_the_robot_stands_still_changes_nothing() -> N
     poses = slam_poses(still, still_scans, odometry)
     assert heading_errors(poses, still).max() < np.radians(1.0)
     assert np.hypot(*(poses[:, :2] - still[:, :2]).T).max() < 0.05
+
+
+def test_the_localizer_does_not_count_a_held_turn_twice() -> None:
+    """The same held odometry, localized in a saved map of the building (scans at true poses): the turn
+    the scans tracked while the odometry held still is not sought again when its jump arrives."""
+    truth, scans = turn_in_place_drive()
+    held = range(17, 21)
+    odometry = held_odometry(truth, held)
+    run = simulate_run(square_loop(), seed=1)
+    keyframes = np.arange(0, len(run.truth), 3)
+    localizer = MapLocalizer([run.scans[k] for k in keyframes], run.truth[keyframes], initial_pose=truth[0])
+    results = [localizer.localize(1_700_000_000_000_000_000 + k * 200_000_000, scan, odo)
+               for k, (scan, odo) in enumerate(zip(scans, odometry, strict=True))]
+    assert all(r.localized and r.matched for r in results)
+    poses = np.array([r.pose for r in results])
+    assert heading_errors(poses, truth).max() < np.radians(1.0)
+    assert np.hypot(*(poses[:, :2] - truth[:, :2]).T).max() < 0.05

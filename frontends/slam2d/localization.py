@@ -52,6 +52,7 @@ from frontends.slam2d.config import (
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import VerifiedMatch, match_unambiguous, thinned_query
 from frontends.slam2d.grid import build_likelihood_grid
+from frontends.slam2d.held_odometry import OdometryHold
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from frontends.slam2d.localization_config import LocalizationConfig
@@ -190,6 +191,7 @@ class MapLocalizer:
         self._covariance = self._fix_covariance()
         self._last_odometry: FloatArray | None = None
         self._last_motion = np.zeros(3)
+        self._odometry_hold = OdometryHold()
         self._misses = 0
         self._since_good = 0.0
         self._since_attempt = 0.0
@@ -455,6 +457,13 @@ class MapLocalizer:
         has_odometry = odometry is not None and self._last_odometry is not None
         motion, information = predicted_motion(self.config.odometry, self._last_odometry, odometry, reliable,
                                                self._last_motion)
+        window = self._tracking_window(has_odometry, reliable)
+        motion = self._odometry_hold.corrected(motion, self._last_odometry, odometry, self._last_motion,
+                                               window.linear, window.angular)
+        if self._odometry_hold.holding:
+            # The odometry's value is stale, not a robot standing still: the motion the scans tracked last
+            # goes on (a turn in place at 14°/scan would otherwise leave the window at its first scan).
+            motion = self._last_motion
         if has_odometry:
             settings = self.settings
             distance = float(np.hypot(motion[0], motion[1]))
@@ -521,6 +530,7 @@ class MapLocalizer:
         self._covariance = self._fix_covariance()
         self._last_odometry = odometry
         self._last_motion = np.zeros(3)
+        self._odometry_hold.reset()
         self._tracker = None
         self._recent.clear()
         return LocalizedScan(

@@ -40,6 +40,7 @@ from frontends.slam2d.config import (
 from frontends.slam2d.correlative import Match, SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.global_match import match_unambiguous
 from frontends.slam2d.grid import LikelihoodGrid
+from frontends.slam2d.held_odometry import OdometryHold
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.match_covariance import score_plateau, slide_to_prior, widened
@@ -184,7 +185,7 @@ class LaserSlam2D:
         self._keyframe_odometry: FloatArray | None = None
         """The wheel odometry at the last keyframe (None: that scan had none)."""
         self._last_motion = np.zeros(3)
-        self._held_motion: FloatArray | None = None
+        self._odometry_hold = OdometryHold()
         """While the wheel odometry repeats its last value: the motion tracked since it last changed."""
         self._local_map: Submap | None = None
         self._pending_loops = 0
@@ -265,24 +266,14 @@ class LaserSlam2D:
     def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
         """The prior of the scan's match: the last pose moved by the odometry (`predicted_motion`).
 
-        Wheel odometry that stops updating while the robot moves (CSAIL: the same value for 4 scans of a
-        turn in place, then a jump of 1.49 rad) repeats itself, and the scans track the motion meanwhile;
-        its jump then holds that motion again. Once the motion tracked during the hold leaves the search
-        window, the jump is applied from where the hold began instead (else the match lands on a wrong
-        wall around a prior a whole turn off, and the keyframe step carries it into the graph)."""
+        A jump that ends a hold of the odometry is applied from where the hold began (`OdometryHold`):
+        else the match lands on a wrong wall around a prior a whole turn off, and the keyframe step
+        carries it into the graph."""
         settings = self.config.odometry
         motion, information = predicted_motion(settings, self._last_odometry, odometry, reliable,
                                                self._last_motion)
-        if odometry is None or self._last_odometry is None:
-            self._held_motion = None
-        elif np.array_equal(odometry, self._last_odometry):
-            self._held_motion = (np.zeros(3) if self._held_motion is None
-                                 else se2.compose(self._held_motion, self._last_motion))
-        elif self._held_motion is not None:
-            held = se2.compose(self._held_motion, self._last_motion)
-            self._held_motion = None
-            if np.hypot(held[0], held[1]) > settings.window_linear or abs(held[2]) > settings.window_angular:
-                motion = se2.relative(held, motion)
+        motion = self._odometry_hold.corrected(motion, self._last_odometry, odometry, self._last_motion,
+                                               settings.window_linear, settings.window_angular)
         return se2.compose(self._last_pose, motion), information
 
     def _match(
