@@ -19,6 +19,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -199,7 +200,7 @@ def test_map_with_an_initial_pose_tracks_from_the_first_cloud(logs: Logs, tmp_pa
 class Continued:
     out: Path
     stderr: str
-    summary: dict
+    summary: dict[str, Any]
     errors: np.ndarray
     """(S,) position error of every cloud of the session, old and new, in the TUM's order."""
     early: np.ndarray
