@@ -15,6 +15,12 @@ runs through `pipeline.replay`, as `replay` does:
 - `--continue`: the second half continued from the first half's session. Reported: the final position's
   distance to the full run's, the ATE (RMS position difference over every cloud, no alignment) against
   the full run, loop closures between the runs;
+- `--continue` the other way round: the second half mapped, the first half continued from its session.
+  The first half drives towards the second's map and is placed in it only near its end: nearly all its
+  clouds come before the placement (the early stretch joined to the graph after it, issue 13). Its map
+  frame is the second half's: the TUM is aligned to the full run by a rigid fit over the second half's
+  clouds (Kabsch, positions), then the first half's clouds before and after the placement are compared
+  with the full run's (RMS and max position difference);
 - the session file's size and the time to load and check it (`read_session` + `saved_map_3d`).
 KITTI city drives forward: the second half leaves the first half's map after a few metres, so the
 localization relies on the map's far points and then on odometry (what "matched" counts).
@@ -53,6 +59,40 @@ def positions_at(reference: Path, stamps: np.ndarray) -> np.ndarray:
     trajectory = read_tum(reference)
     index = {int(s): k for k, s in enumerate(trajectory.stamps_ns)}
     return trajectory.positions[[index[int(s)] for s in stamps]]
+
+
+def rigid_fit(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and translation t minimizing Σ‖R·source + t − target‖² over (N, 3) point pairs."""
+    source_mean, target_mean = source.mean(axis=0), target.mean(axis=0)
+    u, _, vt = np.linalg.svd((target - target_mean).T @ (source - source_mean))
+    rotation = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    return rotation, target_mean - rotation @ source_mean
+
+
+def continue_the_other_way(first: Path, second: Path, full_tum: Path, out: Path) -> None:
+    """The second half mapped, the first half continued from its session (see the module docstring)."""
+    timed_replay(second, out / "second")
+    session = out / "second" / f"{second.stem}.session"
+    _, wall, cpu = timed_replay(first, out / "reverse", continue_from=session)
+    summary = json.loads((out / "reverse" / f"{first.stem}.json").read_text())
+    trajectory = read_tum(out / "reverse" / f"{first.stem}.tum")
+    is_old = np.isin(trajectory.stamps_ns, read_tum(out / "second" / f"{second.stem}.tum").stamps_ns)
+    reference = positions_at(full_tum, trajectory.stamps_ns)
+    rotation, translation = rigid_fit(trajectory.positions[is_old], reference[is_old])
+    aligned = trajectory.positions @ rotation.T + translation
+    difference = np.linalg.norm(aligned - reference, axis=1)
+    new = difference[~is_old][np.argsort(trajectory.stamps_ns[~is_old])]
+    placed_at = summary["session"]["placement"].get("scan")
+    waited = (placed_at or 0) - summary["counts"]["scans_unplaced"]  # the TUM has no unplaced cloud
+    early, later = new[:waited], new[waited:]
+    print(f"--continue, second half then first: placed at cloud {placed_at} of "
+          f"{summary['counts']['clouds']}; vs the full run (aligned on the second half, RMS "
+          f"{np.sqrt(np.mean(difference[is_old] ** 2)):.3f} m there): clouds before the placement RMS "
+          f"{np.sqrt(np.mean(early ** 2)) if len(early) else float('nan'):.3f} m, max "
+          f"{early.max(initial=0.0):.3f} m, first cloud {early[0] if len(early) else float('nan'):.3f} m; "
+          f"after it RMS {np.sqrt(np.mean(later ** 2)) if len(later) else float('nan'):.3f} m; "
+          f"loop closures old-new {summary['counts']['loop_closures_old_new']}, "
+          f"keyframes {summary['counts']['keyframes']}; {wall:.1f} s wall, {cpu:.1f} s CPU")
 
 
 def main() -> None:
@@ -108,6 +148,7 @@ def main() -> None:
           f"{wall:.1f} s wall, {cpu:.1f} s CPU")
     joint = out / "continue" / f"{second.stem}.session"
     print(f"joint session: {joint.stat().st_size / 1e6:.2f} MB")
+    continue_the_other_way(first, second, full_tum, out)
     del full, mapped, localized, continued
 
 

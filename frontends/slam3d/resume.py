@@ -1,15 +1,22 @@
 """Continue 3D mapping from a saved keyframe graph: the new run's keyframes join the old graph.
 
 The new run's odometry (KISS-ICP, from its own first cloud) says nothing about where it starts in the old
-map, so its first clouds go to a `CloudLocalizer` over the old keyframes (global localization) and wait.
-Once one is placed:
+map, so its first clouds go to a `CloudLocalizer` over the old keyframes (global localization) and wait:
+their odometry poses are kept, and the keyframes they would make (chosen as in one run, by the distance
+driven in the odometry frame) keep their clouds. Once one cloud is placed:
 - the odometry frame is placed in the map (`LidarSlam3D._odometry_origin`), so every new keyframe's
   odometry pose, and with it the height, roll and pitch the planar optimum is lifted with, is in the
   map's frame;
-- the placed cloud becomes keyframe K (K old keyframes), tied to the old keyframe it matched by the match
-  (a loop closure, which the χ² check may reject like any other) and to keyframe K−1 by a very weak
-  constraint that only keeps the chain of consecutive keyframes whole;
-- the clouds that waited hang off keyframe K by their odometry (they come before it in time);
+- the early stretch joins the graph: its keyframes become keyframes K, K+1, … (K old keyframes), chained
+  by their odometry constraints, the first tied to keyframe K−1 by a very weak constraint that only keeps
+  the chain of consecutive keyframes whole; the placed cloud becomes the next keyframe, tied to the old
+  keyframe it matched by the match (a loop closure, which the χ² check may reject like any other);
+- loop closures are then searched for the early keyframes, with the placement in the graph (their search
+  radius grows with the path through it), and later keyframes may close loops with them as in one run:
+  the early stretch is corrected like any other (hung off the placed cloud by its odometry it could not
+  be);
+- a loop closure's registration target (the candidate's neighbours by index) stays within the
+  candidate's run: the old run's last keyframe and the new run's first are neighbours by index only;
 - loop closures search every keyframe, old or new, as in one run: the old keyframes are "far back along
   the path" from the start (their descriptors are recomputed from the saved clouds);
 - `finish` returns the joint graph, every cloud of both runs in it.
@@ -89,8 +96,9 @@ class ResumedLidarSlam3D(LidarSlam3D):
         self._cloud_stamps = [int(s) for s in saved.cloud_stamps_ns]
         self._cloud_keyframes = [int(k) for k in saved.cloud_keyframes]
         self._cloud_offsets = [np.asarray(o, dtype=np.float64) for o in saved.cloud_offsets]
-        self._waiting: list[tuple[int, int, FloatArray | None]] = []
-        """(index, stamp, odometry base pose or None) of the new clouds before the run was placed."""
+        self._waiting: list[_WaitingCloud] = []
+        self._early_keyframe: FloatArray | None = None
+        """Odometry pose of the newest keyframe of the early stretch (None: no registered cloud yet)."""
         self.clouds_unplaced = 0
         """New clouds before the first one the odometry registered: no pose, left out."""
         self.placement: LocalizedCloud | None = None
@@ -102,51 +110,81 @@ class ResumedLidarSlam3D(LidarSlam3D):
     def _add_step(self, index: int, stamp_ns: int, step: OdometryStep | None) -> CloudEstimate:
         if self._placer is None:
             return super()._add_step(index, stamp_ns, step)
-        odometry_pose = None if step is None else self._base_pose(step)
-        self._waiting.append((index, stamp_ns, odometry_pose))
         waiting = CloudEstimate(index, stamp_ns, np.full((4, 4), np.nan), False, -1, ())
         if step is None:
             self._untracked += 1
+            self._waiting.append(_WaitingCloud(stamp_ns, None, None))
             return waiting
-        found = self._placer.localize(index, stamp_ns, odometry_pose, self._keyframe_points(step))
+        # before the placement, `_base_pose` is in the new run's odometry frame (its origin is identity)
+        odometry_pose = self._base_pose(step)
+        points = self._keyframe_points(step)
+        starts_keyframe = self._early_keyframe is None or self._is_new_keyframe(odometry_pose,
+                                                                                self._early_keyframe)
+        if starts_keyframe:
+            self._early_keyframe = odometry_pose
+        kept = points.astype(np.float32) if starts_keyframe else None
+        self._waiting.append(_WaitingCloud(stamp_ns, odometry_pose, kept))
+        found = self._placer.localize(index, stamp_ns, odometry_pose, points)
         if not found.localized:
             return waiting
-        assert odometry_pose is not None
         self.placement = found
         self._placer = None
         self._odometry_origin = found.pose @ se3.inverse(odometry_pose)
-        self._start_new_run(stamp_ns, step, found)
-        return CloudEstimate(index, stamp_ns, found.pose.copy(), True, self._old_count, ())
+        placed, loops = self._join(stamp_ns, points, found)
+        return CloudEstimate(index, stamp_ns, self._keyframe_poses[placed].copy(), True, placed, loops)
 
-    def _start_new_run(self, stamp_ns: int, step: OdometryStep, found: LocalizedCloud) -> None:
-        base = self._base_pose(step)
+    def _join(self, stamp_ns: int, points: FloatArray,
+              found: LocalizedCloud) -> tuple[int, tuple[tuple[int, int], ...]]:
+        """Fold the early stretch and the placed cloud into the graph (see the module docstring); the
+        placed cloud's keyframe and the loop closures found for the early keyframes."""
         bridge = np.diag([BRIDGE_SIGMA_LINEAR**-2] * 3 + [BRIDGE_SIGMA_ANGULAR**-2] * 3)
         information = found.information if np.any(found.information) else bridge
-        new = self._old_count
-        if found.anchor == new - 1:  # the match itself ties the chain: one constraint, not a loop
-            self._add_keyframe(base, stamp_ns, self._keyframe_points(step), information)
-        else:
-            self._add_keyframe(base, stamp_ns, self._keyframe_points(step), bridge)
-            self._edges.add(found.anchor, new, found.relative, information, is_loop=True)
-        # every old keyframe is "far back along the path" from the new run's: loop closures may reach them
-        loop = self.config.loop_closure
-        travel = self._keyframe_travel
-        travel[-1] = max(travel[-1], travel[-2] + loop.min_travel)
-        self._last_base = base
-        previous: FloatArray | None = None
-        for _, waiting_stamp, odometry_pose in self._waiting[:-1]:
-            if odometry_pose is not None:  # odometry poses of waiting clouds: from before the placement
-                previous = self._odometry_origin @ odometry_pose
-            if previous is None:
+        early: list[int] = []
+        base: FloatArray | None = None
+        for cloud in self._waiting[:-1]:
+            if cloud.odometry_pose is not None:
+                base = self._odometry_origin @ cloud.odometry_pose
+            if base is None:
                 self.clouds_unplaced += 1  # before any registered cloud: no pose to give it
                 continue
-            self._cloud_stamps.append(waiting_stamp)
-            self._cloud_keyframes.append(new)
-            self._cloud_offsets.append(se3.relative(base, previous))
-        self._cloud_stamps.append(stamp_ns)
-        self._cloud_keyframes.append(new)
-        self._cloud_offsets.append(np.eye(4))
+            if cloud.keyframe_points is not None:
+                self._add_new_run_keyframe(base, cloud.stamp_ns, cloud.keyframe_points.astype(np.float64),
+                                           bridge)
+                early.append(len(self._keyframe_poses) - 1)
+            self._hang_cloud(cloud.stamp_ns, base)
+        placed_odometry = self._waiting[-1].odometry_pose
+        assert placed_odometry is not None  # a cloud is only localized once registered
+        base = self._odometry_origin @ placed_odometry
         self._waiting = []
+        placed = len(self._keyframe_poses)
+        if not early and found.anchor == placed - 1:  # the match itself ties the chain: not a loop
+            self._add_new_run_keyframe(base, stamp_ns, points, information)
+        else:
+            self._add_new_run_keyframe(base, stamp_ns, points, bridge)
+            self._edges.add(found.anchor, placed, found.relative, information, is_loop=True)
+        self._hang_cloud(stamp_ns, base)
+        self._last_base = base
+        loops = tuple(loop for keyframe in early for loop in self._close_loops(keyframe))
+        return placed, loops
+
+    def _add_new_run_keyframe(self, base: FloatArray, stamp_ns: int, points: FloatArray,
+                              first_information: FloatArray) -> None:
+        """A keyframe of the new run, tied to the previous by its odometry; the first is tied to the old
+        run's last with `first_information`, and every old keyframe is "far back along the path" from it,
+        so that loop closures may reach them."""
+        first = len(self._keyframe_poses) == self._old_count
+        self._add_keyframe(base, stamp_ns, points, first_information if first else None)
+        if first:
+            travel = self._keyframe_travel
+            travel[-1] = max(travel[-1], travel[-2] + self.config.loop_closure.min_travel)
+
+    def _submap_keyframes(self, candidate: int, last: int) -> range:
+        """`LidarSlam3D._submap_keyframes` of the candidate's own run: the old run's last keyframe and the
+        new run's first are neighbours by index only (the runs are unrelated in time and place)."""
+        around = super()._submap_keyframes(candidate, last)
+        if candidate < self._old_count:
+            return range(around.start, min(around.stop, self._old_count))
+        return range(max(around.start, self._old_count), around.stop)
 
     def finish(self) -> Slam3DGraph:
         """The joint keyframe graph, old and new; `MapPlacementError` if the new run never matched the
@@ -156,3 +194,14 @@ class ResumedLidarSlam3D(LidarSlam3D):
                 f"none of the {len(self._waiting)} new clouds could be placed in the saved map of "
                 f"{self._old_count} keyframes: no unambiguous match")
         return super().finish()
+
+
+@dataclass(frozen=True, eq=False)
+class _WaitingCloud:
+    """A new cloud before the run was placed in the saved map."""
+
+    stamp_ns: int
+    odometry_pose: FloatArray | None
+    """Its base pose in the new run's odometry frame; None: the odometry could not register it."""
+    keyframe_points: NDArray[np.float32] | None
+    """Its keyframe cloud when it starts a keyframe of the early stretch (in its base frame)."""

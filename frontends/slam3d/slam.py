@@ -255,19 +255,25 @@ class LidarSlam3D:
             self._add_keyframe(base, stamp_ns, self._keyframe_points(step))
             new_loops = self._close_loops()
         self._last_base = base
-        keyframe = len(self._keyframe_poses) - 1
-        offset = se3.relative(self._keyframe_odometry[keyframe], base)
-        self._cloud_stamps.append(int(stamp_ns))
-        self._cloud_keyframes.append(keyframe)
-        self._cloud_offsets.append(offset)
-        pose = self._keyframe_poses[keyframe] @ offset
+        keyframe = self._hang_cloud(stamp_ns, base)
+        pose = self._keyframe_poses[keyframe] @ self._cloud_offsets[-1]
         return CloudEstimate(index, stamp_ns, pose, step is not None, keyframe, new_loops)
 
-    def _is_new_keyframe(self, base: FloatArray) -> bool:
-        if not self._keyframe_odometry:
+    def _hang_cloud(self, stamp_ns: int, base: FloatArray) -> int:
+        """Tie the cloud at odometry pose `base` to the newest keyframe by its offset; that keyframe."""
+        keyframe = len(self._keyframe_poses) - 1
+        self._cloud_stamps.append(int(stamp_ns))
+        self._cloud_keyframes.append(keyframe)
+        self._cloud_offsets.append(se3.relative(self._keyframe_odometry[keyframe], base))
+        return keyframe
+
+    def _is_new_keyframe(self, base: FloatArray, previous: FloatArray | None = None) -> bool:
+        """Whether `base` is far enough from the previous keyframe's odometry pose (default: the last
+        keyframe's) to be a keyframe."""
+        if previous is None and not self._keyframe_odometry:
             return True
         settings = self.config.keyframes
-        step = se3.relative(self._keyframe_odometry[-1], base)
+        step = se3.relative(self._keyframe_odometry[-1] if previous is None else previous, base)
         return bool(
             np.linalg.norm(step[:3, 3]) >= settings.distance or se3.rotation_angle(step) >= settings.angle
         )
@@ -307,9 +313,12 @@ class LidarSlam3D:
 
     # ---------------------------------------------------------------------------------- loop closures
 
-    def _close_loops(self) -> tuple[tuple[int, int], ...]:
+    def _close_loops(self, current: int | None = None) -> tuple[tuple[int, int], ...]:
+        """Loop closures of keyframe `current` (default: the newest) to keyframes far enough back along
+        the path."""
         settings = self.config.loop_closure
-        current = len(self._keyframe_poses) - 1
+        if current is None:
+            current = len(self._keyframe_poses) - 1
         if not settings.enabled or current % settings.every_keyframes:
             return ()
         travel = np.array(self._keyframe_travel)
@@ -374,10 +383,7 @@ class LidarSlam3D:
     ) -> _LoopHypothesis | None:
         settings = self.config.loop_closure
         anchor = self._keyframe_poses[candidate]
-        around = range(
-            max(0, candidate - settings.submap_keyframes),
-            min(last_old, candidate + settings.submap_keyframes) + 1,
-        )
+        around = self._submap_keyframes(candidate, last_old)
         target_points = np.concatenate(
             [
                 se3.transform_points(se3.relative(anchor, self._keyframe_poses[k]), self._keyframe_clouds[k])
@@ -403,6 +409,12 @@ class LidarSlam3D:
         matched = planar.planar(anchor @ verdict.match.relative)
         correction = se2.compose(matched, se2.inverse(planar.planar(here)))
         return _LoopHypothesis(candidate, current, verdict.match, correction)
+
+    def _submap_keyframes(self, candidate: int, last: int) -> range:
+        """The keyframes whose clouds make the registration target of a loop closure to `candidate`: its
+        neighbours along the path, none after `last`."""
+        reach = self.config.loop_closure.submap_keyframes
+        return range(max(0, candidate - reach), min(last, candidate + reach) + 1)
 
     # ------------------------------------------------------------------------------------ optimization
 
