@@ -18,16 +18,18 @@ towards and keeps its online poses, as do scans placed by a global fix's recover
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from frontends.protocol import FloatArray
+from frontends.slam2d.localization import LocalizedScan
 from optimizer.graph import PoseGraph
 from optimizer.solve import optimize
 
-__all__ = ["SmoothedTrajectory", "smooth_localized"]
+__all__ = ["SmoothedTrajectory", "smooth_localized", "smooth_scans"]
 
 BoolArray = NDArray[np.bool_]
 
@@ -97,3 +99,13 @@ def smooth_localized(poses: FloatArray, localized: BoolArray, motions: FloatArra
     smoothed = poses.copy()
     smoothed[kept] = result.poses[1:]
     return SmoothedTrajectory(smoothed, kept, True)
+
+
+def smooth_scans(scans: Sequence[LocalizedScan], poses: FloatArray | None = None) -> SmoothedTrajectory:
+    """`smooth_localized` of a run's `LocalizedScan`s, in log order; `poses` (default: theirs) may hold the
+    poses a global fix recovered for scans not localized when processed (kept as they are)."""
+    online = np.array([s.pose for s in scans]) if poses is None else np.asarray(poses, dtype=np.float64)
+    return smooth_localized(online.reshape(-1, 3), np.array([s.localized for s in scans], dtype=bool),
+                            np.array([s.motion for s in scans]).reshape(-1, 3),
+                            np.array([s.motion_information for s in scans]).reshape(-1, 3, 3),
+                            np.array([s.map_information for s in scans]).reshape(-1, 3, 3))

@@ -28,8 +28,8 @@ from frontends.logs import LogReader
 from frontends.protocol import FloatArray, FrontendOptions, IntArray, SavedMapLocalization
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.frontend import LaserFrontend
-from frontends.slam2d.localization import MapLocalizer
-from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_localized
+from frontends.slam2d.localization import LocalizedScan, MapLocalizer
+from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
 from frontends.slam2d.resume import MapPlacementError, ResumedSlam2D, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate
@@ -182,8 +182,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self._rows: list[tuple[int, bool, bool, float, float, float, bool]] = []
         """(stamp, localized, matched, score, inlier fraction, rms, tracked) per scan."""
         self._poses: list[FloatArray] = []
-        self._motions: list[tuple[FloatArray, FloatArray, FloatArray]] = []
-        """(motion, its information, the map match's own information) per scan, for the smoothing."""
+        self._found: list[LocalizedScan] = []
         self._recovered: list[int] = []
         self._fixes: list[int] = []
         self._localizations: ScanLocalizations | None = None
@@ -195,7 +194,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self._rows.append((found.stamp_ns, found.localized, found.matched, found.score, found.inlier_fraction,
                            found.rms, found.tracked))
         self._poses.append(found.pose.copy())
-        self._motions.append((found.motion, found.motion_information, found.map_information))
+        self._found.append(found)
         if found.global_fix:
             self._fixes.append(found.index)
             for index, pose in zip(found.recovered_indices.tolist(), found.recovered_poses, strict=True):
@@ -215,7 +214,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         recovered[self._recovered] = True
         recovered &= ~localized
         online = np.array(self._poses).reshape(-1, 3)
-        self._smoothing = _smoothed(online, localized.astype(bool), self._motions)
+        self._smoothing = smooth_scans(self._found, online)
         self._localizations = ScanLocalizations(
             stamps.astype(np.int64), self._smoothing.poses, localized.astype(bool),
             matched.astype(bool), recovered, score.astype(np.float64), inliers.astype(np.float64),
@@ -247,9 +246,3 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
     def loop_closures(self) -> dict[str, Any]:
         return {"accepted": 0, "rejected": 0, "candidates": {"accepted": 0, "unconfirmed": 0}}
 
-
-def _smoothed(poses: FloatArray, localized: BoolArray,
-              motions: Sequence[tuple[FloatArray, FloatArray, FloatArray]]) -> SmoothedTrajectory:
-    motion, motion_information, map_information = (np.array(column) for column in zip(*motions, strict=True))
-    return smooth_localized(poses, localized, motion.reshape(-1, 3), motion_information.reshape(-1, 3, 3),
-                            map_information.reshape(-1, 3, 3))
