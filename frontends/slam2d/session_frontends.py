@@ -237,9 +237,12 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         return None
 
     def counts(self) -> dict[str, int]:
+        """The localization's counts, with the scans the offline smoothing placed and whether it converged
+        (1; 0: the poses are the online ones)."""
+        found = self.localizations  # raises until `finish` has run (and smoothed)
         assert self._smoothing is not None
         return {**self._counts, **self._input_counts, **self._log.counts,
-                "map_keyframes": len(self.saved.keyframe_poses), **self.localizations.counts(),
+                "map_keyframes": len(self.saved.keyframe_poses), **found.counts(),
                 "scans_smoothed": int(self._smoothing.smoothed.sum()),
                 "smoothing_converged": int(self._smoothing.converged)}
 
