@@ -28,12 +28,13 @@
     processed (a map-frame pose given at once), split by how: map-matched (the saved map placed the scan),
     tracked on the rolling local map (recent scans at their tracked poses with the nearest saved keyframes:
     outside the saved map), predicted by odometry (no match), all among the scans more than 10 s after the
-    start; median / 95 % translational error of the localized scans after 10 s, overall and per state
-    (same scans), and the median over those in places the first half saw well (the scan at its reference
-    pose scores ≥ 0.5 on the map: the split is the reference's, not the localizer's), with their share;
-    global fixes and local re-acquisitions; scans per second of `MapLocalizer.localize` (global search
-    included) over process CPU time and over wall time (the two differ on a loaded machine: CPU time is
-    the localizer's own cost).
+    start; median / 95 % translational error of the localized scans after 10 s, overall and per state (same
+    scans), as given online and as smoothed offline (`localization_smoothing`: what the replay writes), with
+    the smoothing's CPU time; the median over those in places the first half saw well (the scan at its
+    reference pose scores ≥ 0.5 on the map: the split is the reference's, not the localizer's), with their
+    share; global fixes and local re-acquisitions; scans per second of `MapLocalizer.localize` (global search
+    included) over process CPU time and over wall time (the two differ on a loaded machine: CPU time is the
+    localizer's own cost).
 (b) Continue. The second half goes to `LaserSlam2D.resume` on the first half's saved graph (odometry
     origin dropped); the joint graph is optimized once. ACES: every scan of both halves is scored against
     aces.relations; the single run's figure is the reference (target: within 10 %). CSAIL (no ground
@@ -61,6 +62,7 @@ from frontends.slam2d import read_odometry, scans_in_base_frame  # noqa: E402
 from frontends.slam2d.grid import LikelihoodGrid  # noqa: E402
 from frontends.slam2d.local_map import place  # noqa: E402
 from frontends.slam2d.localization import MapLocalizer  # noqa: E402
+from frontends.slam2d.localization_smoothing import smooth_scans  # noqa: E402
 from frontends.slam2d.resume import SavedConstraints, SavedScans  # noqa: E402
 from frontends.slam2d.slam import LaserSlam2D, Slam2DGraph  # noqa: E402
 from optimizer import se2  # noqa: E402
@@ -209,6 +211,9 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     started, started_cpu = time.perf_counter(), time.process_time()
     results = [localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval) for s in second]
     seconds, cpu_seconds = time.perf_counter() - started, time.process_time() - started_cpu
+    smoothing_started = time.process_time()
+    smoothed = smooth_scans(results)
+    smoothing_cpu = time.process_time() - smoothing_started
     localized = np.array([r.localized for r in results])
     states = {"matched": np.array([r.matched for r in results]),
               "tracked": np.array([r.tracked for r in results]),
@@ -218,6 +223,8 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     settled = stamps >= stamps[0] + int(SETTLE_SECONDS * 1e9)
     errors = np.full(len(second), np.nan)
     errors[localized] = np.hypot(*(poses[localized, :2] - reference[localized, :2]).T)
+    smoothed_errors = np.full(len(second), np.nan)
+    smoothed_errors[localized] = np.hypot(*(smoothed.poses[localized, :2] - reference[localized, :2]).T)
     first_fix = next((r.index for r in results if r.global_fix), -1)
     fix_seconds = (stamps[first_fix] - stamps[0]) * 1e-9 if first_fix >= 0 else float("nan")
     # Where the first half saw the place well: the reference pose puts the scan on the map's walls.
@@ -229,6 +236,9 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     return (name, "full-run poses" if full_run_poses else "half map", f"{len(second)}", f"{fix_seconds:.1f}",
             f"{100 * localized[settled].mean():.1f}", *shares, error_figures(errors[scored]),
             *(error_figures(errors[state & settled]) for state in states.values()),
+            error_figures(smoothed_errors[scored]),
+            *(error_figures(smoothed_errors[states[state] & settled]) for state in ("matched", "tracked")),
+            f"{smoothing_cpu:.2f}{'' if smoothed.converged else ' (not converged)'}",
             f"{covered_median:.3f} ({100 * covered.mean():.0f} %)", f"{sum(r.global_fix for r in results)}",
             f"{sum(r.relocalized for r in results)}", f"{len(second) / cpu_seconds:.0f}",
             f"{len(second) / seconds:.0f}", f"{np.median(residual):.3f} / {residual.max():.3f}",
@@ -246,6 +256,8 @@ LOCALIZATION_HEADER = (
     "| log | map | scans | first fix after (s) | localized after 10 s (%) | map-matched (%) "
     "| tracked on the rolling map (%) | predicted by odometry (%) | error, localized: median / 95 % (m) "
     "| map-matched (m) | tracked (m) | predicted (m) "
+    "| smoothed: error, localized (m) | smoothed: map-matched (m) | smoothed: tracked (m) "
+    "| smoothing CPU (s) "
     "| median error where the map covers the place (m) (share of scans) | global fixes "
     "| local re-acquisitions | scans/s (CPU) | scans/s (wall) "
     "| alignment residual, median / max (m) | reference slips |"

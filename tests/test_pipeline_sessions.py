@@ -146,6 +146,26 @@ def test_map_with_an_initial_pose_tracks_from_the_first_scan(logs: Logs, tmp_pat
     assert position_errors(poses, logs.in_map_frame(logs.inside_truth)).max() < MAP_TOLERANCE
 
 
+def test_map_writes_the_smoothed_trajectory_and_keeps_the_online_states(logs: Logs, tmp_path: Path) -> None:
+    """The TUM file and the recording's final trajectory hold the trajectory smoothed offline
+    (`frontends.slam2d.localization_smoothing`: the map matches and the motions measured between the
+    scans, weighed together); the robot's pose recorded scan by scan stays the one given online."""
+    start = logs.in_map_frame(logs.second_truth[0])
+    pipeline.replay(logs.second, out_dir=tmp_path, map=logs.session, initial_pose=tuple(start))
+    _, poses = tum_poses(tmp_path / "second.tum")
+    summary = json.loads((tmp_path / "second.json").read_text())
+    assert summary["counts"]["scans_smoothed"] == len(poses)
+    assert summary["counts"]["smoothing_converged"] == 1
+    entities = read_recording(tmp_path / "second.rrd", timeline="scan")
+    final = np.array(entities["/world/final_trajectory"].static_columns["LineStrips2D:strips"][0][0])
+    online = np.array([row[0] for row in entities["/world/robot"].columns["Points2D:positions"]])
+    np.testing.assert_allclose(final, poses[:, :2], atol=1e-5)
+    moved = position_errors(online, poses)
+    assert moved.max() > 1e-3, "the smoothing moved the poses given online …"
+    assert np.median(moved) < 0.01, "… by millimetres here (the same base poses, not the laser's)"
+    assert position_errors(poses, logs.in_map_frame(logs.second_truth)).max() < MAP_TOLERANCE
+
+
 def test_a_log_never_placed_in_the_map_is_one_line_and_publishes_nothing(logs: Logs, tmp_path: Path) -> None:
     short = tmp_path / "short.mcap"
     write_drive(short, part=slice(60, 63), later_ns=3 * HOUR_NS)  # three scans: too little to search with

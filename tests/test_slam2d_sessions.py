@@ -18,6 +18,7 @@ from frontends.slam2d.config import (
 )
 from frontends.slam2d.local_map import place
 from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, MapLocalizer
+from frontends.slam2d.localization_smoothing import smooth_localized, smooth_scans
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, _LoopHypothesis
 from optimizer import se2
@@ -204,6 +205,58 @@ def test_outside_the_saved_map_the_rolling_local_map_tracks_the_robot(mapping_ru
     assert len(back) > 30 and matched[back].all(), "back in the saved map, its matches place the scans"
     assert errors[back].max() < 0.05
     np.testing.assert_array_equal(localizer.map.points, saved_points)
+
+
+def test_a_stretch_tracked_outside_the_map_is_smoothed_between_the_map_fixes(mapping_run: Run) -> None:
+    """The saved map holds only the south corridor; the new run's laser reaches 4 m and its odometry is
+    3 % long. Around the east, north and west corridors the rolling local map sees mostly two parallel
+    walls: the tracked pose drifts along them with the odometry, and back in the south corridor the map's
+    match corrects it at once. Smoothed offline (the locally measured motions between the map fixes at
+    both ends), the tracked stretch lies far nearer the truth; the map-matched scans stay where they were."""
+    run = simulate_run(square_loop(), step=0.15, seed=5, max_range=4.0, scale_error=0.03)
+    keyframes = [k for k in range(0, len(mapping_run.truth), MAP_EVERY) if mapping_run.truth[k, 1] < 2.0]
+    scans = [mapping_run.scans[k][place(mapping_run.scans[k], mapping_run.truth[k])[:, 1] < 2.5]
+             for k in keyframes]
+    localizer = MapLocalizer(scans, mapping_run.truth[keyframes], initial_pose=run.truth[0])
+    results = [localizer.localize(int(stamp), scan, odo)
+               for stamp, scan, odo in zip(run.stamps_ns, run.scans, run.odometry, strict=True)]
+    assert all(r.localized for r in results)
+    tracked = np.array([r.tracked for r in results])
+    matched = np.array([r.matched for r in results])
+    assert tracked.sum() > 200 and matched[:50].all() and matched[-50:].all(), "out of the map and back"
+    online = position_errors(np.array([r.pose for r in results]), run.truth)
+    assert np.median(online[tracked]) > 0.1, "the tracked stretch drifts (else nothing to smooth)"
+    smoothed = smooth_scans(results)
+    assert smoothed.converged and smoothed.smoothed.all()
+    errors = position_errors(smoothed.poses, run.truth)
+    assert np.median(errors[tracked]) < 0.6 * np.median(online[tracked])
+    assert errors[tracked].max() < online[tracked].max()
+    assert np.abs(errors[matched] - online[matched]).max() < 0.01
+
+
+def test_smoothing_spreads_a_chain_drift_between_its_anchors_and_leaves_unanchored_chains() -> None:
+    """Ten scans 1 m apart along x: the locally measured motions are 1.1 m (10 % long), the first and the
+    last scan are anchored at their true poses. Smoothed, the drift is spread evenly: every scan at x = k
+    (the chain's steps all shortened alike, by symmetry). A chain after an unlocalized scan has no anchor:
+    its poses stay as given; the unlocalized scan keeps no pose."""
+    count = 14
+    truth = np.column_stack([np.arange(count, dtype=float), np.zeros(count), np.zeros(count)])
+    motions = np.tile([1.1, 0.0, 0.0], (count, 1))
+    motions[0] = np.nan
+    online = np.column_stack([1.1 * np.arange(count), np.zeros(count), np.zeros(count)])
+    localized = np.ones(count, dtype=bool)
+    localized[10] = False
+    online[10] = np.nan
+    motion_information = np.tile(np.diag([100.0, 100.0, 1000.0]), (count, 1, 1))
+    map_information = np.zeros((count, 3, 3))
+    map_information[[0, 9]] = np.diag([1e8, 1e8, 1e8])
+    online[9] = truth[9]
+    smoothed = smooth_localized(online, localized, motions, motion_information, map_information)
+    assert smoothed.converged
+    np.testing.assert_allclose(smoothed.poses[:10], truth[:10], atol=1e-5)
+    np.testing.assert_array_equal(smoothed.poses[11:], online[11:])
+    assert np.isnan(smoothed.poses[10]).all()
+    np.testing.assert_array_equal(smoothed.smoothed, np.arange(count) < 10)
 
 
 def test_a_map_without_points_is_refused() -> None:

@@ -79,6 +79,13 @@ def _propagate(covariance: FloatArray, pose: FloatArray, motion: FloatArray, noi
     return jacobian @ covariance @ jacobian.T + rotation @ noise @ rotation.T
 
 
+def _in_frame(information: FloatArray, heading: float) -> FloatArray:
+    """A map-frame (x, y, θ) information expressed in the frame of a pose heading `heading`."""
+    c, s = math.cos(heading), math.sin(heading)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return rotation.T @ information @ rotation
+
+
 def _inside(pose: FloatArray, prior: FloatArray, window: SearchWindow, resolution: float) -> bool:
     """Whether ICP ended inside the correlative search's window around the prior (one cell and one angular
     step of slack): beyond it, ICP slid along a degenerate corridor the search never scored."""
@@ -111,6 +118,16 @@ class LocalizedScan(LocalizedMeasurement):
     at their tracked poses with the saved keyframes nearby. Where the saved map cannot place the scan
     (outside it, mostly) the pose is tracked in the map's frame, drifting slowly from it; `score`,
     `inlier_fraction`, `rms` and `information` are then that match's."""
+    motion: FloatArray = field(default_factory=lambda: np.full(3, np.nan))
+    """The motion from the previous scan's pose to this one as measured locally, before the saved map
+    corrected it: the odometry's (or constant velocity's) prediction, or the rolling local map's match
+    when `tracked`. NaN when the previous scan gave no pose to measure from (the first scan, a global
+    fix)."""
+    motion_information: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    """(3, 3) information of `motion`, in the previous pose's frame."""
+    map_information: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    """(3, 3) information the saved map's match alone gives the pose (map frame; the prediction it was
+    fused with left out, a weak match's weighed by `weak_match_weight`); zeros when not map-matched."""
 
     @property
     def predicted(self) -> bool:
@@ -126,6 +143,12 @@ class _TrackingMatch:
     refined: IcpResult
     accepted: bool
     """The match may place the scan (see `MapLocalizer._match`)."""
+    prior_information: FloatArray
+    """The prediction's information ICP fused the match with (part of `refined.information`)."""
+
+    def own_information(self, information_scale: float) -> FloatArray:
+        """The match's information without the prediction's (on the SLAM's constraint scale)."""
+        return information_scale * (self.refined.information - self.prior_information)
 
     def strong(self, min_score: float) -> bool:
         return self.accepted and self.score >= min_score
@@ -288,7 +311,10 @@ class MapLocalizer:
         matching = self.config.matching
         reliable = odometry_interval <= RELIABLE_ODOMETRY_INTERVAL
         has_odometry = odometry is not None and self._last_odometry is not None
-        prior, covariance = self._predict(odometry, reliable)
+        previous = self._pose
+        prior, covariance, noise = self._predict(odometry, reliable)
+        motion, motion_information = se2.relative(previous, prior), np.linalg.inv(noise)
+        map_information = np.zeros((3, 3))
         # ICP weighs its points as independent, which the match's information undoes by
         # `information_scale`: the prior is weighed on the same (inflated) scale, so the fusion below is
         # the covariance-weighted mean of prediction and match.
@@ -313,7 +339,14 @@ class MapLocalizer:
             if found.accepted:
                 pose, matched, score = found.refined.pose, not tracked, found.score
                 information = matching.information_scale * found.refined.information
-                if not tracked:
+                own = found.own_information(matching.information_scale)
+                if tracked:
+                    # Matched on scans placed by the tracking itself: a local measurement of the motion.
+                    motion = se2.relative(previous, pose)
+                    motion_information = motion_information + _in_frame(own, float(previous[2]))
+                else:
+                    weak = score < self.settings.min_tracking_score
+                    map_information = (self.settings.weak_match_weight if weak else 1.0) * own
                     covariance = np.linalg.inv(information + 1e-12 * np.eye(3))
                 # A tracked pose keeps the prediction's covariance: matched against scans placed by the
                 # tracking itself, it drifts from the saved map (as odometry does, only slower), and the
@@ -322,7 +355,8 @@ class MapLocalizer:
         self._pose = np.array(pose)
         self._covariance = covariance
         return LocalizedScan(index, stamp_ns, self._pose.copy(), True, matched, score, inliers, rms,
-                             information, tracked=tracked)
+                             information, tracked=tracked, motion=motion,
+                             motion_information=motion_information, map_information=map_information)
 
     def _tracking_window(self, has_odometry: bool, reliable: bool) -> SearchWindow:
         settings = self.config.odometry
@@ -363,7 +397,8 @@ class MapLocalizer:
             return self._match(points, submap, prior, prior_information,
                                self._tracking_window(False, False), False, weigh_weak=weigh_weak)
         accepted = (scored and refined.inlier_fraction >= self.config.odometry.min_inlier_fraction and inside)
-        return _TrackingMatch(math.nan if coarse is None else float(coarse.score), refined, accepted)
+        return _TrackingMatch(math.nan if coarse is None else float(coarse.score), refined, accepted,
+                              prior_information)
 
     def _remember(self, points: FloatArray) -> None:
         """Keep the scan for local re-acquisition queries when it is `relocalize_every` from the last kept."""
@@ -443,16 +478,18 @@ class MapLocalizer:
         self._misses = 0
         self._since_good = 0.0
         self._dead_reckoned = 0.0
+        information = self.config.matching.information_scale * found.icp.information
         return LocalizedScan(
             tracked.index, tracked.stamp_ns, self._pose.copy(), True, True, found.score,
-            found.icp.inlier_fraction, found.icp.rms,
-            self.config.matching.information_scale * found.icp.information, relocalized=True,
+            found.icp.inlier_fraction, found.icp.rms, information, relocalized=True, motion=tracked.motion,
+            motion_information=tracked.motion_information, map_information=information,
         )
 
-    def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
-        """The predicted pose and its covariance: the pose's own, carried along the motion, plus the
-        motion's noise (wheel odometry's as `LocalizationConfig` models it; without odometry, the SLAM's
-        loose constant-velocity prior)."""
+    def _predict(self, odometry: FloatArray | None,
+                 reliable: bool) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The predicted pose, its covariance (the pose's own, carried along the motion, plus the motion's
+        noise) and that noise (robot frame): wheel odometry's as `LocalizationConfig` models it; without
+        odometry, the SLAM's loose constant-velocity prior."""
         assert self._pose is not None
         has_odometry = odometry is not None and self._last_odometry is not None
         motion, information = predicted_motion(self.config.odometry, self._last_odometry, odometry, reliable,
@@ -474,7 +511,7 @@ class MapLocalizer:
             noise = np.diag([(scale * linear) ** 2, (scale * linear) ** 2, (scale * angular) ** 2])
         else:
             noise = np.linalg.inv(information)
-        return se2.compose(self._pose, motion), _propagate(self._covariance, self._pose, motion, noise)
+        return se2.compose(self._pose, motion), _propagate(self._covariance, self._pose, motion, noise), noise
 
     def _fix_covariance(self) -> FloatArray:
         settings = self.settings
@@ -533,9 +570,10 @@ class MapLocalizer:
         self._odometry_hold.reset()
         self._tracker = None
         self._recent.clear()
+        information = self.config.matching.information_scale * found.icp.information
         return LocalizedScan(
             index, stamp_ns, pose.copy(), True, True, found.score, found.icp.inlier_fraction, found.icp.rms,
-            self.config.matching.information_scale * found.icp.information, global_fix=True,
+            information, global_fix=True, map_information=information,
             recovered_indices=np.array(self._tracked[:-1], dtype=np.int64),
             recovered_poses=recovered[:-1].copy(),
         )

@@ -5,8 +5,10 @@
   graph; the replay then optimizes the joint graph like any other, and every scan of the session, old and
   new, gets its pose (`stamps_ns`, `estimates`).
 - `LocalizingLaserFrontend`: every scan goes to a `MapLocalizer` over the saved keyframes; the saved map
-  is never changed and nothing is optimized. Scans never placed in the map have no pose: they are counted
-  (`ScanLocalizations`), never given a made-up one.
+  is never changed. Scans never placed in the map have no pose: they are counted (`ScanLocalizations`),
+  never given a made-up one. Once the log is read, the stretches tracked or predicted between map matches
+  are smoothed (`frontends.slam2d.localization_smoothing`): the trajectory given is the smoothed one, the
+  per-scan states and match quality stay as measured online.
 
 In both, the new log's wheel odometry starts anywhere: it is used for the motion between scans only.
 """
@@ -26,7 +28,8 @@ from frontends.logs import LogReader
 from frontends.protocol import FloatArray, FrontendOptions, IntArray, SavedMapLocalization
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.frontend import LaserFrontend
-from frontends.slam2d.localization import MapLocalizer
+from frontends.slam2d.localization import LocalizedScan, MapLocalizer
+from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
 from frontends.slam2d.resume import MapPlacementError, ResumedSlam2D, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate
@@ -125,6 +128,11 @@ class ScanLocalizations:
     """Not matched to the saved map but to the rolling local map (recent scans at their tracked poses with
     the saved keyframes nearby: outside the saved map); `score`/`inlier_fraction`/`rms` are that match's.
     None: all False."""
+    online_poses: FloatArray | None = None
+    """The poses as given when each scan was processed (or recovered), before the offline smoothing made
+    `poses`; None: `poses` are those."""
+    smoothed: BoolArray | None = None
+    """The scans whose pose the smoothing gave (None: none)."""
 
     @property
     def tracked_outside(self) -> BoolArray:
@@ -174,9 +182,11 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self._rows: list[tuple[int, bool, bool, float, float, float, bool]] = []
         """(stamp, localized, matched, score, inlier fraction, rms, tracked) per scan."""
         self._poses: list[FloatArray] = []
+        self._found: list[LocalizedScan] = []
         self._recovered: list[int] = []
         self._fixes: list[int] = []
         self._localizations: ScanLocalizations | None = None
+        self._smoothing: SmoothedTrajectory | None = None
 
     def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
                  odometry_interval: float) -> ScanEstimate:
@@ -184,6 +194,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self._rows.append((found.stamp_ns, found.localized, found.matched, found.score, found.inlier_fraction,
                            found.rms, found.tracked))
         self._poses.append(found.pose.copy())
+        self._found.append(found)
         if found.global_fix:
             self._fixes.append(found.index)
             for index, pose in zip(found.recovered_indices.tolist(), found.recovered_poses, strict=True):
@@ -202,10 +213,13 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         recovered = np.zeros(len(stamps), dtype=bool)
         recovered[self._recovered] = True
         recovered &= ~localized
+        online = np.array(self._poses).reshape(-1, 3)
+        self._smoothing = smooth_scans(self._found, online)
         self._localizations = ScanLocalizations(
-            stamps.astype(np.int64), np.array(self._poses).reshape(-1, 3), localized.astype(bool),
+            stamps.astype(np.int64), self._smoothing.poses, localized.astype(bool),
             matched.astype(bool), recovered, score.astype(np.float64), inliers.astype(np.float64),
-            rms.astype(np.float64), np.array(self._fixes, dtype=np.int64), tracked.astype(bool))
+            rms.astype(np.float64), np.array(self._fixes, dtype=np.int64), tracked.astype(bool),
+            online_poses=online, smoothed=self._smoothing.smoothed)
         if not self._localizations.has_pose.any():
             raise MapPlacementError(
                 f"none of the {len(stamps)} scans of {self._log.path} could be placed in the saved map of "
@@ -223,8 +237,15 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         return None
 
     def counts(self) -> dict[str, int]:
+        """The localization's counts, with the scans the offline smoothing placed and whether it converged
+        (1; 0: the poses are the online ones)."""
+        found = self.localizations  # raises until `finish` has run (and smoothed)
+        assert self._smoothing is not None
         return {**self._counts, **self._input_counts, **self._log.counts,
-                "map_keyframes": len(self.saved.keyframe_poses), **self.localizations.counts()}
+                "map_keyframes": len(self.saved.keyframe_poses), **found.counts(),
+                "scans_smoothed": int(self._smoothing.smoothed.sum()),
+                "smoothing_converged": int(self._smoothing.converged)}
 
     def loop_closures(self) -> dict[str, Any]:
         return {"accepted": 0, "rejected": 0, "candidates": {"accepted": 0, "unconfirmed": 0}}
+
