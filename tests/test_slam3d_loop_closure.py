@@ -6,9 +6,11 @@ import math
 
 import numpy as np
 import pytest
+import small_gicp
 
 from frontends.slam3d.config import LoopClosureConfig
 from frontends.slam3d.loop_closure import (
+    RegistrationFit,
     RegistrationTarget,
     descriptor_distances,
     fit_information,
@@ -76,6 +78,37 @@ def test_a_featureless_street_is_ambiguous() -> None:
     target = RegistrationTarget(cloud_at(street, sensor_pose(0.0, 0.0, 0.0), seed=6), CONFIG)
     verdict = verify_loop(target, cloud_at(street, sensor_pose(2.0, 0.0, 0.0), seed=7), [np.eye(4)], CONFIG)
     assert verdict.match is None and verdict.reason == "ambiguous"
+
+
+class CountingTarget(RegistrationTarget):
+    """Counts the full-resolution registrations (scored fits with their Hessian)."""
+
+    fine_registrations = 0
+
+    def register(self, source: small_gicp.PointCloud, guess: np.ndarray) -> RegistrationFit:
+        self.fine_registrations += 1
+        return super().register(source, guess)
+
+
+def test_rivals_that_cannot_compete_are_not_registered_at_full_resolution() -> None:
+    """A distinct corner: the six rival starts end back at the match or elsewhere with a poor fit, seen
+    from their coarse registrations; only the guess is registered finely (seven registrations before)."""
+    world = town_loop()
+    target = CountingTarget(cloud_at(world.boxes, sensor_pose(18.0, 0.0, 0.0), seed=4), CONFIG)
+    current = cloud_at(world.boxes, sensor_pose(19.5, 0.8, math.radians(6.0)), seed=5)
+    verdict = verify_loop(target, current, [np.eye(4)], CONFIG)
+    assert verdict.reason == "accepted"
+    assert target.fine_registrations == 1
+
+
+def test_a_competing_rival_is_registered_finely_and_rejects_the_match() -> None:
+    """Along a featureless street the coarse rivals ahead and behind fit as well as the match: one is
+    registered again at full resolution, and that fine fit makes the match ambiguous."""
+    street = straight_street()
+    target = CountingTarget(cloud_at(street, sensor_pose(0.0, 0.0, 0.0), seed=6), CONFIG)
+    verdict = verify_loop(target, cloud_at(street, sensor_pose(2.0, 0.0, 0.0), seed=7), [np.eye(4)], CONFIG)
+    assert verdict.reason == "ambiguous"
+    assert target.fine_registrations == 2
 
 
 def test_a_different_place_is_a_poor_fit() -> None:

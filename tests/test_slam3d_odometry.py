@@ -4,10 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from kiss_icp.preprocess import Preprocessor
 
 from frontends.slam3d import se3
 from frontends.slam3d.config import OdometryConfig
-from frontends.slam3d.odometry import KissOdometry, downsample, kiss_config, normalized_point_times
+from frontends.slam3d.odometry import (
+    KissOdometry,
+    deskew,
+    downsample,
+    kiss_config,
+    normalized_point_times,
+)
 from tests.lidar_world import Drive, Lidar, drive, mount_matrix, planar_to_matrix, town_loop
 
 
@@ -55,6 +62,19 @@ def test_point_times_are_normalised_over_the_sweep() -> None:
     for unusable in (None, np.zeros(0), np.full(5, 0.03), np.array([0.0, np.nan, 0.1])):
         times, at_stamp = normalized_point_times(unusable)
         assert len(times) == 0 and at_stamp is None
+
+
+@pytest.mark.parametrize("twist", [(0.8, -0.1, 0.02, 0.004, -0.003, 0.11), (0.5, 0.0, 0.0, 0.0, 0.0, 1e-12)])
+def test_deskewing_moves_points_as_kiss_icp_does(twist: tuple[float, ...]) -> None:
+    """Our deskewing against KISS-ICP's own (its C++ preprocessor, ranges wide open): a turning and a
+    straight (first-order rotation) motion, times spread over the sweep."""
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-40.0, 40.0, (2000, 3))
+    times = rng.uniform(0.0, 1.0, 2000)
+    times[:2] = 0.0, 1.0
+    motion = se3.exp(np.array(twist))
+    theirs = Preprocessor(1e6, 0.0, True, 1).preprocess(points, times, motion)
+    np.testing.assert_allclose(deskew(points, times, motion), theirs, rtol=0, atol=1e-9)
 
 
 def _position_errors(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:

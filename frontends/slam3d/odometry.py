@@ -18,6 +18,10 @@ A motion guess (the base's motion since the previous cloud from wheel or INS odo
 motion) replaces KISS-ICP's constant-velocity prediction for that cloud: the registration starts from
 it and the deskewing uses it. KISS-ICP 1.3 has no argument for this; its `register_frame` predicts with
 `last_pose @ last_delta`, so the wrapper sets `last_delta` (pinned: kiss-icp < 1.4 in pyproject.toml).
+
+The deskewing itself is done here (`deskew`, the same motion model) and KISS-ICP gets the cloud without
+times: its C++ deskewing evaluates a full SE(3) exponential (Sophus) per point, three quarters of its
+preprocessing (2.4 of 3.2 ms on a town-loop sweep of 22 k points).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from kiss_icp.config import KISSConfig
 from kiss_icp.config.config import AdaptiveThresholdConfig, DataConfig, MappingConfig, RegistrationConfig
 from kiss_icp.kiss_icp import KissICP
 from kiss_icp.voxelization import voxel_down_sample
+from numba import njit
 from numpy.typing import NDArray
 
 from frontends.slam3d import se3
@@ -152,7 +157,10 @@ class KissOdometry:
         # The motion the deskewing assumes: read before registering replaces it.
         motion = np.array(self._kiss.last_delta, dtype=np.float64)
         frame = np.ascontiguousarray(points, dtype=np.float64)
-        deskewed, _ = self._kiss.register_frame(frame, times)
+        if len(times):
+            frame = deskew(frame, times, motion)
+        # without times KISS-ICP only drops points out of range
+        deskewed, _ = self._kiss.register_frame(frame, NO_TIMES)
         end_pose = np.array(self._kiss.last_pose, dtype=np.float64)
         pose = end_pose
         if stamp_fraction is not None and stamp_fraction != 1.0:
@@ -183,3 +191,44 @@ def downsample(points: NDArray[np.floating], voxel: float) -> FloatArray:
     if len(points) == 0:
         return np.empty((0, 3))
     return np.asarray(voxel_down_sample(np.ascontiguousarray(points, dtype=np.float64), voxel))
+
+
+def deskew(points: FloatArray, times: FloatArray, motion: FloatArray) -> FloatArray:
+    """KISS-ICP's motion compensation: the point at normalised time τ (0 … 1 over the sweep) moved by
+    exp((τ − 1)·log(motion)), `motion` the 4×4 frame-to-frame motion; the result is in the sensor frame
+    at τ = 1."""
+    return _deskew(
+        np.ascontiguousarray(points, dtype=np.float64),
+        np.ascontiguousarray(times, dtype=np.float64),
+        se3.log(motion),
+    )
+
+
+@njit(cache=True)
+def _deskew(points: FloatArray, times: FloatArray, twist: FloatArray) -> FloatArray:  # pragma: no cover
+    """`deskew` with `twist` = log(motion) (tx, ty, tz, rx, ry, rz): R p + V t of exp(s·twist), s = τ − 1,
+    through cross products (Rodrigues) instead of 4×4 matrices."""
+    out = np.empty_like(points)
+    for i in range(points.shape[0]):
+        scale = times[i] - 1.0
+        wx, wy, wz = scale * twist[3], scale * twist[4], scale * twist[5]
+        ux, uy, uz = scale * twist[0], scale * twist[1], scale * twist[2]
+        theta = np.sqrt(wx * wx + wy * wy + wz * wz)
+        if theta < se3.SMALL_ANGLE:
+            a, b, c = 1.0, 0.5, 0.0
+            rotation_b = 0.0
+        else:
+            a = np.sin(theta) / theta
+            b = (1.0 - np.cos(theta)) / (theta * theta)
+            c = (1.0 - a) / (theta * theta)
+            rotation_b = b
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        # w × p and w × (w × p), the same for u
+        cpx, cpy, cpz = wy * pz - wz * py, wz * px - wx * pz, wx * py - wy * px
+        ccpx, ccpy, ccpz = wy * cpz - wz * cpy, wz * cpx - wx * cpz, wx * cpy - wy * cpx
+        cux, cuy, cuz = wy * uz - wz * uy, wz * ux - wx * uz, wx * uy - wy * ux
+        ccux, ccuy, ccuz = wy * cuz - wz * cuy, wz * cux - wx * cuz, wx * cuy - wy * cux
+        out[i, 0] = px + a * cpx + rotation_b * ccpx + ux + b * cux + c * ccux
+        out[i, 1] = py + a * cpy + rotation_b * ccpy + uy + b * cuy + c * ccuy
+        out[i, 2] = pz + a * cpz + rotation_b * ccpz + uz + b * cuz + c * ccuz
+    return out

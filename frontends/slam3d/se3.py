@@ -9,7 +9,8 @@ from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
 
-_SMALL_ANGLE = 1e-9
+SMALL_ANGLE = 1e-9
+"""Below this rotation angle (rad) the exponential and logarithm take their first-order forms."""
 
 
 def inverse(transforms: ArrayLike) -> FloatArray:
@@ -49,7 +50,7 @@ def _so3_exp(omega: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Rotation matrix of `omega` and the left Jacobian V (translation part of the SE(3) exponential)."""
     theta = float(np.linalg.norm(omega))
     skew = _skew(omega)
-    if theta < _SMALL_ANGLE:
+    if theta < SMALL_ANGLE:
         return np.eye(3) + skew, np.eye(3) + 0.5 * skew
     a = np.sin(theta) / theta
     b = (1.0 - np.cos(theta)) / theta**2
@@ -76,7 +77,7 @@ def log(transform: ArrayLike) -> FloatArray:
     axis_sin = np.array(
         [rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]]
     )
-    omega = 0.5 * axis_sin if theta < _SMALL_ANGLE else theta / (2.0 * np.sin(theta)) * axis_sin
+    omega = 0.5 * axis_sin if theta < SMALL_ANGLE else theta / (2.0 * np.sin(theta)) * axis_sin
     _, v = _so3_exp(omega)
     return np.concatenate([np.linalg.solve(v, transform[:3, 3]), omega])
 
