@@ -151,12 +151,16 @@ class KeyframeMapRecorder:
         # On `iteration` (not static): on the `scan` and `time` timelines the keyframes have no pose, and
         # static points would be drawn piled up at the origin there.
         self._recording.set_time(ITERATION_TIMELINE, sequence=step)
+        # `rr.Points2D`'s components, the style's built once: the archetype validated every field of each
+        # of a thousand keyframes' scans.
+        radii = rr.components.RadiusBatch([MAP_POINT_RADIUS]).described(rr.Points2D.descriptor_radii())
+        colors = rr.components.ColorBatch([MAP_COLOR]).described(rr.Points2D.descriptor_colors())
+        draw_order = rr.components.DrawOrderBatch([MAP_DRAW_ORDER]).described(
+            rr.Points2D.descriptor_draw_order())
         for index, scan in enumerate(self._scans):
-            self._recording.log(
-                keyframe_scan_entity(index),
-                rr.Points2D(thin_scan(scan), colors=[MAP_COLOR], radii=[MAP_POINT_RADIUS],
-                            draw_order=MAP_DRAW_ORDER),
-            )
+            positions = rr.components.Position2DBatch(thin_scan(scan)).described(
+                rr.Points2D.descriptor_positions())
+            self._recording.log(keyframe_scan_entity(index), [positions, radii, colors, draw_order])
         self._recording.reset_time()
         self._scans_logged = True
 
