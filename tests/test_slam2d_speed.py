@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from frontends.errors import MapExtentError
 from frontends.logs.types import Scan2D, Transform
-from frontends.loop_closing import Constraints
+from frontends.loop_closing import Constraints, path_lengths
 from frontends.slam2d import correlative, stage_times
 from frontends.slam2d.correlative import (
     SearchWindow,
@@ -403,3 +403,22 @@ def test_constraint_lengths_follow_their_constraints_through_removals() -> None:
     constraints.remove(1)
     assert constraints.planar_length == [5.0, 10.0, 0.5]
     assert constraints.first == [0, 2, 3]
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 40))
+def test_path_lengths_are_the_shortest_over_constraints_either_way(seed: int, count: int) -> None:
+    rng = np.random.default_rng(seed)
+    pairs = {(int(a), int(b)) for a, b in rng.integers(0, count, size=(int(rng.integers(0, 3 * count)), 2))}
+    first = np.array([a for a, _ in pairs], dtype=np.int64)
+    second = np.array([b for _, b in pairs], dtype=np.int64)
+    lengths = rng.choice([0.0, 0.25, 1.0, 3.0], size=len(pairs)) * rng.random(len(pairs))
+    source = int(rng.integers(0, count))
+    # Bellman–Ford from scratch: a constraint is walked either way; one of zero length counts a micrometre.
+    expected = np.full(count, np.inf)
+    expected[source] = 0.0
+    for _ in range(count):
+        for a, b, length in zip(first, second, np.maximum(lengths, 1e-6), strict=True):
+            expected[b] = min(expected[b], expected[a] + length)
+            expected[a] = min(expected[a], expected[b] + length)
+    np.testing.assert_allclose(path_lengths(count, first, second, lengths, source), expected, rtol=1e-12)
