@@ -129,9 +129,14 @@ def _stamp(
     row_start = np.full(height, width, dtype=np.int64)
     row_stop = np.zeros(height, dtype=np.int64)
     dx_squared = np.empty(max(2 * radius + 1, STAMP_WIDTH))
+    # Each point's position in cells, kept for the Gaussian pass (the same values, not divided again).
+    cells_x = np.empty(points.shape[0])
+    cells_y = np.empty(points.shape[0])
     for k in range(points.shape[0]):
         fx = (points[k, 0] - origin[0]) / resolution
         fy = (points[k, 1] - origin[1]) / resolution
+        cells_x[k] = fx
+        cells_y[k] = fy
         cx = int(math.floor(fx))
         cy = int(math.floor(fy))
         low_x = max(cx - radius, 0)
@@ -171,10 +176,8 @@ def _stamp(
             k = nearest[iy, ix]
             if k >= 0:
                 # The same arithmetic as above: the value the winning point's own distance gives.
-                fx = (points[k, 0] - origin[0]) / resolution
-                fy = (points[k, 1] - origin[1]) / resolution
-                dy = (iy + 0.5 - fy) * resolution
-                dx = (ix + 0.5 - fx) * resolution
+                dy = (iy + 0.5 - cells_y[k]) * resolution
+                dx = (ix + 0.5 - cells_x[k]) * resolution
                 values[iy, ix] = math.exp(-(dx * dx + dy * dy) * inverse_two_sigma2)
 
 
