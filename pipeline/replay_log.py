@@ -32,12 +32,13 @@ each afterwards. Library code: raises `FrontendError`, `OptimizerError` or `Pipe
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeAlias, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,8 +47,6 @@ from frontends.logs import LogReader, open_log
 from frontends.protocol import Estimate, FrontendOptions, LogFrontend
 from frontends.slam2d import LaserFrontend, OccupancyGrid, Slam2DConfig
 from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
-from frontends.slam3d import LidarFrontend, Slam3DConfig, planar
-from frontends.slam3d.session_frontends import ContinuingLidarFrontend, LocalizingLidarFrontend
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
@@ -66,9 +65,7 @@ from pipeline.outputs import (
 )
 from pipeline.ply import write_map_pcd, write_ply
 from pipeline.recording import IterationSink
-from pipeline.recording.clouds import CloudReplayRecording
 from pipeline.recording.localization import MapLocalizationRecording
-from pipeline.recording.localization3d import CloudLocalizationRecording
 from pipeline.recording.scans import ScanReplayRecording
 from pipeline.session_file import (
     SENSOR_WORDS,
@@ -82,6 +79,12 @@ from pipeline.session_file import (
 )
 from pipeline.trajectory_io import write_kitti_poses, write_tum
 from pipeline.warning_tally import WarningTally, reissue, tallied_warnings
+
+if TYPE_CHECKING:  # loaded by the first log of clouds only (`_cloud_sensor`)
+    from frontends.slam3d import Slam3DConfig
+    from frontends.slam3d.session_frontends import LocalizingLidarFrontend
+    from pipeline.recording.clouds import CloudReplayRecording
+    from pipeline.recording.localization3d import CloudLocalizationRecording
 
 FloatArray = NDArray[np.float64]
 EstimateCallback = Callable[[Estimate], None]
@@ -119,7 +122,7 @@ class _MapFile:
     """(staged path, the frontend's map export, the outputs' published paths)."""
 
 
-LocalizingFrontend = LocalizingLaserFrontend | LocalizingLidarFrontend
+LocalizingFrontend: TypeAlias = "LocalizingLaserFrontend | LocalizingLidarFrontend"
 """The frontend of a localization in a saved map, of scans or of clouds."""
 
 ReplayMode = Literal["slam", "continue", "map"]
@@ -203,20 +206,33 @@ def _session_frontends(saved_map: Callable[[Path, Any], Any], continuing: Callab
     return frontend
 
 
-_SENSORS = {
-    "scan": _Sensor(LaserFrontend, ScanReplayRecording, (
-        _MapFile("map_png", "_map.png", lambda path, grid, _: write_png(path, picture_with_scale_bar(grid))),
-        _MapFile("map_pgm", "_map.pgm", lambda path, grid, _: write_bytes(path, map_server_pgm(grid))),
-        _MapFile("map_yaml", "_map.yaml", _write_map_yaml),
-    ), from_session=_session_frontends(saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend),
-        localization_recording=MapLocalizationRecording),
-    "cloud": _Sensor(LidarFrontend, CloudReplayRecording, (
+_SCAN_SENSOR = _Sensor(LaserFrontend, ScanReplayRecording, (
+    _MapFile("map_png", "_map.png", lambda path, grid, _: write_png(path, picture_with_scale_bar(grid))),
+    _MapFile("map_pgm", "_map.pgm", lambda path, grid, _: write_bytes(path, map_server_pgm(grid))),
+    _MapFile("map_yaml", "_map.yaml", _write_map_yaml),
+), from_session=_session_frontends(saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend),
+    localization_recording=MapLocalizationRecording)
+
+
+@functools.cache
+def _cloud_sensor() -> _Sensor:
+    # The 3D frontend (KISS-ICP, scipy's rotations) is imported by the first log of clouds: a laser replay
+    # never loads it (0.2–0.3 s of every `replay`'s start-up).
+    from frontends.slam3d import LidarFrontend
+    from frontends.slam3d.session_frontends import ContinuingLidarFrontend, LocalizingLidarFrontend
+    from pipeline.recording.clouds import CloudReplayRecording
+    from pipeline.recording.localization3d import CloudLocalizationRecording
+
+    return _Sensor(LidarFrontend, CloudReplayRecording, (
         _MapFile("ply", ".ply", lambda path, points, _: write_ply(path, points)),
         _MapFile("pcd", ".pcd", lambda path, points, _: write_map_pcd(path, points)),
     ), kitti_poses=True,
         from_session=_session_frontends(saved_map_3d, ContinuingLidarFrontend, LocalizingLidarFrontend),
-        localization_recording=CloudLocalizationRecording),
-}
+        localization_recording=CloudLocalizationRecording)
+
+
+_SENSORS: dict[str, Callable[[], _Sensor]] = {"scan": lambda: _SCAN_SENSOR, "cloud": _cloud_sensor}
+"""Sensor kind → its `_Sensor`."""
 
 
 @dataclass(frozen=True)
@@ -246,7 +262,7 @@ class ReplayOutputs:
         """The outputs of a replay of `input_path`; localization in a saved map ("map") writes only the
         trajectory, the summary and the recording."""
         stem = output_stem(input_path)
-        chosen = _SENSORS[sensor]
+        chosen = _SENSORS[sensor]()
         if mode == "map":
             kinds = ("tum", "json", "rrd", "kitti") if chosen.kitti_poses else ("tum", "json", "rrd")
             return cls(**{suffix: out_dir / f"{stem}.{suffix}" for suffix in kinds})
@@ -298,7 +314,11 @@ class LogReplayResult:
     @property
     def planar_poses(self) -> FloatArray:
         """(S, 3) every measurement's pose in the plane."""
-        return self.poses if self.poses.ndim == 2 else planar.planar(self.poses)
+        if self.poses.ndim == 2:
+            return self.poses
+        from frontends.slam3d import planar  # clouds only: see `_cloud_sensor`
+
+        return planar.planar(self.poses)
 
 
 def replay_log(
@@ -362,7 +382,7 @@ class _Run:
                configs: dict[str, Any], tally: WarningTally) -> LogReplayResult:
         started = time.perf_counter()
         topic, kind = log.sensor_topic(topic)
-        sensor = _SENSORS[kind]
+        sensor = _SENSORS[kind]()
         localizing = self.mode == "map"
         outputs = ReplayOutputs.for_input(out_dir, self.path, kind, self.mode)
         paths = outputs.paths()
@@ -417,7 +437,7 @@ class _Run:
         write_g2o(staged["g2o"], frontend.keyframe_graph(), result.keyframe_poses)
         if outputs.kitti is not None:
             write_kitti_poses(staged["kitti"], result.poses)
-        for map_file in _SENSORS[kind].map_files:
+        for map_file in _SENSORS[kind]().map_files:
             map_file.write(staged[map_file.output], result.map_export, outputs)
         arrays, keyframe_points = frontend.session_content(result.keyframe_poses)
         header = {
@@ -509,8 +529,7 @@ def summary(result: LogReplayResult) -> dict[str, Any]:
     if result.optimization is None:
         return localization_summary(result)
     continued = {}
-    if result.session is not None and isinstance(result.frontend,
-                                                 (ContinuingLaserFrontend, ContinuingLidarFrontend)):
+    if result.session is not None and result.mode == "continue":
         continued = {"session": {"continued_from": str(result.session),
                                  "placement": result.frontend.placement()}}
     return {
@@ -548,8 +567,8 @@ SCAN_STATES = {"matched": "m", "tracked": "t", "predicted": "p", "recovered": "r
 def localization_summary(result: LogReplayResult) -> dict[str, Any]:
     """The JSON summary of a localization in a saved map, without its per-scan table (`per_scan`, see
     `localization_summary_text`)."""
-    frontend = result.frontend
-    assert isinstance(frontend, (LocalizingLaserFrontend, LocalizingLidarFrontend))
+    assert result.mode == "map"
+    frontend = cast(LocalizingFrontend, result.frontend)
     found = frontend.localizations
     stamps = found.stamps_ns
     fixes = [{"scan": int(k), "stamp_ns": int(stamps[k]), "score": float(found.score[k])}
@@ -586,8 +605,8 @@ def localization_summary_text(result: LogReplayResult) -> str:
     (the scan's stamp, state — m matched, t tracked outside the saved map on the rolling local map of the
     recent scans, p predicted by odometry without a match, r pose recovered by a later global fix, - never
     localized — score, inlier fraction, ICP rms), each on one line."""
-    assert isinstance(result.frontend, (LocalizingLaserFrontend, LocalizingLidarFrontend))
-    found = result.frontend.localizations
+    assert result.mode == "map"
+    found = cast(LocalizingFrontend, result.frontend).localizations
     stride = -(-len(found.stamps_ns) // MAX_PER_SCAN_ROWS)
     rows = np.arange(0, len(found.stamps_ns), stride)
     state = np.full(len(found.stamps_ns), SCAN_STATES["never"])

@@ -6,6 +6,7 @@ import hashlib
 import json
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -118,6 +119,27 @@ def test_replay_of_a_log_writes_a_trajectory_per_scan_that_follows_the_truth(
             stdin=subprocess.DEVNULL,
         )
         assert check.returncode == 0, check.stdout + check.stderr
+
+
+def test_a_laser_replay_never_imports_the_3d_frontend(tmp_path: Path) -> None:
+    # Start-up: every `replay` pays its imports; the 3D frontend (KISS-ICP, scipy's rotations) is for
+    # logs of clouds. A fresh process, as other tests of this session may have imported it.
+    path = tmp_path / "drive.mcap"
+    write_drive(path, scans=20)
+    program = (
+        "import sys\n"
+        "from pipeline.cli import app\n"
+        f"app([{str(path)!r}, '--out', {str(tmp_path / 'out')!r}, '--quiet'], standalone_mode=False)\n"
+        "loaded = sorted(name for name in sys.modules if name.startswith('frontends.slam3d.')\n"
+        "                or name.startswith(('kiss_icp', 'scipy.spatial', 'pipeline.recording.clouds')))\n"
+        "print(loaded)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=300,
+                         stdin=subprocess.DEVNULL, cwd=Path(__file__).resolve().parents[1])
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert (tmp_path / "out" / "drive.tum").exists()
+    # The 3D settings' dataclass is read by the configuration of every replay; nothing else of 3D.
+    assert run.stdout.strip().splitlines()[-1] == "['frontends.slam3d.config']"
 
 
 def test_replay_without_odometry_still_tracks(tmp_path: Path) -> None:

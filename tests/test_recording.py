@@ -182,6 +182,8 @@ def test_the_walls_move_with_every_iteration_and_end_at_the_written_poses(tmp_pa
     for index in range(graph.num_poses):
         scan = entities[f"/world/keyframes/k{index:06d}/scan"]
         assert scan.steps == [0] and scan.static_rows == 0  # once, in the keyframe's own frame
+        assert {"Points2D:positions", "Points2D:radii", "Points2D:colors", "Points2D:draw_order"} <= set(
+            scan.columns)
         np.testing.assert_allclose(np.asarray(scan.columns["Points2D:positions"][0]), keyframe_scans[index],
                                    atol=1e-6)
         transform = entities[f"/world/keyframes/k{index:06d}"]

@@ -82,6 +82,24 @@ def test_a_point_own_cell_is_one_and_the_likelihood_falls_as_the_gaussian() -> N
     assert along_row[-1] == 0.0
 
 
+@pytest.mark.parametrize("pairing", [0.0, 0.3, 0.7])
+@pytest.mark.parametrize("margin_cells", [2, 9, 40])
+def test_a_stamp_covers_exactly_the_square_of_its_radius_around_the_point_cell(
+        pairing: float, margin_cells: int) -> None:
+    # Narrow stamps are written in rows of a fixed width where they fit (`grid.STAMP_WIDTH`): the cells of
+    # such a row past the stamp stay unstamped, near the grid's edges too.
+    radius = max(1, math.ceil(max(3.0 * SIGMA, pairing) / RESOLUTION))
+    point = np.array([0.5 * RESOLUTION, 0.5 * RESOLUTION])
+    grid = build_likelihood_grid(point[None, :], RESOLUTION, SIGMA, margin=margin_cells * RESOLUTION,
+                                 pairing_distance=pairing)
+    column, row = grid.cell_of(point)
+    height, width = grid.values.shape
+    rows, columns = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
+    inside = (np.abs(rows - row) <= radius) & (np.abs(columns - column) <= radius)
+    np.testing.assert_array_equal(grid.nearest >= 0, inside)
+    assert not np.any(grid.values[~inside])
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     points=hnp.arrays(np.float64, st.tuples(st.integers(1, 25), st.just(2)),

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from frontends.errors import MapExtentError
 from frontends.logs.types import Scan2D, Transform
-from frontends.loop_closing import Constraints
+from frontends.loop_closing import Constraints, path_lengths
 from frontends.slam2d import correlative, stage_times
 from frontends.slam2d.correlative import (
     SearchWindow,
@@ -27,6 +27,7 @@ from frontends.slam2d.grid import build_likelihood_grid, max_pyramid
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.log_input import OdometryTrack, scans_in_base_frame
+from frontends.slam2d.match_covariance import score_plateau
 from frontends.slam2d.slam import (
     COARSE_THINNING,
     NARROW_WINDOW_ANGULAR,
@@ -403,3 +404,45 @@ def test_constraint_lengths_follow_their_constraints_through_removals() -> None:
     constraints.remove(1)
     assert constraints.planar_length == [5.0, 10.0, 0.5]
     assert constraints.first == [0, 2, 3]
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 40))
+def test_path_lengths_are_the_shortest_over_constraints_either_way(seed: int, count: int) -> None:
+    rng = np.random.default_rng(seed)
+    pairs = {(int(a), int(b)) for a, b in rng.integers(0, count, size=(int(rng.integers(0, 3 * count)), 2))}
+    first = np.array([a for a, _ in pairs], dtype=np.int64)
+    second = np.array([b for _, b in pairs], dtype=np.int64)
+    lengths = rng.choice([0.0, 0.25, 1.0, 3.0], size=len(pairs)) * rng.random(len(pairs))
+    source = int(rng.integers(0, count))
+    # Bellman–Ford from scratch: a constraint is walked either way; one of zero length counts a micrometre.
+    expected = np.full(count, np.inf)
+    expected[source] = 0.0
+    for _ in range(count):
+        for a, b, length in zip(first, second, np.maximum(lengths, 1e-6), strict=True):
+            expected[b] = min(expected[b], expected[a] + length)
+            expected[a] = min(expected[a], expected[b] + length)
+    np.testing.assert_allclose(path_lengths(count, first, second, lengths, source), expected, rtol=1e-12)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), step_cells=st.integers(1, 3))
+def test_plateau_scores_are_each_shifts_mean_over_the_points_also_across_the_grid_edge(
+        seed: int, step_cells: int) -> None:
+    rng = np.random.default_rng(seed)
+    # A 2 m × 1.5 m grid at 5 cm: points near its edges shift out of it (they then score 0).
+    grid = build_likelihood_grid(rng.uniform([0.0, 0.0], [2.0, 1.5], size=(15, 2)), 0.05, 0.06, margin=0.0)
+    grid.values[:] = rng.random(grid.values.shape, dtype=np.float32)
+    points = rng.uniform(-1.2, 1.2, size=(int(rng.integers(1, 40)), 2))
+    pose = np.array([rng.uniform(0.0, 2.0), rng.uniform(0.0, 1.5), rng.uniform(-math.pi, math.pi)])
+    plateau = score_plateau(points, grid, pose, reach=0.3, step_cells=step_cells)
+    reach = (plateau.scores.shape[0] - 1) // 2
+    cells = grid.cell_of(place(points, pose))
+    height, width = grid.values.shape
+    for j in range(2 * reach + 1):
+        for i in range(2 * reach + 1):
+            x = cells[:, 0] + (i - reach) * step_cells
+            y = cells[:, 1] + (j - reach) * step_cells
+            inside = (x >= 0) & (x < width) & (y >= 0) & (y < height)
+            expected = grid.values[y[inside], x[inside]].astype(np.float64).sum() / len(points)
+            assert plateau.scores[j, i] == pytest.approx(expected, rel=1e-9, abs=1e-12)

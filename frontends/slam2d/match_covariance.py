@@ -41,29 +41,40 @@ and is left as ICP made it (a blob of a sample or two is the score's own width, 
 def _plateau_scores(values: NDArray[np.float32], origin: FloatArray, resolution: float, points: FloatArray,
                     pose: FloatArray, step: int, reach: int) -> FloatArray:
     """Mean likelihood of the points at `pose` shifted by (i, j)·`step` cells, i, j in [−reach, reach]:
-    (2·reach + 1)² scores, rows along y."""
+    (2·reach + 1)² scores, rows along y.
+
+    Point by point, each adding its patch of samples to every shift's total (as `correlative._exhaustive`):
+    the grid is read a row at a time near the point instead of at scattered cells per shift; each total
+    still sums the points in their order, so the scores are the same floats."""
     height, width = values.shape
     count = points.shape[0]
     c = math.cos(pose[2])
     s = math.sin(pose[2])
-    cells_x = np.empty(count, dtype=np.int64)
-    cells_y = np.empty(count, dtype=np.int64)
-    for k in range(count):
-        cells_x[k] = int(math.floor((pose[0] + c * points[k, 0] - s * points[k, 1] - origin[0]) / resolution))
-        cells_y[k] = int(math.floor((pose[1] + s * points[k, 0] + c * points[k, 1] - origin[1]) / resolution))
     side = 2 * reach + 1
-    scores = np.zeros((side, side))
+    span = 2 * reach * step
+    totals = np.zeros((side, side))
+    for k in range(count):
+        left = int(math.floor((pose[0] + c * points[k, 0] - s * points[k, 1] - origin[0]) / resolution))
+        bottom = int(math.floor((pose[1] + s * points[k, 0] + c * points[k, 1] - origin[1]) / resolution))
+        left -= reach * step
+        bottom -= reach * step
+        if left >= 0 and bottom >= 0 and left + span < width and bottom + span < height:
+            for j in range(side):
+                row = values[bottom + j * step]
+                for i in range(side):
+                    totals[j, i] += row[left + i * step]
+        else:
+            for j in range(side):
+                cy = bottom + j * step
+                if 0 <= cy < height:
+                    for i in range(side):
+                        cx = left + i * step
+                        if 0 <= cx < width:
+                            totals[j, i] += values[cy, cx]
+    scores = np.empty((side, side))
     for j in range(side):
-        dy = (j - reach) * step
         for i in range(side):
-            dx = (i - reach) * step
-            total = 0.0
-            for k in range(count):
-                cx = cells_x[k] + dx
-                cy = cells_y[k] + dy
-                if 0 <= cx < width and 0 <= cy < height:
-                    total += values[cy, cx]
-            scores[j, i] = total / max(count, 1)
+            scores[j, i] = totals[j, i] / max(count, 1)
     return scores
 
 
