@@ -12,15 +12,15 @@
 
 from __future__ import annotations
 
-import heapq
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from optimizer import se2
 from optimizer.cost import edge_chi2
@@ -131,58 +131,10 @@ class HypothesisPool:
 def path_lengths(
     count: int, first: IntArray, second: IntArray, lengths: FloatArray, source: int
 ) -> FloatArray:
-    """Shortest path length from keyframe `source` to every keyframe, over constraints of these lengths
-    (inf where no path)."""
-    # A turn in place still counts a micrometre, and parallel constraints in one direction add up: what
-    # scipy's sparse-graph Dijkstra gave (the search radii were measured with it), at a third of the cost.
-    weights = np.maximum(np.asarray(lengths, dtype=np.float64), 1e-6)
-    return _shortest_path_lengths(count, np.asarray(first, dtype=np.int64),
-                                  np.asarray(second, dtype=np.int64), weights, int(source))
-
-
-@njit(cache=True)
-def _shortest_path_lengths(count: int, first: IntArray, second: IntArray, weights: FloatArray,
-                           source: int) -> FloatArray:
-    # The constraints of each ordered pair summed, then an adjacency list of both directions.
-    order = np.argsort(first * count + second, kind="mergesort")
-    pair_first = np.empty(len(order), dtype=np.int64)
-    pair_second = np.empty(len(order), dtype=np.int64)
-    pair_weight = np.empty(len(order))
-    pairs = 0
-    for e in order:
-        if pairs > 0 and pair_first[pairs - 1] == first[e] and pair_second[pairs - 1] == second[e]:
-            pair_weight[pairs - 1] += weights[e]
-        else:
-            pair_first[pairs], pair_second[pairs], pair_weight[pairs] = first[e], second[e], weights[e]
-            pairs += 1
-    start = np.zeros(count + 1, dtype=np.int64)
-    for e in range(pairs):
-        start[pair_first[e] + 1] += 1
-        start[pair_second[e] + 1] += 1
-    start = np.cumsum(start)
-    filled = start[:-1].copy()
-    neighbour = np.empty(2 * pairs, dtype=np.int64)
-    weight = np.empty(2 * pairs)
-    for e in range(pairs):
-        for a, b in ((pair_first[e], pair_second[e]), (pair_second[e], pair_first[e])):
-            neighbour[filled[a]] = b
-            weight[filled[a]] = pair_weight[e]
-            filled[a] += 1
-    distance = np.full(count, np.inf)
-    settled = np.zeros(count, dtype=np.bool_)
-    distance[source] = 0.0
-    heap = [(0.0, source)]
-    while len(heap) > 0:
-        reached, node = heapq.heappop(heap)
-        if settled[node]:
-            continue
-        settled[node] = True
-        for k in range(start[node], start[node + 1]):
-            through = reached + weight[k]
-            if through < distance[neighbour[k]]:
-                distance[neighbour[k]] = through
-                heapq.heappush(heap, (through, neighbour[k]))
-    return distance
+    """Shortest path length from keyframe `source` to every keyframe, over constraints of these lengths."""
+    weights = np.maximum(lengths, 1e-6)  # a zero weight would mean "no edge" to the sparse graph
+    adjacency = coo_matrix((weights, (first, second)), shape=(count, count)).tocsr()
+    return dijkstra(adjacency, directed=False, indices=source)
 
 
 def optimize_and_prune(
