@@ -522,10 +522,12 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
         for j in range(3):
             tree[2 * node, LAZY, j] += tree[node, LAZY, j]
             tree[2 * node + 1, LAZY, j] += tree[node, LAZY, j]
-    for j in range(3):
-        moved = 0.0
-        for i in range(n):
-            moved += weights[i, j] * (amounts[i, j] + tree[size + i // block, LAZY, j])
-            out[i, j] = base[i, j] + moved
+    moved0 = moved1 = moved2 = 0.0
     for i in range(n):
-        out[i, 2] = _wrap(out[i, 2])
+        leaf = size + i // block
+        moved0 += weights[i, 0] * (amounts[i, 0] + tree[leaf, LAZY, 0])
+        moved1 += weights[i, 1] * (amounts[i, 1] + tree[leaf, LAZY, 1])
+        moved2 += weights[i, 2] * (amounts[i, 2] + tree[leaf, LAZY, 2])
+        out[i, 0] = base[i, 0] + moved0
+        out[i, 1] = base[i, 1] + moved1
+        out[i, 2] = _wrap(base[i, 2] + moved2)
