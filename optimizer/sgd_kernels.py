@@ -25,6 +25,7 @@ import numpy as np
 from numba import njit
 
 TWO_PI = 2.0 * math.pi
+Six = tuple[float, float, float, float, float, float]
 
 
 @njit(cache=True, inline="always")
@@ -71,25 +72,27 @@ def _weighted_residual(pa: np.ndarray, pb: np.ndarray, z: np.ndarray, info: np.n
 
 
 @njit(cache=True, inline="always")
-def _weighted_residual_one_rotation(pa: np.ndarray, pb: np.ndarray, z: np.ndarray, info: np.ndarray,
-                                    r: np.ndarray, d: np.ndarray) -> None:
-    """`_weighted_residual` with cos, sin of θ_a computed once and W = R Ω Rᵀ kept in registers: the same
-    operations in the same order (so bit-identical), without the second cos, sin and W's stores."""
-    c = math.cos(pa[2])
-    s = math.sin(pa[2])
-    r[0] = pa[0] + c * z[0] - s * z[1] - pb[0]
-    r[1] = pa[1] + s * z[0] + c * z[1] - pb[1]
-    r[2] = _wrap(pa[2] + z[2] - pb[2])
+def _weighted_residual_one_rotation(ax: float, ay: float, atheta: float, bx: float, by: float, btheta: float,
+                                    z: np.ndarray, info: np.ndarray) -> Six:
+    """`_weighted_residual` of p_a = (ax, ay, atheta), p_b = (bx, by, btheta) as scalars (r, then d), with
+    cos, sin of θ_a computed once and W = R Ω Rᵀ kept in registers: the same operations in the same order
+    (so bit-identical), without the second cos, sin and the stores of W, r and d."""
+    c = math.cos(atheta)
+    s = math.sin(atheta)
+    r0 = ax + c * z[0] - s * z[1] - bx
+    r1 = ay + s * z[0] + c * z[1] - by
+    r2 = _wrap(atheta + z[2] - btheta)
     ro00 = c * info[0, 0] - s * info[1, 0]
     ro01 = c * info[0, 1] - s * info[1, 1]
     ro10 = s * info[0, 0] + c * info[1, 0]
     ro11 = s * info[0, 1] + c * info[1, 1]
-    d[0] = 2.0 * ((ro00 * c - ro01 * s) * r[0] + (ro00 * s + ro01 * c) * r[1]
-                  + (c * info[0, 2] - s * info[1, 2]) * r[2])
-    d[1] = 2.0 * ((ro10 * c - ro11 * s) * r[0] + (ro10 * s + ro11 * c) * r[1]
-                  + (s * info[0, 2] + c * info[1, 2]) * r[2])
-    d[2] = 2.0 * ((info[2, 0] * c - info[2, 1] * s) * r[0] + (info[2, 0] * s + info[2, 1] * c) * r[1]
-                  + info[2, 2] * r[2])
+    d0 = 2.0 * ((ro00 * c - ro01 * s) * r0 + (ro00 * s + ro01 * c) * r1
+                + (c * info[0, 2] - s * info[1, 2]) * r2)
+    d1 = 2.0 * ((ro10 * c - ro11 * s) * r0 + (ro10 * s + ro11 * c) * r1
+                + (s * info[0, 2] + c * info[1, 2]) * r2)
+    d2 = 2.0 * ((info[2, 0] * c - info[2, 1] * s) * r0 + (info[2, 0] * s + info[2, 1] * c) * r1
+                + info[2, 2] * r2)
+    return r0, r1, r2, d0, d1, d2
 
 
 @njit(cache=True, inline="always")
@@ -181,6 +184,17 @@ def _block_end(block_index: int, block: int, n: int) -> int:
     return min((block_index + 1) * block, n)
 
 
+@njit(cache=True, inline="always")
+def _rotated_diagonal(c: float, s: float, info: np.ndarray) -> tuple[float, float, float]:
+    """diag(R Ω Rᵀ) for R = Rot(θ), c = cos θ, s = sin θ: `_rotated_information`'s diagonal, the same
+    operations in the same order."""
+    ro00 = c * info[0, 0] - s * info[1, 0]
+    ro01 = c * info[0, 1] - s * info[1, 1]
+    ro10 = s * info[0, 0] + c * info[1, 0]
+    ro11 = s * info[0, 1] + c * info[1, 1]
+    return ro00 * c - ro01 * s, ro10 * s + ro11 * c, info[2, 2]
+
+
 @njit(cache=True)
 def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, information: np.ndarray,
                    weights: np.ndarray, amounts: np.ndarray, tree: np.ndarray, gamma: np.ndarray,
@@ -193,53 +207,73 @@ def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
     """
     n = poses.shape[0]
     size = tree.shape[0] // 2
-    tree[:] = 0.0
+    # The range adds go to a dense (nodes, 3) array (a third of the tree's bytes per node, so fewer cache
+    # misses), laid over the tree's first third: the tree's own LAZY and ACCUMULATED are scratch until the
+    # pass clears them, and its WEIGHT there is written only after the last read of `lazy`.
+    lazy = tree.reshape(tree.size)[:6 * size].reshape((2 * size, 3))
+    lazy[:] = 0.0
     amounts[:] = 0.0
-    gamma[:] = np.inf
-    w_global = np.empty((3, 3))
+    # `weights` is scratch until it is written at the end: cos, sin of each pose's θ, once per pose rather
+    # than once per constraint.
+    for i in range(n):
+        weights[i, 0] = math.cos(poses[i, 2])
+        weights[i, 1] = math.sin(poses[i, 2])
+    gamma0 = gamma1 = gamma2 = np.inf
     for k in range(edge_from.shape[0]):
-        _rotated_information(poses[edge_from[k], 2], information[k], w_global)
-        first = min(edge_from[k], edge_to[k]) + 1
-        last = max(edge_from[k], edge_to[k])
+        a = edge_from[k]
+        w0, w1, w2 = _rotated_diagonal(weights[a, 0], weights[a, 1], information[k])
+        first = min(a, edge_to[k]) + 1
+        last = max(a, edge_to[k])
         first_block = first // block
         last_block = last // block
         if first_block == last_block:
             for i in range(first, last + 1):
-                for j in range(3):
-                    amounts[i, j] += w_global[j, j]
+                amounts[i, 0] += w0
+                amounts[i, 1] += w1
+                amounts[i, 2] += w2
         else:
             for i in range(first, _block_end(first_block, block, n)):
-                for j in range(3):
-                    amounts[i, j] += w_global[j, j]
+                amounts[i, 0] += w0
+                amounts[i, 1] += w1
+                amounts[i, 2] += w2
             for i in range(last_block * block, last + 1):
-                for j in range(3):
-                    amounts[i, j] += w_global[j, j]
+                amounts[i, 0] += w0
+                amounts[i, 1] += w1
+                amounts[i, 2] += w2
             lo = first_block + size
             hi = last_block + size
             while lo ^ hi != 1:  # the nodes strictly between the two end blocks
                 if lo & 1 == 0:
-                    for j in range(3):
-                        tree[lo ^ 1, LAZY, j] += w_global[j, j]
+                    lazy[lo ^ 1, 0] += w0
+                    lazy[lo ^ 1, 1] += w1
+                    lazy[lo ^ 1, 2] += w2
                 if hi & 1 == 1:
-                    for j in range(3):
-                        tree[hi ^ 1, LAZY, j] += w_global[j, j]
+                    lazy[hi ^ 1, 0] += w0
+                    lazy[hi ^ 1, 1] += w1
+                    lazy[hi ^ 1, 2] += w2
                 lo >>= 1
                 hi >>= 1
-        for j in range(3):
-            gamma[j] = min(gamma[j], w_global[j, j])
+        gamma0 = min(gamma0, w0)
+        gamma1 = min(gamma1, w1)
+        gamma2 = min(gamma2, w2)
+    gamma[0] = gamma0
+    gamma[1] = gamma1
+    gamma[2] = gamma2
     for node in range(1, size):
         for j in range(3):
-            tree[2 * node, LAZY, j] += tree[node, LAZY, j]
-            tree[2 * node + 1, LAZY, j] += tree[node, LAZY, j]
+            lazy[2 * node, j] += lazy[node, j]
+            lazy[2 * node + 1, j] += lazy[node, j]
     # M_i = amounts_i + the LAZY pushed down to its block; pose 0, the anchor, keeps weight 0.
     weights[0, :] = 0.0
-    for b in range((n + block - 1) // block):
+    blocks = (n + block - 1) // block
+    for b in range(blocks):
         for j in range(3):
             total = 0.0
             for i in range(max(b * block, 1), _block_end(b, block, n)):
-                weights[i, j] = 1.0 / (amounts[i, j] + tree[size + b, LAZY, j])
+                weights[i, j] = 1.0 / (amounts[i, j] + lazy[size + b, j])
                 total += weights[i, j]
             tree[size + b, WEIGHT, j] = total
+    tree[size + blocks:, WEIGHT, :] = 0.0
     for node in range(size - 1, 0, -1):
         for j in range(3):
             tree[node, WEIGHT, j] = tree[2 * node, WEIGHT, j] + tree[2 * node + 1, WEIGHT, j]
@@ -248,7 +282,7 @@ def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
 @njit(cache=True, inline="always")
 def _finish_tree_pose(k: int, node: int, lo: int, hi: int, l0: float, l1: float, l2: float, s0: float,
                       s1: float, s2: float, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
-                      tree: np.ndarray, block: int, out: np.ndarray) -> None:
+                      tree: np.ndarray, pending: np.ndarray, block: int) -> tuple[float, float, float]:
     """p_k = p⁰_k + Σ_{i≤k} w_i C_i, continuing the walk to k's block from `node` (interval lo..hi−1), with
     l = Σ LAZY of the ancestors of `node` (itself excluded) and s = the prefix sum gathered so far."""
     size = tree.shape[0] // 2
@@ -260,6 +294,8 @@ def _finish_tree_pose(k: int, node: int, lo: int, hi: int, l0: float, l1: float,
         mid = (lo + hi) >> 1
         left = 2 * node
         if target >= mid:  # the whole left child lies in the prefix
+            if lo <= pending[0] < mid:
+                _resum_pending(pending, tree)
             s0 += tree[left, ACCUMULATED, 0] + l0 * tree[left, WEIGHT, 0]
             s1 += tree[left, ACCUMULATED, 1] + l1 * tree[left, WEIGHT, 1]
             s2 += tree[left, ACCUMULATED, 2] + l2 * tree[left, WEIGHT, 2]
@@ -275,14 +311,13 @@ def _finish_tree_pose(k: int, node: int, lo: int, hi: int, l0: float, l1: float,
         s0 += weights[i, 0] * (amounts[i, 0] + l0)
         s1 += weights[i, 1] * (amounts[i, 1] + l1)
         s2 += weights[i, 2] * (amounts[i, 2] + l2)
-    out[0] = base[k, 0] + s0
-    out[1] = base[k, 1] + s1
-    out[2] = base[k, 2] + s2
+    return base[k, 0] + s0, base[k, 1] + s1, base[k, 2] + s2
 
 
 @njit(cache=True, inline="always")
 def _tree_pose_pair(a: int, b: int, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
-                    tree: np.ndarray, block: int, out_a: np.ndarray, out_b: np.ndarray) -> None:
+                    tree: np.ndarray, pending: np.ndarray,
+                    block: int) -> Six:
     """p_k = p⁰_k + Σ_{i≤k} w_i C_i for k = a and k = b: the tree's walk from the root to k's block, then
     k's block. The path both walks share is walked once: most constraints join nearby poses, whose walks
     part only near the leaves. Each sum adds the same terms in the same order as a walk of its own."""
@@ -303,6 +338,8 @@ def _tree_pose_pair(a: int, b: int, base: np.ndarray, weights: np.ndarray, amoun
         l2 += tree[node, LAZY, 2]
         left = 2 * node
         if target_a >= mid:
+            if lo <= pending[0] < mid:
+                _resum_pending(pending, tree)
             s0 += tree[left, ACCUMULATED, 0] + l0 * tree[left, WEIGHT, 0]
             s1 += tree[left, ACCUMULATED, 1] + l1 * tree[left, WEIGHT, 1]
             s2 += tree[left, ACCUMULATED, 2] + l2 * tree[left, WEIGHT, 2]
@@ -311,48 +348,61 @@ def _tree_pose_pair(a: int, b: int, base: np.ndarray, weights: np.ndarray, amoun
         else:
             node = left
             hi = mid
-    _finish_tree_pose(a, node, lo, hi, l0, l1, l2, s0, s1, s2, base, weights, amounts, tree, block, out_a)
-    _finish_tree_pose(b, node, lo, hi, l0, l1, l2, s0, s1, s2, base, weights, amounts, tree, block, out_b)
+    ax, ay, atheta = _finish_tree_pose(a, node, lo, hi, l0, l1, l2, s0, s1, s2, base, weights, amounts, tree,
+                                       pending, block)
+    bx, by, btheta = _finish_tree_pose(b, node, lo, hi, l0, l1, l2, s0, s1, s2, base, weights, amounts, tree,
+                                       pending, block)
+    return ax, ay, atheta, bx, by, btheta
 
 
 @njit(cache=True, inline="always")
-def _tree_weight(first: int, last: int, weights: np.ndarray, tree: np.ndarray, block: int,
-                 out: np.ndarray) -> None:
-    """Σ w_i over first..last: the increments of the end blocks, and the nodes that tile those between."""
+def _tree_weight(first: int, last: int, weights: np.ndarray, tree: np.ndarray,
+                 block: int) -> tuple[float, float, float]:
+    """Σ w_i over first..last: the increments of the end blocks, and the nodes that tile those between.
+    Scalars rather than an output array: the compiler keeps them in registers across the tree's loads."""
     size = tree.shape[0] // 2
     n = weights.shape[0]
-    out[:] = 0.0
+    w0 = w1 = w2 = 0.0
     first_block = first // block
     last_block = last // block
     if first_block == last_block:
         for i in range(first, last + 1):
-            for j in range(3):
-                out[j] += weights[i, j]
-        return
+            w0 += weights[i, 0]
+            w1 += weights[i, 1]
+            w2 += weights[i, 2]
+        return w0, w1, w2
     for i in range(first, _block_end(first_block, block, n)):
-        for j in range(3):
-            out[j] += weights[i, j]
+        w0 += weights[i, 0]
+        w1 += weights[i, 1]
+        w2 += weights[i, 2]
     lo = first_block + size
     hi = last_block + size
     while lo ^ hi != 1:
         if lo & 1 == 0:
-            for j in range(3):
-                out[j] += tree[lo ^ 1, WEIGHT, j]
+            w0 += tree[lo ^ 1, WEIGHT, 0]
+            w1 += tree[lo ^ 1, WEIGHT, 1]
+            w2 += tree[lo ^ 1, WEIGHT, 2]
         if hi & 1 == 1:
-            for j in range(3):
-                out[j] += tree[hi ^ 1, WEIGHT, j]
+            w0 += tree[hi ^ 1, WEIGHT, 0]
+            w1 += tree[hi ^ 1, WEIGHT, 1]
+            w2 += tree[hi ^ 1, WEIGHT, 2]
         lo >>= 1
         hi >>= 1
     for i in range(last_block * block, last + 1):
-        for j in range(3):
-            out[j] += weights[i, j]
+        w0 += weights[i, 0]
+        w1 += weights[i, 1]
+        w2 += weights[i, 2]
+    return w0, w1, w2
 
 
 @njit(cache=True, inline="always")
-def _apply(node: int, amount: np.ndarray, tree: np.ndarray) -> None:
-    for j in range(3):
-        tree[node, LAZY, j] += amount[j]
-        tree[node, ACCUMULATED, j] += amount[j] * tree[node, WEIGHT, j]
+def _apply(node: int, a0: float, a1: float, a2: float, tree: np.ndarray) -> None:
+    tree[node, LAZY, 0] += a0
+    tree[node, LAZY, 1] += a1
+    tree[node, LAZY, 2] += a2
+    tree[node, ACCUMULATED, 0] += a0 * tree[node, WEIGHT, 0]
+    tree[node, ACCUMULATED, 1] += a1 * tree[node, WEIGHT, 1]
+    tree[node, ACCUMULATED, 2] += a2 * tree[node, WEIGHT, 2]
 
 
 @njit(cache=True, inline="always")
@@ -362,54 +412,73 @@ def _resum(node: int, tree: np.ndarray) -> None:
                                       + tree[node, LAZY, j] * tree[node, WEIGHT, j])
 
 
-@njit(cache=True, inline="always")
-def _add_to_increments(first: int, stop: int, amount: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
-                       tree: np.ndarray, leaf: int) -> None:
-    """C_i += amount for i in first..stop−1, all in the block of node `leaf`."""
-    for j in range(3):
-        weight = 0.0
-        for i in range(first, stop):
-            amounts[i, j] += amount[j]
-            weight += weights[i, j]
-        tree[leaf, ACCUMULATED, j] += amount[j] * weight
+@njit(cache=True)
+def _resum_pending(pending: np.ndarray, tree: np.ndarray) -> None:
+    """Re-sum the ancestors of the pending block, bottom up; no block is pending afterwards."""
+    node = (pending[0] + tree.shape[0] // 2) >> 1
+    while node >= 1:
+        _resum(node, tree)
+        node >>= 1
+    pending[0] = -1
 
 
 @njit(cache=True, inline="always")
-def _tree_add(first: int, last: int, amount: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
-              tree: np.ndarray, block: int) -> None:
-    """C_i += amount for i in first..last: the increments of the end blocks one by one, the nodes that tile
-    the blocks between; then the ancestors of the end blocks are re-summed."""
+def _add_to_increments(first: int, stop: int, a0: float, a1: float, a2: float, weights: np.ndarray,
+                       amounts: np.ndarray, tree: np.ndarray, leaf: int) -> None:
+    """C_i += (a0, a1, a2) for i in first..stop−1, all in the block of node `leaf`."""
+    w0 = w1 = w2 = 0.0
+    for i in range(first, stop):
+        amounts[i, 0] += a0
+        amounts[i, 1] += a1
+        amounts[i, 2] += a2
+        w0 += weights[i, 0]
+        w1 += weights[i, 1]
+        w2 += weights[i, 2]
+    tree[leaf, ACCUMULATED, 0] += a0 * w0
+    tree[leaf, ACCUMULATED, 1] += a1 * w1
+    tree[leaf, ACCUMULATED, 2] += a2 * w2
+
+
+@njit(cache=True, inline="always")
+def _tree_add(first: int, last: int, a0: float, a1: float, a2: float, weights: np.ndarray,
+              amounts: np.ndarray, tree: np.ndarray, pending: np.ndarray, block: int) -> None:
+    """C_i += (a0, a1, a2) for i in first..last: the increments of the end blocks one by one, the nodes that
+    tile the blocks between; then the ancestors of the end blocks are re-summed, except those of one end
+    block, left pending (see `sgd_iteration_tree`)."""
     size = tree.shape[0] // 2
     n = weights.shape[0]
     first_block = first // block
     last_block = last // block
+    if pending[0] >= 0 and pending[0] != first_block and pending[0] != last_block:
+        _resum_pending(pending, tree)  # it may lie under a node of the range, or share ancestors with it
     left = first_block + size
     right = last_block + size
     if first_block == last_block:
-        _add_to_increments(first, last + 1, amount, weights, amounts, tree, left)
+        _add_to_increments(first, last + 1, a0, a1, a2, weights, amounts, tree, left)
     else:
-        _add_to_increments(first, _block_end(first_block, block, n), amount, weights, amounts, tree, left)
-        _add_to_increments(last_block * block, last + 1, amount, weights, amounts, tree, right)
+        _add_to_increments(first, _block_end(first_block, block, n), a0, a1, a2, weights, amounts, tree, left)
+        _add_to_increments(last_block * block, last + 1, a0, a1, a2, weights, amounts, tree, right)
         lo = left
         hi = right
         while lo ^ hi != 1:
             if lo & 1 == 0:
-                _apply(lo ^ 1, amount, tree)
+                _apply(lo ^ 1, a0, a1, a2, tree)
             if hi & 1 == 1:
-                _apply(hi ^ 1, amount, tree)
+                _apply(hi ^ 1, a0, a1, a2, tree)
             lo >>= 1
             hi >>= 1
-    # Re-sum the ancestors of both end blocks, level by level; once the two paths meet, only one remains.
+    # The ancestors of the pending end block (the last one, unless the first was pending already) stay
+    # pending; the other end block's are re-summed up to the last one below where the two paths meet.
+    if pending[0] == first_block:
+        left, right = right, left
+    else:
+        pending[0] = last_block
     left >>= 1
     right >>= 1
     while left != right:
         _resum(left, tree)
-        _resum(right, tree)
         left >>= 1
         right >>= 1
-    while left >= 1:
-        _resum(left, tree)
-        left >>= 1
 
 
 @njit(cache=True)
@@ -421,39 +490,44 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
     the new poses, θ wrapped, are written to `out` at the end (O(N)).
 
     `weights` and `tree` ((2·`tree_size`, 3, 3)) must hold what `stiffness_tree` computed with `block`.
+
+    The ACCUMULATED of the ancestors of one block, `pending`, may be out of date: a range add re-sums them
+    only when a walk reads one of them or a later add has no end in that block. Consecutive constraints
+    mostly end in the same block (odometry, then loop closures to the current pose), so most re-sums up to
+    the root are saved. A re-sum recomputes a node from its children and its own LAZY, and no node is read
+    or added to while out of date, so every sum is the one an immediate re-sum gives: bit-identical poses.
     """
     n = base.shape[0]
     size = tree.shape[0] // 2
     tree[:, LAZY, :] = 0.0
     tree[:, ACCUMULATED, :] = 0.0
     amounts[:] = 0.0
-    pa = np.empty(3)
-    pb = np.empty(3)
-    r = np.empty(3)
-    d = np.empty(3)
-    total_weight = np.empty(3)
-    amount = np.empty(3)
+    pending = np.full(1, -1)
     for k in range(edge_from.shape[0]):
         a = edge_from[k]
         b = edge_to[k]
-        _tree_pose_pair(a, b, base, weights, amounts, tree, block, pa, pb)
-        _weighted_residual_one_rotation(pa, pb, measurements[k], information[k], r, d)
+        ax, ay, atheta, bx, by, btheta = _tree_pose_pair(a, b, base, weights, amounts, tree, pending, block)
+        r0, r1, r2, d0, d1, d2 = _weighted_residual_one_rotation(ax, ay, atheta, bx, by, btheta,
+                                                                 measurements[k], information[k])
         lo = min(a, b)
         hi = max(a, b)
         sign = 1.0 if a < b else -1.0
-        _tree_weight(lo + 1, hi, weights, tree, block, total_weight)
-        for j in range(3):
-            amount[j] = sign * _clamped_step(hi - lo, d[j], r[j], gamma[j], t) / total_weight[j]
-        _tree_add(lo + 1, hi, amount, weights, amounts, tree, block)
+        w0, w1, w2 = _tree_weight(lo + 1, hi, weights, tree, block)
+        a0 = sign * _clamped_step(hi - lo, d0, r0, gamma[0], t) / w0
+        a1 = sign * _clamped_step(hi - lo, d1, r1, gamma[1], t) / w1
+        a2 = sign * _clamped_step(hi - lo, d2, r2, gamma[2], t) / w2
+        _tree_add(lo + 1, hi, a0, a1, a2, weights, amounts, tree, pending, block)
     # Push every LAZY down to the blocks: C_i = amounts_i + its block's LAZY; p_i = p⁰_i + Σ_{m≤i} w_m C_m.
     for node in range(1, size):
         for j in range(3):
             tree[2 * node, LAZY, j] += tree[node, LAZY, j]
             tree[2 * node + 1, LAZY, j] += tree[node, LAZY, j]
-    for j in range(3):
-        moved = 0.0
-        for i in range(n):
-            moved += weights[i, j] * (amounts[i, j] + tree[size + i // block, LAZY, j])
-            out[i, j] = base[i, j] + moved
+    moved0 = moved1 = moved2 = 0.0
     for i in range(n):
-        out[i, 2] = _wrap(out[i, 2])
+        leaf = size + i // block
+        moved0 += weights[i, 0] * (amounts[i, 0] + tree[leaf, LAZY, 0])
+        moved1 += weights[i, 1] * (amounts[i, 1] + tree[leaf, LAZY, 1])
+        moved2 += weights[i, 2] * (amounts[i, 2] + tree[leaf, LAZY, 2])
+        out[i, 0] = base[i, 0] + moved0
+        out[i, 1] = base[i, 1] + moved1
+        out[i, 2] = _wrap(base[i, 2] + moved2)
