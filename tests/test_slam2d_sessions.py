@@ -17,7 +17,7 @@ from frontends.slam2d.config import (
     SMALL_CORRECTION_LINEAR,
 )
 from frontends.slam2d.local_map import place
-from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, MapLocalizer
+from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import smooth_localized, smooth_scans, tracking_drift
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, _LoopHypothesis
@@ -207,6 +207,17 @@ def test_outside_the_saved_map_the_rolling_local_map_tracks_the_robot(mapping_ru
     np.testing.assert_array_equal(localizer.map.points, saved_points)
 
 
+def localized_in_the_south_corridor_map(mapping_run: Run, run: Run) -> list[LocalizedScan]:
+    """`run` localized from its true start in a map of the south corridor only (the mapping run's
+    keyframes there, with their points south of y = 2.5 m)."""
+    keyframes = [k for k in range(0, len(mapping_run.truth), MAP_EVERY) if mapping_run.truth[k, 1] < 2.0]
+    scans = [mapping_run.scans[k][place(mapping_run.scans[k], mapping_run.truth[k])[:, 1] < 2.5]
+             for k in keyframes]
+    localizer = MapLocalizer(scans, mapping_run.truth[keyframes], initial_pose=run.truth[0])
+    return [localizer.localize(int(stamp), scan, odo)
+            for stamp, scan, odo in zip(run.stamps_ns, run.scans, run.odometry, strict=True)]
+
+
 def test_a_stretch_tracked_outside_the_map_is_smoothed_between_the_map_fixes(mapping_run: Run) -> None:
     """The saved map holds only the south corridor; the new run's laser reaches 4 m and its odometry is
     3 % long. Around the east, north and west corridors the rolling local map sees mostly two parallel
@@ -214,12 +225,7 @@ def test_a_stretch_tracked_outside_the_map_is_smoothed_between_the_map_fixes(map
     match corrects it at once. Smoothed offline (the locally measured motions between the map fixes at
     both ends), the tracked stretch lies far nearer the truth; the map-matched scans stay where they were."""
     run = simulate_run(square_loop(), step=0.15, seed=5, max_range=4.0, scale_error=0.03)
-    keyframes = [k for k in range(0, len(mapping_run.truth), MAP_EVERY) if mapping_run.truth[k, 1] < 2.0]
-    scans = [mapping_run.scans[k][place(mapping_run.scans[k], mapping_run.truth[k])[:, 1] < 2.5]
-             for k in keyframes]
-    localizer = MapLocalizer(scans, mapping_run.truth[keyframes], initial_pose=run.truth[0])
-    results = [localizer.localize(int(stamp), scan, odo)
-               for stamp, scan, odo in zip(run.stamps_ns, run.scans, run.odometry, strict=True)]
+    results = localized_in_the_south_corridor_map(mapping_run, run)
     assert all(r.localized for r in results)
     tracked = np.array([r.tracked for r in results])
     matched = np.array([r.matched for r in results])
@@ -251,12 +257,7 @@ def test_a_stretch_tracked_with_little_drift_is_not_made_worse_by_smoothing(mapp
     0.027 m smoothed while the tracked steps were weighed by the rolling map's match as independent
     steps)."""
     run = simulate_run(square_loop(), step=0.15, seed=seed, range_noise=RANGE_NOISE)
-    keyframes = [k for k in range(0, len(mapping_run.truth), MAP_EVERY) if mapping_run.truth[k, 1] < 2.0]
-    scans = [mapping_run.scans[k][place(mapping_run.scans[k], mapping_run.truth[k])[:, 1] < 2.5]
-             for k in keyframes]
-    localizer = MapLocalizer(scans, mapping_run.truth[keyframes], initial_pose=run.truth[0])
-    results = [localizer.localize(int(stamp), scan, odo)
-               for stamp, scan, odo in zip(run.stamps_ns, run.scans, run.odometry, strict=True)]
+    results = localized_in_the_south_corridor_map(mapping_run, run)
     tracked = np.array([r.tracked for r in results])
     assert tracked.sum() > 200
     online = position_errors(np.array([r.pose for r in results]), run.truth)
