@@ -77,19 +77,22 @@ def tracking_drift(poses: FloatArray, linked: BoolArray, tracked: BoolArray, anc
     """(3,) the tracking's drift per tracked step, the variance of x, y and heading (see the module
     docstring), pooled over the re-entries: a run of tracked scans linked to a map match before it and
     to one after it; None without any re-entry (or with jumps of exactly zero: nothing measured)."""
-    squares = np.zeros(3)
-    steps = 0
-    start = np.flatnonzero(tracked[1:] & ~tracked[:-1] & anchored[:-1]) + 1
-    for first in start:
-        after = first + int(np.argmin(tracked[first:])) if not tracked[first:].all() else len(tracked)
-        if after == len(tracked) or not anchored[after] or not linked[first:after + 1].all():
-            continue
-        jump = poses[after] - se2.compose(poses[after - 1], motions[after])
-        jump[2] = se2.wrap_angle(float(jump[2]))
-        squares += jump**2
-        steps += after + 1 - first
+    before = np.concatenate([[False], tracked[:-1]])
+    after = np.concatenate([tracked[1:], [False]])
+    first = np.flatnonzero(tracked & ~before)
+    reentry = np.flatnonzero(tracked & ~after) + 1  # the scan after each run of tracked scans
+    unlinked = np.cumsum(~linked)
+    measured = (first > 0) & (reentry < len(tracked))
+    first, reentry = first[measured], reentry[measured]
+    measured = (anchored[first - 1] & anchored[reentry]
+                & (unlinked[reentry] == unlinked[first - 1]))  # every step from the map match linked
+    first, reentry = first[measured], reentry[measured]
+    steps = int(np.sum(reentry + 1 - first))
     if steps == 0:
         return None
+    jumps = poses[reentry] - se2.compose(poses[reentry - 1], motions[reentry])
+    jumps[:, 2] = se2.wrap_angle(jumps[:, 2])
+    squares = np.sum(jumps**2, axis=0)
     linear = 0.5 * (squares[0] + squares[1]) / steps
     angular = squares[2] / steps
     if linear <= 0.0 or angular <= 0.0:
