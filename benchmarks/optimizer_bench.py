@@ -36,6 +36,7 @@ if str(REPO) not in sys.path:  # runnable from a checkout without installing the
 
 from optimizer.benchmark_graphs import (  # noqa: E402
     M3500_POSES,
+    gtsam_bundled_graphs,
     noisy_manhattan,
     odometry_chain,
     reversed_anisotropic_variant,
@@ -673,6 +674,10 @@ def best_known_graphs(quick: bool) -> dict[str, BenchmarkGraph]:
             # pg1.g2o: one edge has θθ information 0; solved with that eigenvalue raised (say so).
             graphs[path.name] = BenchmarkGraph(read_graph(path, repair_information=True).graph,
                                                note="information repaired")
+    if not quick:
+        for path in gtsam_bundled_graphs():
+            graphs[f"{path.name} (GTSAM's data)"] = BenchmarkGraph(read_graph(path).graph,
+                                                                   note="EQUIV lines skipped")
     for seed in MANHATTAN_SEEDS[:1] if quick else MANHATTAN_SEEDS:
         for sigma_theta in MANHATTAN_SIGMA_THETAS:
             world = noisy_manhattan(sigma_theta=sigma_theta, seed=seed)

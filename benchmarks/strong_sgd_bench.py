@@ -34,6 +34,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # runnable from a checkout without installing the package
     sys.path.insert(0, str(REPO))
 
+from optimizer.benchmark_graphs import gtsam_bundled_graphs  # noqa: E402
 from optimizer.cost import chi2  # noqa: E402
 from optimizer.errors import OptimizerError  # noqa: E402
 from optimizer.graph import PoseGraph  # noqa: E402
@@ -100,6 +101,7 @@ def _graphs(quick: bool) -> list[tuple[str, PoseGraph]]:
     graphs.append(("grid world 3500 (seed 0), loops as certain as odometry",
                    generate_grid_world(3500, seed=0, loop_sigma=EQUAL_LOOP_SIGMA).graph))
     if not quick:
+        graphs += [(f"{path.name} (GTSAM's data)", read_graph(path).graph) for path in gtsam_bundled_graphs()]
         graphs.append(("grid world 10000 (seed 0)", generate_grid_world(10000, seed=0).graph))
         graphs.append(("grid world 10000 (seed 0), loops as certain as odometry",
                        generate_grid_world(10000, seed=0, loop_sigma=EQUAL_LOOP_SIGMA).graph))

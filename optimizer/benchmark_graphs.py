@@ -5,13 +5,18 @@
 - `with_false_loops`: random false loop closures added to a graph, scored afterwards on the true edges only
   (`true_edges_chi2`);
 - `noisy_manhattan`: M3500-sized grid worlds with heavy odometry-angle noise, i.e. very poor starts;
-- `odometry_chain`: the start obtained by composing the odometry constraints from pose 0.
+- `odometry_chain`: the start obtained by composing the odometry constraints from pose 0;
+- `gtsam_bundled_graphs`: real 2D graphs that are not in `../shared` but ship inside GTSAM's Python wheel
+  (the benchmarks' extra), found by path without importing it.
 
 Edges are kept as stored (a > b allowed), as `PoseGraph.build` keeps them; building through it also
 validates the result (positive definite information, a connected graph).
 """
 
 from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,6 +36,18 @@ ANISOTROPY_RANGE = (1e3, 1e4)
 log-uniformly in this range."""
 M3500_POSES = 3500
 MANHATTAN_ODOMETRY_SIGMA_XY = 0.02
+GTSAM_BUNDLED_GRAPHS = ("w10000.graph",)
+"""TORO's 10 000-pose Manhattan world (64 311 constraints; its 5 875 EQUIV lines are skipped, as GTSAM's
+and g2o's readers skip them), in GTSAM's `Data` folder."""
+
+
+def gtsam_bundled_graphs() -> list[Path]:
+    """The `GTSAM_BUNDLED_GRAPHS` that the installed GTSAM wheel carries (none without GTSAM)."""
+    spec = importlib.util.find_spec("gtsam")
+    if spec is None or spec.origin is None:
+        return []
+    folder = Path(spec.origin).parent / "Data"
+    return [folder / name for name in GTSAM_BUNDLED_GRAPHS if (folder / name).is_file()]
 
 
 def loop_closures(graph: PoseGraph) -> BoolArray:

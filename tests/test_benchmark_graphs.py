@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import importlib.machinery
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from optimizer import se2
+from optimizer import benchmark_graphs, se2
 from optimizer.benchmark_graphs import (
     ANISOTROPY_RANGE,
     loop_closures,
@@ -215,3 +219,18 @@ def test_odometry_chain_needs_every_consecutive_pair(noisy_world):
                        graph.information[keep], graph.vertex_ids)
     with pytest.raises(GraphError, match="10 and 11"):
         odometry_chain(broken)
+
+
+def test_gtsam_bundled_graphs_are_found_in_the_wheels_data_folder_and_only_there(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    package = tmp_path / "gtsam"
+    (package / "Data").mkdir(parents=True)
+    origin = package / "__init__.py"
+    origin.write_text("")
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name: importlib.machinery.ModuleSpec(name, None, origin=str(origin)))
+    assert benchmark_graphs.gtsam_bundled_graphs() == []
+    (package / "Data" / "w10000.graph").write_text("VERTEX2 0 0 0 0\n")
+    assert benchmark_graphs.gtsam_bundled_graphs() == [package / "Data" / "w10000.graph"]
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    assert benchmark_graphs.gtsam_bundled_graphs() == []
