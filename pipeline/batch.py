@@ -44,7 +44,7 @@ from pipeline.api import (
 )
 from pipeline.config import ReplayConfig
 from pipeline.errors import OutputError, PipelineError
-from pipeline.outputs import raise_interrupt, recover_outputs, stop_signals_held
+from pipeline.outputs import install_stop_signals, recover_outputs, stop_signals_held
 
 OutcomeCallback = Callable[["BatchOutcome"], None]
 
@@ -283,8 +283,7 @@ def _init_worker() -> None:
     from threadpoolctl import threadpool_limits
 
     _worker_limits = threadpool_limits(limits=1, user_api="blas")
-    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
-        signal.signal(number, _on_worker_stop_signal)
+    install_stop_signals(_on_worker_stop_signal)
 
 
 def _on_worker_stop_signal(signum: int, frame: FrameType | None) -> None:
@@ -295,7 +294,7 @@ def _on_worker_stop_signal(signum: int, frame: FrameType | None) -> None:
     if _worker_stopping and signum != signal.SIGALRM:
         return
     _worker_stopping = True
-    raise_interrupt(frame)
+    raise KeyboardInterrupt
 
 
 def _run_in_worker(path: Path, config: ReplayConfig, out_dir: Path) -> BatchOutcome:

@@ -803,7 +803,7 @@ def main() -> NoReturn:
     """Console-script entry point."""
     from threadpoolctl import threadpool_limits
 
-    from pipeline.outputs import raise_interrupt
+    from pipeline.outputs import install_stop_signals
 
     # Our linear algebra is many small vectors and 3×3 blocks: BLAS threads only add hand-off latency,
     # and on a busy machine their spinning made one 10k-element dot product take 8 ms instead of 5 µs.
@@ -813,10 +813,9 @@ def main() -> NoReturn:
         # SIGTERM is cleaned up like Ctrl-C (staged outputs removed, workers stopped), then reported as such.
         if signum == signal.SIGTERM:
             terminated.append(signum)
-        raise_interrupt(frame)
+        raise KeyboardInterrupt
 
-    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
-        signal.signal(number, on_signal)
+    install_stop_signals(on_signal)
     code: int | str | None
     try:
         with threadpool_limits(limits=1, user_api="blas"):

@@ -21,8 +21,9 @@ import os
 import secrets
 import shutil
 import signal
+import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
@@ -37,6 +38,7 @@ if TYPE_CHECKING:
 _STAGING = ".staging-"
 _COMPLETE = ".complete"
 _HELD_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+INTERRUPT_RETRY_SECONDS = 0.05
 
 
 def prepare_output_dir(directory: Path) -> bool:
@@ -148,16 +150,26 @@ def stop_signals_held(*, redeliver: bool = True) -> Iterator[None]:
             signal.raise_signal(number)
 
 
-def raise_interrupt(frame: FrameType | None) -> None:
-    """From a stop signal's handler: raise `KeyboardInterrupt`, which unwinds the run and removes its staged
-    outputs. An exception raised in a `__del__` is printed and dropped, and the interrupt lost: there, arm
-    SIGALRM (whose handler must call this too) to try again in a moment, once the finaliser has returned."""
-    while frame is not None:
-        if frame.f_code.co_name == "__del__":
-            signal.setitimer(signal.ITIMER_REAL, 0.05)
-            return
-        frame = frame.f_back
-    raise KeyboardInterrupt
+def install_stop_signals(handler: Callable[[int, FrameType | None], None]) -> None:
+    """`handler` for SIGINT, SIGTERM and SIGALRM; it raises `KeyboardInterrupt`, which unwinds the run and
+    removes its staged outputs.
+
+    An exception raised where Python cannot propagate it (in a `__del__`, or in a callback from C such as
+    numba's LLVM object cache while a kernel compiles) goes to `sys.unraisablehook`, which prints it with a
+    traceback and drops it: the interrupt would be lost. Such an interrupt is retried a moment later by
+    SIGALRM, silently (so `handler` must raise again on SIGALRM); other unraisable exceptions are reported
+    as before."""
+    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
+        signal.signal(number, handler)
+    report = sys.unraisablehook
+
+    def retry_interrupt(unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            signal.setitimer(signal.ITIMER_REAL, INTERRUPT_RETRY_SECONDS)
+        else:
+            report(unraisable)
+
+    sys.unraisablehook = retry_interrupt
 
 
 def _folder_error(directory: Path, error: OSError) -> OutputError:

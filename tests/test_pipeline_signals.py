@@ -4,6 +4,7 @@ nothing else (after SIGKILL: once the next run into the folder has cleaned up)."
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import json
 import os
 import shutil
@@ -19,6 +20,7 @@ import pytest
 from optimizer.cost import chi2
 from optimizer.graph_files import read_graph, write_g2o
 from optimizer.gridworld import generate_grid_world
+from pipeline.outputs import install_stop_signals
 
 OUTPUTS = {"city.g2o", "city.json", "city.rrd"}
 
@@ -229,3 +231,34 @@ def test_an_interrupted_batch_stops_its_workers_and_publishes_nothing(
     finally:
         with contextlib.suppress(ProcessLookupError):  # whatever a failure left running
             os.killpg(parent.pid, signal.SIGKILL)
+
+
+def test_an_interrupt_raised_where_python_cannot_propagate_it_is_retried_silently(
+        capfd: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C landing in a callback from C (numba's LLVM object cache while a kernel compiles): Python
+    prints the KeyboardInterrupt as an ignored exception with its traceback and drops it. It must instead
+    reach the run a moment later, and print nothing."""
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # restored after the test
+    stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGALRM)
+    previous = {number: signal.getsignal(number) for number in stop_signals}
+    handled: list[int] = []
+
+    def on_signal(signum: int, _frame: object) -> None:
+        handled.append(signum)
+        raise KeyboardInterrupt
+
+    @ctypes.CFUNCTYPE(None)
+    def called_from_c() -> None:
+        signal.raise_signal(signal.SIGINT)
+
+    try:
+        install_stop_signals(on_signal)
+        with pytest.raises(KeyboardInterrupt):
+            called_from_c()
+            time.sleep(2.0)
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    assert handled == [signal.SIGINT, signal.SIGALRM]
+    assert "Traceback" not in capfd.readouterr().err
