@@ -1,6 +1,7 @@
 """The exact-minimum polish: sparse Levenberg–Marquardt (damped Gauss–Newton) on the χ² of `optimizer.cost`.
 
-Poses are parameterised globally (x, y, θ) with an additive update, θ wrapped. The first pose is anchored:
+Poses are parameterised globally (x, y, θ) with an additive update, θ wrapped, except that a step's rotation
+of the whole graph about the anchor is applied as a rotation (`moved_by`). The first pose is anchored:
 its three columns are dropped from the system, so the normal equations are (3N−3)×(3N−3).
 
 The information of real graphs (INTEL.g2o) is badly scaled — 3×3 edge informations with condition numbers
@@ -264,13 +265,41 @@ def gauss_newton(
 
 
 def _trial(graph: PoseGraph, current: FloatArray, step: FloatArray) -> tuple[FloatArray, float]:
-    """The poses `step` leads to from `current` (θ wrapped) and their χ² (inf when not finite)."""
-    trial = current.copy()
-    trial[1:] += step.reshape(-1, 3)
-    trial[:, 2] = se2.wrap_angle(trial[:, 2])
+    """The poses `step` leads to from `current` (θ wrapped, see `moved_by`) and their χ² (inf when not
+    finite)."""
+    trial = moved_by(current, step)
     with np.errstate(over="ignore", invalid="ignore"):  # a wild trial step may overflow χ²
         trial_chi2 = chi2(graph, trial)
     return trial, float(trial_chi2) if np.isfinite(trial_chi2) else math.inf
+
+
+def moved_by(poses: FloatArray, step: FloatArray) -> FloatArray:
+    """`poses` after the step (3 entries per free pose), with the step's rotation of the whole graph about
+    the anchor applied as a rotation.
+
+    The additive update is exact in θ but only first-order in the rigid rotation about the anchor: turning
+    everything by φ moves a pose at distance r by r·φ along the tangent instead of along the circle, which
+    stretches every edge by a factor √(1 + φ²). That rotation is the graph's softest mode wherever the
+    anchor has few edges (at 10⁶ grid-world poses, with 2 edges at pose 0, 99.99 % of a near-optimum step's
+    norm, φ = −0.036 rad at λ = 1e-11: the additive update raised χ² by 877 where 145.7 of decrease was
+    predicted; this one lowers it by 145.4). So the step's rotation φ (its least-squares fit to the rigid
+    rotation field, δθ = φ, δt = φ·R(π/2)·(t − t₀)) is taken out and applied exactly, about pose 0, after
+    the rest of the step; to first order the result is the additive update, so the Gauss–Newton model and
+    its predicted decrease are unchanged."""
+    free = step.reshape(-1, 3)
+    relative = poses[1:, :2] - poses[0, :2]
+    lever = np.column_stack([-relative[:, 1], relative[:, 0]])  # δt of a unit rotation about pose 0
+    phi = float(np.vdot(free[:, :2], lever) + free[:, 2].sum()) / (float(np.vdot(lever, lever)) + len(free))
+    moved = relative + free[:, :2] - phi * lever
+    cos, sin = math.cos(phi), math.sin(phi)
+    trial = poses.copy()
+    trial[1:, 0] = poses[0, 0] + cos * moved[:, 0] - sin * moved[:, 1]
+    trial[1:, 1] = poses[0, 1] + sin * moved[:, 0] + cos * moved[:, 1]
+    trial[1:, 2] += free[:, 2]
+    trial[:, 2] = se2.wrap_angle(trial[:, 2])
+    return trial
+
+
 
 
 def _rounding_chi2(graph: PoseGraph, poses: FloatArray) -> float:
