@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from optimizer import se2
+from optimizer.anchor_alignment import aligned_to_anchor
 from optimizer.block_normal_equations import BlockPattern, assemble_blocks, block_diagonal
 from optimizer.cost import chi2, edge_errors
 from optimizer.damped_solvers import ChainPCGSolver, DirectSolver, Linearisation
@@ -212,13 +213,13 @@ def gauss_newton(
             scaled_step = solver.step(linearisation, damping)
             if scaled_step is not None:
                 step = linearisation.scale * scaled_step
-                trial, trial_chi2 = _trial(graph, current, step)
+                trial, trial_chi2 = _trial(graph, current, step, realign=not solver.exact)
                 if not (trial_chi2 < current_chi2) and not solver.exact:
                     # An inexact solve costs tens of products with H: before paying another at a larger
                     # λ, try shorter steps along the one found, one χ² evaluation each.
                     for _ in range(_BACKTRACKS):
                         step = 0.5 * step
-                        trial, trial_chi2 = _trial(graph, current, step)
+                        trial, trial_chi2 = _trial(graph, current, step, realign=not solver.exact)
                         if trial_chi2 < current_chi2:
                             backtracked = True
                             break
@@ -264,10 +265,17 @@ def gauss_newton(
                                       f"{step_norm:.1e} (‖x‖ {state_norm:.1e})", index)
 
 
-def _trial(graph: PoseGraph, current: FloatArray, step: FloatArray) -> tuple[FloatArray, float]:
-    """The poses `step` leads to from `current` (θ wrapped, see `moved_by`) and their χ² (inf when not
-    finite)."""
+def _trial(graph: PoseGraph, current: FloatArray, step: FloatArray, *,
+           realign: bool) -> tuple[FloatArray, float]:
+    """The poses `step` leads to from `current` (θ wrapped, see `moved_by`), with `realign` realigned to
+    the anchor's constraints (`aligned_to_anchor`), and their χ² (inf when not finite).
+
+    Realigned only after inexact (CG) steps, on the graphs too large to factorise: there the anchor's
+    rigid mode is the softest of a system solved to a forcing term, while the exact steps of the smaller
+    graphs are left as they were."""
     trial = moved_by(current, step)
+    if realign and np.all(np.isfinite(trial)):
+        trial = aligned_to_anchor(graph, trial)
     with np.errstate(over="ignore", invalid="ignore"):  # a wild trial step may overflow χ²
         trial_chi2 = chi2(graph, trial)
     return trial, float(trial_chi2) if np.isfinite(trial_chi2) else math.inf
