@@ -73,6 +73,10 @@ class MultigridPCGSolver:
         rhs = -linearisation.scale * linearisation.gradient
         iterations = 0
         if self._preconditioner is not None:
+            # The kept hierarchy's finest level becomes this linearisation's matrix (`accepted_step` let the
+            # last one go): its residuals are then this system's, with the smoother's inverted diagonal
+            # blocks and the coarse levels from the build.
+            self._preconditioner.levels[0].A = matrix
             # The kept hierarchy gets the budget a good one needs; past it, it is rebuilt and CG restarts.
             budget = min(self._max_iterations, max(_MIN_ITERATIONS_FOR_REBUILD,
                                                    int(self._rebuild_growth * self._iterations_after_build)))
@@ -96,7 +100,12 @@ class MultigridPCGSolver:
         `_REBUILD_AFTER_DECREASE`)."""
         if relative_decrease > _REBUILD_AFTER_DECREASE:
             self._preconditioner = None
-            self._linearisation = None  # nothing refers to its blocks any more: they can go
+        elif self._preconditioner is not None:
+            # Its finest level shares this linearisation's blocks: unhooked, they can go before the next H
+            # is assembled (two H at once were the polish's peak at 10⁶ poses, 360 MB each); `step` hooks
+            # in the next one.
+            self._preconditioner.levels[0].A = None
+        self._linearisation = None  # nothing refers to its blocks any more: they can go
 
     def _solve(self, matrix: sp.bsr_matrix, rhs: FloatArray,
                max_iterations: int) -> tuple[FloatArray, int, bool]:
