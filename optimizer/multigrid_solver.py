@@ -18,6 +18,8 @@ import numpy as np
 import pyamg
 import scipy.sparse as sp
 from numpy.typing import NDArray
+from pyamg.relaxation.smoothing import setup_block_gauss_seidel
+from pyamg.util.utils import get_block_diag
 
 from optimizer.block_normal_equations import BlockPattern, add_to_diagonal, scale_blocks
 from optimizer.damped_solvers import Linearisation, preconditioned_cg
@@ -76,7 +78,7 @@ class MultigridPCGSolver:
             # The kept hierarchy's finest level becomes this linearisation's matrix (`accepted_step` let the
             # last one go): its residuals are then this system's, with the smoother's inverted diagonal
             # blocks and the coarse levels from the build.
-            self._preconditioner.levels[0].A = matrix
+            _hook_in(self._preconditioner, matrix)
             # The kept hierarchy gets the budget a good one needs; past it, it is rebuilt and CG restarts.
             budget = min(self._max_iterations, max(_MIN_ITERATIONS_FOR_REBUILD,
                                                    int(self._rebuild_growth * self._iterations_after_build)))
@@ -117,6 +119,16 @@ class MultigridPCGSolver:
             _v_cycle(preconditioner, 0, out, residual)
 
         return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations)
+
+
+def _hook_in(hierarchy: pyamg.MultilevelSolver, matrix: sp.bsr_matrix) -> None:
+    """`matrix` becomes the finest level of `hierarchy`, with block Gauss–Seidel smoothers of its own
+    (their inverted diagonal blocks from `matrix`); the coarse levels stay."""
+    finest = hierarchy.levels[0]
+    finest.A = matrix
+    inverted_diagonal = get_block_diag(matrix, blocksize=3, inv_flag=True)
+    finest.presmoother = setup_block_gauss_seidel(finest, sweep="forward", Dinv=inverted_diagonal)
+    finest.postsmoother = setup_block_gauss_seidel(finest, sweep="backward", Dinv=inverted_diagonal)
 
 
 def _v_cycle(hierarchy: pyamg.MultilevelSolver, level: int, solution: FloatArray, rhs: FloatArray) -> None:
