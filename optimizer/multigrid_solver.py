@@ -7,9 +7,13 @@ loops matter, while one multigrid V-cycle per iteration brings a relative residu
 The hierarchy (aggregation of poses, prolongation, coarse operators) costs about as much as 10–20 CG
 iterations to build, so it is built once and kept while it stays good: CG with the kept hierarchy gets
 `rebuild_growth` times the iterations the first solve after the last build needed (at least 20); past
-them the linearisation has moved too far, the hierarchy is rebuilt and CG starts again. A stale
-hierarchy only slows CG, it never changes the step CG converges to. pyamg is imported with this module,
-which `optimizer.polish` loads only when it needs it.
+them the linearisation has moved too far, the hierarchy is rebuilt and CG starts again. A kept hierarchy
+gets each new linearisation's matrix as its finest level, with smoothers of its own, and holds no older
+H (`_hook_in`); its coarse levels are stale, which only slows CG, it never changes the step CG converges to.
+The V-cycle is run directly (`_v_cycle`), not through pyamg's `aspreconditioner`, which spends two extra
+products with H per application. At 10⁶ grid-world poses (2·10⁶ constraints) a build costs about 11 CPU s
+and a CG iteration about 0.8 CPU s. pyamg is imported with this module, which `optimizer.polish` loads only
+when it needs it.
 """
 
 from __future__ import annotations

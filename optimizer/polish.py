@@ -164,8 +164,10 @@ def gauss_newton(
     Returns a `PolishStatus` (`status = yield from gauss_newton(...)`). It has converged when either
     - an accepted near-Gauss–Newton step (λ ≤ 1 in the scaled system; a solved, not truncated, linear
       system; taken whole, not shortened by the inexact solvers' line search) changed χ² by less than
-      `relative_tolerance` of its value and moved the poses by less than `step_tolerance`·(‖x‖ +
-      `step_tolerance`) (Euclidean norms over all free coordinates), or
+      `relative_tolerance` of its value and, with the exact solver, moved the poses by less than
+      `step_tolerance`·(‖x‖ + `step_tolerance`) (Euclidean norms over all free coordinates), with an
+      inexact one, was predicted by the linear model to lower χ² by less than `relative_tolerance` of it,
+      or
     - the Jacobi-scaled gradient is negligible: gᵀ·diag(H)⁻¹·g ≤ `gradient_tolerance`·χ².
     It has not converged when `max_iterations` steps were taken first, or when λ grew past 1e12 without a
     decrease while the gradient test fails (a stall, not an optimum). `linear_solver` "direct" is qdldl's
@@ -252,6 +254,14 @@ def gauss_newton(
         solver.accepted_step(change)
         step_norm = float(np.linalg.norm(step))
         state_norm = float(np.linalg.norm(current[1:]))
+        if solver.exact:
+            settled = step_norm <= step_tolerance * (state_norm + step_tolerance)
+        else:
+            # A step solved to a forcing term carries CG's remaining error along the flattest modes, which
+            # moves poses without changing χ²: at 10⁶ grid-world poses steps 10–14 of the default all ended
+            # at χ² 3 044 220.327 (10 digits) without the norm test holding. What the linear model still
+            # promises is the test there.
+            settled = predicted <= relative_tolerance * current_chi2
         current, current_chi2 = trial, trial_chi2
         current.setflags(write=False)
         index += 1
@@ -259,8 +269,7 @@ def gauss_newton(
         if current_chi2 == 0.0:
             return PolishStatus(True, "χ² is zero", index)
         solved = solver.exact or solver.last_converged
-        if (change < relative_tolerance and step_norm <= step_tolerance * (state_norm + step_tolerance)
-                and step_damping <= 1.0 and solved and not backtracked):
+        if change < relative_tolerance and settled and step_damping <= 1.0 and solved and not backtracked:
             return PolishStatus(True, f"relative χ² change {change:.1e} < {relative_tolerance:.0e}, step "
                                       f"{step_norm:.1e} (‖x‖ {state_norm:.1e})", index)
 

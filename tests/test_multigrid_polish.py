@@ -158,3 +158,16 @@ def test_a_system_within_the_coarse_solver_is_solved_by_it_alone() -> None:
     ours = np.zeros(size)
     _v_cycle(hierarchy, 0, ours, rhs)
     assert np.array_equal(ours, hierarchy.aspreconditioner(cycle="V") @ rhs)
+
+
+def test_the_inexact_polish_converges_on_what_the_model_promises_not_on_the_step_norm() -> None:
+    # With no step-norm or gradient test left, only the model's predicted decrease can end the inexact
+    # polish; it must end converged at the direct optimum, not at the iteration cap.
+    graph = generate_grid_world(2000, seed=3).graph
+    optimum, status = run(gauss_newton(graph, linear_solver="direct"))
+    assert status.converged, status
+    iterations, status = run(gauss_newton(graph, linear_solver="multigrid", step_tolerance=0.0,
+                                          gradient_tolerance=0.0, max_iterations=50))
+    assert status.converged, status
+    assert "relative χ² change" in status.reason
+    assert iterations[-1].chi2 == pytest.approx(optimum[-1].chi2, rel=1e-9)
