@@ -11,7 +11,7 @@ them the linearisation has moved too far, the hierarchy is rebuilt and CG starts
 gets each new linearisation's matrix as its finest level, with smoothers of its own, and holds no older
 H (`_hook_in`); its coarse levels are stale, which only slows CG, it never changes the step CG converges to.
 The V-cycle is run directly (`_v_cycle`), not through pyamg's `aspreconditioner`, which spends two extra
-products with H per application. At 10⁶ grid-world poses (2·10⁶ constraints) a build costs about 11 CPU s
+products with H per application. At 10⁶ grid-world poses (2·10⁶ constraints) a build costs about 6.8 CPU s
 and a CG iteration about 0.8 CPU s. pyamg is imported with this module, which `optimizer.polish` loads only
 when it needs it.
 """
