@@ -11,7 +11,7 @@ from optimizer.errors import GraphError, OptimizerError
 from optimizer.graph import PoseGraph
 from optimizer.graph_files import read_graph
 from optimizer.gridworld import generate_grid_world
-from optimizer.polish import PolishStatus, _gradient, edge_jacobians, gauss_newton
+from optimizer.polish import PolishStatus, _gradient, edge_jacobians, gauss_newton, moved_by
 from optimizer.sgd import sgd
 from tests.conftest import shared_file
 from tests.optimizer_fixtures import random_information, run
@@ -219,3 +219,54 @@ def test_badly_conditioned_intel_stays_finite_and_decreasing() -> None:
     assert np.all(np.isfinite(values)) and all(np.all(np.isfinite(it.poses)) for it in iterations)
     assert np.all(np.diff(values) < 0)
     assert values[-1] < 0.05 * chi2(graph)
+
+
+def turned_about_the_anchor(poses: np.ndarray, angle: float) -> np.ndarray:
+    """`poses` with every pose but the anchor turned rigidly by `angle` about pose 0."""
+    turned = poses.copy()
+    relative = poses[1:, :2] - poses[0, :2]
+    c, s = np.cos(angle), np.sin(angle)
+    turned[1:, 0] = poses[0, 0] + c * relative[:, 0] - s * relative[:, 1]
+    turned[1:, 1] = poses[0, 1] + s * relative[:, 0] + c * relative[:, 1]
+    turned[1:, 2] = se2.wrap_angle(poses[1:, 2] + angle)
+    return turned
+
+
+def test_a_step_that_turns_the_graph_about_the_anchor_keeps_every_relative_pose() -> None:
+    graph = generate_grid_world(300, seed=4).graph
+    poses = graph.poses
+    angle = 0.3
+    relative = poses[1:, :2] - poses[0, :2]
+    # The linear step of a rotation by `angle` about pose 0: δθ = angle, δt = angle·R(π/2)·(t − t₀).
+    step = angle * np.column_stack([-relative[:, 1], relative[:, 0], np.ones(len(relative))]).reshape(-1)
+    moved = moved_by(poses, step)
+    np.testing.assert_allclose(moved, turned_about_the_anchor(poses, angle), atol=1e-9)
+    unchanged = edge_errors(graph, poses)[(graph.edge_from != 0) & (graph.edge_to != 0)]
+    np.testing.assert_allclose(edge_errors(graph, moved)[(graph.edge_from != 0) & (graph.edge_to != 0)],
+                               unchanged, atol=1e-9)
+
+
+def test_moving_by_a_step_is_the_additive_update_to_first_order() -> None:
+    graph = generate_grid_world(300, seed=4).graph
+    step = np.random.default_rng(2).normal(size=3 * (graph.num_poses - 1))
+    deviations = []
+    for size in (1e-3, 1e-4):
+        additive = graph.poses.copy()
+        additive[1:] += size * step.reshape(-1, 3)
+        deviations.append(np.abs(moved_by(graph.poses, size * step) - additive).max())
+    assert deviations[1] < deviations[0] / 50.0  # second order: ÷100 for a tenth of the step
+
+
+@pytest.mark.parametrize("linear_solver", ["direct", "multigrid"])
+def test_an_optimum_turned_about_a_weakly_held_anchor_is_reached_in_a_few_steps(linear_solver: str) -> None:
+    # The anchor has one or two edges, so turning the rest of the graph rigidly about it is the softest
+    # mode; a large such turn is a pure rotation that the additive update would turn into a stretch.
+    graph = generate_grid_world(2000, seed=3).graph
+    optimum_iterations, status = run(gauss_newton(graph, linear_solver=linear_solver))
+    assert status.converged, status
+    optimum = optimum_iterations[-1]
+    start = turned_about_the_anchor(optimum.poses, 0.4)
+    iterations, status = run(gauss_newton(graph, start, linear_solver=linear_solver))
+    assert status.converged, status
+    assert iterations[-1].chi2 == pytest.approx(optimum.chi2, rel=1e-9)
+    assert status.iterations <= 6
