@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from optimizer import se2
 from optimizer.graph import PoseGraph
@@ -29,6 +28,10 @@ _TOLERANCE = 1e-14
 def aligned_to_anchor(graph: PoseGraph, poses: FloatArray) -> FloatArray:
     """`poses` with every pose but the anchor moved by the rigid motion that minimises the χ² of the
     constraints at the anchor (the rest of χ² does not change); `poses` itself when no motion lowers it."""
+    # Only the CG polish of graphs above 2·10⁵ poses calls this: scipy.optimize (and the scipy.spatial it
+    # imports) stays off every other replay's start-up.
+    from scipy.optimize import least_squares
+
     at_anchor = np.flatnonzero(((graph.edge_from == 0) | (graph.edge_to == 0))
                                & (graph.edge_from != graph.edge_to))
     if at_anchor.size == 0:
