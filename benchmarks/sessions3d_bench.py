@@ -36,6 +36,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -62,10 +63,11 @@ def positions_at(reference: Path, stamps: np.ndarray) -> np.ndarray:
 
 
 def rigid_fit(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R and translation t minimizing Σ‖R·source + t − target‖² over (N, 3) point pairs."""
+    """Rotation R and translation t minimizing Σ‖R·source + t − target‖² over (N, 3) point pairs (Kabsch,
+    scipy's `Rotation.align_vectors` on the centred points)."""
     source_mean, target_mean = source.mean(axis=0), target.mean(axis=0)
-    u, _, vt = np.linalg.svd((target - target_mean).T @ (source - source_mean))
-    rotation = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    fit, _ = Rotation.align_vectors(target - target_mean, source - source_mean)
+    rotation = fit.as_matrix()
     return rotation, target_mean - rotation @ source_mean
 
 

@@ -321,8 +321,6 @@ def moved_by(poses: FloatArray, step: FloatArray) -> FloatArray:
     return trial
 
 
-
-
 def _rounding_chi2(graph: PoseGraph, poses: FloatArray) -> float:
     """The χ² that rounding alone leaves in the errors: a few ulps of the coordinates, weighted by Ω.
 

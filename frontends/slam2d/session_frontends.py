@@ -179,10 +179,9 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self.initial_pose = None if initial_pose is None else tuple(float(v) for v in initial_pose)
         self._localizer = MapLocalizer(saved.keyframe_scans, saved.keyframe_poses, self.config,
                                        initial_pose=self.initial_pose)
-        self._rows: list[tuple[int, bool, bool, float, float, float, bool]] = []
-        """(stamp, localized, matched, score, inlier fraction, rms, tracked) per scan."""
-        self._poses: list[FloatArray] = []
         self._found: list[LocalizedScan] = []
+        self._poses: list[FloatArray] = []
+        """Each scan's pose as given when processed, or as a later global fix recovered it."""
         self._recovered: list[int] = []
         self._fixes: list[int] = []
         self._localizations: ScanLocalizations | None = None
@@ -191,10 +190,8 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
     def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
                  odometry_interval: float) -> ScanEstimate:
         found = self._localizer.localize(stamp_ns, points, odometry, odometry_interval)
-        self._rows.append((found.stamp_ns, found.localized, found.matched, found.score, found.inlier_fraction,
-                           found.rms, found.tracked))
-        self._poses.append(found.pose.copy())
         self._found.append(found)
+        self._poses.append(found.pose.copy())
         if found.global_fix:
             self._fixes.append(found.index)
             for index, pose in zip(found.recovered_indices.tolist(), found.recovered_poses, strict=True):
@@ -208,7 +205,8 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
         if not self._counts["scans_with_tf_mount"] and self.sensor_frame != self.base_frame:
             self.base_frame = None
-        columns = (np.array(column) for column in zip(*self._rows, strict=True))
+        fields = ("stamp_ns", "localized", "matched", "score", "inlier_fraction", "rms", "tracked")
+        columns = (np.array([getattr(found, name) for found in self._found]) for name in fields)
         stamps, localized, matched, score, inliers, rms, tracked = columns
         recovered = np.zeros(len(stamps), dtype=bool)
         recovered[self._recovered] = True
