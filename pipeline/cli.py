@@ -523,16 +523,14 @@ class _ProgressDisplay:
                             info=f"{estimate.keyframe + 1} keyframes, {loops} loop closures")
 
         def on_iteration(iteration: Iteration) -> None:
-            if iteration.stage == "initial":  # the input is read: a graph's "reading" spinner is done
+            stage = iteration.stage
+            if stage == "initial":  # the input is read: a graph's "reading" spinner is done
                 progress.update(first_task, visible=log)
                 return
-            task = stage_tasks.get(iteration.stage)
-            if task is None:
-                known = iteration.stage in _STAGES_WITH_KNOWN_LENGTH
-                task = progress.add_task(f"{name}: {iteration.stage}", info="",
-                                         total=config.optimizer.iterations if known else None)
-                stage_tasks[iteration.stage] = task
-            progress.update(task, completed=iteration.index, info=f"chi2 {iteration.chi2:.6g}")
+            if stage not in stage_tasks:
+                total = config.optimizer.iterations if stage in _STAGES_WITH_KNOWN_LENGTH else None
+                stage_tasks[stage] = progress.add_task(f"{name}: {stage}", info="", total=total)
+            progress.update(stage_tasks[stage], completed=iteration.index, info=f"chi2 {iteration.chi2:.6g}")
 
         try:
             yield (on_scan if log else None), on_iteration
@@ -582,8 +580,20 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     assert stats is not None and summary is not None
     name = outcome.input_path.name
     if summary.get("mode") == "map":
-        return _localization_summary(outcome)
-    if stats.scans is not None:
+        found = summary["localization"]
+        first_fix = found["first_fix_after_s"]
+        lines = [
+            f"{name}: {found['scans']} scans on {summary['topic']} localized in "
+            f"{summary['session']} ({stats.poses} keyframes, not changed): {found['with_pose']} with a pose "
+            f"({found['matched']} matched, {found['tracked_outside_map']} tracked outside the map, "
+            f"{found['recovered_by_a_global_fix']} recovered by a global fix), "
+            f"{found['never_localized']} never localized (not in the .tum)",
+            f"  {len(found['global_fixes'])} global fixes"
+            + ("" if first_fix is None else f", the first {first_fix:.1f} s after the first scan")
+            + f"; median match score {_or_dash(found['score']['median'])}, "
+              f"inliers {_or_dash(found['inlier_fraction']['median'])}",
+        ]
+    elif stats.scans is not None:
         what = "point clouds" if summary["sensor"] == "cloud" else "scans"
         lines = [f"{name}: {stats.scans} {what} on {summary['topic']}, odometry "
                  f"{summary['odometry_topic'] or 'none'}, base frame {summary['base_frame'] or 'none'}; "
@@ -605,39 +615,15 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
                      f"keyframes and {counts['session_scans']} scans of it; placed in it at scan "
                      f"{placement.get('scan')}, {counts['scans_unplaced']} scans before that left out; "
                      f"{counts['loop_closures_old_new']} constraints between its keyframes and the new ones")
-    per_stage = ", ".join(f"{stage} {count}" for stage, count in stats.iterations.items())
-    lines.append(f"  chi2 {stats.chi2_initial:.6g} -> {stats.chi2_final:.6g}"
-                 + (f" after {per_stage} iterations" if per_stage else ""))
-    lines += _time_and_outputs_lines(outcome)
-    return "\n".join(lines)
-
-
-def _time_and_outputs_lines(outcome: BatchOutcome) -> list[str]:
-    assert outcome.stats is not None
-    times = dict(outcome.stats.wall_time_s)
+    if summary.get("mode") != "map":
+        per_stage = ", ".join(f"{stage} {count}" for stage, count in stats.iterations.items())
+        lines.append(f"  chi2 {stats.chi2_initial:.6g} -> {stats.chi2_final:.6g}"
+                     + (f" after {per_stage} iterations" if per_stage else ""))
+    times = dict(stats.wall_time_s)
     total = times.pop("total", math.nan)
-    return [f"  time {total:.2f} s (" + ", ".join(f"{stage} {seconds:.2f}" for stage, seconds in
-                                                  times.items()) + ")",
-            "  wrote " + ", ".join(str(path) for path in outcome.outputs.values())]
-
-
-def _localization_summary(outcome: BatchOutcome) -> str:
-    stats, summary = outcome.stats, outcome.summary
-    assert stats is not None and summary is not None
-    found = summary["localization"]
-    first_fix = found["first_fix_after_s"]
-    lines = [
-        f"{outcome.input_path.name}: {found['scans']} scans on {summary['topic']} localized in "
-        f"{summary['session']} ({stats.poses} keyframes, not changed): {found['with_pose']} with a pose "
-        f"({found['matched']} matched, {found['tracked_outside_map']} tracked outside the map, "
-        f"{found['recovered_by_a_global_fix']} recovered by a global fix), "
-        f"{found['never_localized']} never localized (not in the .tum)",
-        f"  {len(found['global_fixes'])} global fixes"
-        + ("" if first_fix is None else f", the first {first_fix:.1f} s after the first scan")
-        + f"; median match score {_or_dash(found['score']['median'])}, "
-          f"inliers {_or_dash(found['inlier_fraction']['median'])}",
-    ]
-    lines += _time_and_outputs_lines(outcome)
+    stage_times = ", ".join(f"{stage} {seconds:.2f}" for stage, seconds in times.items())
+    lines += [f"  time {total:.2f} s ({stage_times})",
+              "  wrote " + ", ".join(str(path) for path in outcome.outputs.values())]
     return "\n".join(lines)
 
 
