@@ -35,15 +35,6 @@ ReplayOne = Callable[..., BatchOutcome]
 """What a task runs for its input: `run_one_on_this_host`, or a wrapper taking its arguments."""
 
 
-def import_ray() -> ModuleType:
-    """The `ray` module, or a `PipelineError` saying how to install it."""
-    try:
-        import ray
-    except ImportError as error:
-        raise PipelineError(f"running on Ray needs the ray package: {RAY_INSTALL_HINT}") from error
-    return ray
-
-
 def run_batch_on_ray(
     inputs: Sequence[Path],
     config: ReplayConfig,
@@ -65,7 +56,10 @@ def run_batch_on_ray(
         raise PipelineError(f"cpus per task must be > 0, got {options.cpus_per_task}")
     if options.retries < 0:
         raise PipelineError(f"retries must be >= 0, got {options.retries}")
-    ray = import_ray()
+    try:
+        import ray
+    except ImportError as error:
+        raise PipelineError(f"running on Ray needs the ray package: {RAY_INSTALL_HINT}") from error
     stems = {output_stem(path) for path in inputs}
     started_here = _connect(ray, options.address)
     try:
