@@ -82,47 +82,36 @@ def is_angle_field(name: str) -> bool:
 # ------------------------------------------------------------------------------------------ the sections
 
 _NON_NEGATIVE: dict[str, float] = {"ge": 0}
+"""Zero is meaningful: no growth with distance / turn, no tolerance, no context around a match."""
 _FRACTION: dict[str, float] = {"ge": 0, "le": 1}
+_POSITIVE_FRACTION: dict[str, float] = {"gt": 0, "le": 1}
+_STEP_FLOOR: dict[str, float] = {"ge": 0.01}
+"""Steps and cells finer than this (m, degrees) multiply the work and memory of a search or a grid far
+beyond any use."""
+_RANGE_CEILING: dict[str, float] = {"gt": 0, "le": 1000}
 
-_BOUNDS: dict[tuple[str, str], dict[str, float]] = {
-    # zero is meaningful: no growth with distance / turn, no tolerance, no context around a match
-    ("slam2d.odometry", "odometry_sigma_per_metre"): _NON_NEGATIVE,
-    ("slam2d.odometry", "odometry_sigma_per_radian"): _NON_NEGATIVE,
-    ("slam2d.odometry", "min_inlier_fraction"): _FRACTION,
-    ("slam2d.loop_closure", "search_radius_per_metre"): _NON_NEGATIVE,
-    ("slam2d.loop_closure", "submap_keyframes"): _NON_NEGATIVE,
-    ("slam2d.loop_closure", "min_score"): _FRACTION,
-    ("slam2d.loop_closure", "ambiguity_ratio"): {"gt": 0, "le": 1},
-    ("slam2d.loop_closure", "min_inlier_fraction"): _FRACTION,
-    ("slam3d.odometry", "max_threads"): _NON_NEGATIVE,  # 0: all cores
-    ("slam3d.keyframes", "odometry_sigma_per_metre"): _NON_NEGATIVE,
-    ("slam3d.keyframes", "odometry_sigma_per_radian"): _NON_NEGATIVE,
-    ("slam3d.keyframes", "odometry_sigma_per_metre_angular"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "min_travel"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "search_radius_per_metre"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "submap_keyframes"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "small_correction_linear"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "small_correction_angular"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "min_inlier_fraction"): _FRACTION,
-    ("slam3d.loop_closure", "ambiguity_ratio"): {"gt": 0, "le": 1},
-    ("slam3d.odometry", "sweep_start_angle"): _NON_NEGATIVE,
-    # floors: steps and cells finer than these (m, degrees) multiply the work and memory of a search or a
-    # grid far beyond any use
-    ("slam2d.matching", "resolution"): {"ge": 0.005},
-    ("slam2d.odometry", "angular_step"): {"ge": 0.01},
-    ("slam2d.loop_closure", "angular_step"): {"ge": 0.01},
-    ("slam3d.odometry", "voxel_size"): {"ge": 0.01},
-    ("slam3d.keyframes", "cloud_voxel"): {"ge": 0.01},
-    ("slam3d.loop_closure", "registration_voxel"): {"ge": 0.01},
-    # ceilings below `_MAX_NUMBER` / `_MAX_ANGLE`
-    ("slam2d.matching", "max_range"): {"gt": 0, "le": 1000},
-    ("slam2d.keyframes", "max_turn_rate"): {"gt": 0, "le": 3600},
-    ("slam3d.odometry", "max_range"): {"gt": 0, "le": 1000},
-    ("slam3d.odometry", "min_range"): {"ge": 0, "le": 1000},
-    ("slam3d.se3_polish", "max_iterations"): {"gt": 0, "le": 1000},
+_BOUNDS: dict[str, dict[str, dict[str, float]]] = {
+    "slam2d.matching": {"resolution": {"ge": 0.005}, "max_range": _RANGE_CEILING},
+    "slam2d.odometry": {"odometry_sigma_per_metre": _NON_NEGATIVE, "odometry_sigma_per_radian": _NON_NEGATIVE,
+                        "min_inlier_fraction": _FRACTION, "angular_step": _STEP_FLOOR},
+    "slam2d.keyframes": {"max_turn_rate": {"gt": 0, "le": 3600}},
+    "slam2d.loop_closure": {"search_radius_per_metre": _NON_NEGATIVE, "submap_keyframes": _NON_NEGATIVE,
+                            "min_score": _FRACTION, "ambiguity_ratio": _POSITIVE_FRACTION,
+                            "min_inlier_fraction": _FRACTION, "angular_step": _STEP_FLOOR},
+    "slam3d.odometry": {"min_range": {"ge": 0, "le": 1000}, "max_range": _RANGE_CEILING,
+                        "max_threads": _NON_NEGATIVE,  # 0: all cores
+                        "sweep_start_angle": _NON_NEGATIVE, "voxel_size": _STEP_FLOOR},
+    "slam3d.keyframes": {"odometry_sigma_per_metre": _NON_NEGATIVE, "cloud_voxel": _STEP_FLOOR,
+                         "odometry_sigma_per_radian": _NON_NEGATIVE,
+                         "odometry_sigma_per_metre_angular": _NON_NEGATIVE},
+    "slam3d.loop_closure": {"min_travel": _NON_NEGATIVE, "search_radius_per_metre": _NON_NEGATIVE,
+                            "submap_keyframes": _NON_NEGATIVE, "small_correction_linear": _NON_NEGATIVE,
+                            "small_correction_angular": _NON_NEGATIVE, "min_inlier_fraction": _FRACTION,
+                            "ambiguity_ratio": _POSITIVE_FRACTION, "registration_voxel": _STEP_FLOOR},
+    "slam3d.se3_polish": {"max_iterations": {"gt": 0, "le": 1000}},
 }
-"""The bounds of the numbers that differ from the rule: greater than 0, at most `_MAX_ANGLE` for an
-angle, else `_MAX_NUMBER`."""
+"""Section → key → bounds of the numbers that differ from the rule: greater than 0, at most `_MAX_ANGLE`
+for an angle, else `_MAX_NUMBER`."""
 _MAX_NUMBER = 10_000.0
 """Every other number's upper bound (metres, counts, scales): far above any use, and low enough that no
 value in range can overflow a computation or size an allocation beyond the memory bound."""
@@ -132,7 +121,7 @@ _MAX_ANGLE = 360.0
 
 def _bounds(section: str, name: str) -> dict[str, float]:
     ceiling = _MAX_ANGLE if is_angle_field(name) else _MAX_NUMBER
-    return {"le": ceiling, **_BOUNDS.get((section, name), {"gt": 0})}
+    return {"le": ceiling, **_BOUNDS.get(section, {}).get(name, {"gt": 0})}
 
 
 _AT_LEAST: dict[tuple[str, str], str] = {
