@@ -92,12 +92,13 @@ _RAY_ADDRESS = re.compile(r"auto|local|(ray://)?[\w.\-\[\]:]+:\d+")
 def _with_ray_address(args: list[str]) -> list[str]:
     """`--ray` takes an optional address: make it `--ray=ADDRESS`, or `--ray=local` when what follows is
     not an address (an input, another option), so that `replay --ray a.mcap` replays a.mcap."""
-    result, position = [], 0
+    result: list[str] = []
+    position = 0
     while position < len(args) and args[position] != "--":
         arg, position = args[position], position + 1
         if arg == _RAY_OPTION:
             following = args[position] if position < len(args) else ""
-            is_address = _RAY_ADDRESS.fullmatch(following) and not Path(following).exists()
+            is_address = bool(_RAY_ADDRESS.fullmatch(following)) and not Path(following).exists()
             arg = f"{_RAY_OPTION}={following if is_address else 'local'}"
             position += 1 if is_address else 0
         result.append(arg)
