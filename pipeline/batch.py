@@ -18,6 +18,7 @@ import contextlib
 import dataclasses
 import multiprocessing
 import os
+import re
 import signal
 import socket
 import time
@@ -43,7 +44,7 @@ from pipeline.api import (
     replay,
 )
 from pipeline.config import ReplayConfig
-from pipeline.errors import OutputError, PipelineError
+from pipeline.errors import PipelineError
 from pipeline.outputs import install_stop_signals, recover_outputs, stop_signals_held
 
 OutcomeCallback = Callable[["BatchOutcome"], None]
@@ -247,9 +248,33 @@ def _stop_pool(pool: ProcessPoolExecutor, inputs: list[Path], out_dir: Path) -> 
             worker.kill()
         worker.join(1.0)
     if killed:
-        for path in inputs:
-            with contextlib.suppress(OutputError):  # a live run elsewhere holds the lock: not ours to clean
-                recover_outputs(out_dir, output_stem(path))
+        remove_partial_outputs(out_dir, {output_stem(path) for path in inputs})
+
+
+def remove_partial_outputs(out_dir: Path, stems: set[str]) -> list[str]:
+    """Clean up what replays of these stems killed mid-write left in `out_dir` (a staging folder, a lock
+    file: see `pipeline.outputs`) the way the next replay of the same outputs would: a staged set that was
+    complete is published, anything else deleted. Returns the stems cleaned up."""
+    try:
+        names = os.listdir(out_dir)  # once, not once per stem: batches have thousands
+    except OSError:
+        return []
+    left_by = set()
+    for name in names:
+        match = _LEFT_BEHIND.fullmatch(name)
+        if match is not None and match.group("stem") in stems:
+            left_by.add(match.group("stem"))
+    cleaned = []
+    for stem in sorted(left_by):
+        try:
+            recover_outputs(out_dir, stem)
+        except PipelineError:  # still held by a live process (a worker Ray could not kill): leave it
+            continue
+        cleaned.append(stem)
+    return cleaned
+
+
+_LEFT_BEHIND = re.compile(r"\.(?P<stem>.+?)(\.staging-.*|\.lock)")
 
 
 def _pool_processes(pool: ProcessPoolExecutor) -> list[BaseProcess]:

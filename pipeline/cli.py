@@ -94,22 +94,15 @@ def _with_ray_address(args: list[str]) -> list[str]:
     not an address (an input, another option), so that `replay --ray a.mcap` replays a.mcap."""
     result: list[str] = []
     position = 0
-    while position < len(args):
-        arg = args[position]
-        position += 1
-        if arg == "--":
-            result.extend(args[position - 1:])
-            break
-        if arg != _RAY_OPTION:
-            result.append(arg)
-            continue
-        following = args[position] if position < len(args) else None
-        if following is not None and _RAY_ADDRESS.fullmatch(following) and not Path(following).exists():
-            result.append(f"{_RAY_OPTION}={following}")
-            position += 1
-        else:
-            result.append(f"{_RAY_OPTION}=local")
-    return result
+    while position < len(args) and args[position] != "--":
+        arg, position = args[position], position + 1
+        if arg == _RAY_OPTION:
+            following = args[position] if position < len(args) else ""
+            is_address = bool(_RAY_ADDRESS.fullmatch(following)) and not Path(following).exists()
+            arg = f"{_RAY_OPTION}={following if is_address else 'local'}"
+            position += 1 if is_address else 0
+        result.append(arg)
+    return result + args[position:]
 
 
 class _DefaultCommandContext(typer.Context):
@@ -270,24 +263,27 @@ def run(
                          "repair_information": repair_information or None}}
     overrides = {section: {key: value for key, value in values.items() if value is not None}
                  for section, values in options.items()}
+    from pipeline.config import config_from_mapping, load_config
+
     try:
-        config = _load_config(config_file, overrides)
+        config = (config_from_mapping(overrides) if config_file is None
+                  else load_config(config_file, overrides))
     except KNOWN_ERRORS as error:
         _fail(error)
     if dump_config:
         typer.echo(config.to_toml(), nl=False)
         return
 
-    show_progress = not quiet and sys.stderr.isatty()
-    session_options = _session_options(map_session, continue_session, initial_pose, sources or [],
+    sources = sources or []
+    session_options = _session_options(map_session, continue_session, initial_pose, sources,
                                        several=inputs_from is not None or ray_address is not None)
     ray = _ray_options(ray_address, cpus_per_task, retries, jobs)
-    _refuse_options_without_use(sources or [], inputs_from, overrides["input"])
+    _refuse_options_without_use(sources, inputs_from, overrides["input"])
     for key in overrides["optimizer"] if map_session is not None else ():
         _fail(PipelineError(f"{_option(key)} has nothing to optimize with --map (localization only: the "
                             "saved map is not changed)"))
     if inputs_from is not None:
-        sources = [*(sources or []), *_listed_inputs(inputs_from, out)]
+        sources += _listed_inputs(inputs_from, out)
     from pipeline.batch import refuse_clashing_outputs
 
     with sample_log() if not sources else contextlib.nullcontext() as sample:
@@ -296,12 +292,10 @@ def run(
             refuse_clashing_outputs(inputs, out)
         except PipelineError as error:
             _fail(error)
-        if ray is not None or (jobs > 1 and len(inputs) > 1):
-            outcomes = _run_in_pool(inputs, config, out, jobs, show_progress, ray)
-        else:
-            outcomes = _run_in_process(inputs, config, out, show_progress, replay_options=session_options,
-                                       several=len(inputs) > 1 or inputs_from is not None)
-    batch = len(outcomes) > 1 or ray is not None or inputs_from is not None
+        several = len(inputs) > 1 or inputs_from is not None
+        outcomes = _run_inputs(inputs, config, out, jobs=jobs, ray=ray, several=several, quiet=quiet,
+                               replay_options=session_options)
+    batch = several or ray is not None
     summary_path, summary_error = _write_batch_summary(out, outcomes) if batch else (None, None)
     _report(outcomes, quiet=quiet, as_json=as_json, summary_path=summary_path)
     if summary_error is not None:
@@ -368,19 +362,14 @@ def _session_options(map_session: Path | None, continue_session: Path | None, in
         _fail(PipelineError(f"{option} applies to logs; {sources[0]} is a pose graph"))
     if map_session is None:
         return {"continue_from": session}
-    options: dict[str, Any] = {"map": session}
-    if initial_pose is not None:
-        options["initial_pose"] = _parse_initial_pose(initial_pose)
-    return options
-
-
-def _parse_initial_pose(text: str) -> tuple[float, float, float]:
-    matched = _INITIAL_POSE.fullmatch(text)
-    values = () if matched is None else tuple(float(value) for value in matched.groups())
-    if len(values) != 3 or not all(math.isfinite(value) for value in values):
+    if initial_pose is None:
+        return {"map": session}
+    matched = _INITIAL_POSE.fullmatch(initial_pose)
+    x, y, yaw = (float(value) for value in matched.groups()) if matched else (math.inf,) * 3
+    if not all(math.isfinite(value) for value in (x, y, yaw)):
         _fail(PipelineError(f"--initial-pose wants x,y,yaw (metres, metres, radians: three numbers "
-                            f"separated by commas), not {text!r}"))
-    return values[0], values[1], values[2]
+                            f"separated by commas), not {initial_pose!r}"))
+    return {"map": session, "initial_pose": (x, y, yaw)}
 
 
 def _ray_options(address: str | None, cpus_per_task: float | None, retries: int | None,
@@ -423,12 +412,6 @@ def _write_batch_summary(out: Path, outcomes: Sequence[BatchOutcome]) -> tuple[P
         return None, " ".join(str(error).split())
 
 
-def _load_config(path: Path | None, overrides: dict[str, dict[str, Any]]) -> ReplayConfig:
-    from pipeline.config import config_from_mapping, load_config
-
-    return load_config(path, overrides) if path is not None else config_from_mapping(overrides)
-
-
 def _fail(error: BaseException) -> NoReturn:
     message = " ".join(str(error).split())  # always one line
     typer.echo(f"{PROGRAM}: error: {message}", err=True)
@@ -438,34 +421,29 @@ def _fail(error: BaseException) -> NoReturn:
 # ------------------------------------------------------------------------------------------ running inputs
 
 
-def _run_in_process(sources: Sequence[Path], config: ReplayConfig, out: Path, show_progress: bool, *,
-                    several: bool, replay_options: dict[str, Any] | None = None) -> list[BatchOutcome]:
-    """One input after another, with live progress. A single input's bug keeps its traceback; among
-    several, it becomes that input's failure so the others still run. `replay_options`: a session's
-    (`_session_options`)."""
-    from pipeline.batch import run_one, with_this_host
+def _run_inputs(inputs: Sequence[Path], config: ReplayConfig, out: Path, *, jobs: int, ray: RayOptions | None,
+                several: bool, quiet: bool, replay_options: dict[str, Any]) -> list[BatchOutcome]:
+    """Worker processes (`jobs`) or Ray tasks (`ray`), else one input after another here with live
+    progress: then a single input's bug keeps its traceback; among several, it becomes that input's
+    failure so the others still run. `replay_options`: a session's (`_session_options`)."""
+    from pipeline.batch import run_batch, run_one, with_this_host
 
-    outcomes = []
-    with _python_warnings_off(), _progress_display(show_progress, len(sources) if several else 0) as display:
-        for path in sources:
+    pooled = ray is not None or (jobs > 1 and len(inputs) > 1)
+    bars = len(inputs) if several or pooled else 0
+    with _python_warnings_off(), _progress_display(not quiet and sys.stderr.isatty(), bars) as display:
+        if pooled:
+            try:
+                return run_batch(inputs, config, out_dir=out, jobs=jobs, ray=ray, on_done=display.finished)
+            except KNOWN_ERRORS as error:
+                _fail(error)
+        outcomes = []
+        for path in inputs:
             with display.watch(path, config) as (on_scan, on_iteration):
                 outcome = run_one(path, config, out_dir=out, on_scan=on_scan, on_iteration=on_iteration,
                                   catch_unexpected=several, replay_options=replay_options)
             outcomes.append(with_this_host(outcome) if several else outcome)
             display.finished(outcomes[-1])
     return outcomes
-
-
-def _run_in_pool(sources: Sequence[Path], config: ReplayConfig, out: Path, jobs: int,
-                 show_progress: bool, ray: RayOptions | None = None) -> list[BatchOutcome]:
-    """Worker processes here (`jobs`), or Ray tasks (`ray`)."""
-    from pipeline.batch import run_batch
-
-    with _python_warnings_off(), _progress_display(show_progress, len(sources)) as display:
-        try:
-            return run_batch(sources, config, out_dir=out, jobs=jobs, ray=ray, on_done=display.finished)
-        except KNOWN_ERRORS as error:
-            _fail(error)
 
 
 @contextmanager
@@ -546,16 +524,14 @@ class _ProgressDisplay:
                             info=f"{estimate.keyframe + 1} keyframes, {loops} loop closures")
 
         def on_iteration(iteration: Iteration) -> None:
-            if iteration.stage == "initial":  # the input is read: a graph's "reading" spinner is done
+            stage = iteration.stage
+            if stage == "initial":  # the input is read: a graph's "reading" spinner is done
                 progress.update(first_task, visible=log)
                 return
-            task = stage_tasks.get(iteration.stage)
-            if task is None:
-                known = iteration.stage in _STAGES_WITH_KNOWN_LENGTH
-                task = progress.add_task(f"{name}: {iteration.stage}", info="",
-                                         total=config.optimizer.iterations if known else None)
-                stage_tasks[iteration.stage] = task
-            progress.update(task, completed=iteration.index, info=f"chi2 {iteration.chi2:.6g}")
+            if stage not in stage_tasks:
+                total = config.optimizer.iterations if stage in _STAGES_WITH_KNOWN_LENGTH else None
+                stage_tasks[stage] = progress.add_task(f"{name}: {stage}", info="", total=total)
+            progress.update(stage_tasks[stage], completed=iteration.index, info=f"chi2 {iteration.chi2:.6g}")
 
         try:
             yield (on_scan if log else None), on_iteration
@@ -587,18 +563,14 @@ def _report(outcomes: Sequence[BatchOutcome], *, quiet: bool, as_json: bool,
 
         data = [outcome.to_json() for outcome in outcomes]
         typer.echo(json_text(data[0] if len(data) == 1 else data), nl=False)
-    if len(outcomes) == 1:
-        outcome = outcomes[0]
-        if not outcome.ok:
-            typer.echo(f"{PROGRAM}: error: {outcome.error}", err=True)
-        elif not quiet:
-            typer.echo(_one_input_summary(outcome), err=True)
-        return
-    for outcome in outcomes:
-        if outcome.traceback is not None:
-            typer.echo(outcome.traceback.rstrip(), err=True)
-    if not quiet:
-        _print_table(outcomes, summary_path)
+    if len(outcomes) > 1:
+        for outcome in outcomes:
+            if outcome.traceback is not None:
+                typer.echo(outcome.traceback.rstrip(), err=True)
+        if not quiet:
+            _print_table(outcomes, summary_path)
+    elif outcomes[0].ok and not quiet:
+        typer.echo(_one_input_summary(outcomes[0]), err=True)
     for outcome in outcomes:
         if not outcome.ok:
             typer.echo(f"{PROGRAM}: error: {outcome.error}", err=True)
@@ -609,8 +581,20 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     assert stats is not None and summary is not None
     name = outcome.input_path.name
     if summary.get("mode") == "map":
-        return _localization_summary(outcome)
-    if stats.scans is not None:
+        found = summary["localization"]
+        first_fix = found["first_fix_after_s"]
+        lines = [
+            f"{name}: {found['scans']} scans on {summary['topic']} localized in "
+            f"{summary['session']} ({stats.poses} keyframes, not changed): {found['with_pose']} with a pose "
+            f"({found['matched']} matched, {found['tracked_outside_map']} tracked outside the map, "
+            f"{found['recovered_by_a_global_fix']} recovered by a global fix), "
+            f"{found['never_localized']} never localized (not in the .tum)",
+            f"  {len(found['global_fixes'])} global fixes"
+            + ("" if first_fix is None else f", the first {first_fix:.1f} s after the first scan")
+            + f"; median match score {_or_dash(found['score']['median'])}, "
+              f"inliers {_or_dash(found['inlier_fraction']['median'])}",
+        ]
+    elif stats.scans is not None:
         what = "point clouds" if summary["sensor"] == "cloud" else "scans"
         lines = [f"{name}: {stats.scans} {what} on {summary['topic']}, odometry "
                  f"{summary['odometry_topic'] or 'none'}, base frame {summary['base_frame'] or 'none'}; "
@@ -632,39 +616,15 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
                      f"keyframes and {counts['session_scans']} scans of it; placed in it at scan "
                      f"{placement.get('scan')}, {counts['scans_unplaced']} scans before that left out; "
                      f"{counts['loop_closures_old_new']} constraints between its keyframes and the new ones")
-    per_stage = ", ".join(f"{stage} {count}" for stage, count in stats.iterations.items())
-    lines.append(f"  chi2 {stats.chi2_initial:.6g} -> {stats.chi2_final:.6g}"
-                 + (f" after {per_stage} iterations" if per_stage else ""))
-    lines += _time_and_outputs_lines(outcome)
-    return "\n".join(lines)
-
-
-def _time_and_outputs_lines(outcome: BatchOutcome) -> list[str]:
-    assert outcome.stats is not None
-    times = dict(outcome.stats.wall_time_s)
+    if summary.get("mode") != "map":
+        per_stage = ", ".join(f"{stage} {count}" for stage, count in stats.iterations.items())
+        lines.append(f"  chi2 {stats.chi2_initial:.6g} -> {stats.chi2_final:.6g}"
+                     + (f" after {per_stage} iterations" if per_stage else ""))
+    times = dict(stats.wall_time_s)
     total = times.pop("total", math.nan)
-    return [f"  time {total:.2f} s (" + ", ".join(f"{stage} {seconds:.2f}" for stage, seconds in
-                                                  times.items()) + ")",
-            "  wrote " + ", ".join(str(path) for path in outcome.outputs.values())]
-
-
-def _localization_summary(outcome: BatchOutcome) -> str:
-    stats, summary = outcome.stats, outcome.summary
-    assert stats is not None and summary is not None
-    found = summary["localization"]
-    first_fix = found["first_fix_after_s"]
-    lines = [
-        f"{outcome.input_path.name}: {found['scans']} scans on {summary['topic']} localized in "
-        f"{summary['session']} ({stats.poses} keyframes, not changed): {found['with_pose']} with a pose "
-        f"({found['matched']} matched, {found['tracked_outside_map']} tracked outside the map, "
-        f"{found['recovered_by_a_global_fix']} recovered by a global fix), "
-        f"{found['never_localized']} never localized (not in the .tum)",
-        f"  {len(found['global_fixes'])} global fixes"
-        + ("" if first_fix is None else f", the first {first_fix:.1f} s after the first scan")
-        + f"; median match score {_or_dash(found['score']['median'])}, "
-          f"inliers {_or_dash(found['inlier_fraction']['median'])}",
-    ]
-    lines += _time_and_outputs_lines(outcome)
+    stage_times = ", ".join(f"{stage} {seconds:.2f}" for stage, seconds in times.items())
+    lines += [f"  time {total:.2f} s ({stage_times})",
+              "  wrote " + ", ".join(str(path) for path in outcome.outputs.values())]
     return "\n".join(lines)
 
 
@@ -834,7 +794,6 @@ def main() -> NoReturn:
         code = EXIT_ERROR
     except SystemExit as exit_:
         code = exit_.code
-    code = 0 if not isinstance(code, int | str) else code
     if terminated and code == EXIT_INTERRUPTED:
         code = 128 + signal.SIGTERM
     _exit_now(code)

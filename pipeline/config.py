@@ -55,18 +55,6 @@ from optimizer.solve import (
 )
 from pipeline.errors import PipelineError
 
-__all__ = [
-    "SLAM2D_SECTIONS",
-    "SLAM3D_SECTIONS",
-    "ConfigError",
-    "InputSection",
-    "OptimizerSection",
-    "ReplayConfig",
-    "default_config_toml",
-    "is_angle_field",
-    "load_config",
-]
-
 _ANGLE_NAME = re.compile(r"angle|angular|turn_rate")
 _DEGREE_DIGITS = 9
 """Degrees converted from the dataclasses' radians are rounded to this many decimals, so that the default
@@ -79,10 +67,8 @@ class ConfigError(PipelineError):
 
     def __init__(self, path: str | Path | None, message: str, *, line: int | None = None,
                  key: str | None = None) -> None:
-        self.path = None if path is None else Path(path)
         self.line = line
-        self.key = key
-        where = "configuration" if self.path is None else str(self.path)
+        where = "configuration" if path is None else str(path)
         if line is not None:
             where += f":{line}"
         super().__init__(f"{where}: {key}: {message}" if key else f"{where}: {message}")
@@ -95,53 +81,37 @@ def is_angle_field(name: str) -> bool:
 
 # ------------------------------------------------------------------------------------------ the sections
 
-_POSITIVE: dict[str, float] = {"gt": 0}
 _NON_NEGATIVE: dict[str, float] = {"ge": 0}
+"""Zero is meaningful: no growth with distance / turn, no tolerance, no context around a match."""
 _FRACTION: dict[str, float] = {"ge": 0, "le": 1}
 _POSITIVE_FRACTION: dict[str, float] = {"gt": 0, "le": 1}
+_STEP_FLOOR: dict[str, float] = {"ge": 0.01}
+"""Steps and cells finer than this (m, degrees) multiply the work and memory of a search or a grid far
+beyond any use."""
+_RANGE_CEILING: dict[str, float] = {"gt": 0, "le": 1000}
 
-_BOUNDS: dict[tuple[str, str], dict[str, float]] = {
-    # zero is meaningful: no growth with distance / turn, no tolerance, no context around a match
-    ("slam2d.odometry", "odometry_sigma_per_metre"): _NON_NEGATIVE,
-    ("slam2d.odometry", "odometry_sigma_per_radian"): _NON_NEGATIVE,
-    ("slam2d.odometry", "min_inlier_fraction"): _FRACTION,
-    ("slam2d.loop_closure", "search_radius_per_metre"): _NON_NEGATIVE,
-    ("slam2d.loop_closure", "submap_keyframes"): _NON_NEGATIVE,
-    ("slam2d.loop_closure", "min_score"): _FRACTION,
-    ("slam2d.loop_closure", "ambiguity_ratio"): _POSITIVE_FRACTION,
-    ("slam2d.loop_closure", "min_inlier_fraction"): _FRACTION,
-    ("slam3d.odometry", "min_range"): _NON_NEGATIVE,
-    ("slam3d.odometry", "max_threads"): _NON_NEGATIVE,  # 0: all cores
-    ("slam3d.keyframes", "odometry_sigma_per_metre"): _NON_NEGATIVE,
-    ("slam3d.keyframes", "odometry_sigma_per_radian"): _NON_NEGATIVE,
-    ("slam3d.keyframes", "odometry_sigma_per_metre_angular"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "min_travel"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "search_radius_per_metre"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "submap_keyframes"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "small_correction_linear"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "small_correction_angular"): _NON_NEGATIVE,
-    ("slam3d.loop_closure", "min_inlier_fraction"): _FRACTION,
-    ("slam3d.loop_closure", "ambiguity_ratio"): _POSITIVE_FRACTION,
-    ("slam3d.odometry", "sweep_start_angle"): _NON_NEGATIVE,
+_BOUNDS: dict[str, dict[str, dict[str, float]]] = {
+    "slam2d.matching": {"resolution": {"ge": 0.005}, "max_range": _RANGE_CEILING},
+    "slam2d.odometry": {"odometry_sigma_per_metre": _NON_NEGATIVE, "odometry_sigma_per_radian": _NON_NEGATIVE,
+                        "min_inlier_fraction": _FRACTION, "angular_step": _STEP_FLOOR},
+    "slam2d.keyframes": {"max_turn_rate": {"gt": 0, "le": 3600}},
+    "slam2d.loop_closure": {"search_radius_per_metre": _NON_NEGATIVE, "submap_keyframes": _NON_NEGATIVE,
+                            "min_score": _FRACTION, "ambiguity_ratio": _POSITIVE_FRACTION,
+                            "min_inlier_fraction": _FRACTION, "angular_step": _STEP_FLOOR},
+    "slam3d.odometry": {"min_range": {"ge": 0, "le": 1000}, "max_range": _RANGE_CEILING,
+                        "max_threads": _NON_NEGATIVE,  # 0: all cores
+                        "sweep_start_angle": _NON_NEGATIVE, "voxel_size": _STEP_FLOOR},
+    "slam3d.keyframes": {"odometry_sigma_per_metre": _NON_NEGATIVE, "cloud_voxel": _STEP_FLOOR,
+                         "odometry_sigma_per_radian": _NON_NEGATIVE,
+                         "odometry_sigma_per_metre_angular": _NON_NEGATIVE},
+    "slam3d.loop_closure": {"min_travel": _NON_NEGATIVE, "search_radius_per_metre": _NON_NEGATIVE,
+                            "submap_keyframes": _NON_NEGATIVE, "small_correction_linear": _NON_NEGATIVE,
+                            "small_correction_angular": _NON_NEGATIVE, "min_inlier_fraction": _FRACTION,
+                            "ambiguity_ratio": _POSITIVE_FRACTION, "registration_voxel": _STEP_FLOOR},
+    "slam3d.se3_polish": {"max_iterations": {"gt": 0, "le": 1000}},
 }
-"""Bounds of the numbers that need not be strictly positive (every other number must be)."""
-
-_LIMITS: dict[tuple[str, str], tuple[float | None, float | None]] = {
-    # floors: steps and cells finer than these (m, degrees) multiply the work and memory of a search or a
-    # grid far beyond any use
-    ("slam2d.matching", "resolution"): (0.005, None),
-    ("slam2d.odometry", "angular_step"): (0.01, None),
-    ("slam2d.loop_closure", "angular_step"): (0.01, None),
-    ("slam3d.odometry", "voxel_size"): (0.01, None),
-    ("slam3d.keyframes", "cloud_voxel"): (0.01, None),
-    ("slam3d.loop_closure", "registration_voxel"): (0.01, None),
-    ("slam2d.matching", "max_range"): (None, 1000.0),
-    ("slam2d.keyframes", "max_turn_rate"): (None, 3600.0),
-    ("slam3d.odometry", "max_range"): (None, 1000.0),
-    ("slam3d.odometry", "min_range"): (None, 1000.0),
-    ("slam3d.se3_polish", "max_iterations"): (None, 1000.0),
-}
-"""(floor, ceiling) of a number, where they differ from `_BOUNDS` and `_MAX_NUMBER` / `_MAX_ANGLE`."""
+"""Section → key → bounds of the numbers that differ from the rule: greater than 0, at most `_MAX_ANGLE`
+for an angle, else `_MAX_NUMBER`."""
 _MAX_NUMBER = 10_000.0
 """Every other number's upper bound (metres, counts, scales): far above any use, and low enough that no
 value in range can overflow a computation or size an allocation beyond the memory bound."""
@@ -150,15 +120,9 @@ _MAX_ANGLE = 360.0
 
 
 def _bounds(section: str, name: str) -> dict[str, float]:
-    bounds = dict(_BOUNDS.get((section, name), _POSITIVE))
-    floor, ceiling = _LIMITS.get((section, name), (None, None))
-    if floor is not None:
-        bounds.pop("gt", None)
-        bounds["ge"] = floor
-    if ceiling is None:
-        ceiling = _MAX_ANGLE if is_angle_field(name) else _MAX_NUMBER
-    bounds["le"] = min(bounds.get("le", ceiling), ceiling)
-    return bounds
+    ceiling = _MAX_ANGLE if is_angle_field(name) else _MAX_NUMBER
+    return {"le": ceiling, **_BOUNDS.get(section, {}).get(name, {"gt": 0})}
+
 
 _AT_LEAST: dict[tuple[str, str], str] = {
     ("slam2d.loop_closure", "max_search_radius"): "search_radius",
@@ -330,15 +294,12 @@ class ReplayConfig(_Section):
         """The 3D frontend's frozen dataclass (angles in radians)."""
         return _to_dataclass(self.slam3d, Slam3DConfig)  # type: ignore[no-any-return]
 
-    def to_mapping(self) -> dict[str, dict[str, Any]]:
-        """Section → key → value as in the file (degrees), sections in file order, unset values left out."""
-        return {name: getattr(self, name).model_dump(exclude_none=True) for name in type(self).model_fields}
-
     def to_toml(self) -> str:
-        """This configuration as a TOML document that `load_config` reads back to an equal one."""
+        """This configuration as a TOML document that `load_config` reads back to an equal one (sections in
+        file order, in its units, unset values left out)."""
         parts = [_TOML_HEADER]
-        for name, values in self.to_mapping().items():
-            text = tomli_w.dumps({name: values})
+        for name in type(self).model_fields:
+            text = tomli_w.dumps({name: getattr(self, name).model_dump(exclude_none=True)})
             comments = _SECTION_COMMENTS.get(name, "")
             if name in ("input", "optimizer"):  # comments under the header, before the keys
                 header, _, body = text.partition("\n")

@@ -88,14 +88,7 @@ class RelationsResult:
 
     def summary(self) -> dict[str, Any]:
         """The scalar fields, for JSON."""
-        return {name: getattr(self, name) for name in _SUMMARY_FIELDS}
-
-
-_SUMMARY_FIELDS = (
-    "count", "unmatched",
-    "translation_mean", "translation_std", "rotation_mean_deg", "rotation_std_deg",
-    "translation_squared_mean", "translation_squared_std", "rotation_squared_mean", "rotation_squared_std",
-)
+        return {name: value for name, value in vars(self).items() if not isinstance(value, np.ndarray)}
 
 
 def read_relations(path: str | Path) -> Relations:

@@ -13,14 +13,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 from pipeline.api import input_kind, output_stem
-from pipeline.batch import BatchOutcome, OutcomeCallback, RayOptions, one_line, run_one_on_this_host
+from pipeline.batch import BatchOutcome, RayOptions, one_line, remove_partial_outputs, run_one_on_this_host
 from pipeline.config import ReplayConfig
 from pipeline.errors import PipelineError
 from pipeline.outputs import prepare_output_dir
@@ -36,22 +35,13 @@ ReplayOne = Callable[..., BatchOutcome]
 """What a task runs for its input: `run_one_on_this_host`, or a wrapper taking its arguments."""
 
 
-def import_ray() -> ModuleType:
-    """The `ray` module, or a `PipelineError` saying how to install it."""
-    try:
-        import ray
-    except ImportError as error:
-        raise PipelineError(f"running on Ray needs the ray package: {RAY_INSTALL_HINT}") from error
-    return ray
-
-
 def run_batch_on_ray(
     inputs: Sequence[Path],
     config: ReplayConfig,
     *,
     out_dir: Path,
     options: RayOptions,
-    on_done: OutcomeCallback | None = None,
+    on_done: Callable[[BatchOutcome], None] | None = None,
     replay_one: ReplayOne = run_one_on_this_host,
 ) -> list[BatchOutcome]:
     """Replay each input as one Ray task (`options.cpus_per_task` CPUs, `options.retries` retries); the
@@ -66,7 +56,10 @@ def run_batch_on_ray(
         raise PipelineError(f"cpus per task must be > 0, got {options.cpus_per_task}")
     if options.retries < 0:
         raise PipelineError(f"retries must be >= 0, got {options.retries}")
-    ray = import_ray()
+    try:
+        import ray
+    except ImportError as error:
+        raise PipelineError(f"running on Ray needs the ray package: {RAY_INSTALL_HINT}") from error
     stems = {output_stem(path) for path in inputs}
     started_here = _connect(ray, options.address)
     try:
@@ -100,7 +93,7 @@ def _connect(ray: ModuleType, address: str | None) -> bool:
 
 
 def _run_tasks(ray: ModuleType, inputs: list[Path], config: ReplayConfig, out_dir: Path, options: RayOptions,
-               on_done: OutcomeCallback | None, replay_one: ReplayOne) -> list[BatchOutcome]:
+               on_done: Callable[[BatchOutcome], None] | None, replay_one: ReplayOne) -> list[BatchOutcome]:
     task = ray.remote(_replay_task).options(num_cpus=options.cpus_per_task, max_retries=options.retries,
                                             retry_exceptions=True)
     config_ref = ray.put(config)  # sent to the object store once, not with each of thousands of tasks
@@ -162,31 +155,3 @@ def _cancel(ray: ModuleType, pending: list[Any]) -> None:
         ray.cancel(ref, force=True)
     if still_running:
         ray.wait(still_running, num_returns=len(still_running), timeout=CANCEL_GRACE_S)
-
-
-def remove_partial_outputs(out_dir: Path, stems: set[str]) -> list[str]:
-    """Clean up what replays of these stems killed mid-write left in `out_dir` (a staging folder, a lock
-    file: see `pipeline.outputs`) the way the next replay of the same outputs would: a staged set that was
-    complete is published, anything else deleted. Returns the stems cleaned up."""
-    from pipeline.outputs import recover_outputs
-
-    try:
-        names = os.listdir(out_dir)  # once, not once per stem: batches have thousands
-    except OSError:
-        return []
-    left_by = set()
-    for name in names:
-        match = _LEFT_BEHIND.fullmatch(name)
-        if match is not None and match.group("stem") in stems:
-            left_by.add(match.group("stem"))
-    cleaned = []
-    for stem in sorted(left_by):
-        try:
-            recover_outputs(out_dir, stem)
-        except PipelineError:  # still held by a live process (a worker Ray could not kill): leave it
-            continue
-        cleaned.append(stem)
-    return cleaned
-
-
-_LEFT_BEHIND = re.compile(r"\.(?P<stem>.+?)(\.staging-.*|\.lock)")

@@ -62,7 +62,8 @@ def test_sections_mirror_the_dataclasses() -> None:
         for name, model in sections.items():
             dataclass_type = type(getattr(defaults, name))
             assert list(model.model_fields) == [item.name for item in dataclasses.fields(dataclass_type)]
-    rule_keys = [*_BOUNDS, *_AT_LEAST, *_AT_MOST]
+    rule_keys = [(section, key) for section, keys in _BOUNDS.items() for key in keys]
+    rule_keys += [*_AT_LEAST, *_AT_MOST]
     rule_keys += [(section, other) for (section, _), other in [*_AT_LEAST.items(), *_AT_MOST.items()]]
     for qualified, key in rule_keys:  # a misspelt rule would silently never apply
         frontend, section = qualified.split(".")
