@@ -29,7 +29,11 @@ depend on it less, and are what to compare on a shared machine.
 
 Neither figure counts starting up (the interpreter and the imports: rerun, numba's cached kernels, scipy
 for ours; open3d, map_closures for kiss-slam): `startup` measures it apart, as a fresh interpreter's CPU
-and wall seconds importing what each run imports, and `frames_per_cpu_second_with_startup` adds it.
+and wall seconds importing what each run imports (for ours what a replay of clouds imports, the 3D
+frontend included), and `frames_per_cpu_second_with_startup` adds it. What a user waits for is a whole
+process, so `fresh_process_fps` and `frames_per_cpu_second_fresh_process` time one: ours the `replay`
+command on the log (interpreter, imports, numba kernels loaded from their cache, reading, everything
+written), kiss-slam its runner (interpreter, imports, the frames loaded from their `.npz`, the loop).
 """
 
 from __future__ import annotations
@@ -106,6 +110,31 @@ class KissSlam:
     closures: int
     seconds: float
     cpu_seconds: float
+    process_seconds: float
+    """Wall and CPU seconds of its whole process (interpreter, imports, frames loaded, loop, result saved)."""
+    process_cpu_seconds: float
+
+
+def children_cpu() -> float:
+    """CPU seconds (user + system, every thread) of the waited-for child processes so far."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def timed_process(command: list[str], environment: dict[str, str] | None = None) -> tuple[float, float]:
+    """Wall and CPU seconds of a fresh process running `command` (which must succeed)."""
+    cpu, wall = children_cpu(), time.perf_counter()
+    done = subprocess.run(command, capture_output=True, text=True, env=environment, cwd=REPO.parent)
+    wall, cpu = time.perf_counter() - wall, children_cpu() - cpu
+    if done.returncode != 0:
+        raise RuntimeError(f"{command[:3]} failed ({done.returncode}):\n{done.stderr[-3000:]}")
+    return wall, cpu
+
+
+def replay_process(log: Path, out_dir: Path) -> tuple[float, float]:
+    """Wall and CPU seconds of the `replay` command on `log` in a fresh process, default settings."""
+    command = [sys.executable, "-m", "pipeline.launcher", str(log), "--out", str(out_dir)]
+    return timed_process(command, {**os.environ, "PYTHONPATH": str(REPO)})
 
 
 def run_kiss_slam(
@@ -119,11 +148,10 @@ def run_kiss_slam(
     command = [python, str(RUNNER), str(folder / "frames.npz"), str(folder / "kiss_slam.npz")]
     if splitting is not None:
         command += ["--splitting-distance", str(splitting)]
-    done = subprocess.run(command, capture_output=True, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(f"kiss-slam failed ({done.returncode}):\n{done.stderr[-3000:]}")
+    process_seconds, process_cpu_seconds = timed_process(command)
     out = np.load(folder / "kiss_slam.npz")
-    return KissSlam(out["poses"], int(out["closures"]), float(out["seconds"]), float(out["cpu_seconds"]))
+    return KissSlam(out["poses"], int(out["closures"]), float(out["seconds"]), float(out["cpu_seconds"]),
+                    process_seconds, process_cpu_seconds)
 
 
 def kiss_icp_alone(frames: list[np.ndarray], times: list[np.ndarray]) -> tuple[np.ndarray, float, float]:
@@ -137,20 +165,19 @@ def kiss_icp_alone(frames: list[np.ndarray], times: list[np.ndarray]) -> tuple[n
     return np.array(poses), time.perf_counter() - started, time.process_time() - cpu_started
 
 
-OUR_IMPORTS = "import pipeline.replay_log"
+OUR_IMPORTS = (
+    "import pipeline.replay_log, frontends.slam3d.session_frontends, pipeline.recording.clouds, "
+    "pipeline.recording.localization3d"
+)
+"""What `replay_log` imports for a log of clouds: the 3D modules are imported once the log turns out to
+hold clouds (`pipeline.replay_log._cloud_sensor`), inside the run's time but for its first log only."""
 KISS_SLAM_IMPORTS = "from kiss_slam.config import load_config; from kiss_slam.slam import KissSLAM"
 
 
 def startup_seconds(python: str, statement: str) -> tuple[float, float]:
     """CPU (user + system, every thread) and wall seconds of a fresh `python -c statement`."""
-    def children_cpu() -> float:
-        usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-        return usage.ru_utime + usage.ru_stime
-
-    environment = {**os.environ, "PYTHONPATH": str(REPO)}
-    cpu, wall = children_cpu(), time.perf_counter()
-    subprocess.run([python, "-c", statement], check=True, env=environment, cwd=REPO.parent)
-    return children_cpu() - cpu, time.perf_counter() - wall
+    wall, cpu = timed_process([python, "-c", statement], {**os.environ, "PYTHONPATH": str(REPO)})
+    return cpu, wall
 
 
 def startup_section(python: str) -> dict[str, dict[str, float]]:
@@ -170,6 +197,17 @@ def with_startup(section: dict[str, object], startup: dict[str, dict[str, float]
     section["frames_per_cpu_second_with_startup"] = {
         "ours_end_to_end": count / (count / rates["ours_end_to_end"] + cpu["ours"]),
         "kiss_slam": count / (count / rates["kiss_slam"] + cpu["kiss_slam"]),
+    }
+
+
+def fresh_process_rows(count: int, fresh: tuple[float, float], slam: KissSlam) -> dict[str, dict[str, float]]:
+    """Frames per wall and CPU second of whole processes: `replay` (`fresh`: wall, CPU s) and kiss-slam."""
+    return {
+        "fresh_process_fps": {"ours": count / fresh[0], "kiss_slam": count / slam.process_seconds},
+        "frames_per_cpu_second_fresh_process": {
+            "ours": count / fresh[1],
+            "kiss_slam": count / slam.process_cpu_seconds,
+        },
     }
 
 
@@ -203,6 +241,7 @@ def kitti_section(shared: Path, python: str) -> dict[str, object]:
     with tempfile.TemporaryDirectory() as folder:
         ours = run_ours(path, Path(folder) / "out", config)
         slam = run_kiss_slam(python, frames, times, Path(folder), None)
+        fresh = replay_process(path, Path(folder) / "fresh")
     length = path_length(reference)
     finals = {
         "ours": relative_to_first(ours.polished)[-1],
@@ -236,6 +275,7 @@ def kitti_section(shared: Path, python: str) -> dict[str, object]:
             "kiss_slam": count / slam.cpu_seconds,
             "kiss_icp_alone": count / kiss_icp_cpu_seconds,
         },
+        **fresh_process_rows(count, fresh, slam),
     }
 
 
@@ -256,6 +296,7 @@ def town_section(python: str, splitting: float | None) -> dict[str, object]:
         times = [normalized_point_times(t.astype(np.float64))[0] for t in run.times]
         ours = run_ours(log, Path(folder) / "out", config)
         slam = run_kiss_slam(python, frames, times, Path(folder), splitting)
+        fresh = replay_process(log, Path(folder) / "fresh")
     # ours: base poses at the stamps, for the clouds in the trajectory (from the first keyframe on)
     stamps = ours.result.stamps_ns
     first_index = len(run.clouds) - len(stamps)
@@ -298,6 +339,7 @@ def town_section(python: str, splitting: float | None) -> dict[str, object]:
             "ours_end_to_end": count / ours.cpu_seconds,
             "kiss_slam": count / slam.cpu_seconds,
         },
+        **fresh_process_rows(count, fresh, slam),
         "polish_seconds": ours.polish_seconds,
         "sweep_period_s": SWEEP_PERIOD,
     }
