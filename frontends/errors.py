@@ -16,6 +16,10 @@ class FrontendError(Exception):
     """Base class of every error the frontends raise on purpose."""
 
 
+class MapPlacementError(FrontendError):
+    """The continued run never matched the saved map: its keyframes cannot join the old graph."""
+
+
 class LogFileError(FrontendError):
     """A log could not be read: names the file, and the message index when one message is at fault.
 

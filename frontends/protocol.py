@@ -23,6 +23,7 @@ from optimizer.graph import PoseGraph
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
 
 DEFAULT_BASE_FRAME = "base_link"
 
@@ -139,6 +140,66 @@ class LocalizedMeasurement:
     """Share of its points paired with the map (0 when not matched)."""
     rms: float
     """Residual of the paired points (m); inf when none."""
+
+
+@dataclass(frozen=True, eq=False)
+class ScanLocalizations:
+    """How every scan of a localized log ended, in log order (the 3D frontend's `CloudLocalizations` adds
+    to it; here rather than in `frontends.slam2d` so that the 3D frontend never imports the 2D one)."""
+
+    stamps_ns: IntArray
+    poses: FloatArray
+    """(S, 3) in the map frame; NaN for a scan never placed."""
+    localized: BoolArray
+    """Placed when processed (tracking, or the global fix at this scan)."""
+    matched: BoolArray
+    """Matched the map when processed (else its pose is the odometry's prediction, or none)."""
+    recovered: BoolArray
+    """Not placed when processed; a later global fix gave its pose back."""
+    score: FloatArray
+    """Correlative score of the match in [0, 1] (NaN when not matched)."""
+    inlier_fraction: FloatArray
+    rms: FloatArray
+    """ICP residual (m) of the paired points (inf when none)."""
+    global_fixes: IntArray
+    """The scans at which a global localization was accepted."""
+    tracked: BoolArray | None = None
+    """Not matched to the saved map but to the rolling local map (recent scans at their tracked poses with
+    the saved keyframes nearby: outside the saved map); `score`/`inlier_fraction`/`rms` are that match's.
+    None: all False."""
+    online_poses: FloatArray | None = None
+    """The poses as given when each scan was processed (or recovered), before the offline smoothing made
+    `poses`; None: `poses` are those."""
+    smoothed: BoolArray | None = None
+    """The scans whose pose the smoothing gave (None: none)."""
+
+    @property
+    def tracked_outside(self) -> BoolArray:
+        return np.zeros(len(self.stamps_ns), dtype=bool) if self.tracked is None else self.tracked
+
+    @property
+    def has_pose(self) -> BoolArray:
+        return self.localized | self.recovered
+
+    @property
+    def placed_stamps_ns(self) -> IntArray:
+        """The stamps of the measurements placed in the map (the others have no pose)."""
+        return self.stamps_ns[self.has_pose]
+
+    @property
+    def placed_poses(self) -> FloatArray:
+        """The map-frame pose of every measurement at `placed_stamps_ns`."""
+        return self.poses[self.has_pose]
+
+    def counts(self) -> dict[str, int]:
+        """The JSON summary's localization counts (named "scans" for clouds too, as in 2D)."""
+        return {"scans_localized": int(self.has_pose.sum()),
+                "scans_localized_when_processed": int(self.localized.sum()),
+                "scans_matched": int(self.matched.sum()),
+                "scans_tracked_outside_map": int(self.tracked_outside.sum()),
+                "scans_recovered": int(self.recovered.sum()),
+                "scans_never_localized": int((~self.has_pose).sum()),
+                "global_fixes": len(self.global_fixes)}
 
 
 class _PlacedMeasurements(Protocol):

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -173,3 +176,24 @@ def test_the_sensor_mount_is_taken_out_of_the_poses() -> None:
     assert len(kept) > 0
     assert kept[:, 0].min() >= -4.0 - 1e-5 and kept[:, 0].max() > 5.5
     assert kept[:, 2].min() >= -3.0 - 1e-5 and kept[:, 2].max() > 6.5
+
+
+def test_the_3d_frontend_never_imports_the_2d_one() -> None:
+    # Start-up: a replay of clouds pays for what the 3D frontend imports; the 2D frontend (its matcher,
+    # grids, localization) cost 0.3 CPU-s more. A fresh process, as other tests may have imported it.
+    modules = sorted(
+        f"frontends.slam3d.{path.stem}"
+        for path in (Path(__file__).resolve().parents[1] / "frontends" / "slam3d").glob("*.py")
+        if path.stem != "__init__"
+    )
+    program = (
+        "import importlib, sys\n"
+        f"for name in {modules!r}:\n"
+        "    importlib.import_module(name)\n"
+        "print(sorted(name for name in sys.modules if name.startswith('frontends.slam2d')))\n"
+    )
+    run = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=300,
+                         stdin=subprocess.DEVNULL, cwd=Path(__file__).resolve().parents[1])
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert len(modules) > 10  # every module of the 3D frontend was imported
+    assert run.stdout.strip().splitlines()[-1] == "[]"

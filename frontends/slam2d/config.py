@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from frontends.loop_search import LoopClosureSwitch, LoopSearchRadius
+
 # Fixed values. Each was a setting once; one value served every log we have (ACES, the CSAIL log, the two
 # RPLidar bags, the simulated buildings) and none is a property of a robot or a place, so they are no
 # longer asked of users (issue 12: fewer settings). A configuration file naming one gets a line saying so.
@@ -97,12 +99,8 @@ class KeyframeConfig:
 
 
 @dataclass(frozen=True)
-class LoopClosureConfig:
-    enabled: bool = True
+class LoopClosureConfig(LoopSearchRadius, LoopClosureSwitch):
     search_radius: float = 2.0
-    """Candidates are keyframes within this distance of the current estimate (m) …"""
-    search_radius_per_metre: float = 0.05
-    """… plus this much per metre of the shortest path joining the two in the graph (the drift grows)."""
     max_search_radius: float = 10.0
     min_separation_keyframes: int = 40
     """Candidates must be at least this many keyframes older than the current one (not the local map)."""
@@ -111,11 +109,11 @@ class LoopClosureConfig:
     angular_window: float = math.radians(25.0)
     angular_step: float = math.radians(0.75)
     min_score: float = 0.55
+    """Branch-and-bound acceptance: mean likelihood of the scan's points on the submap."""
     ambiguity_ratio: float = 0.9
     ambiguity_distance: float = 1.0
     """A match is ambiguous, and rejected, when a pose at least `ambiguity_distance` (m) away scores at least
     `ambiguity_ratio` of it: two look-alike rooms, a stretch of uniform corridor."""
-    """Branch-and-bound acceptance: mean likelihood of the scan's points on the submap."""
     min_inlier_fraction: float = 0.6
     max_rms: float = 0.08
     """ICP verification: the refined match must pair most points closely (m)."""

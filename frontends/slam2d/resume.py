@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.errors import FrontendError
+from frontends.errors import MapPlacementError
 from frontends.loop_closing import is_small
 from frontends.protocol import FloatArray, IntArray
 from frontends.slam2d.config import SMALL_CORRECTION_ANGULAR, SMALL_CORRECTION_LINEAR, Slam2DConfig
@@ -37,10 +37,6 @@ BRIDGE_SIGMA_LINEAR = 100.0
 BRIDGE_SIGMA_ANGULAR = 10.0
 """σ (m, rad) of the constraint between the old run's last keyframe and the new run's first: it carries no
 information (the runs are unrelated in time), it only keeps the chain of consecutive keyframes whole."""
-
-
-class MapPlacementError(FrontendError):
-    """The continued run never matched the saved map: its keyframes cannot join the old graph."""
 
 
 @dataclass(frozen=True, eq=False)

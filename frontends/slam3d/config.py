@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from frontends.loop_search import LoopClosureSwitch, LoopSearchRadius
+
 
 @dataclass(frozen=True)
 class OdometryConfig:
@@ -87,16 +89,18 @@ class KeyframeConfig:
 
 
 @dataclass(frozen=True)
-class LoopClosureConfig:
-    enabled: bool = True
+class LoopSearchCadence(LoopClosureSwitch):
+    """Which keyframes search for loops, and how far back (keys that come before the search radius)."""
+
     every_keyframes: int = 2
     """Search at every n-th keyframe (neighbouring keyframes see the same place)."""
     min_travel: float = 25.0
     """Candidates are keyframes at least this far back along the driven path (m): not the local map."""
+
+
+@dataclass(frozen=True)
+class LoopClosureConfig(LoopSearchRadius, LoopSearchCadence):
     search_radius: float = 5.0
-    """Candidates are keyframes within this distance of the current estimate (m) …"""
-    search_radius_per_metre: float = 0.05
-    """… plus this much per metre of the shortest path joining the two in the graph (the drift grows)."""
     max_search_radius: float = 30.0
     candidates_per_keyframe: int = 2
     descriptor_rings: int = 20

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from frontends.errors import MapPlacementError
 from frontends.protocol import FloatArray, IntArray
-from frontends.slam2d.resume import MapPlacementError
 from frontends.slam3d import se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.localization import CloudLocalizationConfig, CloudLocalizer, LocalizedCloud

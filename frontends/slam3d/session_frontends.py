@@ -19,11 +19,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.errors import FrontendError
+from frontends.errors import FrontendError, MapPlacementError
 from frontends.logs import LogReader
-from frontends.protocol import FloatArray, FrontendOptions, SavedMapLocalization
-from frontends.slam2d.resume import MapPlacementError
-from frontends.slam2d.session_frontends import ScanLocalizations
+from frontends.protocol import FloatArray, FrontendOptions, SavedMapLocalization, ScanLocalizations
 from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.frontend import MAP_VOXEL, LidarFrontend

@@ -331,11 +331,7 @@ class LidarSlam3D:
         distance = np.hypot(*(poses[:, :2] - here[:2]).T)
         if not np.any(distance <= settings.max_search_radius):  # nothing near: skip the graph search
             return ()
-        radius = np.minimum(
-            settings.search_radius
-            + settings.search_radius_per_metre * self._path_lengths_to(current)[:older],
-            settings.max_search_radius,
-        )
+        radius = settings.search_radii(self._path_lengths_to(current)[:older])
         near = np.flatnonzero(distance <= radius)
         if len(near) == 0:
             return ()
