@@ -396,11 +396,7 @@ class LaserSlam2D:
         # keyframe within the largest radius needs no path lengths.
         radius = np.full(older + 1, settings.max_search_radius)
         if np.any(distance <= settings.max_search_radius):
-            radius = np.minimum(
-                settings.search_radius
-                + settings.search_radius_per_metre * self._path_lengths_to(current)[: older + 1],
-                settings.max_search_radius,
-            )
+            radius = settings.search_radii(self._path_lengths_to(current)[: older + 1])
         for candidate in np.argsort(distance / radius):
             if distance[candidate] > radius[candidate] or len(candidates) >= LOOP_CANDIDATES_PER_KEYFRAME:
                 break
