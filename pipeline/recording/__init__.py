@@ -239,26 +239,34 @@ def default_blueprint(
     excluded: Sequence[str] = (), timeline: str = ITERATION_TIMELINE, side: Sequence[rrb.View] | None = None,
 ) -> rrb.Blueprint:
     """The map and graph in 2D (tabs: `extra_tabs` beside it) beside the `side` views (by default the χ²
-    plot and the stage log) and the legend; the time panel on `timeline`, the side panels collapsed so the
-    map has the room."""
+    plot and the stage log) and the legend; the time panel on `timeline`."""
     main: rrb.View | rrb.Tabs = map_view(bounds=bounds, hidden=hidden, excluded=excluded)
     if extra_tabs:
         main = rrb.Tabs(main, *extra_tabs)
-    if side is None:
-        side = [rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
-                rrb.TextLogView(origin=STAGE_ENTITY, name="stages")]
+    side = chi2_views() if side is None else side
+    return layout(main, side, row_shares=[2] * len(side) + [1], timeline=timeline)
+
+
+def chi2_views() -> list[rrb.View]:
+    """The χ² plot (log10) and the stage log."""
+    return [rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
+            rrb.TextLogView(origin=STAGE_ENTITY, name="stages")]
+
+
+def layout(main: rrb.View | rrb.Tabs, side: Sequence[rrb.View], *, row_shares: Sequence[int],
+           column_shares: Sequence[int] = (3, 1), timeline: str = ITERATION_TIMELINE,
+           play_state: str | None = "following") -> rrb.Blueprint:
+    """`main` beside a column of the `side` views over the legend; the time panel on `timeline`, the side
+    panels collapsed so the views have the room."""
     return rrb.Blueprint(
         rrb.Horizontal(
             main,
-            rrb.Vertical(
-                *side,
-                rrb.TextDocumentView(origin=LEGEND_ENTITY, name="legend"),
-                row_shares=[2] * len(side) + [1],
-            ),
-            column_shares=[3, 1],
+            rrb.Vertical(*side, rrb.TextDocumentView(origin=LEGEND_ENTITY, name="legend"),
+                         row_shares=list(row_shares)),
+            column_shares=list(column_shares),
         ),
         # Following: the viewer opens on the final (straight) map; play restarts from iteration 0.
-        rrb.TimePanel(timeline=timeline, state="collapsed", play_state="following"),
+        rrb.TimePanel(timeline=timeline, state="collapsed", play_state=play_state),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
     )
@@ -305,17 +313,21 @@ LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
 }
 
 
-def log_legend(recording: rr.RecordingStream, extra: Mapping[str, tuple[tuple[int, ...], str]] = ()) -> None:
+LEGEND_NOTE = ("\nThe time panel's `iteration` is one counter over every optimized start; "
+               "the final trajectory and wheel odometry are off by default (blueprint tree).")
+Legend = Mapping[str, tuple[tuple[int, ...], str]]
+"""Legend rows: name → (colour, what it shows)."""
+
+
+def log_legend(recording: rr.RecordingStream, extra: Legend = (), *, rows: Legend = LEGEND_ROWS,
+               note: str = LEGEND_NOTE) -> None:
     """A static markdown table naming every colour of the map view (Rerun's spatial views have no
-    legend of their own)."""
-    rows = {**LEGEND_ROWS, **dict(extra)}
+    legend of their own): `rows` and `extra`, then `note`."""
     lines = ["| colour | what |", "|---|---|"]
     lines += [f"| {name} `#{color[0]:02x}{color[1]:02x}{color[2]:02x}` | {text} |"
-              for name, (color, text) in rows.items()]
-    lines.append("\nThe time panel's `iteration` is one counter over every optimized start; "
-                 "the final trajectory and wheel odometry are off by default (blueprint tree).")
-    recording.log(LEGEND_ENTITY, rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN),
-                  static=True)
+              for name, (color, text) in {**rows, **dict(extra)}.items()]
+    recording.log(LEGEND_ENTITY, rr.TextDocument("\n".join([*lines, note] if note else lines),
+                                                 media_type=rr.MediaType.MARKDOWN), static=True)
 
 
 def log_styles(recording: rr.RecordingStream) -> None:
