@@ -260,20 +260,17 @@ def output_stem(path: str | Path) -> str:
     return path.name if path.is_dir() else path.stem
 
 
-def write_text(path: Path, text: str) -> None:
-    """Write `text` as UTF-8, turning OS errors into an OutputError that names the file."""
-    try:
-        path.write_text(text, encoding="utf-8")
-    except OSError as error:
-        raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
-
-
 def write_bytes(path: Path, data: bytes) -> None:
     """Write `data`, turning OS errors into an OutputError that names the file."""
     try:
         path.write_bytes(data)
     except OSError as error:
         raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write `text` as UTF-8, turning OS errors into an OutputError that names the file."""
+    write_bytes(path, text.encode("utf-8"))
 
 
 def write_png(path: Path, image: Any) -> None:

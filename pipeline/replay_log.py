@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 
 from frontends.logs import LogReader, open_log
 from frontends.protocol import Estimate, FrontendOptions, LogFrontend
-from frontends.slam2d import LaserFrontend, OccupancyGrid, Slam2DConfig
+from frontends.slam2d import LaserFrontend, Slam2DConfig
 from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
@@ -118,8 +118,8 @@ class _MapFile:
 
     output: str
     suffix: str
-    write: Callable[[Path, Any, ReplayOutputs], None]
-    """(staged path, the frontend's map export, the outputs' published paths)."""
+    write: Callable[[Path, Any], None]
+    """(staged path, the frontend's map export)."""
 
 
 LocalizingFrontend: TypeAlias = "LocalizingLaserFrontend | LocalizingLidarFrontend"
@@ -145,15 +145,13 @@ class SessionStart:
         """Read the session file (`SessionError` naming it when it is damaged or from a newer version)."""
         if mode not in ("continue", "map"):
             raise PipelineError(f"unknown session mode {mode!r}; choose continue or map")
-        if initial_pose is not None:
+        pose = None if initial_pose is None else tuple(float(value) for value in initial_pose)
+        if pose is not None:
             if mode != "map":
                 raise PipelineError("an initial pose applies to localization in a map (--map) only")
-            pose = tuple(float(value) for value in initial_pose)
             if len(pose) != 3 or not all(np.isfinite(pose)):
                 raise PipelineError(f"the initial pose must be three finite numbers x, y, yaw; got {pose}")
-            initial_pose = pose
-        path = Path(path)
-        return cls(path, mode, read_session(path), None if initial_pose is None else tuple(initial_pose))
+        return cls(Path(path), mode, read_session(Path(path)), pose)
 
     def frontend_for(self, sensor: _Sensor, kind: str, log: LogReader, topic: str, config: Any,
                      options: FrontendOptions) -> Any:
@@ -163,9 +161,6 @@ class SessionStart:
             raise PipelineError(f"{self.path} is a map of {SENSOR_WORDS[saved_kind]} and {log.path} has "
                                 f"{SENSOR_WORDS[kind]} ({topic}): a session continues or localizes logs of "
                                 "its own kind")
-        if sensor.from_session is None:
-            raise PipelineError(f"{self.path}: --continue and --map work with 2D laser sessions only so far "
-                                f"(this one is of {SENSOR_WORDS[kind]})")
         return sensor.from_session(log, topic, config, options, self)
 
 
@@ -177,18 +172,13 @@ class _Sensor:
     recording: type[ScanReplayRecording] | type[CloudReplayRecording]
     """A `FrontendRecording` of the frontend (`recording(stream, frontend)`)."""
     map_files: tuple[_MapFile, ...]
+    from_session: Callable[[LogReader, str, Any, FrontendOptions, SessionStart], Any]
+    """The frontend of a replay that starts from a saved session: continuing it (a `LogFrontend`) or
+    localizing in it (a `LocalizingFrontend`)."""
+    localization_recording: type[MapLocalizationRecording] | type[CloudLocalizationRecording]
+    """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
     kitti_poses: bool = False
     """Also write the trajectory as KITTI poses (`<stem>.kitti`: 3×4 matrices, one line per measurement)."""
-    from_session: Callable[[LogReader, str, Any, FrontendOptions, SessionStart], Any] | None = None
-    """The frontend of a replay that starts from a saved session: continuing it (a `LogFrontend`) or
-    localizing in it (a `LocalizingLaserFrontend`); None: not built for this sensor."""
-    localization_recording: type[MapLocalizationRecording] | type[CloudLocalizationRecording] | None = None
-    """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
-
-
-def _write_map_yaml(path: Path, grid: OccupancyGrid, outputs: ReplayOutputs) -> None:
-    assert outputs.map_pgm is not None
-    write_text(path, map_server_yaml(grid, outputs.map_pgm.name))
 
 
 def _session_frontends(saved_map: Callable[[Path, Any], Any], continuing: Callable[..., Any],
@@ -207,11 +197,13 @@ def _session_frontends(saved_map: Callable[[Path, Any], Any], continuing: Callab
 
 
 _SCAN_SENSOR = _Sensor(LaserFrontend, ScanReplayRecording, (
-    _MapFile("map_png", "_map.png", lambda path, grid, _: write_png(path, picture_with_scale_bar(grid))),
-    _MapFile("map_pgm", "_map.pgm", lambda path, grid, _: write_bytes(path, map_server_pgm(grid))),
-    _MapFile("map_yaml", "_map.yaml", _write_map_yaml),
-), from_session=_session_frontends(saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend),
-    localization_recording=MapLocalizationRecording)
+    _MapFile("map_png", "_map.png", lambda path, grid: write_png(path, picture_with_scale_bar(grid))),
+    _MapFile("map_pgm", "_map.pgm", lambda path, grid: write_bytes(path, map_server_pgm(grid))),
+    # The YAML names the PGM beside it, which only its suffix tells apart.
+    _MapFile("map_yaml", "_map.yaml",
+             lambda path, grid: write_text(path, map_server_yaml(grid, path.with_suffix(".pgm").name))),
+), _session_frontends(saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend),
+    MapLocalizationRecording)
 
 
 @functools.cache
@@ -223,12 +215,10 @@ def _cloud_sensor() -> _Sensor:
     from pipeline.recording.clouds import CloudReplayRecording
     from pipeline.recording.localization3d import CloudLocalizationRecording
 
-    return _Sensor(LidarFrontend, CloudReplayRecording, (
-        _MapFile("ply", ".ply", lambda path, points, _: write_ply(path, points)),
-        _MapFile("pcd", ".pcd", lambda path, points, _: write_map_pcd(path, points)),
-    ), kitti_poses=True,
-        from_session=_session_frontends(saved_map_3d, ContinuingLidarFrontend, LocalizingLidarFrontend),
-        localization_recording=CloudLocalizationRecording)
+    return _Sensor(LidarFrontend, CloudReplayRecording, (_MapFile("ply", ".ply", write_ply),
+                                                         _MapFile("pcd", ".pcd", write_map_pcd)),
+                   _session_frontends(saved_map_3d, ContinuingLidarFrontend, LocalizingLidarFrontend),
+                   CloudLocalizationRecording, kitti_poses=True)
 
 
 _SENSORS: dict[str, Callable[[], _Sensor]] = {"scan": lambda: _SCAN_SENSOR, "cloud": _cloud_sensor}
@@ -397,7 +387,6 @@ class _Run:
                                                 with_map=sensor.recording.with_map)
             try:
                 if localizing:
-                    assert sensor.localization_recording is not None  # `frontend_for` checked it
                     result = self.localize(frontend, topic, sensor.localization_recording(stream, frontend),
                                            stream, timings)
                 else:
@@ -409,10 +398,10 @@ class _Run:
                 timings["record_close"] = time.perf_counter() - close_started
             write_started = time.perf_counter()
             write_tum(staged["tum"], frontend.stamps_ns, result.poses)
-            if localizing and outputs.kitti is not None:
+            if outputs.kitti is not None:
                 write_kitti_poses(staged["kitti"], result.poses)
             if not localizing:
-                self.write_map_outputs(frontend, log, kind, topic, result, outputs, staged)
+                self.write_map_outputs(frontend, log, kind, topic, result, staged)
             timings["write"] = time.perf_counter() - write_started
             timings["total"] = time.perf_counter() - started
             replayed = LogReplayResult(
@@ -432,13 +421,11 @@ class _Run:
         return replayed
 
     def write_map_outputs(self, frontend: LogFrontend, log: LogReader, kind: str, topic: str,
-                          result: _Optimized, outputs: ReplayOutputs, staged: dict[str, Path]) -> None:
+                          result: _Optimized, staged: dict[str, Path]) -> None:
         """The keyframe graph, the map files and the session of a mapping replay (plain or continued)."""
         write_g2o(staged["g2o"], frontend.keyframe_graph(), result.keyframe_poses)
-        if outputs.kitti is not None:
-            write_kitti_poses(staged["kitti"], result.poses)
         for map_file in _SENSORS[kind]().map_files:
-            map_file.write(staged[map_file.output], result.map_export, outputs)
+            map_file.write(staged[map_file.output], result.map_export)
         arrays, keyframe_points = frontend.session_content(result.keyframe_poses)
         header = {
             "sensor_kind": kind, "topic": topic, "sensor_frame": frontend.sensor_frame,

@@ -28,6 +28,7 @@ every iteration the optimizer yields (SGD, then the polish). Per-iteration data 
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -547,15 +548,11 @@ class IterationRecorder:
     def _geometry(self, poses: NDArray[np.float64], *, thin: bool) -> tuple[NDArray[np.float32],
                                                                            NDArray[np.float32]]:
         """The trajectory (P, 2) and loop-closure segments (L, 2, 2) of one iteration, as float32."""
-        if thin:
-            shown = _every_kth(len(poses), self._max_points, keep_last=True)
-            trajectory = poses[shown, :2] if shown is not None else poses[:, :2]
-            loop_from, loop_to = self._loop_from, self._loop_to
-            if self._loop_shown is not None:
-                loop_from, loop_to = loop_from[self._loop_shown], loop_to[self._loop_shown]
-        else:
-            trajectory = poses[:, :2]
-            loop_from, loop_to = self._loop_from, self._loop_to
+        shown = _every_kth(len(poses), self._max_points, keep_last=True) if thin else None
+        trajectory = poses[:, :2] if shown is None else poses[shown, :2]
+        loop_from, loop_to = self._loop_from, self._loop_to
+        if thin and self._loop_shown is not None:
+            loop_from, loop_to = loop_from[self._loop_shown], loop_to[self._loop_shown]
         segments = np.stack([poses[loop_from, :2], poses[loop_to, :2]], axis=1)
         return trajectory.astype(np.float32), segments.astype(np.float32)
 
@@ -569,27 +566,19 @@ class IterationRecorder:
         lines = self._stages[:count]
         shown = np.array([line is not None for line in lines], dtype=bool)
         send_stages(self._recording, steps[shown], [line for line in lines if line is not None])
-        drawn = [k for k in range(count) if self._trajectories[k] is not None]
-        sent = 0
-        while sent < len(drawn):
-            end = sent + 1
-            shape = self._geometry_shape(drawn[sent])
-            while end < len(drawn) and self._geometry_shape(drawn[end]) == shape:
-                end += 1
-            run = drawn[sent:end]
-            send_trajectories(self._recording, steps[run], np.stack([self._trajectories[k] for k in run]))
-            send_loop_segments(self._recording, steps[run], np.stack([self._loop_segments[k] for k in run]))
-            sent = end
+        drawn = [(k, trajectory, segments) for k, (trajectory, segments)
+                 in enumerate(zip(self._trajectories[:count], self._loop_segments[:count], strict=True))
+                 if trajectory is not None and segments is not None]
+        for _, group in itertools.groupby(drawn, key=lambda row: (row[1].shape, row[2].shape)):
+            ks, trajectories, segments = zip(*group, strict=True)
+            send_trajectories(self._recording, steps[list(ks)], np.stack(trajectories))
+            send_loop_segments(self._recording, steps[list(ks)], np.stack(segments))
         self._first_step += count
         for buffer in (self._trajectories, self._loop_segments, self._stages, self._chi2):
             del buffer[:count]
         self._buffered_bytes = sum(trajectory.nbytes + segments.nbytes for trajectory, segments
                                    in zip(self._trajectories, self._loop_segments, strict=True)
                                    if trajectory is not None and segments is not None)
-
-    def _geometry_shape(self, k: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
-        trajectory, segments = self._trajectories[k], self._loop_segments[k]
-        return (() if trajectory is None else trajectory.shape), (() if segments is None else segments.shape)
 
 
 def _every_kth(count: int, limit: int, *, keep_last: bool) -> IntArray | None:
