@@ -52,7 +52,7 @@ from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
 from pipeline import recording
 from pipeline.errors import PipelineError
-from pipeline.keyframe_optimization import optimize_keyframes, wheel_odometry_start
+from pipeline.keyframe_optimization import KeyframeOptimization, optimize_keyframes, wheel_odometry_start
 from pipeline.map_files import map_server_pgm, map_server_yaml, picture_with_scale_bar
 from pipeline.outputs import (
     json_text,
@@ -93,23 +93,27 @@ IterationCallback = Callable[[Iteration], None]
 SUMMARY_SCHEMA = "sgdslam.replay-log/3"
 
 
-class FrontendRecording(Protocol):
-    """A frontend's part of the recording, beside the optimization's (`pipeline.recording`)."""
-
-    with_map: bool
-    """Whether the recording's layout has the 2D map view."""
+class MeasurementRecording(Protocol):
+    """What records a run's measurements and its final map (a localization: nothing is optimized)."""
 
     def measurement(self, measurement: Any, estimate: Any) -> None: ...
 
     def frontend_done(self) -> None: ...
+
+    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: Any) -> None: ...
+
+
+class FrontendRecording(MeasurementRecording, Protocol):
+    """A frontend's part of the recording, beside the optimization's (`pipeline.recording`)."""
+
+    with_map: bool
+    """Whether the recording's layout has the 2D map view."""
 
     def iteration_sink(self) -> IterationSink | None: ...
 
     def keyframe_scans(self) -> Sequence[FloatArray] | None:
         """Each keyframe's 2D points in its own frame, to record the walls moving (None: not drawn)."""
         ...
-
-    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: Any) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -386,12 +390,9 @@ class _Run:
             stream = recording.create_recording(staged["rrd"], name=self.path.name,
                                                 with_map=sensor.recording.with_map)
             try:
-                if localizing:
-                    result = self.localize(frontend, topic, sensor.localization_recording(stream, frontend),
-                                           stream, timings)
-                else:
-                    recorder: FrontendRecording = sensor.recording(stream, frontend)  # type: ignore[arg-type]
-                    result = self.through(frontend, topic, recorder, stream, timings)
+                recorder = (sensor.localization_recording if localizing else sensor.recording)(
+                    stream, frontend)  # type: ignore[arg-type]
+                result = self.through(frontend, topic, recorder, stream, timings)
             finally:
                 close_started = time.perf_counter()
                 recording.close_recording(stream)
@@ -439,7 +440,7 @@ class _Run:
                                         "continued_from": earlier.get("continued_from")}
         write_session_file(staged["session"], header, arrays, keyframe_points)
 
-    def stream(self, frontend: LogFrontend | LocalizingFrontend, recorder: FrontendRecording,
+    def stream(self, frontend: LogFrontend | LocalizingFrontend, recorder: MeasurementRecording,
                timings: dict[str, float]) -> int:
         """Stream the measurements through the frontend and the recording; how many there were."""
         started = time.perf_counter()
@@ -461,29 +462,34 @@ class _Run:
         timings["record_scans"] = record_seconds
         return count
 
-    def localize(self, frontend: LocalizingFrontend, topic: str, recorder: FrontendRecording,
-                 stream: Any, timings: dict[str, float]) -> _Optimized:
-        """Localize every measurement in the saved map, recording the new run on it (nothing optimized)."""
+    def through(self, frontend: Any, topic: str, recorder: MeasurementRecording, stream: Any,
+                timings: dict[str, float]) -> _Optimized:
+        """Stream the measurements through the frontend and the recording, then optimize its keyframe graph
+        (localizing in a saved map: nothing is optimized, the map's keyframe poses stand), make the map and
+        record all of it; `timings` gets the seconds of each stage."""
         count = self.stream(frontend, recorder, timings)
-        assert self.session is not None
-        saved_poses = frontend.saved.keyframe_poses
-        recording.log_run_properties(stream, {"input": str(self.path), "topic": topic, "mode": "map",
-                                              "session": str(self.session.path), "measurements": count,
-                                              "map_keyframes": len(saved_poses)})
+        if self.mode == "map":
+            assert self.session is not None
+            keyframe_poses, trace, optimization = frontend.saved.keyframe_poses, (), None
+            recording.log_run_properties(stream, {"input": str(self.path), "topic": topic, "mode": "map",
+                                                  "session": str(self.session.path), "measurements": count,
+                                                  "map_keyframes": len(keyframe_poses)})
+        else:
+            optimized = self.optimize(frontend, topic, count, cast(FrontendRecording, recorder), stream,
+                                      timings)
+            keyframe_poses, trace, optimization = optimized.poses, optimized.trace, optimized.result
         map_started = time.perf_counter()
-        grid = frontend.map_export(saved_poses)
-        poses = frontend.localized_poses()
+        map_export = frontend.map_export(keyframe_poses)
+        estimates = frontend.localized_poses() if self.mode == "map" else frontend.estimates(keyframe_poses)
         timings["map"] = time.perf_counter() - map_started
         record_started = time.perf_counter()
-        recorder.final(saved_poses, poses, grid)
+        recorder.final(keyframe_poses, estimates, map_export)
         timings["record_maps"] = time.perf_counter() - record_started
-        return _Optimized(count, (), None, saved_poses, poses, grid)
+        return _Optimized(count, trace, optimization, keyframe_poses, estimates, map_export)
 
-    def through(self, frontend: LogFrontend, topic: str, recorder: FrontendRecording, stream: Any,
-                timings: dict[str, float]) -> _Optimized:
-        """Stream the measurements through the frontend, then optimize its keyframe graph and make the map,
-        recording all of it; `timings` gets the seconds of each stage."""
-        count = self.stream(frontend, recorder, timings)
+    def optimize(self, frontend: LogFrontend, topic: str, count: int, recorder: FrontendRecording,
+                 stream: Any, timings: dict[str, float]) -> KeyframeOptimization:
+        """Optimize the frontend's keyframe graph from its starts, recording every iteration."""
         optimize_started = time.perf_counter()
         graph = frontend.keyframe_graph()
         properties: dict[str, str | int | float] = {"input": str(self.path), "topic": topic,
@@ -501,15 +507,7 @@ class _Run:
                 wheel_odometry, frontend.odometry_chain[0]))
         timings["record_iterations"] = optimized.record_seconds
         timings["optimize_and_record"] = time.perf_counter() - optimize_started
-        map_started = time.perf_counter()
-        estimates = frontend.estimates(optimized.poses)
-        map_export = frontend.map_export(optimized.poses)
-        timings["map"] = time.perf_counter() - map_started
-        record_started = time.perf_counter()
-        recorder.final(optimized.poses, estimates, map_export)
-        timings["record_maps"] = time.perf_counter() - record_started
-        return _Optimized(count, optimized.trace, optimized.result, optimized.poses, estimates, map_export)
-
+        return optimized
 
 def summary(result: LogReplayResult) -> dict[str, Any]:
     """The JSON summary of a mapping replay (plain or continued)."""

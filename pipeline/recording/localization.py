@@ -82,9 +82,6 @@ class MapLocalizationRecording(scan_recording.ScanReplayRecording):
         self._saved_scans = frontend.saved.keyframe_scans
         self._localizer = frontend
 
-    def keyframe_scans(self) -> Sequence[FloatArray] | None:
-        return None  # no optimization to draw the walls moving in
-
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
         log_saved_map(self._recording, self._saved_scans, planar_poses)
         log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)

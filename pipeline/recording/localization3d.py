@@ -50,10 +50,8 @@ def localization3d_blueprint() -> rrb.Blueprint:
 
 
 class CloudLocalizationRecording:
-    """The recording of a `LocalizingLidarFrontend` (`pipeline.replay_log.FrontendRecording`'s methods);
+    """The recording of a `LocalizingLidarFrontend` (a `pipeline.replay_log.MeasurementRecording`);
     `final(saved planar keyframe poses, localized 4×4 poses, saved map points)`."""
-
-    with_map = False
 
     def __init__(self, recording: rr.RecordingStream, frontend: LocalizingLidarFrontend) -> None:
         self._recording = recording
@@ -72,12 +70,6 @@ class CloudLocalizationRecording:
         self._recording.send_columns(
             ROBOT3D_ENTITY, indexes=[rr.TimeColumn(SCAN_TIMELINE, sequence=placed.astype(np.int64))],
             columns=transform_columns(found.poses[placed]))
-
-    def iteration_sink(self) -> None:
-        return None
-
-    def keyframe_scans(self) -> None:
-        return None
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: NDArray[Any]) -> None:
         self._recording.log(SAVED_MAP3D_ENTITY, rr.Points3D(np.asarray(map_export, dtype=np.float32),
