@@ -111,6 +111,43 @@ class IterationSink(Protocol):
     def flush(self) -> None: ...
 
 
+class PoseBatches:
+    """An `IterationSink` that buffers every iteration's keyframe poses (as float32) and sends them in
+    column batches of about `batch_bytes`: `_send_batch(steps, poses (T, K, …), final)`, `final` once the
+    run is over."""
+
+    def __init__(self, recording: rr.RecordingStream, *, batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
+        self._recording = recording
+        self._batch_bytes = batch_bytes
+        self._steps: list[int] = []
+        self._poses: list[NDArray[np.float32]] = []
+        self._buffered_bytes = 0
+
+    def add(self, step: int, iteration: Iteration) -> None:
+        """Buffer the keyframe poses of the iteration logged at `step`."""
+        self._steps.append(step)
+        self._poses.append(np.asarray(self._keyframe_poses(iteration), dtype=np.float32))
+        self._buffered_bytes += self._poses[-1].nbytes
+        if self._buffered_bytes >= self._batch_bytes:
+            self._send(final=False)
+
+    def flush(self) -> None:
+        """Send what is buffered (call it once the run is over)."""
+        self._send(final=True)
+
+    def _send(self, *, final: bool) -> None:
+        if self._steps:
+            self._send_batch(np.asarray(self._steps, dtype=np.int64), np.stack(self._poses), final=final)
+        self._steps, self._poses = [], []
+        self._buffered_bytes = 0
+
+    def _keyframe_poses(self, iteration: Iteration) -> NDArray[np.floating]:
+        return iteration.poses
+
+    def _send_batch(self, steps: IntArray, poses: NDArray[np.float32], *, final: bool) -> None:
+        raise NotImplementedError
+
+
 def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.RecordingStream:
     """A new recording stream that saves to `path` (with the default blueprint; `with_map` adds the views
     of a log replay: the scan playback tab), the world mirrored to y up, and no automatic timelines.

@@ -33,6 +33,7 @@ from pipeline.recording import (
     ITERATION_TIMELINE,
     TRAJECTORY_COLOR,
     Bounds,
+    PoseBatches,
     chi2_views,
     layout,
     map_view,
@@ -49,7 +50,6 @@ MAP3D_ENTITY = "world3d/map"
 MAP3D_COLOR = (60, 60, 60, 255)
 POINT_RADIUS = rr.Radius.ui_points(1.5)
 LINE_WIDTH = rr.Radius.ui_points(2.0)
-DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
 RECORDING_KEYFRAME_VOXEL = 0.5
 """Keyframe clouds in the recording are thinned to this voxel (m): hundreds of them stay light to view."""
 KEYFRAME_AXIS_LENGTH = 1.5
@@ -130,44 +130,29 @@ def transform_columns(poses: FloatArray) -> list[rr.ComponentColumn]:
                                   quaternion=quaternions.astype(np.float32))
 
 
-class KeyframePoseRecorder:
+class KeyframePoseRecorder(PoseBatches):
     """Logs the 3D keyframe poses of every iteration (the planar poses lifted by `graph`: height, roll and
-    pitch from odometry): one Transform3D per keyframe entity and the 3D trajectory, on `iteration`,
-    buffered and sent in column batches of about `batch_bytes`. An `IterationSink`."""
+    pitch from odometry): one Transform3D per keyframe entity and the 3D trajectory, on `iteration`, in
+    column batches."""
 
-    def __init__(self, recording: rr.RecordingStream, graph: Slam3DGraph, *,
-                 batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
-        self._recording = recording
+    def __init__(self, recording: rr.RecordingStream, graph: Slam3DGraph) -> None:
+        super().__init__(recording)
         self._graph = graph
-        self._batch_bytes = batch_bytes
-        self._steps: list[int] = []
-        self._poses: list[NDArray[np.float32]] = []
-        self._buffered_bytes = 0
 
-    def add(self, step: int, iteration: Iteration) -> None:
-        """Buffer the keyframe poses of the iteration logged at `step`."""
-        self._steps.append(step)
-        self._poses.append(np.asarray(self._graph.lift(iteration.poses), dtype=np.float32))
-        self._buffered_bytes += self._poses[-1].nbytes
-        if self._buffered_bytes >= self._batch_bytes:
-            self.flush()
+    def _keyframe_poses(self, iteration: Iteration) -> FloatArray:
+        return self._graph.lift(iteration.poses)
 
-    def flush(self) -> None:
-        """Send what is buffered."""
-        if not self._steps:
-            return
-        steps = rr.TimeColumn(ITERATION_TIMELINE, sequence=np.asarray(self._steps, dtype=np.int64))
-        poses = np.stack(self._poses)  # (T, K, 4, 4)
-        for index in range(poses.shape[1]):
-            self._recording.send_columns(keyframe_entity(index), indexes=[steps],
-                                         columns=transform_columns(poses[:, index]))
+    def _send_batch(self, steps: NDArray[np.int64], poses: NDArray[np.float32], *, final: bool) -> None:
+        """(T, K, 4, 4) poses of the iterations at `steps`."""
+        index = rr.TimeColumn(ITERATION_TIMELINE, sequence=steps)
+        for keyframe in range(poses.shape[1]):
+            self._recording.send_columns(keyframe_entity(keyframe), indexes=[index],
+                                         columns=transform_columns(poses[:, keyframe]))
         self._recording.send_columns(
             TRAJECTORY3D_ENTITY,
-            indexes=[steps],
+            indexes=[index],
             columns=rr.LineStrips3D.columns(strips=[trajectory[:, :3, 3] for trajectory in poses]),
         )
-        self._steps, self._poses = [], []
-        self._buffered_bytes = 0
 
 
 class CloudReplayRecording:
@@ -179,10 +164,13 @@ class CloudReplayRecording:
     def __init__(self, recording: rr.RecordingStream, frontend: LidarFrontend) -> None:
         self._recording = recording
         self._frontend = frontend
-        send_blueprint(recording, cloud_blueprint())
+        send_blueprint(recording, self.blueprint())
+
+    def blueprint(self) -> rrb.Blueprint:
+        return cloud_blueprint()
 
     def measurement(self, measurement: Cloud3D, estimate: CloudEstimate) -> None:
-        """Clouds are recorded per keyframe, once the graph is known."""
+        """Clouds are recorded after the run, all at once (per keyframe once the graph is known)."""
 
     def frontend_done(self) -> None:
         result = self._frontend.result

@@ -18,15 +18,14 @@ import rerun as rr
 import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
-from frontends.logs import Cloud3D
-from frontends.slam3d import CloudEstimate
 from frontends.slam3d.session_frontends import LocalizingLidarFrontend
-from pipeline.recording import MAP_COLOR, TRAJECTORY_COLOR, FloatArray, layout, log_legend, send_blueprint
+from pipeline.recording import MAP_COLOR, TRAJECTORY_COLOR, FloatArray, layout, log_legend
 from pipeline.recording.clouds import (
     KEYFRAME_AXIS_LENGTH,
     LINE_WIDTH,
     POINT_RADIUS,
     WORLD3D_ENTITY,
+    CloudReplayRecording,
     transform_columns,
 )
 from pipeline.recording.localization import MATCH_QUALITY_ENTITY, send_match_quality
@@ -49,17 +48,14 @@ def localization3d_blueprint() -> rrb.Blueprint:
                   row_shares=[3, 1], timeline=SCAN_TIMELINE, play_state=None)
 
 
-class CloudLocalizationRecording:
-    """The recording of a `LocalizingLidarFrontend` (a `pipeline.replay_log.MeasurementRecording`);
-    `final(saved planar keyframe poses, localized 4×4 poses, saved map points)`."""
+class CloudLocalizationRecording(CloudReplayRecording):
+    """`CloudReplayRecording` for a localization (a `pipeline.replay_log.MeasurementRecording`): the saved
+    map under the new run; `final(saved planar keyframe poses, localized 4×4 poses, saved map points)`."""
 
-    def __init__(self, recording: rr.RecordingStream, frontend: LocalizingLidarFrontend) -> None:
-        self._recording = recording
-        self._frontend = frontend
-        send_blueprint(recording, localization3d_blueprint())
+    _frontend: LocalizingLidarFrontend  # type: ignore[assignment]
 
-    def measurement(self, measurement: Cloud3D, estimate: CloudEstimate) -> None:
-        """Clouds placed when processed are recorded at once, after the run (`final`)."""
+    def blueprint(self) -> rrb.Blueprint:
+        return localization3d_blueprint()
 
     def frontend_done(self) -> None:
         found = self._frontend.localizations

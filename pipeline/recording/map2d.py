@@ -36,6 +36,8 @@ from pipeline.recording import (
     VIEWER_BACKGROUND,
     Bounds,
     FloatArray,
+    IntArray,
+    PoseBatches,
 )
 
 OCCUPANCY_ENTITY = "world/occupancy"
@@ -120,32 +122,23 @@ def log_occupancy(recording: rr.RecordingStream, image: NDArray[np.uint8], origi
                                                           draw_order=OCCUPANCY_DRAW_ORDER), static=True)
 
 
-class KeyframeMapRecorder:
+class KeyframeMapRecorder(PoseBatches):
     """The walls that move: each keyframe's scan once, then every iteration's keyframe poses as one
-    `Transform3D` per keyframe entity, buffered and sent in column batches of about `batch_bytes`.
+    `Transform3D` per keyframe entity, in column batches (the last iteration whole).
 
     Used as the `IterationSink` of `pipeline.keyframe_optimization.optimize_keyframes`."""
 
     def __init__(self, recording: rr.RecordingStream, scans: Sequence[FloatArray], *,
                  batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
-        self._recording = recording
+        super().__init__(recording, batch_bytes=batch_bytes)
         self._scans = scans
-        self._batch_bytes = batch_bytes
-        self._steps: list[int] = []
-        self._poses: list[NDArray[np.float32]] = []
-        self._buffered_bytes = 0
         self._scans_logged = False
         self._last_sent: NDArray[np.float64] = np.full((len(scans), 3), np.nan)
 
     def add(self, step: int, iteration: Iteration) -> None:
-        """Buffer the keyframe poses of the iteration logged at `step`."""
         if not self._scans_logged:
             self._log_scans(step)
-        self._steps.append(step)
-        self._poses.append(np.asarray(iteration.poses, dtype=np.float32))
-        self._buffered_bytes += self._poses[-1].nbytes
-        if self._buffered_bytes >= self._batch_bytes:
-            self._send(final=False)
+        super().add(step, iteration)
 
     def _log_scans(self, step: int) -> None:
         # On `iteration` (not static): on the `scan` and `time` timelines the keyframes have no pose, and
@@ -164,15 +157,7 @@ class KeyframeMapRecorder:
         self._recording.reset_time()
         self._scans_logged = True
 
-    def flush(self) -> None:
-        """Send what is buffered, the latest iteration whole (call it once the run is over)."""
-        self._send(final=True)
-
-    def _send(self, *, final: bool) -> None:
-        if not self._steps:
-            return
-        steps = np.asarray(self._steps, dtype=np.int64)
-        poses = np.stack(self._poses)  # (T, K, 3)
+    def _send_batch(self, steps: IntArray, poses: NDArray[np.float32], *, final: bool) -> None:
         sent = rows_to_send(poses.astype(np.float64), self._last_sent, SHOWN_MOVE, SHOWN_TURN, final)
         # Keyframe by keyframe, the rows sent: a few % of all (CSAIL: 35 k of 526 k), so only their
         # quaternions are computed.
@@ -196,8 +181,6 @@ class KeyframeMapRecorder:
                                        rr.components.RotationQuatBatch(quaternions[block])),
                 ],
             )
-        self._steps, self._poses = [], []
-        self._buffered_bytes = 0
 
 
 @njit(cache=True)
