@@ -29,7 +29,6 @@ from pipeline.recording import (
     default_blueprint,
     log_legend,
     send_blueprint,
-    world_bounds,
 )
 from pipeline.recording import scans as scan_recording
 from pipeline.recording.map2d import log_occupancy, placed_bounds, thin_scan
@@ -87,8 +86,7 @@ class MapLocalizationRecording(scan_recording.ScanReplayRecording):
         log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)
         scan_recording.log_final_trajectory(self._recording, estimates)
         log_legend(self._recording, rows=LEGEND_ROWS, note="")
-        low_x, low_y, high_x, high_y = placed_bounds(self._saved_scans, planar_poses)
-        bounds = world_bounds(np.array([[low_x, low_y], [high_x, high_y]]), estimates)
+        bounds = placed_bounds(self._saved_scans, planar_poses, estimates)
         send_match_quality(self._recording, self._localizer.localizations)
         send_blueprint(self._recording, default_blueprint(
             bounds=bounds, extra_tabs=scan_recording.playback_views(bounds),

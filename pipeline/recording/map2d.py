@@ -38,6 +38,7 @@ from pipeline.recording import (
     FloatArray,
     IntArray,
     PoseBatches,
+    world_bounds,
 )
 
 OCCUPANCY_ENTITY = "world/occupancy"
@@ -75,15 +76,11 @@ def thin_scan(points: NDArray[np.floating], cell: float = SCAN_CELL) -> NDArray[
     return points[one_per_cell(points, cell)].astype(np.float32)
 
 
-def placed_bounds(scans: Sequence[FloatArray], poses: FloatArray) -> Bounds:
-    """The extent of all `scans` (keyframe-frame points) placed at `poses`, and of the poses."""
-    low = np.min(poses[:, :2], axis=0) if len(poses) else np.zeros(2)
-    high = np.max(poses[:, :2], axis=0) if len(poses) else np.zeros(2)
-    for scan, pose in zip(scans, poses, strict=True):
-        if len(scan):
-            placed = scan @ _rotation(float(pose[2])) + pose[:2]
-            low, high = np.minimum(low, placed.min(axis=0)), np.maximum(high, placed.max(axis=0))
-    return float(low[0]), float(low[1]), float(high[0]), float(high[1])
+def placed_bounds(scans: Sequence[FloatArray], poses: FloatArray, *more: FloatArray) -> Bounds:
+    """The extent of all `scans` (keyframe-frame points) placed at `poses`, of the poses and of `more`."""
+    placed = [np.asarray(scan).reshape(-1, 2) @ _rotation(float(pose[2])) + pose[:2]
+              for scan, pose in zip(scans, poses, strict=True)]
+    return world_bounds(poses, *placed, *more)
 
 
 def _rotation(theta: float) -> FloatArray:
