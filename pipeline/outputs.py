@@ -45,11 +45,9 @@ def prepare_output_dir(directory: Path) -> bool:
     """Create `directory` (and its parents) if needed; returns whether it was created by this call."""
     if directory.is_dir():
         return False
-    if directory.exists():
-        raise OutputError(f"{directory}: exists and is not a folder")
     try:
         directory.mkdir(parents=True)
-    except FileExistsError:  # created concurrently by someone else: fine as long as it is a folder
+    except FileExistsError:  # a file, or a folder created concurrently by someone else (fine)
         if not directory.is_dir():
             raise OutputError(f"{directory}: exists and is not a folder") from None
         return False

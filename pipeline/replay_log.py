@@ -257,19 +257,14 @@ class ReplayOutputs:
         trajectory, the summary and the recording."""
         stem = output_stem(input_path)
         chosen = _SENSORS[sensor]()
-        if mode == "map":
-            kinds = ("tum", "json", "rrd", "kitti") if chosen.kitti_poses else ("tum", "json", "rrd")
-            return cls(**{suffix: out_dir / f"{stem}.{suffix}" for suffix in kinds})
-        files = {suffix: out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd", "session")}
-        if chosen.kitti_poses:
-            files["kitti"] = out_dir / f"{stem}.kitti"
-        return cls(**files, **{map_file.output: out_dir / f"{stem}{map_file.suffix}"
-                               for map_file in chosen.map_files})
+        kinds = ["tum", "json", "rrd"] + ["kitti"] * chosen.kitti_poses + ["g2o", "session"] * (mode != "map")
+        map_files = () if mode == "map" else chosen.map_files
+        return cls(**{kind: out_dir / f"{stem}.{kind}" for kind in kinds},
+                   **{map_file.output: out_dir / f"{stem}{map_file.suffix}" for map_file in map_files})
 
     def paths(self) -> dict[str, Path]:
         """Kind → path of every output written ("tum", "g2o", "json", "rrd" and the map's)."""
-        names = [field.name for field in dataclasses.fields(self)]
-        return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
+        return {kind: path for kind, path in dataclasses.asdict(self).items() if path is not None}
 
 
 @dataclass(frozen=True, eq=False)
