@@ -436,11 +436,6 @@ def send_chi2(recording: rr.RecordingStream, steps: IntArray, chi2: FloatArray, 
         )
 
 
-def stage_line(stage: str, index: int, chi2: str) -> str:
-    """The stage log's line for one iteration (`chi2` as shown)."""
-    return f"{stage} {index}: χ² = {chi2}"
-
-
 def send_stages(recording: rr.RecordingStream, steps: IntArray, lines: Sequence[str]) -> None:
     """A text line per iteration in `steps` (those the stage log shows)."""
     if len(lines) == 0:
@@ -527,14 +522,9 @@ class IterationRecorder:
         self._first_step = 0
         self._buffered_bytes = 0
 
-    @property
-    def steps_recorded(self) -> int:
-        """How many iterations were added so far (the next one gets this step number)."""
-        return self._first_step + len(self._stages)
-
     def add(self, iteration: Iteration) -> int:
         """Buffer one iteration; returns its step on the `iteration` timeline."""
-        step = self.steps_recorded
+        step = self._first_step + len(self._stages)  # iterations added so far
         if self._latest_poses is not None:  # the previous iteration was not the final one: thinned
             self._buffer_geometry(self._latest_poses, thin=True)
         self._latest_poses = iteration.poses  # read-only by the optimizers' contract: no copy
@@ -546,7 +536,7 @@ class IterationRecorder:
         value = f"{chi2:.6g}" if chi2 > self._chi2_floor else "0 (round-off)"
         shown = (stage, value)
         repeat = shown == self._previous_line
-        self._stages.append(None if repeat else stage_line(stage, iteration.index, value))
+        self._stages.append(None if repeat else f"{stage} {iteration.index}: χ² = {value}")
         self._previous_line = shown
         self._chi2.append(chi2)
         if self._buffered_bytes >= self._batch_bytes:

@@ -65,10 +65,6 @@ def keyframe_entity(index: int) -> str:
     return f"{KEYFRAMES_ENTITY}/k{index:06d}"
 
 
-def keyframe_scan_entity(index: int) -> str:
-    return f"{keyframe_entity(index)}/scan"
-
-
 def thin_scan(points: NDArray[np.floating], cell: float = SCAN_CELL) -> NDArray[np.float32]:
     """One point (the first) per `cell` × `cell` square, in the scan's order."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -150,7 +146,7 @@ class KeyframeMapRecorder(PoseBatches):
         for index, scan in enumerate(self._scans):
             positions = rr.components.Position2DBatch(thin_scan(scan)).described(
                 rr.Points2D.descriptor_positions())
-            self._recording.log(keyframe_scan_entity(index), [positions, radii, colors, draw_order])
+            self._recording.log(f"{keyframe_entity(index)}/scan", [positions, radii, colors, draw_order])
         self._recording.reset_time()
         self._scans_logged = True
 
