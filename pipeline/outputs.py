@@ -45,11 +45,9 @@ def prepare_output_dir(directory: Path) -> bool:
     """Create `directory` (and its parents) if needed; returns whether it was created by this call."""
     if directory.is_dir():
         return False
-    if directory.exists():
-        raise OutputError(f"{directory}: exists and is not a folder")
     try:
         directory.mkdir(parents=True)
-    except FileExistsError:  # created concurrently by someone else: fine as long as it is a folder
+    except FileExistsError:  # a file, or a folder created concurrently by someone else (fine)
         if not directory.is_dir():
             raise OutputError(f"{directory}: exists and is not a folder") from None
         return False
@@ -260,20 +258,17 @@ def output_stem(path: str | Path) -> str:
     return path.name if path.is_dir() else path.stem
 
 
-def write_text(path: Path, text: str) -> None:
-    """Write `text` as UTF-8, turning OS errors into an OutputError that names the file."""
-    try:
-        path.write_text(text, encoding="utf-8")
-    except OSError as error:
-        raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
-
-
 def write_bytes(path: Path, data: bytes) -> None:
     """Write `data`, turning OS errors into an OutputError that names the file."""
     try:
         path.write_bytes(data)
     except OSError as error:
         raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write `text` as UTF-8, turning OS errors into an OutputError that names the file."""
+    write_bytes(path, text.encode("utf-8"))
 
 
 def write_png(path: Path, image: Any) -> None:

@@ -45,14 +45,14 @@ from numpy.typing import NDArray
 
 from frontends.logs import LogReader, open_log
 from frontends.protocol import Estimate, FrontendOptions, LogFrontend
-from frontends.slam2d import LaserFrontend, OccupancyGrid, Slam2DConfig
+from frontends.slam2d import LaserFrontend, Slam2DConfig
 from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
 from pipeline import recording
 from pipeline.errors import PipelineError
-from pipeline.keyframe_optimization import optimize_keyframes, wheel_odometry_start
+from pipeline.keyframe_optimization import KeyframeOptimization, optimize_keyframes, wheel_odometry_start
 from pipeline.map_files import map_server_pgm, map_server_yaml, picture_with_scale_bar
 from pipeline.outputs import (
     json_text,
@@ -93,23 +93,27 @@ IterationCallback = Callable[[Iteration], None]
 SUMMARY_SCHEMA = "sgdslam.replay-log/3"
 
 
-class FrontendRecording(Protocol):
-    """A frontend's part of the recording, beside the optimization's (`pipeline.recording`)."""
-
-    with_map: bool
-    """Whether the recording's layout has the 2D map view."""
+class MeasurementRecording(Protocol):
+    """What records a run's measurements and its final map (a localization: nothing is optimized)."""
 
     def measurement(self, measurement: Any, estimate: Any) -> None: ...
 
     def frontend_done(self) -> None: ...
+
+    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: Any) -> None: ...
+
+
+class FrontendRecording(MeasurementRecording, Protocol):
+    """A frontend's part of the recording, beside the optimization's (`pipeline.recording`)."""
+
+    with_map: bool
+    """Whether the recording's layout has the 2D map view."""
 
     def iteration_sink(self) -> IterationSink | None: ...
 
     def keyframe_scans(self) -> Sequence[FloatArray] | None:
         """Each keyframe's 2D points in its own frame, to record the walls moving (None: not drawn)."""
         ...
-
-    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: Any) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -118,8 +122,8 @@ class _MapFile:
 
     output: str
     suffix: str
-    write: Callable[[Path, Any, ReplayOutputs], None]
-    """(staged path, the frontend's map export, the outputs' published paths)."""
+    write: Callable[[Path, Any], None]
+    """(staged path, the frontend's map export)."""
 
 
 LocalizingFrontend: TypeAlias = "LocalizingLaserFrontend | LocalizingLidarFrontend"
@@ -145,15 +149,13 @@ class SessionStart:
         """Read the session file (`SessionError` naming it when it is damaged or from a newer version)."""
         if mode not in ("continue", "map"):
             raise PipelineError(f"unknown session mode {mode!r}; choose continue or map")
-        if initial_pose is not None:
+        pose = None if initial_pose is None else tuple(float(value) for value in initial_pose)
+        if pose is not None:
             if mode != "map":
                 raise PipelineError("an initial pose applies to localization in a map (--map) only")
-            pose = tuple(float(value) for value in initial_pose)
             if len(pose) != 3 or not all(np.isfinite(pose)):
                 raise PipelineError(f"the initial pose must be three finite numbers x, y, yaw; got {pose}")
-            initial_pose = pose
-        path = Path(path)
-        return cls(path, mode, read_session(path), None if initial_pose is None else tuple(initial_pose))
+        return cls(Path(path), mode, read_session(Path(path)), pose)
 
     def frontend_for(self, sensor: _Sensor, kind: str, log: LogReader, topic: str, config: Any,
                      options: FrontendOptions) -> Any:
@@ -163,9 +165,6 @@ class SessionStart:
             raise PipelineError(f"{self.path} is a map of {SENSOR_WORDS[saved_kind]} and {log.path} has "
                                 f"{SENSOR_WORDS[kind]} ({topic}): a session continues or localizes logs of "
                                 "its own kind")
-        if sensor.from_session is None:
-            raise PipelineError(f"{self.path}: --continue and --map work with 2D laser sessions only so far "
-                                f"(this one is of {SENSOR_WORDS[kind]})")
         return sensor.from_session(log, topic, config, options, self)
 
 
@@ -177,18 +176,13 @@ class _Sensor:
     recording: type[ScanReplayRecording] | type[CloudReplayRecording]
     """A `FrontendRecording` of the frontend (`recording(stream, frontend)`)."""
     map_files: tuple[_MapFile, ...]
+    from_session: Callable[[LogReader, str, Any, FrontendOptions, SessionStart], Any]
+    """The frontend of a replay that starts from a saved session: continuing it (a `LogFrontend`) or
+    localizing in it (a `LocalizingFrontend`)."""
+    localization_recording: type[MapLocalizationRecording] | type[CloudLocalizationRecording]
+    """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
     kitti_poses: bool = False
     """Also write the trajectory as KITTI poses (`<stem>.kitti`: 3×4 matrices, one line per measurement)."""
-    from_session: Callable[[LogReader, str, Any, FrontendOptions, SessionStart], Any] | None = None
-    """The frontend of a replay that starts from a saved session: continuing it (a `LogFrontend`) or
-    localizing in it (a `LocalizingLaserFrontend`); None: not built for this sensor."""
-    localization_recording: type[MapLocalizationRecording] | type[CloudLocalizationRecording] | None = None
-    """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
-
-
-def _write_map_yaml(path: Path, grid: OccupancyGrid, outputs: ReplayOutputs) -> None:
-    assert outputs.map_pgm is not None
-    write_text(path, map_server_yaml(grid, outputs.map_pgm.name))
 
 
 def _session_frontends(saved_map: Callable[[Path, Any], Any], continuing: Callable[..., Any],
@@ -207,11 +201,13 @@ def _session_frontends(saved_map: Callable[[Path, Any], Any], continuing: Callab
 
 
 _SCAN_SENSOR = _Sensor(LaserFrontend, ScanReplayRecording, (
-    _MapFile("map_png", "_map.png", lambda path, grid, _: write_png(path, picture_with_scale_bar(grid))),
-    _MapFile("map_pgm", "_map.pgm", lambda path, grid, _: write_bytes(path, map_server_pgm(grid))),
-    _MapFile("map_yaml", "_map.yaml", _write_map_yaml),
-), from_session=_session_frontends(saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend),
-    localization_recording=MapLocalizationRecording)
+    _MapFile("map_png", "_map.png", lambda path, grid: write_png(path, picture_with_scale_bar(grid))),
+    _MapFile("map_pgm", "_map.pgm", lambda path, grid: write_bytes(path, map_server_pgm(grid))),
+    # The YAML names the PGM beside it, which only its suffix tells apart.
+    _MapFile("map_yaml", "_map.yaml",
+             lambda path, grid: write_text(path, map_server_yaml(grid, path.with_suffix(".pgm").name))),
+), _session_frontends(saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend),
+    MapLocalizationRecording)
 
 
 @functools.cache
@@ -223,12 +219,10 @@ def _cloud_sensor() -> _Sensor:
     from pipeline.recording.clouds import CloudReplayRecording
     from pipeline.recording.localization3d import CloudLocalizationRecording
 
-    return _Sensor(LidarFrontend, CloudReplayRecording, (
-        _MapFile("ply", ".ply", lambda path, points, _: write_ply(path, points)),
-        _MapFile("pcd", ".pcd", lambda path, points, _: write_map_pcd(path, points)),
-    ), kitti_poses=True,
-        from_session=_session_frontends(saved_map_3d, ContinuingLidarFrontend, LocalizingLidarFrontend),
-        localization_recording=CloudLocalizationRecording)
+    return _Sensor(LidarFrontend, CloudReplayRecording, (_MapFile("ply", ".ply", write_ply),
+                                                         _MapFile("pcd", ".pcd", write_map_pcd)),
+                   _session_frontends(saved_map_3d, ContinuingLidarFrontend, LocalizingLidarFrontend),
+                   CloudLocalizationRecording, kitti_poses=True)
 
 
 _SENSORS: dict[str, Callable[[], _Sensor]] = {"scan": lambda: _SCAN_SENSOR, "cloud": _cloud_sensor}
@@ -263,19 +257,14 @@ class ReplayOutputs:
         trajectory, the summary and the recording."""
         stem = output_stem(input_path)
         chosen = _SENSORS[sensor]()
-        if mode == "map":
-            kinds = ("tum", "json", "rrd", "kitti") if chosen.kitti_poses else ("tum", "json", "rrd")
-            return cls(**{suffix: out_dir / f"{stem}.{suffix}" for suffix in kinds})
-        files = {suffix: out_dir / f"{stem}.{suffix}" for suffix in ("tum", "g2o", "json", "rrd", "session")}
-        if chosen.kitti_poses:
-            files["kitti"] = out_dir / f"{stem}.kitti"
-        return cls(**files, **{map_file.output: out_dir / f"{stem}{map_file.suffix}"
-                               for map_file in chosen.map_files})
+        kinds = ["tum", "json", "rrd"] + ["kitti"] * chosen.kitti_poses + ["g2o", "session"] * (mode != "map")
+        map_files = () if mode == "map" else chosen.map_files
+        return cls(**{kind: out_dir / f"{stem}.{kind}" for kind in kinds},
+                   **{map_file.output: out_dir / f"{stem}{map_file.suffix}" for map_file in map_files})
 
     def paths(self) -> dict[str, Path]:
         """Kind → path of every output written ("tum", "g2o", "json", "rrd" and the map's)."""
-        names = [field.name for field in dataclasses.fields(self)]
-        return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
+        return {kind: path for kind, path in dataclasses.asdict(self).items() if path is not None}
 
 
 @dataclass(frozen=True, eq=False)
@@ -396,23 +385,19 @@ class _Run:
             stream = recording.create_recording(staged["rrd"], name=self.path.name,
                                                 with_map=sensor.recording.with_map)
             try:
-                if localizing:
-                    assert sensor.localization_recording is not None  # `frontend_for` checked it
-                    result = self.localize(frontend, topic, sensor.localization_recording(stream, frontend),
-                                           stream, timings)
-                else:
-                    recorder: FrontendRecording = sensor.recording(stream, frontend)  # type: ignore[arg-type]
-                    result = self.through(frontend, topic, recorder, stream, timings)
+                recorder = (sensor.localization_recording if localizing else sensor.recording)(
+                    stream, frontend)  # type: ignore[arg-type]
+                result = self.through(frontend, topic, recorder, stream, timings)
             finally:
                 close_started = time.perf_counter()
                 recording.close_recording(stream)
                 timings["record_close"] = time.perf_counter() - close_started
             write_started = time.perf_counter()
             write_tum(staged["tum"], frontend.stamps_ns, result.poses)
-            if localizing and outputs.kitti is not None:
+            if outputs.kitti is not None:
                 write_kitti_poses(staged["kitti"], result.poses)
             if not localizing:
-                self.write_map_outputs(frontend, log, kind, topic, result, outputs, staged)
+                self.write_map_outputs(frontend, log, kind, topic, result, staged)
             timings["write"] = time.perf_counter() - write_started
             timings["total"] = time.perf_counter() - started
             replayed = LogReplayResult(
@@ -432,13 +417,11 @@ class _Run:
         return replayed
 
     def write_map_outputs(self, frontend: LogFrontend, log: LogReader, kind: str, topic: str,
-                          result: _Optimized, outputs: ReplayOutputs, staged: dict[str, Path]) -> None:
+                          result: _Optimized, staged: dict[str, Path]) -> None:
         """The keyframe graph, the map files and the session of a mapping replay (plain or continued)."""
         write_g2o(staged["g2o"], frontend.keyframe_graph(), result.keyframe_poses)
-        if outputs.kitti is not None:
-            write_kitti_poses(staged["kitti"], result.poses)
         for map_file in _SENSORS[kind]().map_files:
-            map_file.write(staged[map_file.output], result.map_export, outputs)
+            map_file.write(staged[map_file.output], result.map_export)
         arrays, keyframe_points = frontend.session_content(result.keyframe_poses)
         header = {
             "sensor_kind": kind, "topic": topic, "sensor_frame": frontend.sensor_frame,
@@ -452,7 +435,7 @@ class _Run:
                                         "continued_from": earlier.get("continued_from")}
         write_session_file(staged["session"], header, arrays, keyframe_points)
 
-    def stream(self, frontend: LogFrontend | LocalizingFrontend, recorder: FrontendRecording,
+    def stream(self, frontend: LogFrontend | LocalizingFrontend, recorder: MeasurementRecording,
                timings: dict[str, float]) -> int:
         """Stream the measurements through the frontend and the recording; how many there were."""
         started = time.perf_counter()
@@ -474,29 +457,34 @@ class _Run:
         timings["record_scans"] = record_seconds
         return count
 
-    def localize(self, frontend: LocalizingFrontend, topic: str, recorder: FrontendRecording,
-                 stream: Any, timings: dict[str, float]) -> _Optimized:
-        """Localize every measurement in the saved map, recording the new run on it (nothing optimized)."""
+    def through(self, frontend: Any, topic: str, recorder: MeasurementRecording, stream: Any,
+                timings: dict[str, float]) -> _Optimized:
+        """Stream the measurements through the frontend and the recording, then optimize its keyframe graph
+        (localizing in a saved map: nothing is optimized, the map's keyframe poses stand), make the map and
+        record all of it; `timings` gets the seconds of each stage."""
         count = self.stream(frontend, recorder, timings)
-        assert self.session is not None
-        saved_poses = frontend.saved.keyframe_poses
-        recording.log_run_properties(stream, {"input": str(self.path), "topic": topic, "mode": "map",
-                                              "session": str(self.session.path), "measurements": count,
-                                              "map_keyframes": len(saved_poses)})
+        if self.mode == "map":
+            assert self.session is not None
+            keyframe_poses, trace, optimization = frontend.saved.keyframe_poses, (), None
+            recording.log_run_properties(stream, {"input": str(self.path), "topic": topic, "mode": "map",
+                                                  "session": str(self.session.path), "measurements": count,
+                                                  "map_keyframes": len(keyframe_poses)})
+        else:
+            optimized = self.optimize(frontend, topic, count, cast(FrontendRecording, recorder), stream,
+                                      timings)
+            keyframe_poses, trace, optimization = optimized.poses, optimized.trace, optimized.result
         map_started = time.perf_counter()
-        grid = frontend.map_export(saved_poses)
-        poses = frontend.localized_poses()
+        map_export = frontend.map_export(keyframe_poses)
+        estimates = frontend.localized_poses() if self.mode == "map" else frontend.estimates(keyframe_poses)
         timings["map"] = time.perf_counter() - map_started
         record_started = time.perf_counter()
-        recorder.final(saved_poses, poses, grid)
+        recorder.final(keyframe_poses, estimates, map_export)
         timings["record_maps"] = time.perf_counter() - record_started
-        return _Optimized(count, (), None, saved_poses, poses, grid)
+        return _Optimized(count, trace, optimization, keyframe_poses, estimates, map_export)
 
-    def through(self, frontend: LogFrontend, topic: str, recorder: FrontendRecording, stream: Any,
-                timings: dict[str, float]) -> _Optimized:
-        """Stream the measurements through the frontend, then optimize its keyframe graph and make the map,
-        recording all of it; `timings` gets the seconds of each stage."""
-        count = self.stream(frontend, recorder, timings)
+    def optimize(self, frontend: LogFrontend, topic: str, count: int, recorder: FrontendRecording,
+                 stream: Any, timings: dict[str, float]) -> KeyframeOptimization:
+        """Optimize the frontend's keyframe graph from its starts, recording every iteration."""
         optimize_started = time.perf_counter()
         graph = frontend.keyframe_graph()
         properties: dict[str, str | int | float] = {"input": str(self.path), "topic": topic,
@@ -514,15 +502,7 @@ class _Run:
                 wheel_odometry, frontend.odometry_chain[0]))
         timings["record_iterations"] = optimized.record_seconds
         timings["optimize_and_record"] = time.perf_counter() - optimize_started
-        map_started = time.perf_counter()
-        estimates = frontend.estimates(optimized.poses)
-        map_export = frontend.map_export(optimized.poses)
-        timings["map"] = time.perf_counter() - map_started
-        record_started = time.perf_counter()
-        recorder.final(optimized.poses, estimates, map_export)
-        timings["record_maps"] = time.perf_counter() - record_started
-        return _Optimized(count, optimized.trace, optimized.result, optimized.poses, estimates, map_export)
-
+        return optimized
 
 def summary(result: LogReplayResult) -> dict[str, Any]:
     """The JSON summary of a mapping replay (plain or continued)."""

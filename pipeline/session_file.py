@@ -51,7 +51,6 @@ HEADER_SCHEMA = {
         "software_version": {"type": "string"},
     },
 }
-HASH_CHUNK_BYTES = 1 << 20
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 """An MCAP file starts and ends with it; a session without its end was cut short (its summary lost)."""
 
@@ -78,11 +77,8 @@ def software_version() -> str:
 
 def file_sha256(path: Path) -> str:
     """The SHA-256 of a file, read in chunks (logs are gigabytes)."""
-    digest = hashlib.sha256()
     with path.open("rb") as stream:
-        while chunk := stream.read(HASH_CHUNK_BYTES):
-            digest.update(chunk)
-    return digest.hexdigest()
+        return hashlib.file_digest(stream, "sha256").hexdigest()
 
 
 def source_description(files: Sequence[Path]) -> dict[str, Any]:

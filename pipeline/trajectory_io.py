@@ -132,14 +132,16 @@ def write_tum(path: str | Path, stamps_ns: ArrayLike, poses: ArrayLike) -> None:
     rows = tum_rows(poses)
     if len(rows) != len(stamps):
         raise ValueError(f"{len(stamps)} stamps but {len(rows)} poses")
+    lines = [f"{format_stamp_ns(stamp)} {numbers}"
+             for stamp, numbers in zip(stamps.tolist(), _number_lines(rows), strict=True)]
+    write_text(Path(path), "\n".join([TUM_HEADER, *lines]) + "\n")
+
+
+def _number_lines(rows: FloatArray) -> list[str]:
+    """Each row's numbers, space-separated, with 17 significant digits; ValueError unless all are finite."""
     if not np.isfinite(rows).all():
         raise ValueError("poses must be finite")
-    lines = [TUM_HEADER]
-    lines.extend(
-        f"{format_stamp_ns(stamp)} " + " ".join(f"{value:.17g}" for value in row)
-        for stamp, row in zip(stamps.tolist(), rows.tolist(), strict=True)
-    )
-    write_text(Path(path), "\n".join(lines) + "\n")
+    return [" ".join(f"{value:.17g}" for value in row) for row in rows.tolist()]
 
 
 def tum_rows(poses: ArrayLike) -> FloatArray:
@@ -273,10 +275,10 @@ def write_kitti_poses(path: str | Path, transforms: ArrayLike) -> None:
     transforms = np.asarray(transforms, dtype=np.float64)
     if transforms.ndim != 3 or transforms.shape[1:] != (4, 4):
         raise ValueError(f"transforms must be (S, 4, 4), got {transforms.shape}")
-    if not np.isfinite(transforms).all():
+    if not np.isfinite(transforms).all():  # the bottom rows too, which are not written
         raise ValueError("poses must be finite")
     rows = transforms[:, :3, :].reshape(-1, 12)
-    write_text(Path(path), "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows.tolist()))
+    write_text(Path(path), "".join(f"{line}\n" for line in _number_lines(rows)))
 
 
 def read_kitti_poses(path: str | Path) -> FloatArray:

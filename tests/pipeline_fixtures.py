@@ -49,6 +49,19 @@ def write_loop_graph(path: Path) -> Path:
     return path
 
 
+def read_ply(path: Path) -> np.ndarray:
+    """The vertices of a binary little-endian PLY of float properties (what the 3D replay writes), as a
+    structured array named as in its header; asserts the body holds exactly those vertices."""
+    header, body = path.read_bytes().split(b"end_header\n", 1)
+    lines = header.decode("ascii").splitlines()
+    assert lines[:2] == ["ply", "format binary_little_endian 1.0"], lines[:2]
+    count = next(int(line.split()[2]) for line in lines if line.startswith("element vertex "))
+    names = [line.split()[2] for line in lines if line.startswith("property float ")]
+    assert len(names) == sum(line.startswith("property") for line in lines), "only float properties"
+    assert len(body) == count * 4 * len(names), "the body is not the declared vertices"
+    return np.frombuffer(body, dtype=[(name, "<f4") for name in names], count=count)
+
+
 @dataclass
 class EntityData:
     """What a recording holds for one entity: static rows, and per timeline the logged index values."""

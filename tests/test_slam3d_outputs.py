@@ -10,8 +10,9 @@ from pypcd4 import PointCloud
 from scipy.spatial.transform import Rotation
 
 from pipeline.errors import OutputError
-from pipeline.ply import read_ply, write_map_pcd, write_ply
+from pipeline.ply import write_map_pcd, write_ply
 from pipeline.trajectory_io import TrajectoryFileError, read_kitti_poses, write_kitti_poses
+from tests.pipeline_fixtures import read_ply
 
 
 def test_the_pcd_map_is_binary_xyz_and_holds_the_points(tmp_path: Path) -> None:
@@ -37,30 +38,9 @@ def test_pcd_and_ply_hold_the_same_map(tmp_path: Path) -> None:
     np.testing.assert_array_equal(np.stack([ply["x"], ply["y"], ply["z"]], axis=1), pcd)
 
 
-def test_the_pcd_voxel_keeps_one_point_per_cell(tmp_path: Path) -> None:
-    # 4 points in the cell [0, 1)³, 1 in [1, 2) × [0, 1)², 1 in [-1, 0)³
-    points = np.array(
-        [
-            [0.1, 0.1, 0.1],
-            [0.9, 0.9, 0.9],
-            [0.5, 0.2, 0.7],
-            [0.0, 0.0, 0.0],
-            [1.5, 0.5, 0.5],
-            [-0.5, -0.5, -0.5],
-        ]
-    )
-    write_map_pcd(tmp_path / "map.pcd", points, voxel=1.0)
-    kept = PointCloud.from_path(tmp_path / "map.pcd").numpy(("x", "y", "z"))
-    assert len(kept) == 3
-    cells = {tuple(np.floor(p).astype(int)) for p in kept}
-    assert cells == {(0, 0, 0), (1, 0, 0), (-1, -1, -1)}
-
-
 def test_pcd_writing_errors(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="N, 3"):
         write_map_pcd(tmp_path / "map.pcd", np.zeros((4, 2)))
-    with pytest.raises(ValueError, match="voxel"):
-        write_map_pcd(tmp_path / "map.pcd", np.zeros((4, 3)), voxel=0.0)
     with pytest.raises(OutputError, match="cannot write"):
         write_map_pcd(tmp_path / "missing" / "map.pcd", np.zeros((4, 3)))
 

@@ -28,6 +28,7 @@ every iteration the optimizer yields (SGD, then the polish). Per-iteration data 
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -108,6 +109,43 @@ class IterationSink(Protocol):
     def add(self, step: int, iteration: Iteration) -> None: ...
 
     def flush(self) -> None: ...
+
+
+class PoseBatches:
+    """An `IterationSink` that buffers every iteration's keyframe poses (as float32) and sends them in
+    column batches of about `batch_bytes`: `_send_batch(steps, poses (T, K, …), final)`, `final` once the
+    run is over."""
+
+    def __init__(self, recording: rr.RecordingStream, *, batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
+        self._recording = recording
+        self._batch_bytes = batch_bytes
+        self._steps: list[int] = []
+        self._poses: list[NDArray[np.float32]] = []
+        self._buffered_bytes = 0
+
+    def add(self, step: int, iteration: Iteration) -> None:
+        """Buffer the keyframe poses of the iteration logged at `step`."""
+        self._steps.append(step)
+        self._poses.append(np.asarray(self._keyframe_poses(iteration), dtype=np.float32))
+        self._buffered_bytes += self._poses[-1].nbytes
+        if self._buffered_bytes >= self._batch_bytes:
+            self._send(final=False)
+
+    def flush(self) -> None:
+        """Send what is buffered (call it once the run is over)."""
+        self._send(final=True)
+
+    def _send(self, *, final: bool) -> None:
+        if self._steps:
+            self._send_batch(np.asarray(self._steps, dtype=np.int64), np.stack(self._poses), final=final)
+        self._steps, self._poses = [], []
+        self._buffered_bytes = 0
+
+    def _keyframe_poses(self, iteration: Iteration) -> NDArray[np.floating]:
+        return iteration.poses
+
+    def _send_batch(self, steps: IntArray, poses: NDArray[np.float32], *, final: bool) -> None:
+        raise NotImplementedError
 
 
 def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.RecordingStream:
@@ -239,26 +277,34 @@ def default_blueprint(
     excluded: Sequence[str] = (), timeline: str = ITERATION_TIMELINE, side: Sequence[rrb.View] | None = None,
 ) -> rrb.Blueprint:
     """The map and graph in 2D (tabs: `extra_tabs` beside it) beside the `side` views (by default the χ²
-    plot and the stage log) and the legend; the time panel on `timeline`, the side panels collapsed so the
-    map has the room."""
+    plot and the stage log) and the legend; the time panel on `timeline`."""
     main: rrb.View | rrb.Tabs = map_view(bounds=bounds, hidden=hidden, excluded=excluded)
     if extra_tabs:
         main = rrb.Tabs(main, *extra_tabs)
-    if side is None:
-        side = [rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
-                rrb.TextLogView(origin=STAGE_ENTITY, name="stages")]
+    side = chi2_views() if side is None else side
+    return layout(main, side, row_shares=[2] * len(side) + [1], timeline=timeline)
+
+
+def chi2_views() -> list[rrb.View]:
+    """The χ² plot (log10) and the stage log."""
+    return [rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
+            rrb.TextLogView(origin=STAGE_ENTITY, name="stages")]
+
+
+def layout(main: rrb.View | rrb.Tabs, side: Sequence[rrb.View], *, row_shares: Sequence[int],
+           column_shares: Sequence[int] = (3, 1), timeline: str = ITERATION_TIMELINE,
+           play_state: str | None = "following") -> rrb.Blueprint:
+    """`main` beside a column of the `side` views over the legend; the time panel on `timeline`, the side
+    panels collapsed so the views have the room."""
     return rrb.Blueprint(
         rrb.Horizontal(
             main,
-            rrb.Vertical(
-                *side,
-                rrb.TextDocumentView(origin=LEGEND_ENTITY, name="legend"),
-                row_shares=[2] * len(side) + [1],
-            ),
-            column_shares=[3, 1],
+            rrb.Vertical(*side, rrb.TextDocumentView(origin=LEGEND_ENTITY, name="legend"),
+                         row_shares=list(row_shares)),
+            column_shares=list(column_shares),
         ),
         # Following: the viewer opens on the final (straight) map; play restarts from iteration 0.
-        rrb.TimePanel(timeline=timeline, state="collapsed", play_state="following"),
+        rrb.TimePanel(timeline=timeline, state="collapsed", play_state=play_state),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
     )
@@ -305,17 +351,21 @@ LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
 }
 
 
-def log_legend(recording: rr.RecordingStream, extra: Mapping[str, tuple[tuple[int, ...], str]] = ()) -> None:
+LEGEND_NOTE = ("\nThe time panel's `iteration` is one counter over every optimized start; "
+               "the final trajectory and wheel odometry are off by default (blueprint tree).")
+Legend = Mapping[str, tuple[tuple[int, ...], str]]
+"""Legend rows: name → (colour, what it shows)."""
+
+
+def log_legend(recording: rr.RecordingStream, extra: Legend = (), *, rows: Legend = LEGEND_ROWS,
+               note: str = LEGEND_NOTE) -> None:
     """A static markdown table naming every colour of the map view (Rerun's spatial views have no
-    legend of their own)."""
-    rows = {**LEGEND_ROWS, **dict(extra)}
+    legend of their own): `rows` and `extra`, then `note`."""
     lines = ["| colour | what |", "|---|---|"]
     lines += [f"| {name} `#{color[0]:02x}{color[1]:02x}{color[2]:02x}` | {text} |"
-              for name, (color, text) in rows.items()]
-    lines.append("\nThe time panel's `iteration` is one counter over every optimized start; "
-                 "the final trajectory and wheel odometry are off by default (blueprint tree).")
-    recording.log(LEGEND_ENTITY, rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN),
-                  static=True)
+              for name, (color, text) in {**rows, **dict(extra)}.items()]
+    recording.log(LEGEND_ENTITY, rr.TextDocument("\n".join([*lines, note] if note else lines),
+                                                 media_type=rr.MediaType.MARKDOWN), static=True)
 
 
 def log_styles(recording: rr.RecordingStream) -> None:
@@ -384,11 +434,6 @@ def send_chi2(recording: rr.RecordingStream, steps: IntArray, chi2: FloatArray, 
             indexes=[_iteration_column(steps[positive])],
             columns=rr.Scalars.columns(scalars=np.log10(chi2[positive])),
         )
-
-
-def stage_line(stage: str, index: int, chi2: str) -> str:
-    """The stage log's line for one iteration (`chi2` as shown)."""
-    return f"{stage} {index}: χ² = {chi2}"
 
 
 def send_stages(recording: rr.RecordingStream, steps: IntArray, lines: Sequence[str]) -> None:
@@ -477,14 +522,9 @@ class IterationRecorder:
         self._first_step = 0
         self._buffered_bytes = 0
 
-    @property
-    def steps_recorded(self) -> int:
-        """How many iterations were added so far (the next one gets this step number)."""
-        return self._first_step + len(self._stages)
-
     def add(self, iteration: Iteration) -> int:
         """Buffer one iteration; returns its step on the `iteration` timeline."""
-        step = self.steps_recorded
+        step = self._first_step + len(self._stages)  # iterations added so far
         if self._latest_poses is not None:  # the previous iteration was not the final one: thinned
             self._buffer_geometry(self._latest_poses, thin=True)
         self._latest_poses = iteration.poses  # read-only by the optimizers' contract: no copy
@@ -496,7 +536,7 @@ class IterationRecorder:
         value = f"{chi2:.6g}" if chi2 > self._chi2_floor else "0 (round-off)"
         shown = (stage, value)
         repeat = shown == self._previous_line
-        self._stages.append(None if repeat else stage_line(stage, iteration.index, value))
+        self._stages.append(None if repeat else f"{stage} {iteration.index}: χ² = {value}")
         self._previous_line = shown
         self._chi2.append(chi2)
         if self._buffered_bytes >= self._batch_bytes:
@@ -535,15 +575,11 @@ class IterationRecorder:
     def _geometry(self, poses: NDArray[np.float64], *, thin: bool) -> tuple[NDArray[np.float32],
                                                                            NDArray[np.float32]]:
         """The trajectory (P, 2) and loop-closure segments (L, 2, 2) of one iteration, as float32."""
-        if thin:
-            shown = _every_kth(len(poses), self._max_points, keep_last=True)
-            trajectory = poses[shown, :2] if shown is not None else poses[:, :2]
-            loop_from, loop_to = self._loop_from, self._loop_to
-            if self._loop_shown is not None:
-                loop_from, loop_to = loop_from[self._loop_shown], loop_to[self._loop_shown]
-        else:
-            trajectory = poses[:, :2]
-            loop_from, loop_to = self._loop_from, self._loop_to
+        shown = _every_kth(len(poses), self._max_points, keep_last=True) if thin else None
+        trajectory = poses[:, :2] if shown is None else poses[shown, :2]
+        loop_from, loop_to = self._loop_from, self._loop_to
+        if thin and self._loop_shown is not None:
+            loop_from, loop_to = loop_from[self._loop_shown], loop_to[self._loop_shown]
         segments = np.stack([poses[loop_from, :2], poses[loop_to, :2]], axis=1)
         return trajectory.astype(np.float32), segments.astype(np.float32)
 
@@ -557,27 +593,19 @@ class IterationRecorder:
         lines = self._stages[:count]
         shown = np.array([line is not None for line in lines], dtype=bool)
         send_stages(self._recording, steps[shown], [line for line in lines if line is not None])
-        drawn = [k for k in range(count) if self._trajectories[k] is not None]
-        sent = 0
-        while sent < len(drawn):
-            end = sent + 1
-            shape = self._geometry_shape(drawn[sent])
-            while end < len(drawn) and self._geometry_shape(drawn[end]) == shape:
-                end += 1
-            run = drawn[sent:end]
-            send_trajectories(self._recording, steps[run], np.stack([self._trajectories[k] for k in run]))
-            send_loop_segments(self._recording, steps[run], np.stack([self._loop_segments[k] for k in run]))
-            sent = end
+        drawn = [(k, trajectory, segments) for k, (trajectory, segments)
+                 in enumerate(zip(self._trajectories[:count], self._loop_segments[:count], strict=True))
+                 if trajectory is not None and segments is not None]
+        for _, group in itertools.groupby(drawn, key=lambda row: (row[1].shape, row[2].shape)):
+            ks, trajectories, segments = zip(*group, strict=True)
+            send_trajectories(self._recording, steps[list(ks)], np.stack(trajectories))
+            send_loop_segments(self._recording, steps[list(ks)], np.stack(segments))
         self._first_step += count
         for buffer in (self._trajectories, self._loop_segments, self._stages, self._chi2):
             del buffer[:count]
         self._buffered_bytes = sum(trajectory.nbytes + segments.nbytes for trajectory, segments
                                    in zip(self._trajectories, self._loop_segments, strict=True)
                                    if trajectory is not None and segments is not None)
-
-    def _geometry_shape(self, k: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
-        trajectory, segments = self._trajectories[k], self._loop_segments[k]
-        return (() if trajectory is None else trajectory.shape), (() if segments is None else segments.shape)
 
 
 def _every_kth(count: int, limit: int, *, keep_last: bool) -> IntArray | None:

@@ -31,12 +31,13 @@ from optimizer.iteration import Iteration
 from pipeline.recording import (
     INITIAL_TRAJECTORY_COLOR,
     ITERATION_TIMELINE,
-    LEGEND_ENTITY,
-    LOG10_CHI2_ENTITY,
-    STAGE_ENTITY,
     TRAJECTORY_COLOR,
     Bounds,
+    PoseBatches,
+    chi2_views,
+    layout,
     map_view,
+    send_blueprint,
     world_bounds,
 )
 
@@ -49,7 +50,6 @@ MAP3D_ENTITY = "world3d/map"
 MAP3D_COLOR = (60, 60, 60, 255)
 POINT_RADIUS = rr.Radius.ui_points(1.5)
 LINE_WIDTH = rr.Radius.ui_points(2.0)
-DEFAULT_BATCH_BYTES = 32 * 1024 * 1024
 RECORDING_KEYFRAME_VOXEL = 0.5
 """Keyframe clouds in the recording are thinned to this voxel (m): hundreds of them stay light to view."""
 KEYFRAME_AXIS_LENGTH = 1.5
@@ -66,27 +66,10 @@ def cloud_blueprint(bounds: Bounds | None = None) -> rrb.Blueprint:
     """The 3D scene (the static final map off by default: the keyframe clouds already are the map, moving
     with the iterations), the planar pose graph (y up, framing `bounds` once the final poses are known),
     χ² on a log scale, the stage log and the legend; the time panel on `iteration`."""
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial3DView(origin=WORLD3D_ENTITY, name="keyframes and map (3D)",
-                              overrides={f"/{MAP3D_ENTITY}": rrb.EntityBehavior(visible=False)}),
-            rrb.Vertical(
-                map_view(bounds=bounds),
-                rrb.TimeSeriesView(origin=LOG10_CHI2_ENTITY, name="χ² (log10)"),
-                rrb.TextLogView(origin=STAGE_ENTITY, name="stages"),
-                rrb.TextDocumentView(origin=LEGEND_ENTITY, name="legend"),
-                row_shares=[3, 2, 2, 1],
-            ),
-            column_shares=[3, 2],
-        ),
-        rrb.TimePanel(timeline=ITERATION_TIMELINE, state="collapsed", play_state="following"),
-        rrb.BlueprintPanel(state="collapsed"),
-        rrb.SelectionPanel(state="collapsed"),
-    )
-
-
-def send_cloud_blueprint(recording: rr.RecordingStream, bounds: Bounds | None = None) -> None:
-    recording.send_blueprint(cloud_blueprint(bounds), make_active=True, make_default=True)
+    scene = rrb.Spatial3DView(origin=WORLD3D_ENTITY, name="keyframes and map (3D)",
+                              overrides={f"/{MAP3D_ENTITY}": rrb.EntityBehavior(visible=False)})
+    return layout(scene, [map_view(bounds=bounds), *chi2_views()], row_shares=[3, 2, 2, 1],
+                  column_shares=[3, 2])
 
 
 def _colour(index: int, count: int) -> tuple[int, int, int, int]:
@@ -139,50 +122,37 @@ def log_map(recording: rr.RecordingStream, points: NDArray[np.floating]) -> None
     )
 
 
-class KeyframePoseRecorder:
-    """Logs the 3D keyframe poses of every iteration: one Transform3D per keyframe entity and the 3D
-    trajectory, on `iteration`, buffered and sent in column batches of about `batch_bytes`."""
+def transform_columns(poses: FloatArray) -> list[rr.ComponentColumn]:
+    """`Transform3D` columns of (T, 4, 4) poses, the rotations as quaternions: rerun converts a column of
+    3×3 matrices one Python object at a time."""
+    quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
+    return rr.Transform3D.columns(translation=poses[:, :3, 3].astype(np.float32),
+                                  quaternion=quaternions.astype(np.float32))
 
-    def __init__(self, recording: rr.RecordingStream, *, batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
-        self._recording = recording
-        self._batch_bytes = batch_bytes
-        self._steps: list[int] = []
-        self._poses: list[NDArray[np.float32]] = []
-        self._buffered_bytes = 0
 
-    def add(self, step: int, poses: FloatArray) -> None:
-        """Buffer the (K, 4, 4) keyframe poses of the iteration logged at `step`."""
-        poses = np.asarray(poses, dtype=np.float32)
-        self._steps.append(step)
-        self._poses.append(poses)
-        self._buffered_bytes += poses.nbytes
-        if self._buffered_bytes >= self._batch_bytes:
-            self.flush()
+class KeyframePoseRecorder(PoseBatches):
+    """Logs the 3D keyframe poses of every iteration (the planar poses lifted by `graph`: height, roll and
+    pitch from odometry): one Transform3D per keyframe entity and the 3D trajectory, on `iteration`, in
+    column batches."""
 
-    def flush(self) -> None:
-        """Send what is buffered."""
-        if not self._steps:
-            return
-        steps = rr.TimeColumn(ITERATION_TIMELINE, sequence=np.asarray(self._steps, dtype=np.int64))
-        poses = np.stack(self._poses)  # (T, K, 4, 4)
-        # Quaternions, not 3×3 matrices: rerun converts a column of matrices one Python object at a time.
-        quaternions = Rotation.from_matrix(poses[..., :3, :3].reshape(-1, 3, 3)).as_quat()  # x, y, z, w
-        quaternions = quaternions.astype(np.float32).reshape(*poses.shape[:2], 4)
-        for index in range(poses.shape[1]):
-            self._recording.send_columns(
-                keyframe_entity(index),
-                indexes=[steps],
-                columns=rr.Transform3D.columns(
-                    translation=poses[:, index, :3, 3], quaternion=quaternions[:, index]
-                ),
-            )
+    def __init__(self, recording: rr.RecordingStream, graph: Slam3DGraph) -> None:
+        super().__init__(recording)
+        self._graph = graph
+
+    def _keyframe_poses(self, iteration: Iteration) -> FloatArray:
+        return self._graph.lift(iteration.poses)
+
+    def _send_batch(self, steps: NDArray[np.int64], poses: NDArray[np.float32], *, final: bool) -> None:
+        """(T, K, 4, 4) poses of the iterations at `steps`."""
+        index = rr.TimeColumn(ITERATION_TIMELINE, sequence=steps)
+        for keyframe in range(poses.shape[1]):
+            self._recording.send_columns(keyframe_entity(keyframe), indexes=[index],
+                                         columns=transform_columns(poses[:, keyframe]))
         self._recording.send_columns(
             TRAJECTORY3D_ENTITY,
-            indexes=[steps],
+            indexes=[index],
             columns=rr.LineStrips3D.columns(strips=[trajectory[:, :3, 3] for trajectory in poses]),
         )
-        self._steps, self._poses = [], []
-        self._buffered_bytes = 0
 
 
 class CloudReplayRecording:
@@ -194,10 +164,13 @@ class CloudReplayRecording:
     def __init__(self, recording: rr.RecordingStream, frontend: LidarFrontend) -> None:
         self._recording = recording
         self._frontend = frontend
-        send_cloud_blueprint(recording)
+        send_blueprint(recording, self.blueprint())
+
+    def blueprint(self) -> rrb.Blueprint:
+        return cloud_blueprint()
 
     def measurement(self, measurement: Cloud3D, estimate: CloudEstimate) -> None:
-        """Clouds are recorded per keyframe, once the graph is known."""
+        """Clouds are recorded after the run, all at once (per keyframe once the graph is known)."""
 
     def frontend_done(self) -> None:
         result = self._frontend.result
@@ -205,27 +178,12 @@ class CloudReplayRecording:
         log_keyframe_clouds(self._recording, clouds)
         log_initial_trajectory3d(self._recording, result.keyframe_odometry)
 
-    def iteration_sink(self) -> _LiftedPoses:
-        return _LiftedPoses(self._frontend.result, KeyframePoseRecorder(self._recording))
-
+    def iteration_sink(self) -> KeyframePoseRecorder:
+        return KeyframePoseRecorder(self._recording, self._frontend.result)
 
     def keyframe_scans(self) -> None:
         return None  # the clouds are recorded by the iteration sink, moving with their keyframes
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: NDArray[Any]) -> None:
         log_map(self._recording, map_export)
-        send_cloud_blueprint(self._recording, world_bounds(planar_poses))
-
-
-class _LiftedPoses:
-    """Records every iteration's keyframe poses in 3D (height, roll and pitch from odometry)."""
-
-    def __init__(self, graph: Slam3DGraph, recorder: KeyframePoseRecorder) -> None:
-        self._graph = graph
-        self._recorder = recorder
-
-    def add(self, step: int, iteration: Iteration) -> None:
-        self._recorder.add(step, self._graph.lift(iteration.poses))
-
-    def flush(self) -> None:
-        self._recorder.flush()
+        send_blueprint(self._recording, cloud_blueprint(world_bounds(planar_poses)))

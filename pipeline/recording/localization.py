@@ -22,14 +22,13 @@ import rerun.blueprint as rrb
 from frontends.slam2d import OccupancyGrid, place
 from frontends.slam2d.session_frontends import LocalizingLaserFrontend, ScanLocalizations
 from pipeline.recording import (
-    LEGEND_ENTITY,
     MAP_COLOR,
     MAP_DRAW_ORDER,
     MAP_POINT_RADIUS,
     FloatArray,
     default_blueprint,
+    log_legend,
     send_blueprint,
-    world_bounds,
 )
 from pipeline.recording import scans as scan_recording
 from pipeline.recording.map2d import log_occupancy, placed_bounds, thin_scan
@@ -53,15 +52,6 @@ def log_saved_map(recording: rr.RecordingStream, keyframe_scans: Sequence[FloatA
     points = np.concatenate(placed) if placed else np.zeros((0, 2))
     recording.log(SAVED_MAP_ENTITY, rr.Points2D(points.astype(np.float32), colors=[MAP_COLOR],
                                                 radii=[MAP_POINT_RADIUS], draw_order=MAP_DRAW_ORDER),
-                  static=True)
-
-
-def log_localization_legend(recording: rr.RecordingStream) -> None:
-    """The legend of a localization's map view (not the optimization's: nothing is optimized)."""
-    lines = ["| colour | what |", "|---|---|"]
-    lines += [f"| {name} `#{color[0]:02x}{color[1]:02x}{color[2]:02x}` | {text} |"
-              for name, (color, text) in LEGEND_ROWS.items()]
-    recording.log(LEGEND_ENTITY, rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN),
                   static=True)
 
 
@@ -91,16 +81,12 @@ class MapLocalizationRecording(scan_recording.ScanReplayRecording):
         self._saved_scans = frontend.saved.keyframe_scans
         self._localizer = frontend
 
-    def keyframe_scans(self) -> Sequence[FloatArray] | None:
-        return None  # no optimization to draw the walls moving in
-
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
         log_saved_map(self._recording, self._saved_scans, planar_poses)
         log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)
         scan_recording.log_final_trajectory(self._recording, estimates)
-        log_localization_legend(self._recording)
-        low_x, low_y, high_x, high_y = placed_bounds(self._saved_scans, planar_poses)
-        bounds = world_bounds(np.array([[low_x, low_y], [high_x, high_y]]), estimates)
+        log_legend(self._recording, rows=LEGEND_ROWS, note="")
+        bounds = placed_bounds(self._saved_scans, planar_poses, estimates)
         send_match_quality(self._recording, self._localizer.localizations)
         send_blueprint(self._recording, default_blueprint(
             bounds=bounds, extra_tabs=scan_recording.playback_views(bounds),

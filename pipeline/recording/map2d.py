@@ -36,6 +36,9 @@ from pipeline.recording import (
     VIEWER_BACKGROUND,
     Bounds,
     FloatArray,
+    IntArray,
+    PoseBatches,
+    world_bounds,
 )
 
 OCCUPANCY_ENTITY = "world/occupancy"
@@ -62,10 +65,6 @@ def keyframe_entity(index: int) -> str:
     return f"{KEYFRAMES_ENTITY}/k{index:06d}"
 
 
-def keyframe_scan_entity(index: int) -> str:
-    return f"{keyframe_entity(index)}/scan"
-
-
 def thin_scan(points: NDArray[np.floating], cell: float = SCAN_CELL) -> NDArray[np.float32]:
     """One point (the first) per `cell` × `cell` square, in the scan's order."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -73,15 +72,11 @@ def thin_scan(points: NDArray[np.floating], cell: float = SCAN_CELL) -> NDArray[
     return points[one_per_cell(points, cell)].astype(np.float32)
 
 
-def placed_bounds(scans: Sequence[FloatArray], poses: FloatArray) -> Bounds:
-    """The extent of all `scans` (keyframe-frame points) placed at `poses`, and of the poses."""
-    low = np.min(poses[:, :2], axis=0) if len(poses) else np.zeros(2)
-    high = np.max(poses[:, :2], axis=0) if len(poses) else np.zeros(2)
-    for scan, pose in zip(scans, poses, strict=True):
-        if len(scan):
-            placed = scan @ _rotation(float(pose[2])) + pose[:2]
-            low, high = np.minimum(low, placed.min(axis=0)), np.maximum(high, placed.max(axis=0))
-    return float(low[0]), float(low[1]), float(high[0]), float(high[1])
+def placed_bounds(scans: Sequence[FloatArray], poses: FloatArray, *more: FloatArray) -> Bounds:
+    """The extent of all `scans` (keyframe-frame points) placed at `poses`, of the poses and of `more`."""
+    placed = [np.asarray(scan).reshape(-1, 2) @ _rotation(float(pose[2])) + pose[:2]
+              for scan, pose in zip(scans, poses, strict=True)]
+    return world_bounds(poses, *placed, *more)
 
 
 def _rotation(theta: float) -> FloatArray:
@@ -120,32 +115,23 @@ def log_occupancy(recording: rr.RecordingStream, image: NDArray[np.uint8], origi
                                                           draw_order=OCCUPANCY_DRAW_ORDER), static=True)
 
 
-class KeyframeMapRecorder:
+class KeyframeMapRecorder(PoseBatches):
     """The walls that move: each keyframe's scan once, then every iteration's keyframe poses as one
-    `Transform3D` per keyframe entity, buffered and sent in column batches of about `batch_bytes`.
+    `Transform3D` per keyframe entity, in column batches (the last iteration whole).
 
     Used as the `IterationSink` of `pipeline.keyframe_optimization.optimize_keyframes`."""
 
     def __init__(self, recording: rr.RecordingStream, scans: Sequence[FloatArray], *,
                  batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
-        self._recording = recording
+        super().__init__(recording, batch_bytes=batch_bytes)
         self._scans = scans
-        self._batch_bytes = batch_bytes
-        self._steps: list[int] = []
-        self._poses: list[NDArray[np.float32]] = []
-        self._buffered_bytes = 0
         self._scans_logged = False
         self._last_sent: NDArray[np.float64] = np.full((len(scans), 3), np.nan)
 
     def add(self, step: int, iteration: Iteration) -> None:
-        """Buffer the keyframe poses of the iteration logged at `step`."""
         if not self._scans_logged:
             self._log_scans(step)
-        self._steps.append(step)
-        self._poses.append(np.asarray(iteration.poses, dtype=np.float32))
-        self._buffered_bytes += self._poses[-1].nbytes
-        if self._buffered_bytes >= self._batch_bytes:
-            self._send(final=False)
+        super().add(step, iteration)
 
     def _log_scans(self, step: int) -> None:
         # On `iteration` (not static): on the `scan` and `time` timelines the keyframes have no pose, and
@@ -160,19 +146,11 @@ class KeyframeMapRecorder:
         for index, scan in enumerate(self._scans):
             positions = rr.components.Position2DBatch(thin_scan(scan)).described(
                 rr.Points2D.descriptor_positions())
-            self._recording.log(keyframe_scan_entity(index), [positions, radii, colors, draw_order])
+            self._recording.log(f"{keyframe_entity(index)}/scan", [positions, radii, colors, draw_order])
         self._recording.reset_time()
         self._scans_logged = True
 
-    def flush(self) -> None:
-        """Send what is buffered, the latest iteration whole (call it once the run is over)."""
-        self._send(final=True)
-
-    def _send(self, *, final: bool) -> None:
-        if not self._steps:
-            return
-        steps = np.asarray(self._steps, dtype=np.int64)
-        poses = np.stack(self._poses)  # (T, K, 3)
+    def _send_batch(self, steps: IntArray, poses: NDArray[np.float32], *, final: bool) -> None:
         sent = rows_to_send(poses.astype(np.float64), self._last_sent, SHOWN_MOVE, SHOWN_TURN, final)
         # Keyframe by keyframe, the rows sent: a few % of all (CSAIL: 35 k of 526 k), so only their
         # quaternions are computed.
@@ -196,8 +174,6 @@ class KeyframeMapRecorder:
                                        rr.components.RotationQuatBatch(quaternions[block])),
                 ],
             )
-        self._steps, self._poses = [], []
-        self._buffered_bytes = 0
 
 
 @njit(cache=True)
