@@ -26,7 +26,7 @@ from optimizer.graph import PoseGraph
 from optimizer.iteration import Iteration
 from optimizer.solve import OptimizationResult, optimize
 from pipeline import recording
-from pipeline.recording import IterationSink, map2d, scans
+from pipeline.recording import IterationSink
 from pipeline.replay_graph import optimization_recorder, record_optimization
 
 IterationCallback = Callable[[Iteration], None]
@@ -73,13 +73,16 @@ def optimize_keyframes(
         "constraints": from_odometry.num_edges,
         "loop_closures": int((~from_odometry.is_odometry).sum()),
     }, name=recording.OPTIMIZATION_PROPERTY)
-    # Log replays draw the trajectory only when it moved as much as the walls must to be redrawn.
-    recorder = optimization_recorder(stream, from_odometry, first_start,
-                                     legend=scans.LEGEND_ROWS if keyframe_scans is not None else None,
-                                     still_move=map2d.SHOWN_MOVE if keyframe_scans is not None else None)
     sinks: list[IterationSink] = [] if sink is None else [sink]
+    legend, still_move = None, None
     if keyframe_scans is not None:
+        # Imported here: the 2D map's recording builds on the laser frontend, which clouds never load.
+        from pipeline.recording import map2d, scans
+
+        # Log replays draw the trajectory only when it moved as much as the walls must to be redrawn.
+        legend, still_move = scans.LEGEND_ROWS, map2d.SHOWN_MOVE
         sinks.append(map2d.KeyframeMapRecorder(stream, keyframe_scans))
+    recorder = optimization_recorder(stream, from_odometry, first_start, legend=legend, still_move=still_move)
     starts = {"odometry": from_odometry.poses, "online": online.poses}
     if wheel_odometry is not None:
         starts = {WHEEL_ODOMETRY_START: np.asarray(wheel_odometry, dtype=np.float64), **starts}

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import io
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.slam2d import OccupancyGrid
+if TYPE_CHECKING:
+    from frontends.slam2d import OccupancyGrid
 
 OCCUPIED_VALUE = 0
 FREE_VALUE = 254

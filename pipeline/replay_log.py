@@ -45,8 +45,6 @@ from numpy.typing import NDArray
 
 from frontends.logs import LogReader, open_log
 from frontends.protocol import Estimate, FrontendOptions, LogFrontend
-from frontends.slam2d import LaserFrontend, Slam2DConfig
-from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
@@ -65,8 +63,6 @@ from pipeline.outputs import (
 )
 from pipeline.ply import write_map_pcd, write_ply
 from pipeline.recording import IterationSink
-from pipeline.recording.localization import MapLocalizationRecording
-from pipeline.recording.scans import ScanReplayRecording
 from pipeline.session_file import (
     SENSOR_WORDS,
     SessionContent,
@@ -80,11 +76,15 @@ from pipeline.session_file import (
 from pipeline.trajectory_io import write_kitti_poses, write_tum
 from pipeline.warning_tally import WarningTally, reissue, tallied_warnings
 
-if TYPE_CHECKING:  # loaded by the first log of clouds only (`_cloud_sensor`)
+if TYPE_CHECKING:  # loaded by the first log of their sensor kind only (`_scan_sensor`, `_cloud_sensor`)
+    from frontends.slam2d import Slam2DConfig
+    from frontends.slam2d.session_frontends import LocalizingLaserFrontend
     from frontends.slam3d import Slam3DConfig
     from frontends.slam3d.session_frontends import LocalizingLidarFrontend
     from pipeline.recording.clouds import CloudReplayRecording
+    from pipeline.recording.localization import MapLocalizationRecording
     from pipeline.recording.localization3d import CloudLocalizationRecording
+    from pipeline.recording.scans import ScanReplayRecording
 
 FloatArray = NDArray[np.float64]
 EstimateCallback = Callable[[Estimate], None]
@@ -200,20 +200,27 @@ def _session_frontends(saved_map: Callable[[Path, Any], Any], continuing: Callab
     return frontend
 
 
-_SCAN_SENSOR = _Sensor(LaserFrontend, ScanReplayRecording, (
-    _MapFile("map_png", "_map.png", lambda path, grid: write_png(path, picture_with_scale_bar(grid))),
-    _MapFile("map_pgm", "_map.pgm", lambda path, grid: write_bytes(path, map_server_pgm(grid))),
-    # The YAML names the PGM beside it, which only its suffix tells apart.
-    _MapFile("map_yaml", "_map.yaml",
-             lambda path, grid: write_text(path, map_server_yaml(grid, path.with_suffix(".pgm").name))),
-), _session_frontends(saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend),
-    MapLocalizationRecording)
+@functools.cache
+def _scan_sensor() -> _Sensor:
+    # Each frontend is imported by the first log of its sensor kind: a replay of clouds never loads the laser
+    # frontend's compiled kernels (0.3 s of start-up), nor a laser replay the 3D one.
+    from frontends.slam2d import LaserFrontend
+    from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
+    from pipeline.recording.localization import MapLocalizationRecording
+    from pipeline.recording.scans import ScanReplayRecording
+
+    return _Sensor(LaserFrontend, ScanReplayRecording, (
+        _MapFile("map_png", "_map.png", lambda path, grid: write_png(path, picture_with_scale_bar(grid))),
+        _MapFile("map_pgm", "_map.pgm", lambda path, grid: write_bytes(path, map_server_pgm(grid))),
+        # The YAML names the PGM beside it, which only its suffix tells apart.
+        _MapFile("map_yaml", "_map.yaml",
+                 lambda path, grid: write_text(path, map_server_yaml(grid, path.with_suffix(".pgm").name))),
+    ), _session_frontends(saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend),
+        MapLocalizationRecording)
 
 
 @functools.cache
 def _cloud_sensor() -> _Sensor:
-    # The 3D frontend (KISS-ICP, scipy's rotations) is imported by the first log of clouds: a laser replay
-    # never loads it (0.2–0.3 s of every `replay`'s start-up).
     from frontends.slam3d import LidarFrontend
     from frontends.slam3d.session_frontends import ContinuingLidarFrontend, LocalizingLidarFrontend
     from pipeline.recording.clouds import CloudReplayRecording
@@ -225,7 +232,7 @@ def _cloud_sensor() -> _Sensor:
                    CloudLocalizationRecording, kitti_poses=True)
 
 
-_SENSORS: dict[str, Callable[[], _Sensor]] = {"scan": lambda: _SCAN_SENSOR, "cloud": _cloud_sensor}
+_SENSORS: dict[str, Callable[[], _Sensor]] = {"scan": _scan_sensor, "cloud": _cloud_sensor}
 """Sensor kind → its `_Sensor`."""
 
 

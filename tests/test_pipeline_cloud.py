@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +139,28 @@ def test_without_tf_or_point_times_the_poses_are_the_sensor_s(tmp_path: Path) ->
     summary = json.loads((tmp_path / "out" / "bare.json").read_text())
     assert summary["base_frame"] is None and summary["loop_closures"]["accepted"] == 0
     assert len(read_tum(tmp_path / "out" / "bare.tum")) == 12
+
+
+def test_a_cloud_replay_never_imports_the_laser_frontend(tmp_path: Path) -> None:
+    # Start-up: a replay of clouds should not pay for the laser frontend's compiled kernels (0.3 s). A fresh
+    # process, as other tests of this session have imported it.
+    short = drive(town_loop(), sweeps=6, step=0.5, lidar=Lidar(columns=360))
+    path = tmp_path / "short.mcap"
+    write_cloud_log(path, short)
+    program = (
+        "import sys\n"
+        "from pipeline.cli import app\n"
+        f"app([{str(path)!r}, '--out', {str(tmp_path / 'out')!r}, '--quiet'], standalone_mode=False)\n"
+        "loaded = sorted(name for name in sys.modules if name.startswith('frontends.slam2d.')\n"
+        "                or name.startswith(('pipeline.recording.scans', 'pipeline.recording.map2d')))\n"
+        "print(loaded)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=300,
+                         stdin=subprocess.DEVNULL, cwd=Path(__file__).resolve().parents[1])
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert (tmp_path / "out" / "short.tum").exists()
+    # The 2D settings' dataclass is read by the configuration of every replay; nothing else of 2D.
+    assert run.stdout.strip().splitlines()[-1] == "['frontends.slam2d.config']"
 
 
 def test_a_log_with_scans_and_clouds_asks_which_and_writes_nothing(tmp_path: Path) -> None:

@@ -32,7 +32,7 @@ import itertools
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 # rerun's Rust side logs straight to stderr, in colour (a WARN when an encoder cannot finish, an ERROR when
 # the disk fills); what matters of it reaches us as exceptions, which we word ourselves in one line. Set
@@ -50,8 +50,13 @@ from rerun.encodings import Vec2DBatch
 from optimizer.iteration import ESTIMATE, Iteration
 from pipeline.errors import OutputError, PipelineError
 
+if TYPE_CHECKING:
+    from frontends.protocol import ScanLocalizations
+
 APPLICATION_ID = "sgdslam"
 ITERATION_TIMELINE = "iteration"
+SCAN_TIMELINE = "scan"
+TIME_TIMELINE = "time"
 
 WORLD_ENTITY = "world"
 INITIAL_TRAJECTORY_ENTITY = "world/initial_trajectory"
@@ -59,6 +64,7 @@ TRAJECTORY_ENTITY = "world/trajectory"
 LOOP_CLOSURES_ENTITY = "world/loop_closures"
 KEYFRAMES_ENTITY = "world/keyframes"
 CHI2_ENTITY = "optimizer/chi2"
+MATCH_QUALITY_ENTITY = "localization"
 LOG10_CHI2_ENTITY = "optimizer/log10_chi2"
 STAGE_ENTITY = "optimizer/stage"
 LEGEND_ENTITY = "legend"
@@ -419,6 +425,20 @@ def send_loop_segments(recording: rr.RecordingStream, steps: IntArray, segments:
 ROUND_OFF_CHI2 = 1e-12
 """Below this, the χ² of a graph without loop closures is round-off of zero (a chain is exactly
 consistent), not a cost worth a point on the log plot."""
+
+
+def send_match_quality(recording: rr.RecordingStream, localizations: ScanLocalizations,
+                       series: tuple[str, ...]) -> None:
+    """Each matched measurement's `series` (fields of `localizations`: a localization's match quality), on
+    the `scan` timeline."""
+    matched = np.flatnonzero(localizations.matched & np.isfinite(localizations.score))
+    if len(matched) == 0:
+        return
+    index = [rr.TimeColumn(SCAN_TIMELINE, sequence=matched.astype(np.int64))]
+    for name in series:
+        shown = np.asarray(getattr(localizations, name), dtype=np.float64)[matched]
+        recording.send_columns(f"{MATCH_QUALITY_ENTITY}/{name}", indexes=index,
+                               columns=rr.Scalars.columns(scalars=shown))
 
 
 def send_chi2(recording: rr.RecordingStream, steps: IntArray, chi2: FloatArray, *,

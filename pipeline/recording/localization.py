@@ -20,22 +20,22 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from frontends.slam2d import OccupancyGrid, place
-from frontends.slam2d.session_frontends import LocalizingLaserFrontend, ScanLocalizations
+from frontends.slam2d.session_frontends import LocalizingLaserFrontend
 from pipeline.recording import (
     MAP_COLOR,
     MAP_DRAW_ORDER,
     MAP_POINT_RADIUS,
+    MATCH_QUALITY_ENTITY,
     FloatArray,
     default_blueprint,
     log_legend,
     send_blueprint,
+    send_match_quality,
 )
 from pipeline.recording import scans as scan_recording
 from pipeline.recording.map2d import log_occupancy, placed_bounds, thin_scan
 
 SAVED_MAP_ENTITY = "world/saved_map"
-MATCH_QUALITY_ENTITY = "localization"
-
 LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
     "saved map": (MAP_COLOR, "the saved keyframe scans at their saved poses, over its occupancy grid"),
     "trajectory": (scan_recording.FINAL_TRAJECTORY_COLOR, "every localized scan's pose in the map"),
@@ -59,19 +59,6 @@ MATCH_SERIES_2D = ("score", "inlier_fraction")
 """A laser match has two measures: the correlative score and the ICP inlier fraction."""
 
 
-def send_match_quality(recording: rr.RecordingStream, localizations: ScanLocalizations,
-                       series: tuple[str, ...] = MATCH_SERIES_2D) -> None:
-    """Each matched scan's `series` (fields of `localizations`), on the `scan` timeline."""
-    matched = np.flatnonzero(localizations.matched & np.isfinite(localizations.score))
-    if len(matched) == 0:
-        return
-    index = [rr.TimeColumn(scan_recording.SCAN_TIMELINE, sequence=matched.astype(np.int64))]
-    for name in series:
-        shown = np.asarray(getattr(localizations, name), dtype=np.float64)[matched]
-        recording.send_columns(f"{MATCH_QUALITY_ENTITY}/{name}", indexes=index,
-                               columns=rr.Scalars.columns(scalars=shown))
-
-
 class MapLocalizationRecording(scan_recording.ScanReplayRecording):
     """`ScanReplayRecording` for a localization: the saved map under the new run (see the module
     docstring); `final(saved keyframe poses, localized poses, saved occupancy grid)`."""
@@ -87,7 +74,7 @@ class MapLocalizationRecording(scan_recording.ScanReplayRecording):
         scan_recording.log_final_trajectory(self._recording, estimates)
         log_legend(self._recording, rows=LEGEND_ROWS, note="")
         bounds = placed_bounds(self._saved_scans, planar_poses, estimates)
-        send_match_quality(self._recording, self._localizer.localizations)
+        send_match_quality(self._recording, self._localizer.localizations, MATCH_SERIES_2D)
         send_blueprint(self._recording, default_blueprint(
             bounds=bounds, extra_tabs=scan_recording.playback_views(bounds),
             excluded=scan_recording.PLAYBACK_ENTITIES, timeline=scan_recording.SCAN_TIMELINE,

@@ -4,7 +4,7 @@
 - `world3d/final_trajectory` (static): every localized cloud's position, a line in the map;
 - `world3d/robot` on `scan`: the base's axes at each cloud placed when processed;
 - `localization/inlier_fraction` on `scan`: how well each matched cloud fit the saved map, the share of its
-  points near the map after registration (`pipeline.recording.localization.send_match_quality`; a cloud's
+  points near the map after registration (`pipeline.recording.send_match_quality`; a cloud's
   score is that same fraction, so it is drawn once).
 Nothing is optimized: there is no `iteration` timeline and no χ² plot.
 """
@@ -19,7 +19,16 @@ import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
 from frontends.slam3d.session_frontends import LocalizingLidarFrontend
-from pipeline.recording import MAP_COLOR, TRAJECTORY_COLOR, FloatArray, layout, log_legend
+from pipeline.recording import (
+    MAP_COLOR,
+    MATCH_QUALITY_ENTITY,
+    SCAN_TIMELINE,
+    TRAJECTORY_COLOR,
+    FloatArray,
+    layout,
+    log_legend,
+    send_match_quality,
+)
 from pipeline.recording.clouds import (
     KEYFRAME_AXIS_LENGTH,
     LINE_WIDTH,
@@ -28,8 +37,6 @@ from pipeline.recording.clouds import (
     CloudReplayRecording,
     transform_columns,
 )
-from pipeline.recording.localization import MATCH_QUALITY_ENTITY, send_match_quality
-from pipeline.recording.scans import SCAN_TIMELINE
 
 SAVED_MAP3D_ENTITY = "world3d/saved_map"
 FINAL_TRAJECTORY3D_ENTITY = "world3d/final_trajectory"

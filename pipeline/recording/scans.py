@@ -23,6 +23,8 @@ from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInB
 from optimizer import se2
 from pipeline.recording import (
     LINE_WIDTH,
+    SCAN_TIMELINE,
+    TIME_TIMELINE,
     VIEWER_BACKGROUND,
     Bounds,
     FloatArray,
@@ -31,9 +33,6 @@ from pipeline.recording import (
     map2d,
     visual_bounds,
 )
-
-SCAN_TIMELINE = "scan"
-TIME_TIMELINE = "time"
 
 SCAN_ENTITY, ROBOT_ENTITY = "world/scan", "world/robot"
 FOUND_LOOP_CLOSURES_ENTITY = "world/loop_closures_found"
