@@ -5,7 +5,7 @@
 Prints markdown tables: χ² after 10/30/100 iterations of both SGDs on every graph of
 ../shared/data/posegraphs/2d and on generated grid worlds (from the file's / generated estimate;
 "sgd-tree" is the default, `tree="auto"`, with the tree it chose; "uncoupled" is sgd-tree without the
-coupled heading step once χ² stops falling (`coupled_headings=False`, what sgd-tree was before it);
+coupled heading step once the descent settles (`coupled_headings=False`, what sgd-tree was before it);
 "breadth-first" is what sgd-tree was before TORO's incremental tree was added; "incremental" is TORO's
 tree forced); for
 M3500-shaped worlds with heavy heading noise, the χ² that Levenberg–Marquardt (`optimizer.polish`) reaches
@@ -152,7 +152,7 @@ def limits_table() -> None:
     print(f"## Where both SGDs end: χ² after 100, 1 000 and {LIMIT_ITERATIONS:,} iterations\n")
     print("The paper's SGD follows an approximate gradient (a pose's heading does not turn its constraints' "
           "measured translations) and tends to where it vanishes, not to the minimum; sgd-tree takes the "
-          "turn into account once its χ² stops falling.\n")
+          "turn into account once its χ² all but stops changing.\n")
     marks = (100, 1000, LIMIT_ITERATIONS)
     print("| graph | optimum (LM) | " + " | ".join(f"{name} {k}" for name in TIMED for k in marks) + " |")
     print("|---|---:|" + "---:|" * (len(TIMED) * len(marks)))
