@@ -151,7 +151,7 @@ def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.nd
                 length += 1
                 for j in range(3):
                     total_weight[j] += 1.0 / stiffness[node, j]
-                if side == 0:
+                if coupled_headings and side == 0:
                     heading_weight_a += 1.0 / stiffness[node, 2]
                 node = parent[node]
         for j in range(3):
