@@ -23,7 +23,7 @@ import sys
 import tempfile
 import time
 import tracemalloc
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -664,9 +664,11 @@ class BenchmarkGraph:
     note: str = ""
 
 
-def best_known_graphs(quick: bool) -> dict[str, BenchmarkGraph]:
-    """Every shared 2D graph, M3500-sized worlds with heavy heading noise, reversed anisotropic variants."""
-    graphs: dict[str, BenchmarkGraph] = {}
+def best_known_graphs(quick: bool, extra: Sequence[Path] = ()) -> dict[str, BenchmarkGraph]:
+    """Every shared 2D graph, M3500-sized worlds with heavy heading noise, reversed anisotropic variants,
+    and the `extra` graph files."""
+    graphs: dict[str, BenchmarkGraph] = {f"{path.name} (--graph)": BenchmarkGraph(read_graph(path).graph)
+                                         for path in extra}
     for path in sorted(POSEGRAPHS.iterdir()):
         try:
             graphs[path.name] = BenchmarkGraph(read_graph(path).graph)
@@ -955,6 +957,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--best-known-methods", nargs="+", choices=METHODS, default=list(METHODS),
                         help=f"our methods in the best-known table (default: all; {DEFAULT_METHOD} "
                              "always runs)")
+    parser.add_argument("--graph", action="append", type=Path, default=[],
+                        help="a graph file to add to the best-known table (repeatable), e.g. SE-Sync's "
+                             "data/city10000.g2o and data/MIT.g2o (not in ../shared)")
     parser.add_argument("--scale-probe", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--probe-iterations", type=int, default=5, help=argparse.SUPPRESS)
     arguments = parser.parse_args(argv)
@@ -1003,7 +1008,7 @@ def main(argv: list[str] | None = None) -> int:
     cache_path = out / BEST_KNOWN_FILE
     lm_iterations = BEST_KNOWN_LM_ITERATIONS // 2 if quick else BEST_KNOWN_LM_ITERATIONS
     if "best-known" in sections:
-        graphs = best_known_graphs(quick)
+        graphs = best_known_graphs(quick, arguments.graph)
         write_benchmark_graphs(graphs, out / "graphs")
         methods = tuple(dict.fromkeys([DEFAULT_METHOD, *arguments.best_known_methods]))
         results["best_known"] = bench_best_known(graphs, cache_path, arguments.refresh_best_known,

@@ -26,7 +26,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -96,10 +96,11 @@ def _polished(graph: PoseGraph, poses: FloatArray) -> float:
     return result
 
 
-def _graphs(quick: bool) -> list[tuple[str, PoseGraph]]:
+def _graphs(quick: bool, extra: Sequence[Path] = ()) -> list[tuple[str, PoseGraph]]:
     # Repair clamps only singular information (pg1.g2o's first edge); every other file is read as is.
     graphs = [(path.name, read_graph(path, repair_information=True).graph)
               for path in sorted(POSEGRAPHS.glob("*")) if path.suffix in (".g2o", ".graph", ".txt")]
+    graphs += [(f"{path.name} (--graph)", read_graph(path).graph) for path in extra]
     graphs.append(("grid world 3500 (seed 0)", generate_grid_world(3500, seed=0).graph))
     graphs.append(("grid world 3500 (seed 0), loops as certain as odometry",
                    generate_grid_world(3500, seed=0, loop_sigma=EQUAL_LOOP_SIGMA).graph))
@@ -111,12 +112,12 @@ def _graphs(quick: bool) -> list[tuple[str, PoseGraph]]:
     return graphs
 
 
-def chi2_table(quick: bool) -> None:
+def chi2_table(quick: bool, extra: Sequence[Path] = ()) -> None:
     print("## χ² after 10 / 30 / 100 iterations from the file's estimate\n")
     print("| graph | N | M | initial χ² | sgd-tree's tree | " + " | ".join(
         f"{name} {k}" for name in OPTIMIZERS for k in CHECKPOINTS) + " |")
     print("|---|---:|---:|---:|---|" + "---:|" * (len(OPTIMIZERS) * len(CHECKPOINTS)))
-    for label, graph in _graphs(quick):
+    for label, graph in _graphs(quick, extra):
         cells = []
         for optimizer in OPTIMIZERS.values():
             values, _ = _checkpoints(optimizer, graph)
@@ -217,6 +218,10 @@ def main() -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="skip the 10 000-pose world and 10⁵-pose timing")
     parser.add_argument("--skip-scale", action="store_true", help="skip the timing table")
+    parser.add_argument("--graph", action="append", type=Path, default=[],
+                        help="a graph file to add to the χ² table (repeatable), e.g. SE-Sync's "
+                             "data/city10000.g2o and data/MIT.g2o: the graphs of TORO's figures in issue 9, "
+                             "not in ../shared")
     parser.add_argument("--only", action="append", choices=SECTIONS,
                         help="run only this section (repeatable); default: all but the diagnostics "
                              "'limits' and 'basin'")
@@ -225,7 +230,7 @@ def main() -> None:
     if arguments.skip_scale:
         sections.discard("timing")
     if "chi2" in sections:
-        chi2_table(arguments.quick)
+        chi2_table(arguments.quick, arguments.graph)
     if "noisy" in sections:
         noisy_heading_table()
     if "limits" in sections:
