@@ -3,7 +3,10 @@ and a reader that turns a recording (.rrd) back into Python values."""
 
 from __future__ import annotations
 
+import json
 import math
+import subprocess
+import sys
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -211,3 +214,19 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
 
 
 BROKEN_GRAPH = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0\n"  # the edge lacks values
+
+
+def modules_a_fresh_replay_loads(log: Path, out: Path, prefixes: tuple[str, ...]) -> list[str]:
+    """The loaded modules whose names start with one of `prefixes` after `replay LOG --out OUT` in a fresh
+    process (a test session has imported everything already), its outputs checked written."""
+    program = (
+        "import json, sys\n"
+        "from pipeline.cli import app\n"
+        f"app([{str(log)!r}, '--out', {str(out)!r}, '--quiet'], standalone_mode=False)\n"
+        f"print(json.dumps(sorted(name for name in sys.modules if name.startswith({prefixes!r}))))\n"
+    )
+    run = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=300,
+                         stdin=subprocess.DEVNULL, cwd=Path(__file__).resolve().parents[1])
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert (out / f"{log.stem}.tum").exists()
+    return json.loads(run.stdout.strip().splitlines()[-1])

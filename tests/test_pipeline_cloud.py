@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +25,7 @@ from tests.lidar_world import (
     town_loop,
     write_cloud_log,
 )
-from tests.pipeline_fixtures import read_ply, read_recording
+from tests.pipeline_fixtures import modules_a_fresh_replay_loads, read_ply, read_recording
 
 
 @pytest.fixture(scope="module")
@@ -147,20 +146,10 @@ def test_a_cloud_replay_never_imports_the_laser_frontend(tmp_path: Path) -> None
     short = drive(town_loop(), sweeps=6, step=0.5, lidar=Lidar(columns=360))
     path = tmp_path / "short.mcap"
     write_cloud_log(path, short)
-    program = (
-        "import sys\n"
-        "from pipeline.cli import app\n"
-        f"app([{str(path)!r}, '--out', {str(tmp_path / 'out')!r}, '--quiet'], standalone_mode=False)\n"
-        "loaded = sorted(name for name in sys.modules if name.startswith('frontends.slam2d.')\n"
-        "                or name.startswith(('pipeline.recording.scans', 'pipeline.recording.map2d')))\n"
-        "print(loaded)\n"
-    )
-    run = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=300,
-                         stdin=subprocess.DEVNULL, cwd=Path(__file__).resolve().parents[1])
-    assert run.returncode == 0, run.stdout + run.stderr
-    assert (tmp_path / "out" / "short.tum").exists()
+    loaded = modules_a_fresh_replay_loads(path, tmp_path / "out", (
+        "frontends.slam2d.", "pipeline.recording.scans", "pipeline.recording.map2d"))
     # The 2D settings' dataclass is read by the configuration of every replay; nothing else of 2D.
-    assert run.stdout.strip().splitlines()[-1] == "['frontends.slam2d.config']"
+    assert loaded == ["frontends.slam2d.config"]
 
 
 def test_a_log_with_scans_and_clouds_asks_which_and_writes_nothing(tmp_path: Path) -> None:

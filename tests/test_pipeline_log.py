@@ -6,7 +6,6 @@ import hashlib
 import json
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ from tests.laser_world import wheel_odometry
 from tests.pipeline_fixtures import (
     SCAN_PERIOD_NS,
     START_NS,
+    modules_a_fresh_replay_loads,
     read_recording,
     write_drive,
 )
@@ -126,20 +126,10 @@ def test_a_laser_replay_never_imports_the_3d_frontend(tmp_path: Path) -> None:
     # logs of clouds. A fresh process, as other tests of this session may have imported it.
     path = tmp_path / "drive.mcap"
     write_drive(path, scans=20)
-    program = (
-        "import sys\n"
-        "from pipeline.cli import app\n"
-        f"app([{str(path)!r}, '--out', {str(tmp_path / 'out')!r}, '--quiet'], standalone_mode=False)\n"
-        "loaded = sorted(name for name in sys.modules if name.startswith('frontends.slam3d.')\n"
-        "                or name.startswith(('kiss_icp', 'scipy.spatial', 'pipeline.recording.clouds')))\n"
-        "print(loaded)\n"
-    )
-    run = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=300,
-                         stdin=subprocess.DEVNULL, cwd=Path(__file__).resolve().parents[1])
-    assert run.returncode == 0, run.stdout + run.stderr
-    assert (tmp_path / "out" / "drive.tum").exists()
+    loaded = modules_a_fresh_replay_loads(path, tmp_path / "out", (
+        "frontends.slam3d.", "kiss_icp", "scipy.spatial", "pipeline.recording.clouds"))
     # The 3D settings' dataclass is read by the configuration of every replay; nothing else of 3D.
-    assert run.stdout.strip().splitlines()[-1] == "['frontends.slam3d.config']"
+    assert loaded == ["frontends.slam3d.config"]
 
 
 def test_replay_without_odometry_still_tracks(tmp_path: Path) -> None:
