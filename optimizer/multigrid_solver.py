@@ -22,10 +22,9 @@ import numpy as np
 import pyamg
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from pyamg.relaxation.smoothing import setup_block_gauss_seidel
-from pyamg.util.utils import get_block_diag
 
 from optimizer.block_normal_equations import BlockPattern, add_to_diagonal, scale_blocks
+from optimizer.block_smoother import gauss_seidel_sweep, inverted_diagonal, presmooth_from_zero
 from optimizer.damped_solvers import Linearisation, preconditioned_cg
 
 FloatArray = NDArray[np.float64]
@@ -119,8 +118,7 @@ class MultigridPCGSolver:
         assert preconditioner is not None
 
         def precondition(residual: FloatArray, out: FloatArray) -> None:
-            out[:] = 0.0
-            _v_cycle(preconditioner, 0, out, residual)
+            out[:] = _v_cycle(preconditioner, 0, residual)
 
         return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations)
 
@@ -130,30 +128,37 @@ def _hook_in(hierarchy: pyamg.MultilevelSolver, matrix: sp.bsr_matrix) -> None:
     (their inverted diagonal blocks from `matrix`); the coarse levels stay."""
     finest = hierarchy.levels[0]
     finest.A = matrix
-    inverted_diagonal = get_block_diag(matrix, blocksize=3, inv_flag=True)
-    finest.presmoother = setup_block_gauss_seidel(finest, sweep="forward", Dinv=inverted_diagonal)
-    finest.postsmoother = setup_block_gauss_seidel(finest, sweep="backward", Dinv=inverted_diagonal)
+    _attach_smoothers(finest)
 
 
-def _v_cycle(hierarchy: pyamg.MultilevelSolver, level: int, solution: FloatArray, rhs: FloatArray) -> None:
-    """One V-cycle on `hierarchy`'s level `level` from `solution` (updated in place): pyamg's own cycle,
-    step for step, without what its `solve` adds around it as a preconditioner (`aspreconditioner`): a
-    product with the finest matrix before and after the cycle, only to measure residual norms that one
-    cycle never uses — two of about six products with H per CG iteration."""
+def _attach_smoothers(level: pyamg.MultilevelSolver.Level) -> None:
+    """The inverted diagonal blocks of `level.A`, for the V-cycle's block Gauss–Seidel sweeps
+    (`optimizer.block_smoother`)."""
+    level.inverse_diagonal = inverted_diagonal(level.A)
+
+
+def _v_cycle(hierarchy: pyamg.MultilevelSolver, level: int, rhs: FloatArray) -> FloatArray:
+    """One V-cycle on `hierarchy`'s level `level` from zero: pyamg's own cycle with a forward block
+    Gauss–Seidel sweep before the coarse correction and a backward one after it (symmetric, what CG needs),
+    without what pyamg's `solve` adds around it as a preconditioner (`aspreconditioner`): a product with
+    the finest matrix before and after the cycle, only to measure residual norms that one cycle never
+    uses. The first sweep and the residual after it are one pass (`presmooth_from_zero`)."""
     levels = hierarchy.levels
     if len(levels) == 1:  # a system small enough for the coarse solver alone
-        solution[:] = hierarchy.coarse_solver(levels[0].A, rhs)
-        return
+        return np.asarray(hierarchy.coarse_solver(levels[0].A, rhs), dtype=np.float64)
     current = levels[level]
-    current.presmoother(current.A, solution, rhs)
-    coarse_rhs = current.R @ (rhs - current.A @ solution)
-    coarse_solution = np.zeros_like(coarse_rhs)
+    solution = np.empty_like(rhs)
+    residual = np.empty_like(rhs)
+    presmooth_from_zero(current.A, current.inverse_diagonal, rhs, solution, residual)
+    coarse_rhs = current.R @ residual
+    del residual
     if level == len(levels) - 2:
-        coarse_solution[:] = hierarchy.coarse_solver(levels[-1].A, coarse_rhs)
+        coarse_solution = hierarchy.coarse_solver(levels[-1].A, coarse_rhs)
     else:
-        _v_cycle(hierarchy, level + 1, coarse_solution, coarse_rhs)
+        coarse_solution = _v_cycle(hierarchy, level + 1, coarse_rhs)
     solution += current.P @ coarse_solution
-    current.postsmoother(current.A, solution, rhs)
+    gauss_seidel_sweep(current.A, current.inverse_diagonal, solution, rhs, forward=False)
+    return solution
 
 
 def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation) -> pyamg.MultilevelSolver:
@@ -179,8 +184,11 @@ def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation) -> pyamg.Mul
     # One forward Gauss–Seidel sweep before and one backward sweep after the coarse correction keep the
     # V-cycle symmetric (what CG needs) at half the smoothing of two symmetric sweeps: about 8 % more CG
     # iterations, a quarter less time per iteration.
-    return pyamg.smoothed_aggregation_solver(
+    hierarchy = pyamg.smoothed_aggregation_solver(
         matrix, B=near_null, symmetry="hermitian", strength="symmetric", max_coarse=500,
         improve_candidates=None, smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "local"}),
-        presmoother=("block_gauss_seidel", {"sweep": "forward"}),
-        postsmoother=("block_gauss_seidel", {"sweep": "backward"}))
+        presmoother=None, postsmoother=None)
+    for level in hierarchy.levels[:-1]:
+        level.A = sp.bsr_matrix(level.A)  # (already BSR: pyamg keeps each level's blocks)
+        _attach_smoothers(level)
+    return hierarchy
