@@ -77,24 +77,27 @@ class MultigridPCGSolver:
         matrix = sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(size, size))
         rhs = -linearisation.scale * linearisation.gradient
         iterations = 0
+        partial: FloatArray | None = None
         if self._preconditioner is not None:
             # The kept hierarchy's finest level becomes this linearisation's matrix (`accepted_step` let the
             # last one go): its residuals are then this system's, with the smoother's inverted diagonal
             # blocks and the coarse levels from the build.
             _hook_in(self._preconditioner, matrix)
-            # The kept hierarchy gets the budget a good one needs; past it, it is rebuilt and CG restarts.
+            # The kept hierarchy gets the budget a good one needs; past it, it is rebuilt and CG goes on
+            # from where it got to (new search directions: the preconditioner changed).
             budget = min(self._max_iterations, max(_MIN_ITERATIONS_FOR_REBUILD,
                                                    int(self._rebuild_growth * self._iterations_after_build)))
             solution, iterations, converged = self._solve(matrix, rhs, budget)
             if not converged and iterations == budget < self._max_iterations:
                 self._preconditioner = None
+                partial = solution if np.all(np.isfinite(solution)) else None
         if self._preconditioner is None:
             # No copy of H for the hierarchy (360 MB at 10⁶ poses): its finest level shares the blocks, so a
             # new λ on this linearisation reaches the V-cycle's residuals too, and its smoother only reads
             # the off-diagonal blocks (the inverted diagonal blocks are kept from the build).
             self._preconditioner = _hierarchy(matrix, linearisation)
             self.builds += 1
-            solution, fresh_iterations, converged = self._solve(matrix, rhs, self._max_iterations)
+            solution, fresh_iterations, converged = self._solve(matrix, rhs, self._max_iterations, partial)
             self._iterations_after_build = fresh_iterations
             iterations += fresh_iterations
         self.last_iterations, self.last_converged = iterations, converged
@@ -112,15 +115,15 @@ class MultigridPCGSolver:
             self._preconditioner.levels[0].A = None
         self._linearisation = None  # nothing refers to its blocks any more: they can go
 
-    def _solve(self, matrix: sp.bsr_matrix, rhs: FloatArray,
-               max_iterations: int) -> tuple[FloatArray, int, bool]:
+    def _solve(self, matrix: sp.bsr_matrix, rhs: FloatArray, max_iterations: int,
+               start: FloatArray | None = None) -> tuple[FloatArray, int, bool]:
         preconditioner = self._preconditioner
         assert preconditioner is not None
 
         def precondition(residual: FloatArray, out: FloatArray) -> None:
             out[:] = _v_cycle(preconditioner, 0, residual)
 
-        return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations)
+        return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations, start)
 
 
 def _hook_in(hierarchy: pyamg.MultilevelSolver, matrix: sp.bsr_matrix) -> None:

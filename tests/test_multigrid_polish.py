@@ -3,6 +3,9 @@ direct solver."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -15,7 +18,7 @@ from optimizer.block_normal_equations import (
     scale_blocks,
 )
 from optimizer.cost import chi2
-from optimizer.damped_solvers import DirectSolver
+from optimizer.damped_solvers import DirectSolver, preconditioned_cg
 from optimizer.gridworld import generate_grid_world
 from optimizer.normal_equations import UpperPattern
 from optimizer.polish import _linearise, gauss_newton
@@ -27,6 +30,7 @@ pytest.importorskip("pyamg")
 import pyamg  # needs pyamg: after the skip
 from pyamg.relaxation.smoothing import setup_block_gauss_seidel
 
+from optimizer import multigrid_solver
 from optimizer.multigrid_solver import MultigridPCGSolver, _hierarchy, _v_cycle
 
 
@@ -172,3 +176,65 @@ def test_the_inexact_polish_converges_on_what_the_model_promises_not_on_the_step
     assert status.converged, status
     assert "relative χ² change" in status.reason
     assert iterations[-1].chi2 == pytest.approx(optimum[-1].chi2, rel=1e-9)
+
+
+def spd_system(size: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    factor = rng.normal(size=(size, size))
+    return factor @ factor.T + 0.1 * np.diag(rng.uniform(1.0, 100.0, size)), rng.normal(size=size)
+
+
+def jacobi(matrix: np.ndarray) -> Callable[[np.ndarray, np.ndarray], None]:
+    inverse = 1.0 / np.diag(matrix)
+
+    def precondition(residual: np.ndarray, out: np.ndarray) -> None:
+        out[:] = inverse * residual
+
+    return precondition
+
+
+def test_cg_from_a_partial_solution_ends_at_the_cold_starts_solution() -> None:
+    matrix, rhs = spd_system(60, seed=1)
+    cold, _, cold_converged = preconditioned_cg(matrix.dot, jacobi(matrix), rhs, 1e-10, 1000)
+    partial, partial_iterations, partial_converged = preconditioned_cg(matrix.dot, jacobi(matrix), rhs,
+                                                                       1e-10, 5)
+    assert cold_converged and not partial_converged and partial_iterations == 5
+    warm, _, warm_converged = preconditioned_cg(matrix.dot, jacobi(matrix), rhs, 1e-10, 1000, start=partial)
+    assert warm_converged
+    # The target is relative to the right-hand side, as from zero, not to the partial solution's residual.
+    assert np.linalg.norm(rhs - matrix @ warm) <= 1e-10 * np.linalg.norm(rhs)
+    np.testing.assert_allclose(warm, cold, rtol=1e-6, atol=1e-9 * np.abs(cold).max())
+
+
+def test_cg_from_a_start_that_already_solves_the_system_takes_no_iteration() -> None:
+    matrix, rhs = spd_system(20, seed=2)
+    exact = np.linalg.solve(matrix, rhs)
+    solution, iterations, converged = preconditioned_cg(matrix.dot, jacobi(matrix), rhs, 1e-8, 100,
+                                                        start=exact)
+    assert (iterations, converged) == (0, True)
+    np.testing.assert_array_equal(solution, exact)
+
+
+def test_a_rebuilt_hierarchy_goes_on_from_where_the_kept_one_stopped(monkeypatch: pytest.MonkeyPatch) -> None:
+    graph = generate_grid_world(2000, seed=5).graph
+    pattern = BlockPattern.of(graph)
+    solver = MultigridPCGSolver(pattern)
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    solver.accepted_step(1e-4)  # the hierarchy is kept
+    calls: list[tuple[np.ndarray | None, np.ndarray, int]] = []
+
+    def recorded(*args: Any, **kwargs: Any) -> tuple[np.ndarray, int, bool]:
+        result = preconditioned_cg(*args, **kwargs)
+        start = args[5] if len(args) > 5 else kwargs.get("start")
+        calls.append((None if start is None else start.copy(), result[0].copy(), result[1]))
+        return result
+
+    monkeypatch.setattr(multigrid_solver, "preconditioned_cg", recorded)
+    solver.forcing = 1e-12  # more than the kept hierarchy's budget of 20 iterations reaches at this λ
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-9) is not None
+    assert solver.last_converged
+    assert solver.builds == 2
+    (kept_start, kept_end, kept_iterations), (rebuilt_start, _, _) = calls
+    assert kept_start is None and kept_iterations == 20
+    assert rebuilt_start is not None
+    np.testing.assert_array_equal(rebuilt_start, kept_end)
