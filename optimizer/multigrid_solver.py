@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from optimizer.block_normal_equations import BlockPattern, add_to_diagonal, scale_blocks
 from optimizer.block_smoother import gauss_seidel_sweep, inverted_diagonal, presmooth_from_zero
 from optimizer.damped_solvers import Linearisation, preconditioned_cg
+from optimizer.multigrid_hierarchy import smoothed_aggregation
 
 FloatArray = NDArray[np.float64]
 
@@ -178,20 +179,15 @@ def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation) -> pyamg.Mul
     motions[:, 1, 3] = free_poses[:, 0] - centroid[0]
     motions[:, 2, 3] = 1.0
     near_null = (motions * unscale[:, :, None]).reshape(-1, 4)
-    # improve_candidates=None: not relaxing the rigid motions first saves a tenth of the setup's memory and a
-    # third of its time at the same CG iteration count (13 to 1e-6 on the 10⁵-pose grid world).
-    # weighting="local": the prolongation smoother's Jacobi weight from each row's Gershgorin bound instead of
-    # an Arnoldi estimate of ρ(D⁻¹A) on every level, which was 70 % of the setup at 10⁶ poses (179 of 249 s,
-    # loaded) for the same CG iteration counts on the 10⁵-pose grid world, and it needs no random start
-    # vector.
+    # (`optimizer.multigrid_hierarchy`: the candidates are not relaxed first, which saved a tenth of the
+    # setup's memory and a third of its time at the same CG iteration count, 13 to 1e-6 on the 10⁵-pose grid
+    # world; the prolongation smoother's Jacobi weight comes from each row's Gershgorin bound instead of an
+    # Arnoldi estimate of ρ(D⁻¹A) on every level, which was 70 % of the setup at 10⁶ poses for the same CG
+    # iteration counts on the 10⁵-pose grid world, and needs no random start vector.)
     # One forward Gauss–Seidel sweep before and one backward sweep after the coarse correction keep the
     # V-cycle symmetric (what CG needs) at half the smoothing of two symmetric sweeps: about 8 % more CG
     # iterations, a quarter less time per iteration.
-    hierarchy = pyamg.smoothed_aggregation_solver(
-        matrix, B=near_null, symmetry="hermitian", strength="symmetric", max_coarse=500,
-        improve_candidates=None, smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "local"}),
-        presmoother=None, postsmoother=None)
+    hierarchy = smoothed_aggregation(matrix, near_null)
     for level in hierarchy.levels[:-1]:
-        level.A = sp.bsr_matrix(level.A)  # (already BSR: pyamg keeps each level's blocks)
         _attach_smoothers(level)
     return hierarchy

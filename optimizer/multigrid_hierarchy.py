@@ -1,0 +1,77 @@
+"""The smoothed-aggregation multigrid hierarchy of the polish's CG preconditioner, built from pyamg's parts.
+
+The steps are pyamg's `smoothed_aggregation_solver` with the options the polish used (strength "symmetric"
+with θ = 0, standard aggregation, candidates not improved, one Jacobi step of prolongation smoothing with
+ω = 4/3 and the "local" weighting, Galerkin coarse operators, pinv on the coarsest level), but the
+prolongation is smoothed as P = T − ω·D⁻¹·(A·T), D the row sums of |A|, where pyamg forms |A|, D⁻¹·A and
+ω·D⁻¹·A, three copies of A (360 MB each at 10⁶ poses), to multiply T once. On the 2·10⁵-pose grid world
+after paper SGD that halved the build's traced peak memory (489 → 261 MB) and its time; the levels are
+pyamg's to rounding (same sizes and sparsity, prolongations equal to 1e-15 relative; where a block of P
+cancels to exactly zero one of the two drops it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyamg
+import scipy.sparse as sp
+from numba import njit
+from numpy.typing import NDArray
+from pyamg.aggregation.aggregate import standard_aggregation
+from pyamg.aggregation.tentative import fit_candidates
+from pyamg.strength import symmetric_strength_of_connection
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int32] | NDArray[np.int64]
+
+MAX_COARSE = 500
+"""Block rows at which coarsening stops and pinv solves the level."""
+MAX_LEVELS = 10
+OMEGA = 4.0 / 3.0
+"""The prolongation smoother's Jacobi weight, relative to the Gershgorin bound of each row."""
+
+
+def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray) -> pyamg.MultilevelSolver:
+    """The hierarchy of the symmetric positive definite `matrix` (BSR, square blocks) whose near-null space
+    is spanned by the columns of `near_null`; every level's A, P and R in BSR."""
+    levels = [pyamg.MultilevelSolver.Level()]
+    levels[0].A = matrix
+    candidates = np.asarray(near_null, dtype=np.float64)
+    while len(levels) < MAX_LEVELS and levels[-1].A.shape[0] // levels[-1].A.blocksize[0] > MAX_COARSE:
+        fine = levels[-1]
+        aggregates, _ = standard_aggregation(symmetric_strength_of_connection(fine.A))
+        tentative, candidates = fit_candidates(aggregates, candidates)
+        del aggregates
+        fine.P = _smoothed_prolongation(fine.A, tentative)
+        fine.R = sp.bsr_matrix(fine.P.T)
+        coarse = pyamg.MultilevelSolver.Level()
+        coarse.A = sp.bsr_matrix(fine.R @ (fine.A @ fine.P))
+        levels.append(coarse)
+    return pyamg.MultilevelSolver(levels, coarse_solver="pinv")
+
+
+def _smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix) -> sp.bsr_matrix:
+    """T − ω·D⁻¹·(A·T), D the row sums of |A| (pyamg's "local" weighting; rows with D = 0 keep T)."""
+    size = matrix.blocksize[0]
+    weights = np.zeros(matrix.shape[0])
+    _absolute_row_sums(matrix.indptr, matrix.data, weights)
+    nonzero = weights != 0.0
+    weights[nonzero] = OMEGA / weights[nonzero]
+    product = sp.bsr_matrix(matrix @ tentative, blocksize=tentative.blocksize)
+    block_rows = np.repeat(np.arange(product.shape[0] // size), np.diff(product.indptr))
+    product.data *= weights.reshape(-1, size)[block_rows][:, :, None]
+    del block_rows
+    return sp.bsr_matrix(tentative - product, blocksize=tentative.blocksize)
+
+
+@njit(cache=True)
+def _absolute_row_sums(indptr: IntArray, data: FloatArray, out: FloatArray) -> None:
+    """out[r] += Σ |A[r, :]| over the BSR blocks (`data` (blocks, rows, columns)), without a copy of |A|."""
+    rows, columns = data.shape[1], data.shape[2]
+    for block_row in range(indptr.shape[0] - 1):
+        for position in range(indptr[block_row], indptr[block_row + 1]):
+            for p in range(rows):
+                total = 0.0
+                for q in range(columns):
+                    total += abs(data[position, p, q])
+                out[block_row * rows + p] += total

@@ -1,0 +1,59 @@
+"""The polish's smoothed-aggregation hierarchy against pyamg's own with the same options."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from optimizer.block_normal_equations import BlockPattern, add_to_diagonal, scale_blocks
+from optimizer.gridworld import generate_grid_world
+from optimizer.polish import _linearise
+
+pytest.importorskip("pyamg")
+
+import pyamg  # needs pyamg: after the skip
+
+from optimizer.multigrid_hierarchy import MAX_COARSE, _absolute_row_sums, smoothed_aggregation
+
+
+def scaled_system(num_poses: int) -> tuple[sp.bsr_matrix, np.ndarray]:
+    """S·H·S + 1e-6·I of a grid world at its file estimate, and the rigid motions as candidates."""
+    graph = generate_grid_world(num_poses, seed=6).graph
+    pattern = BlockPattern.of(graph)
+    linearisation = _linearise(graph, pattern, graph.poses)
+    blocks = linearisation.hessian
+    scale_blocks(blocks, pattern.indptr, pattern.indices, linearisation.scale)
+    add_to_diagonal(blocks, pattern.diagonal_block, 1e-6)
+    size = 3 * pattern.free
+    poses = graph.poses[1:]
+    motions = np.zeros((pattern.free, 3, 4))
+    motions[:, 0, 0] = motions[:, 1, 1] = motions[:, 2, 2] = motions[:, 2, 3] = 1.0
+    motions[:, 0, 3] = -poses[:, 1]
+    motions[:, 1, 3] = poses[:, 0]
+    near_null = (motions / linearisation.scale.reshape(-1, 3)[:, :, None]).reshape(-1, 4)
+    return sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(size, size)), near_null
+
+
+def test_the_hierarchy_is_pyamgs_smoothed_aggregation_to_rounding() -> None:
+    matrix, near_null = scaled_system(5000)
+    ours = smoothed_aggregation(matrix, near_null)
+    theirs = pyamg.smoothed_aggregation_solver(
+        matrix, B=near_null, symmetry="hermitian", strength="symmetric", max_coarse=MAX_COARSE,
+        improve_candidates=None, smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "local"}))
+    assert len(ours.levels) == len(theirs.levels) >= 3
+    for mine, reference in zip(ours.levels, theirs.levels, strict=True):
+        assert mine.A.shape == reference.A.shape
+        assert abs(mine.A - reference.A).max() <= 1e-12 * abs(reference.A).max()
+        if hasattr(reference, "P"):
+            assert abs(mine.P - reference.P).max() <= 1e-12 * abs(reference.P).max()
+            assert abs(mine.R - reference.R).max() <= 1e-12 * abs(reference.R).max()
+
+
+def test_absolute_row_sums_read_the_blocks_in_place() -> None:
+    rng = np.random.default_rng(3)
+    dense = rng.normal(size=(12, 8)) * (rng.random((12, 8)) < 0.4)
+    matrix = sp.bsr_matrix(dense, blocksize=(3, 4))
+    sums = np.zeros(12)
+    _absolute_row_sums(matrix.indptr, matrix.data, sums)
+    np.testing.assert_allclose(sums, np.abs(dense).sum(axis=1), rtol=1e-15)
