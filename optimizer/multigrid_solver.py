@@ -18,6 +18,8 @@ when it needs it.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pyamg
 import scipy.sparse as sp
@@ -89,7 +91,17 @@ class MultigridPCGSolver:
             budget = min(self._max_iterations, max(_MIN_ITERATIONS_FOR_REBUILD,
                                                    int(self._rebuild_growth * self._iterations_after_build)))
             solution, iterations, converged = self._solve(matrix, rhs, budget)
-            if not converged and iterations == budget < self._max_iterations:
+            exhausted = not converged and iterations == budget < self._max_iterations
+            if exhausted:
+                # Close to the target at the rate it has shown, the kept hierarchy goes on: a new one would
+                # cost a build and about as many iterations as the last build's first solve took.
+                more = _iterations_to_finish(matrix, rhs, solution, iterations, self.forcing)
+                if more <= self._iterations_after_build:
+                    extension = int(min(2 * more, self._max_iterations - iterations))
+                    solution, extra, converged = self._solve(matrix, rhs, extension, solution)
+                    iterations += extra
+                    exhausted = not converged and extra == extension
+            if exhausted:
                 self._preconditioner = None
                 partial = solution if np.all(np.isfinite(solution)) else None
         if self._preconditioner is None:
@@ -125,6 +137,18 @@ class MultigridPCGSolver:
             out[:] = _v_cycle(preconditioner, 0, residual)
 
         return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations, start)
+
+
+def _iterations_to_finish(matrix: sp.bsr_matrix, rhs: FloatArray, solution: FloatArray, iterations: int,
+                          forcing: float) -> float:
+    """How many more CG iterations `solution` (after `iterations` from zero) needs to reach `forcing` at the
+    mean rate of residual reduction it has shown so far (inf when it has shown none)."""
+    rhs_norm = float(np.linalg.norm(rhs))
+    reduction = float(np.linalg.norm(rhs - matrix @ solution)) / rhs_norm if rhs_norm > 0.0 else math.nan
+    if not 0.0 < reduction < 1.0 or iterations < 1:
+        return math.inf
+    rate = reduction ** (1.0 / iterations)
+    return max(1.0, math.ceil(math.log(forcing / reduction) / math.log(rate)))
 
 
 def _hook_in(hierarchy: pyamg.MultilevelSolver, matrix: sp.bsr_matrix) -> None:

@@ -238,3 +238,18 @@ def test_a_rebuilt_hierarchy_goes_on_from_where_the_kept_one_stopped(monkeypatch
     assert kept_start is None and kept_iterations == 20
     assert rebuilt_start is not None
     np.testing.assert_array_equal(rebuilt_start, kept_end)
+
+
+def test_a_kept_hierarchy_close_to_its_target_goes_on_instead_of_being_rebuilt() -> None:
+    graph = generate_grid_world(2000, seed=5).graph
+    pattern = BlockPattern.of(graph)
+    solver = MultigridPCGSolver(pattern, rebuild_growth=0.1)
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    solver.accepted_step(1e-4)
+    # As if its build's first solve had taken 200 iterations: its budget (20) runs out far short of what a
+    # new hierarchy would cost, and the rate it has shown reaches the target well within that.
+    solver._iterations_after_build = 200
+    solver.forcing = 1e-12
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-9) is not None
+    assert solver.last_converged and solver.last_iterations > 20
+    assert solver.builds == 1
