@@ -14,7 +14,8 @@ pytest.importorskip("pyamg")
 
 import pyamg  # needs pyamg: after the skip
 
-from optimizer.multigrid_hierarchy import MAX_COARSE, _absolute_row_sums, smoothed_aggregation
+from optimizer import multigrid_hierarchy
+from optimizer.multigrid_hierarchy import MAX_COARSE, _absolute_row_sums, _galerkin, smoothed_aggregation
 
 
 def scaled_system(num_poses: int) -> tuple[sp.bsr_matrix, np.ndarray]:
@@ -57,3 +58,15 @@ def test_absolute_row_sums_read_the_blocks_in_place() -> None:
     sums = np.zeros(12)
     _absolute_row_sums(matrix.indptr, matrix.data, sums)
     np.testing.assert_allclose(sums, np.abs(dense).sum(axis=1), rtol=1e-15)
+
+
+def test_the_banded_galerkin_product_is_the_whole_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    matrix, near_null = scaled_system(5000)
+    prolongation = smoothed_aggregation(matrix, near_null).levels[0].P
+    whole = _galerkin(matrix, prolongation)
+    monkeypatch.setattr(multigrid_hierarchy, "GALERKIN_BAND_ROWS", 700)  # 7 bands of 700 block rows
+    banded = _galerkin(matrix, prolongation)
+    reference = prolongation.T @ matrix @ prolongation
+    assert banded.blocksize == (4, 4)
+    assert abs(banded - reference).max() <= 1e-12 * abs(reference).max()
+    assert abs(whole - reference).max() <= 1e-12 * abs(reference).max()
