@@ -26,7 +26,13 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from optimizer.block_normal_equations import BlockPattern, add_to_diagonal, scale_blocks
-from optimizer.block_smoother import gauss_seidel_sweep, inverted_diagonal, presmooth_from_zero
+from optimizer.block_smoother import (
+    gauss_seidel_sweep,
+    inverted_diagonal,
+    presmooth_from_zero,
+    prolong_into,
+    restrict,
+)
 from optimizer.damped_solvers import Linearisation, preconditioned_cg
 from optimizer.multigrid_hierarchy import smoothed_aggregation
 
@@ -178,13 +184,13 @@ def _v_cycle(hierarchy: pyamg.MultilevelSolver, level: int, rhs: FloatArray) -> 
     solution = np.empty_like(rhs)
     residual = np.empty_like(rhs)
     presmooth_from_zero(current.A, current.inverse_diagonal, rhs, solution, residual)
-    coarse_rhs = current.R @ residual
+    coarse_rhs = restrict(current.P, residual)
     del residual
     if level == len(levels) - 2:
         coarse_solution = hierarchy.coarse_solver(levels[-1].A, coarse_rhs)
     else:
         coarse_solution = _v_cycle(hierarchy, level + 1, coarse_rhs)
-    solution += current.P @ coarse_solution
+    prolong_into(current.P, coarse_solution, solution)
     gauss_seidel_sweep(current.A, current.inverse_diagonal, solution, rhs, forward=False)
     return solution
 

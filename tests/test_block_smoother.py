@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from optimizer.block_smoother import gauss_seidel_sweep, inverted_diagonal, presmooth_from_zero
+from optimizer.block_smoother import (
+    gauss_seidel_sweep,
+    inverted_diagonal,
+    presmooth_from_zero,
+    prolong_into,
+    restrict,
+)
 from optimizer.errors import OptimizerError
 
 pytest.importorskip("pyamg")
@@ -75,3 +81,16 @@ def test_other_block_sizes_are_refused() -> None:
     vector = np.zeros(matrix.shape[0])
     with pytest.raises(OptimizerError, match="3×3 or 4×4"):
         gauss_seidel_sweep(matrix, np.zeros((10, 2, 2)), vector, vector, forward=True)
+
+
+@pytest.mark.parametrize("rows", [3, 4])
+def test_restriction_and_prolongation_are_the_products_with_p(rows: int) -> None:
+    rng = np.random.default_rng(rows)
+    dense = rng.normal(size=(rows * 40, 4 * 12)) * (rng.random((rows * 40, 4 * 12)) < 0.2)
+    prolongation = sp.bsr_matrix(dense, blocksize=(rows, 4))
+    fine = rng.normal(size=rows * 40)
+    coarse = rng.normal(size=4 * 12)
+    np.testing.assert_allclose(restrict(prolongation, fine), dense.T @ fine, rtol=1e-13, atol=1e-13)
+    solution = fine.copy()
+    prolong_into(prolongation, coarse, solution)
+    np.testing.assert_allclose(solution, fine + dense @ coarse, rtol=1e-13, atol=1e-13)

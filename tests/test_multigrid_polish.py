@@ -159,6 +159,7 @@ def test_the_v_cycle_is_pyamgs_with_block_gauss_seidel(num_poses: int, middle_le
     rhs = np.random.default_rng(0).normal(size=hierarchy.levels[0].A.shape[0])
     ours = _v_cycle(hierarchy, 0, rhs)
     for level in hierarchy.levels[:-1]:
+        level.R = sp.bsr_matrix(level.P.T)
         level.presmoother = setup_block_gauss_seidel(level, sweep="forward", Dinv=level.inverse_diagonal)
         level.postsmoother = setup_block_gauss_seidel(level, sweep="backward", Dinv=level.inverse_diagonal)
     reference = hierarchy.aspreconditioner(cycle="V") @ rhs
