@@ -4,16 +4,21 @@ graphs too large to factorise.
 The normal equations of a pose graph are a weighted graph Laplacian in 3×3 blocks: on a 10⁵-pose grid
 world the chain preconditioner of `optimizer.damped_solvers` needs 300–500 CG iterations per step once the
 loops matter, while one multigrid V-cycle per iteration brings a relative residual of 10⁻⁴ in about 16.
-The hierarchy (aggregation of poses, prolongation, coarse operators) costs about as much as 10–20 CG
-iterations to build, so it is built once and kept while it stays good: CG with the kept hierarchy gets
-`rebuild_growth` times the iterations the first solve after the last build needed (at least 20); past
-them the linearisation has moved too far, the hierarchy is rebuilt and CG starts again. A kept hierarchy
-gets each new linearisation's matrix as its finest level, with smoothers of its own, and holds no older
-H (`_hook_in`); its coarse levels are stale, which only slows CG, it never changes the step CG converges to.
-The V-cycle is run directly (`_v_cycle`), not through pyamg's `aspreconditioner`, which spends two extra
-products with H per application. At 10⁶ grid-world poses (2·10⁶ constraints) a build costs about 6.8 CPU s
-and a CG iteration about 0.8 CPU s. pyamg is imported with this module, which `optimizer.polish` loads only
-when it needs it.
+The hierarchy (aggregation of poses, prolongation, coarse operators; `optimizer.multigrid_hierarchy`) costs
+about as much as 10–20 CG iterations to build, so it is built once and kept while it stays good: CG with
+the kept hierarchy gets `rebuild_growth` times the iterations the first solve after the last build needed
+(at least 20); past them, unless the rate it has shown projects the target within what a new hierarchy's
+first solve took, the linearisation has moved too far: the hierarchy is rebuilt and CG goes on from its
+partial solution. A kept hierarchy gets each new linearisation's matrix as its finest level, with the
+smoother's inverted diagonal blocks of its own, and holds no older H (`_hook_in`); its coarse levels are
+stale, which only slows CG, it never changes the step CG converges to. The V-cycle is run directly
+(`_v_cycle`), not through pyamg's `aspreconditioner`, which spends two extra products with H per
+application, with compiled block Gauss–Seidel sweeps, restriction and prolongation
+(`optimizer.block_smoother`). On the 3·10⁵-pose grid world (A/B on the same loaded machine) a CG iteration
+fell from about 0.24 to 0.16 CPU s with those kernels and a build with CG's first 5 iterations from 5 to
+3.5; at 10⁶ poses (2·10⁶ constraints, heavily loaded machine) a build cost about 8 CPU s and a CG
+iteration 0.61 (benchmarks/README.md, scale section). pyamg is imported with this module, which
+`optimizer.polish` loads only when it needs it.
 """
 
 from __future__ import annotations

@@ -6,9 +6,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from optimizer.block_normal_equations import BlockPattern, add_to_diagonal, scale_blocks
-from optimizer.gridworld import generate_grid_world
-from optimizer.polish import _linearise
+from tests.test_multigrid_polish import scaled_system
 
 pytest.importorskip("pyamg")
 
@@ -18,26 +16,19 @@ from optimizer import multigrid_hierarchy
 from optimizer.multigrid_hierarchy import MAX_COARSE, _absolute_row_sums, _galerkin, smoothed_aggregation
 
 
-def scaled_system(num_poses: int) -> tuple[sp.bsr_matrix, np.ndarray]:
-    """S·H·S + 1e-6·I of a grid world at its file estimate, and the rigid motions as candidates."""
-    graph = generate_grid_world(num_poses, seed=6).graph
-    pattern = BlockPattern.of(graph)
-    linearisation = _linearise(graph, pattern, graph.poses)
-    blocks = linearisation.hessian
-    scale_blocks(blocks, pattern.indptr, pattern.indices, linearisation.scale)
-    add_to_diagonal(blocks, pattern.diagonal_block, 1e-6)
-    size = 3 * pattern.free
-    poses = graph.poses[1:]
-    motions = np.zeros((pattern.free, 3, 4))
+def system_and_candidates(num_poses: int) -> tuple[sp.bsr_matrix, np.ndarray]:
+    """`scaled_system` and the rigid motions as near-null candidates (in the scaled variables)."""
+    matrix, linearisation = scaled_system(num_poses)
+    poses = linearisation.poses[1:]
+    motions = np.zeros((poses.shape[0], 3, 4))
     motions[:, 0, 0] = motions[:, 1, 1] = motions[:, 2, 2] = motions[:, 2, 3] = 1.0
     motions[:, 0, 3] = -poses[:, 1]
     motions[:, 1, 3] = poses[:, 0]
-    near_null = (motions / linearisation.scale.reshape(-1, 3)[:, :, None]).reshape(-1, 4)
-    return sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(size, size)), near_null
+    return matrix, (motions / linearisation.scale.reshape(-1, 3)[:, :, None]).reshape(-1, 4)
 
 
 def test_the_hierarchy_is_pyamgs_smoothed_aggregation_to_rounding() -> None:
-    matrix, near_null = scaled_system(5000)
+    matrix, near_null = system_and_candidates(5000)
     ours = smoothed_aggregation(matrix, near_null)
     theirs = pyamg.smoothed_aggregation_solver(
         matrix, B=near_null, symmetry="hermitian", strength="symmetric", max_coarse=MAX_COARSE,
@@ -60,7 +51,7 @@ def test_absolute_row_sums_read_the_blocks_in_place() -> None:
 
 
 def test_the_banded_galerkin_product_is_the_whole_one(monkeypatch: pytest.MonkeyPatch) -> None:
-    matrix, near_null = scaled_system(5000)
+    matrix, near_null = system_and_candidates(5000)
     prolongation = smoothed_aggregation(matrix, near_null).levels[0].P
     whole = _galerkin(matrix, prolongation)
     monkeypatch.setattr(multigrid_hierarchy, "GALERKIN_BAND_ROWS", 700)  # 7 bands of 700 block rows

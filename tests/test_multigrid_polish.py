@@ -18,7 +18,7 @@ from optimizer.block_normal_equations import (
     scale_blocks,
 )
 from optimizer.cost import chi2
-from optimizer.damped_solvers import DirectSolver, preconditioned_cg
+from optimizer.damped_solvers import DirectSolver, Linearisation, preconditioned_cg
 from optimizer.gridworld import generate_grid_world
 from optimizer.normal_equations import UpperPattern
 from optimizer.polish import _linearise, gauss_newton
@@ -136,8 +136,8 @@ def test_a_large_accepted_decrease_rebuilds_the_hierarchy_and_a_small_one_keeps_
     assert solver.builds == 2
 
 
-def scaled_hierarchy(num_poses: int) -> pyamg.MultilevelSolver:
-    """The multigrid hierarchy of S·H·S + 1e-6·I of a grid world of `num_poses` at its file estimate."""
+def scaled_system(num_poses: int) -> tuple[sp.bsr_matrix, Linearisation]:
+    """S·H·S + 1e-6·I of a grid world of `num_poses` at its file estimate, and its linearisation."""
     graph = generate_grid_world(num_poses, seed=6).graph
     pattern = BlockPattern.of(graph)
     linearisation = _linearise(graph, pattern, graph.poses)
@@ -145,8 +145,12 @@ def scaled_hierarchy(num_poses: int) -> pyamg.MultilevelSolver:
     scale_blocks(blocks, pattern.indptr, pattern.indices, linearisation.scale)
     add_to_diagonal(blocks, pattern.diagonal_block, 1e-6)
     size = 3 * pattern.free
-    return _hierarchy(sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(size, size)),
-                      linearisation)
+    return sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(size, size)), linearisation
+
+
+def scaled_hierarchy(num_poses: int) -> pyamg.MultilevelSolver:
+    """The multigrid hierarchy of `scaled_system`."""
+    return _hierarchy(*scaled_system(num_poses))
 
 
 @pytest.mark.parametrize(("num_poses", "middle_level"), [(20000, True), (60, False)])
