@@ -29,8 +29,8 @@ IntArray = NDArray[np.int32] | NDArray[np.int64]
 MAX_COARSE = 500
 """Block rows at which coarsening stops and pinv solves the level."""
 MAX_LEVELS = 10
-GALERKIN_BAND_ROWS = 131_072
-"""Block rows per band of the Galerkin product (`_galerkin`): 8 bands at 10⁶ poses."""
+GALERKIN_BAND_ROWS = 32_768
+"""Coarse block rows per band of the Galerkin product (`_galerkin`): 6 bands at 10⁶ poses."""
 OMEGA = 4.0 / 3.0
 """The prolongation smoother's Jacobi weight, relative to the Gershgorin bound of each row."""
 
@@ -71,19 +71,26 @@ def _smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix) -> s
 
 
 def _galerkin(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> sp.bsr_matrix:
-    """Pᵀ·A·P as Σ over bands of block rows of P[band]ᵀ·(A[band]·P): A·P whole (its blocks outnumber A's) and
-    Pᵀ beside it were the build's largest transients."""
-    rows = matrix.shape[0] // matrix.blocksize[0]
+    """Pᵀ·A·P, pyamg's (R·A)·P with R = Pᵀ, computed for bands of the coarse block rows and stacked: R·A whole
+    (it has more blocks than A) was the build's largest transient. The product works row by row, so the
+    bands' rows are the whole product's, in the same order."""
+    restriction = sp.bsr_matrix(prolongation.T)
+    rows = restriction.shape[0] // restriction.blocksize[0]
     bands = max(1, -(-rows // GALERKIN_BAND_ROWS))
-    bounds = np.linspace(0, rows, bands + 1).astype(np.int64)
-    total: sp.bsr_matrix | None = None
-    for start, stop in itertools.pairwise(bounds.tolist()):
-        piece = _band(prolongation, start, stop).T @ (_band(matrix, start, stop) @ prolongation)
-        total = piece if total is None else total + piece
-        del piece
-    size = prolongation.blocksize[1]
-    # Left in the product's column order, as pyamg leaves its own (the next aggregation walks them in it).
-    return sp.bsr_matrix(total, blocksize=(size, size))
+    bounds = np.linspace(0, rows, bands + 1).astype(np.int64).tolist()
+    pieces = []
+    for start, stop in itertools.pairwise(bounds):
+        pieces.append(sp.bsr_matrix((_band(restriction, start, stop) @ matrix) @ prolongation,
+                                    blocksize=(restriction.blocksize[0], prolongation.blocksize[1])))
+    del restriction
+    offsets = np.cumsum([0] + [piece.indptr[-1] for piece in pieces[:-1]])
+    indptr = np.concatenate([pieces[0].indptr[:1].astype(np.int64)]
+                            + [piece.indptr[1:].astype(np.int64) + offset
+                               for piece, offset in zip(pieces, offsets, strict=True)])
+    indices = np.concatenate([piece.indices for piece in pieces])
+    data = np.concatenate([piece.data for piece in pieces])
+    del pieces
+    return sp.bsr_matrix((data, indices, indptr), shape=(prolongation.shape[1],) * 2)
 
 
 def _band(matrix: sp.bsr_matrix, start: int, stop: int) -> sp.bsr_matrix:
