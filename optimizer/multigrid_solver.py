@@ -16,7 +16,7 @@ stale, which only slows CG, it never changes the step CG converges to. The V-cyc
 application, with compiled block Gauss–Seidel sweeps, restriction and prolongation
 (`optimizer.block_smoother`). On the 3·10⁵-pose grid world (A/B on the same loaded machine) a CG iteration
 fell from about 0.24 to 0.16 CPU s with those kernels and a build with CG's first 5 iterations from 5 to
-3.5; at 10⁶ poses (2·10⁶ constraints, heavily loaded machine) a build cost about 8 CPU s and a CG
+3.5; at 10⁶ poses (2·10⁶ constraints, machine at load 2.4–3) a build cost about 5.9 CPU s and a CG
 iteration 0.61 (benchmarks/README.md, scale section). pyamg is imported with this module, which
 `optimizer.polish` loads only when it needs it.
 """
