@@ -221,6 +221,8 @@ class _StageClock:
         self.wall: dict[str, float] = {}
         self.calls: dict[str, int] = {}
         self.peak_mb: dict[str, float] = {}
+        self.raised_mb: dict[str, float] = {}
+        """How far VmHWM rose during the stage's calls: where the process's peak was set."""
 
     def wrap(self, owner: object, name: str, stage: str,
              count: Callable[[Any], int] | None = None) -> None:
@@ -228,7 +230,9 @@ class _StageClock:
 
         def timed(*args: object, **kwargs: object) -> object:
             started, started_wall = time.process_time(), time.perf_counter()
+            peak_before = _vm_kib("VmHWM")
             result = function(*args, **kwargs)
+            self.raised_mb[stage] = self.raised_mb.get(stage, 0.0) + (_vm_kib("VmHWM") - peak_before) / 1024
             self.seconds[stage] = self.seconds.get(stage, 0.0) + time.process_time() - started
             self.wall[stage] = self.wall.get(stage, 0.0) + time.perf_counter() - started_wall
             self.calls[stage] = self.calls.get(stage, 0) + (count(result) if count else 1)
@@ -256,34 +260,39 @@ def stage_probe(graph_path: Path, out_dir: Path) -> str:
     clock.wrap(recording.IterationRecorder, "flush", "record: flush (final whole)")
     del graph_files
     stages: dict[str, list[float]] = {}
-    marks = {"cpu": time.process_time(), "wall": time.perf_counter()}
+    marks = {"cpu": time.process_time(), "wall": time.perf_counter(), "hwm": float(_vm_kib("VmHWM"))}
 
     def progress(iteration: Any) -> None:
-        now, now_wall = time.process_time(), time.perf_counter()
+        now, now_wall, hwm = time.process_time(), time.perf_counter(), float(_vm_kib("VmHWM"))
         stage = iteration.stage
-        entry = stages.setdefault(stage, [0.0, 0.0, 0])
+        entry = stages.setdefault(stage, [0.0, 0.0, 0, 0.0])
         entry[0] += now - marks["cpu"]
         entry[1] += now_wall - marks["wall"]
         entry[2] += 1
+        entry[3] += (hwm - marks["hwm"]) / 1024
         print(f"{stage} {iteration.index}: χ² {iteration.chi2:.10g}, {now - marks['cpu']:.1f} CPU s, "
-              f"{now_wall - marks['wall']:.1f} wall s", file=sys.stderr, flush=True)
-        marks["cpu"], marks["wall"] = now, now_wall
+              f"{now_wall - marks['wall']:.1f} wall s, VmHWM {hwm / 1024:.0f} MB", file=sys.stderr,
+              flush=True)
+        marks["cpu"], marks["wall"], marks["hwm"] = now, now_wall, hwm
 
     started_cpu, started = time.process_time(), time.perf_counter()
     result = replay_graph.replay_graph(graph_path, out_dir=out_dir, progress=progress)
     total_cpu, total_wall = time.process_time() - started_cpu, time.perf_counter() - started
     rows = [[stage, f"{seconds:.1f}", f"{clock.wall[stage]:.1f}", str(clock.calls[stage]),
-             f"{clock.peak_mb[stage]:.0f}"] for stage, seconds in clock.seconds.items()]
+             f"{clock.peak_mb[stage]:.0f}", f"{clock.raised_mb[stage]:.0f}"]
+            for stage, seconds in clock.seconds.items()]
     rows += [[f"between yields: {stage} (optimizer + recording)", f"{seconds:.1f}", f"{wall:.1f}", str(count),
-              ""] for stage, (seconds, wall, count) in stages.items()]
+              "", f"{raised:.0f}"] for stage, (seconds, wall, count, raised) in stages.items()]
     rows.append(["whole replay_graph", f"{total_cpu:.1f}", f"{total_wall:.1f}", "",
-                 f"{_vm_kib('VmHWM') / 1024:.0f}"])
-    table = markdown_table(["stage", "CPU s", "wall s", "calls", "peak RSS MB so far"], rows)
+                 f"{_vm_kib('VmHWM') / 1024:.0f}", ""])
+    table = markdown_table(["stage", "CPU s", "wall s", "calls", "peak RSS MB so far", "peak raised MB"],
+                           rows)
     summary = json.loads(Path(result.outputs.json).read_text())
     return (f"{table}\n\nN = {result.graph.num_poses:,}, M = {result.graph.num_edges:,}; iterations "
             f"{summary['iterations']}; χ² {summary['chi2_initial']:.6g} → {summary['chi2_final']:.10g}; "
             f"converged {summary['converged']} ({summary['stop_reason']}). One process; CPU seconds by "
-            "time.process_time; the peak column is VmHWM after the stage's last call.\n")
+            "time.process_time; 'so far' is VmHWM after the stage's last call, 'raised' how far VmHWM rose "
+            "during its calls (where the peak was set).\n")
 
 
 def _parse_run(text: str) -> tuple[str, int | None]:

@@ -120,14 +120,22 @@ class ChainPCGSolver:
 
 def preconditioned_cg(apply: Callable[[FloatArray], FloatArray],
                       precondition: Callable[[FloatArray, FloatArray], None], rhs: FloatArray,
-                      forcing: float, max_iterations: int) -> tuple[FloatArray, int, bool]:
-    """Conjugate gradients on A·x = rhs from x = 0: (x, iterations, whether ‖r‖ ≤ `forcing`·‖rhs‖ held).
+                      forcing: float, max_iterations: int,
+                      start: FloatArray | None = None) -> tuple[FloatArray, int, bool]:
+    """Conjugate gradients on A·x = rhs from x = `start` (default 0): (x, iterations, whether
+    ‖r‖ ≤ `forcing`·‖rhs‖ held; the target is relative to rhs, not to the starting residual).
 
     `apply(v)` returns A·v; `precondition(r, out)` writes M⁻¹·r into `out`. It stops early, not converged,
     when a direction has no positive curvature (A is then not positive definite to rounding).
     """
-    solution = np.zeros_like(rhs)
-    residual = rhs.copy()
+    if start is None:
+        solution = np.zeros_like(rhs)
+        residual = rhs.copy()
+    else:
+        solution = start.copy()
+        residual = rhs - apply(solution)
+        if float(np.linalg.norm(residual)) <= forcing * float(np.linalg.norm(rhs)):
+            return solution, 0, True
     preconditioned = np.empty_like(rhs)
     precondition(residual, preconditioned)
     direction = preconditioned.copy()

@@ -4,29 +4,42 @@ graphs too large to factorise.
 The normal equations of a pose graph are a weighted graph Laplacian in 3×3 blocks: on a 10⁵-pose grid
 world the chain preconditioner of `optimizer.damped_solvers` needs 300–500 CG iterations per step once the
 loops matter, while one multigrid V-cycle per iteration brings a relative residual of 10⁻⁴ in about 16.
-The hierarchy (aggregation of poses, prolongation, coarse operators) costs about as much as 10–20 CG
-iterations to build, so it is built once and kept while it stays good: CG with the kept hierarchy gets
-`rebuild_growth` times the iterations the first solve after the last build needed (at least 20); past
-them the linearisation has moved too far, the hierarchy is rebuilt and CG starts again. A kept hierarchy
-gets each new linearisation's matrix as its finest level, with smoothers of its own, and holds no older
-H (`_hook_in`); its coarse levels are stale, which only slows CG, it never changes the step CG converges to.
-The V-cycle is run directly (`_v_cycle`), not through pyamg's `aspreconditioner`, which spends two extra
-products with H per application. At 10⁶ grid-world poses (2·10⁶ constraints) a build costs about 6.8 CPU s
-and a CG iteration about 0.8 CPU s. pyamg is imported with this module, which `optimizer.polish` loads only
-when it needs it.
+The hierarchy (aggregation of poses, prolongation, coarse operators; `optimizer.multigrid_hierarchy`) costs
+about as much as 10–20 CG iterations to build, so it is built once and kept while it stays good: CG with
+the kept hierarchy gets `rebuild_growth` times the iterations the first solve after the last build needed
+(at least 20); past them, unless the rate it has shown projects the target within what a new hierarchy's
+first solve took, the linearisation has moved too far: the hierarchy is rebuilt and CG goes on from its
+partial solution. A kept hierarchy gets each new linearisation's matrix as its finest level, with the
+smoother's inverted diagonal blocks of its own, and holds no older H (`_hook_in`); its coarse levels are
+stale, which only slows CG, it never changes the step CG converges to. The V-cycle is run directly
+(`_v_cycle`), not through pyamg's `aspreconditioner`, which spends two extra products with H per
+application, with compiled block Gauss–Seidel sweeps, restriction and prolongation
+(`optimizer.block_smoother`). On the 3·10⁵-pose grid world (A/B on the same loaded machine) a CG iteration
+fell from about 0.24 to 0.16 CPU s with those kernels and a build with CG's first 5 iterations from 5 to
+3.5; at 10⁶ poses (2·10⁶ constraints, machine at load 2.4–3) a build cost about 5.9 CPU s and a CG
+iteration 0.61 (benchmarks/README.md, scale section). pyamg is imported with this module, which
+`optimizer.polish` loads only when it needs it.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pyamg
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from pyamg.relaxation.smoothing import setup_block_gauss_seidel
-from pyamg.util.utils import get_block_diag
 
 from optimizer.block_normal_equations import BlockPattern, add_to_diagonal, scale_blocks
+from optimizer.block_smoother import (
+    gauss_seidel_sweep,
+    inverted_diagonal,
+    presmooth_from_zero,
+    prolong_into,
+    restrict,
+)
 from optimizer.damped_solvers import Linearisation, preconditioned_cg
+from optimizer.multigrid_hierarchy import smoothed_aggregation
 
 FloatArray = NDArray[np.float64]
 
@@ -78,24 +91,37 @@ class MultigridPCGSolver:
         matrix = sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(size, size))
         rhs = -linearisation.scale * linearisation.gradient
         iterations = 0
+        partial: FloatArray | None = None
         if self._preconditioner is not None:
             # The kept hierarchy's finest level becomes this linearisation's matrix (`accepted_step` let the
             # last one go): its residuals are then this system's, with the smoother's inverted diagonal
             # blocks and the coarse levels from the build.
             _hook_in(self._preconditioner, matrix)
-            # The kept hierarchy gets the budget a good one needs; past it, it is rebuilt and CG restarts.
+            # The kept hierarchy gets the budget a good one needs; past it, it is rebuilt and CG goes on
+            # from where it got to (new search directions: the preconditioner changed).
             budget = min(self._max_iterations, max(_MIN_ITERATIONS_FOR_REBUILD,
                                                    int(self._rebuild_growth * self._iterations_after_build)))
             solution, iterations, converged = self._solve(matrix, rhs, budget)
-            if not converged and iterations == budget < self._max_iterations:
+            exhausted = not converged and iterations == budget < self._max_iterations
+            if exhausted:
+                # Close to the target at the rate it has shown, the kept hierarchy goes on: a new one would
+                # cost a build and about as many iterations as the last build's first solve took.
+                more = _iterations_to_finish(matrix, rhs, solution, iterations, self.forcing)
+                if more <= self._iterations_after_build:
+                    extension = int(min(2 * more, self._max_iterations - iterations))
+                    solution, extra, converged = self._solve(matrix, rhs, extension, solution)
+                    iterations += extra
+                    exhausted = not converged and extra == extension
+            if exhausted:
                 self._preconditioner = None
+                partial = solution if np.all(np.isfinite(solution)) else None
         if self._preconditioner is None:
             # No copy of H for the hierarchy (360 MB at 10⁶ poses): its finest level shares the blocks, so a
             # new λ on this linearisation reaches the V-cycle's residuals too, and its smoother only reads
             # the off-diagonal blocks (the inverted diagonal blocks are kept from the build).
             self._preconditioner = _hierarchy(matrix, linearisation)
             self.builds += 1
-            solution, fresh_iterations, converged = self._solve(matrix, rhs, self._max_iterations)
+            solution, fresh_iterations, converged = self._solve(matrix, rhs, self._max_iterations, partial)
             self._iterations_after_build = fresh_iterations
             iterations += fresh_iterations
         self.last_iterations, self.last_converged = iterations, converged
@@ -113,16 +139,27 @@ class MultigridPCGSolver:
             self._preconditioner.levels[0].A = None
         self._linearisation = None  # nothing refers to its blocks any more: they can go
 
-    def _solve(self, matrix: sp.bsr_matrix, rhs: FloatArray,
-               max_iterations: int) -> tuple[FloatArray, int, bool]:
+    def _solve(self, matrix: sp.bsr_matrix, rhs: FloatArray, max_iterations: int,
+               start: FloatArray | None = None) -> tuple[FloatArray, int, bool]:
         preconditioner = self._preconditioner
         assert preconditioner is not None
 
         def precondition(residual: FloatArray, out: FloatArray) -> None:
-            out[:] = 0.0
-            _v_cycle(preconditioner, 0, out, residual)
+            out[:] = _v_cycle(preconditioner, 0, residual)
 
-        return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations)
+        return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations, start)
+
+
+def _iterations_to_finish(matrix: sp.bsr_matrix, rhs: FloatArray, solution: FloatArray, iterations: int,
+                          forcing: float) -> float:
+    """How many more CG iterations `solution` (after `iterations` from zero) needs to reach `forcing` at the
+    mean rate of residual reduction it has shown so far (inf when it has shown none)."""
+    rhs_norm = float(np.linalg.norm(rhs))
+    reduction = float(np.linalg.norm(rhs - matrix @ solution)) / rhs_norm if rhs_norm > 0.0 else math.nan
+    if not 0.0 < reduction < 1.0 or iterations < 1:
+        return math.inf
+    rate = reduction ** (1.0 / iterations)
+    return max(1.0, math.ceil(math.log(forcing / reduction) / math.log(rate)))
 
 
 def _hook_in(hierarchy: pyamg.MultilevelSolver, matrix: sp.bsr_matrix) -> None:
@@ -130,30 +167,37 @@ def _hook_in(hierarchy: pyamg.MultilevelSolver, matrix: sp.bsr_matrix) -> None:
     (their inverted diagonal blocks from `matrix`); the coarse levels stay."""
     finest = hierarchy.levels[0]
     finest.A = matrix
-    inverted_diagonal = get_block_diag(matrix, blocksize=3, inv_flag=True)
-    finest.presmoother = setup_block_gauss_seidel(finest, sweep="forward", Dinv=inverted_diagonal)
-    finest.postsmoother = setup_block_gauss_seidel(finest, sweep="backward", Dinv=inverted_diagonal)
+    _attach_smoothers(finest)
 
 
-def _v_cycle(hierarchy: pyamg.MultilevelSolver, level: int, solution: FloatArray, rhs: FloatArray) -> None:
-    """One V-cycle on `hierarchy`'s level `level` from `solution` (updated in place): pyamg's own cycle,
-    step for step, without what its `solve` adds around it as a preconditioner (`aspreconditioner`): a
-    product with the finest matrix before and after the cycle, only to measure residual norms that one
-    cycle never uses — two of about six products with H per CG iteration."""
+def _attach_smoothers(level: pyamg.MultilevelSolver.Level) -> None:
+    """The inverted diagonal blocks of `level.A`, for the V-cycle's block Gauss–Seidel sweeps
+    (`optimizer.block_smoother`)."""
+    level.inverse_diagonal = inverted_diagonal(level.A)
+
+
+def _v_cycle(hierarchy: pyamg.MultilevelSolver, level: int, rhs: FloatArray) -> FloatArray:
+    """One V-cycle on `hierarchy`'s level `level` from zero: pyamg's own cycle with a forward block
+    Gauss–Seidel sweep before the coarse correction and a backward one after it (symmetric, what CG needs),
+    without what pyamg's `solve` adds around it as a preconditioner (`aspreconditioner`): a product with
+    the finest matrix before and after the cycle, only to measure residual norms that one cycle never
+    uses. The first sweep and the residual after it are one pass (`presmooth_from_zero`)."""
     levels = hierarchy.levels
     if len(levels) == 1:  # a system small enough for the coarse solver alone
-        solution[:] = hierarchy.coarse_solver(levels[0].A, rhs)
-        return
+        return np.asarray(hierarchy.coarse_solver(levels[0].A, rhs), dtype=np.float64)
     current = levels[level]
-    current.presmoother(current.A, solution, rhs)
-    coarse_rhs = current.R @ (rhs - current.A @ solution)
-    coarse_solution = np.zeros_like(coarse_rhs)
+    solution = np.empty_like(rhs)
+    residual = np.empty_like(rhs)
+    presmooth_from_zero(current.A, current.inverse_diagonal, rhs, solution, residual)
+    coarse_rhs = restrict(current.P, residual)
+    del residual
     if level == len(levels) - 2:
-        coarse_solution[:] = hierarchy.coarse_solver(levels[-1].A, coarse_rhs)
+        coarse_solution = hierarchy.coarse_solver(levels[-1].A, coarse_rhs)
     else:
-        _v_cycle(hierarchy, level + 1, coarse_solution, coarse_rhs)
-    solution += current.P @ coarse_solution
-    current.postsmoother(current.A, solution, rhs)
+        coarse_solution = _v_cycle(hierarchy, level + 1, coarse_rhs)
+    prolong_into(current.P, coarse_solution, solution)
+    gauss_seidel_sweep(current.A, current.inverse_diagonal, solution, rhs, forward=False)
+    return solution
 
 
 def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation) -> pyamg.MultilevelSolver:
@@ -170,17 +214,15 @@ def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation) -> pyamg.Mul
     motions[:, 1, 3] = free_poses[:, 0] - centroid[0]
     motions[:, 2, 3] = 1.0
     near_null = (motions * unscale[:, :, None]).reshape(-1, 4)
-    # improve_candidates=None: not relaxing the rigid motions first saves a tenth of the setup's memory and a
-    # third of its time at the same CG iteration count (13 to 1e-6 on the 10⁵-pose grid world).
-    # weighting="local": the prolongation smoother's Jacobi weight from each row's Gershgorin bound instead of
-    # an Arnoldi estimate of ρ(D⁻¹A) on every level, which was 70 % of the setup at 10⁶ poses (179 of 249 s,
-    # loaded) for the same CG iteration counts on the 10⁵-pose grid world, and it needs no random start
-    # vector.
+    # (`optimizer.multigrid_hierarchy`: the candidates are not relaxed first, which saved a tenth of the
+    # setup's memory and a third of its time at the same CG iteration count, 13 to 1e-6 on the 10⁵-pose grid
+    # world; the prolongation smoother's Jacobi weight comes from each row's Gershgorin bound instead of an
+    # Arnoldi estimate of ρ(D⁻¹A) on every level, which was 70 % of the setup at 10⁶ poses for the same CG
+    # iteration counts on the 10⁵-pose grid world, and needs no random start vector.)
     # One forward Gauss–Seidel sweep before and one backward sweep after the coarse correction keep the
     # V-cycle symmetric (what CG needs) at half the smoothing of two symmetric sweeps: about 8 % more CG
     # iterations, a quarter less time per iteration.
-    return pyamg.smoothed_aggregation_solver(
-        matrix, B=near_null, symmetry="hermitian", strength="symmetric", max_coarse=500,
-        improve_candidates=None, smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "local"}),
-        presmoother=("block_gauss_seidel", {"sweep": "forward"}),
-        postsmoother=("block_gauss_seidel", {"sweep": "backward"}))
+    hierarchy = smoothed_aggregation(matrix, near_null)
+    for level in hierarchy.levels[:-1]:
+        _attach_smoothers(level)
+    return hierarchy

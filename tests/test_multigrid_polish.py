@@ -3,6 +3,9 @@ direct solver."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -15,7 +18,7 @@ from optimizer.block_normal_equations import (
     scale_blocks,
 )
 from optimizer.cost import chi2
-from optimizer.damped_solvers import DirectSolver
+from optimizer.damped_solvers import DirectSolver, Linearisation, preconditioned_cg
 from optimizer.gridworld import generate_grid_world
 from optimizer.normal_equations import UpperPattern
 from optimizer.polish import _linearise, gauss_newton
@@ -25,7 +28,9 @@ from tests.test_polish import run
 pytest.importorskip("pyamg")
 
 import pyamg  # needs pyamg: after the skip
+from pyamg.relaxation.smoothing import setup_block_gauss_seidel
 
+from optimizer import multigrid_solver
 from optimizer.multigrid_solver import MultigridPCGSolver, _hierarchy, _v_cycle
 
 
@@ -131,8 +136,8 @@ def test_a_large_accepted_decrease_rebuilds_the_hierarchy_and_a_small_one_keeps_
     assert solver.builds == 2
 
 
-def scaled_hierarchy(num_poses: int) -> pyamg.MultilevelSolver:
-    """The multigrid hierarchy of S·H·S + 1e-6·I of a grid world of `num_poses` at its file estimate."""
+def scaled_system(num_poses: int) -> tuple[sp.bsr_matrix, Linearisation]:
+    """S·H·S + 1e-6·I of a grid world of `num_poses` at its file estimate, and its linearisation."""
     graph = generate_grid_world(num_poses, seed=6).graph
     pattern = BlockPattern.of(graph)
     linearisation = _linearise(graph, pattern, graph.poses)
@@ -140,19 +145,29 @@ def scaled_hierarchy(num_poses: int) -> pyamg.MultilevelSolver:
     scale_blocks(blocks, pattern.indptr, pattern.indices, linearisation.scale)
     add_to_diagonal(blocks, pattern.diagonal_block, 1e-6)
     size = 3 * pattern.free
-    return _hierarchy(sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(size, size)),
-                      linearisation)
+    return sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(size, size)), linearisation
+
+
+def scaled_hierarchy(num_poses: int) -> pyamg.MultilevelSolver:
+    """The multigrid hierarchy of `scaled_system`."""
+    return _hierarchy(*scaled_system(num_poses))
 
 
 @pytest.mark.parametrize(("num_poses", "middle_level"), [(20000, True), (60, False)])
-def test_the_v_cycle_is_pyamgs_preconditioner_bit_for_bit(num_poses: int, middle_level: bool) -> None:
+def test_the_v_cycle_is_pyamgs_with_block_gauss_seidel(num_poses: int, middle_level: bool) -> None:
     # 20 000 poses: the recursion passes a middle level; 60: the coarse solver alone solves the system.
+    # The reference: pyamg's own V-cycle with its own block Gauss–Seidel smoothers (forward before, backward
+    # after) on the same levels; ours fuses the first sweep with the residual, which changes only rounding.
     hierarchy = scaled_hierarchy(num_poses)
     assert len(hierarchy.levels) >= 3 if middle_level else len(hierarchy.levels) == 1
     rhs = np.random.default_rng(0).normal(size=hierarchy.levels[0].A.shape[0])
-    ours = np.zeros_like(rhs)
-    _v_cycle(hierarchy, 0, ours, rhs)
-    assert np.array_equal(ours, hierarchy.aspreconditioner(cycle="V") @ rhs)
+    ours = _v_cycle(hierarchy, 0, rhs)
+    for level in hierarchy.levels[:-1]:
+        level.R = sp.bsr_matrix(level.P.T)
+        level.presmoother = setup_block_gauss_seidel(level, sweep="forward", Dinv=level.inverse_diagonal)
+        level.postsmoother = setup_block_gauss_seidel(level, sweep="backward", Dinv=level.inverse_diagonal)
+    reference = hierarchy.aspreconditioner(cycle="V") @ rhs
+    assert np.abs(ours - reference).max() <= 1e-12 * np.abs(reference).max()
 
 
 def test_the_inexact_polish_converges_on_what_the_model_promises_not_on_the_step_norm() -> None:
@@ -166,3 +181,80 @@ def test_the_inexact_polish_converges_on_what_the_model_promises_not_on_the_step
     assert status.converged, status
     assert "relative χ² change" in status.reason
     assert iterations[-1].chi2 == pytest.approx(optimum[-1].chi2, rel=1e-9)
+
+
+def spd_system(size: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    factor = rng.normal(size=(size, size))
+    return factor @ factor.T + 0.1 * np.diag(rng.uniform(1.0, 100.0, size)), rng.normal(size=size)
+
+
+def jacobi(matrix: np.ndarray) -> Callable[[np.ndarray, np.ndarray], None]:
+    inverse = 1.0 / np.diag(matrix)
+
+    def precondition(residual: np.ndarray, out: np.ndarray) -> None:
+        out[:] = inverse * residual
+
+    return precondition
+
+
+def test_cg_from_a_partial_solution_ends_at_the_cold_starts_solution() -> None:
+    matrix, rhs = spd_system(60, seed=1)
+    cold, _, cold_converged = preconditioned_cg(matrix.dot, jacobi(matrix), rhs, 1e-10, 1000)
+    partial, partial_iterations, partial_converged = preconditioned_cg(matrix.dot, jacobi(matrix), rhs,
+                                                                       1e-10, 5)
+    assert cold_converged and not partial_converged and partial_iterations == 5
+    warm, _, warm_converged = preconditioned_cg(matrix.dot, jacobi(matrix), rhs, 1e-10, 1000, start=partial)
+    assert warm_converged
+    # The target is relative to the right-hand side, as from zero, not to the partial solution's residual.
+    assert np.linalg.norm(rhs - matrix @ warm) <= 1e-10 * np.linalg.norm(rhs)
+    np.testing.assert_allclose(warm, cold, rtol=1e-6, atol=1e-9 * np.abs(cold).max())
+
+
+def test_cg_from_a_start_that_already_solves_the_system_takes_no_iteration() -> None:
+    matrix, rhs = spd_system(20, seed=2)
+    exact = np.linalg.solve(matrix, rhs)
+    solution, iterations, converged = preconditioned_cg(matrix.dot, jacobi(matrix), rhs, 1e-8, 100,
+                                                        start=exact)
+    assert (iterations, converged) == (0, True)
+    np.testing.assert_array_equal(solution, exact)
+
+
+def test_a_rebuilt_hierarchy_goes_on_from_where_the_kept_one_stopped(monkeypatch: pytest.MonkeyPatch) -> None:
+    graph = generate_grid_world(2000, seed=5).graph
+    pattern = BlockPattern.of(graph)
+    solver = MultigridPCGSolver(pattern)
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    solver.accepted_step(1e-4)  # the hierarchy is kept
+    calls: list[tuple[np.ndarray | None, np.ndarray, int]] = []
+
+    def recorded(*args: Any, **kwargs: Any) -> tuple[np.ndarray, int, bool]:
+        result = preconditioned_cg(*args, **kwargs)
+        start = args[5] if len(args) > 5 else kwargs.get("start")
+        calls.append((None if start is None else start.copy(), result[0].copy(), result[1]))
+        return result
+
+    monkeypatch.setattr(multigrid_solver, "preconditioned_cg", recorded)
+    solver.forcing = 1e-12  # more than the kept hierarchy's budget of 20 iterations reaches at this λ
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-9) is not None
+    assert solver.last_converged
+    assert solver.builds == 2
+    (kept_start, kept_end, kept_iterations), (rebuilt_start, _, _) = calls
+    assert kept_start is None and kept_iterations == 20
+    assert rebuilt_start is not None
+    np.testing.assert_array_equal(rebuilt_start, kept_end)
+
+
+def test_a_kept_hierarchy_close_to_its_target_goes_on_instead_of_being_rebuilt() -> None:
+    graph = generate_grid_world(2000, seed=5).graph
+    pattern = BlockPattern.of(graph)
+    solver = MultigridPCGSolver(pattern, rebuild_growth=0.1)
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    solver.accepted_step(1e-4)
+    # As if its build's first solve had taken 200 iterations: its budget (20) runs out far short of what a
+    # new hierarchy would cost, and the rate it has shown reaches the target well within that.
+    solver._iterations_after_build = 200
+    solver.forcing = 1e-12
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-9) is not None
+    assert solver.last_converged and solver.last_iterations > 20
+    assert solver.builds == 1
