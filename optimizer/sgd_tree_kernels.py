@@ -170,7 +170,6 @@ def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.nd
                 node = parent[node]
 
 
-
 @njit(cache=True, inline="always")
 def _coupled_heading_step(theta_a: float, z: np.ndarray, w: np.ndarray, rx: float, ry: float, rtheta: float,
                           share_a: float, length: int, gamma: float, t: int) -> float:

@@ -32,6 +32,7 @@ DEFAULT_TOLERANCE_NS = 1_000_000
 _PLANAR_TOLERANCE = 1e-9
 """z, roll and pitch of a 2D relation are 0; anything beyond rounding means a 3D file."""
 
+
 class RelationsFileError(DataFileError):
     """A relations file is missing, unreadable, empty or has a malformed line."""
 

@@ -511,6 +511,7 @@ class _Run:
         timings["optimize_and_record"] = time.perf_counter() - optimize_started
         return optimized
 
+
 def summary(result: LogReplayResult) -> dict[str, Any]:
     """The JSON summary of a mapping replay (plain or continued)."""
     if result.optimization is None:

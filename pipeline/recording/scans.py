@@ -78,6 +78,7 @@ def playback_views(bounds: Bounds | None = None) -> list[rrb.Spatial2DView]:
         time_ranges=up_to_cursor,
     )]
 
+
 SCAN_BATCH_POINTS = 2_000_000
 """Scan points buffered before a column batch is sent."""
 PLAYBACK_CELL = 0.1
