@@ -34,7 +34,12 @@
     reference pose scores ≥ 0.5 on the map: the split is the reference's, not the localizer's), with their
     share; global fixes and local re-acquisitions; scans per second of `MapLocalizer.localize` (global search
     included) over process CPU time and over wall time (the two differ on a loaded machine: CPU time is the
-    localizer's own cost).
+    localizer's own cost). Last, for the scans within 3 m of a first-half keyframe: the reference carried
+    into the map through that keyframe (its pose relative to the keyframe in the full run, applied to the
+    keyframe's pose in the map: where the map's own walls put the scan), how far that lies from the
+    rigidly aligned reference (the map's disagreement with the full run there: a floor under the error
+    against the full run, whatever the localizer does), and the smoothed error against it (the localizer's
+    error in the map it was given). For the "full-run poses" row the two references are one.
 (b) Continue. The second half goes to `LaserSlam2D.resume` on the first half's saved graph (odometry
     origin dropped); the joint graph is optimized once. ACES: every scan of both halves is scored against
     aces.relations; the single run's figure is the reference (target: within 10 %). CSAIL (no ground
@@ -74,6 +79,8 @@ FloatArray = NDArray[np.float64]
 LOGS = {"ACES": "data/logs/aces/aces.mcap", "CSAIL": "data/logs/csail/csail.mcap"}
 ACES_RELATIONS = "data/logs/aces/aces.relations"
 SETTLE_SECONDS = 10.0
+NEAR_MAP = 3.0
+"""A second-half scan this close (m) to a first-half keyframe is near the map (see `carried_into_map`)."""
 COVERED_FIT = 0.5
 """A second-half scan whose reference pose scores this on the map (mean likelihood of its points, as the
 correlative matcher scores) is in a place the first half saw well; a scan scoring less is where the first
@@ -198,9 +205,11 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     if not np.array_equal(full.scan_keyframes[:half], first.scan_keyframes):
         raise SystemExit(f"{name}: the full run's first half made other keyframes than the half run")
     reference = full.scan_poses(full_keyframes)[half:]
+    carried, near_map = carried_into_map(reference, full_keyframes[:shared], first_keyframes)
     if full_run_poses:
         map_poses = full_keyframes[:shared]
         residual = np.zeros(1)
+        carried = reference
     else:
         map_poses = first_keyframes
         to_map = rigid_alignment(full_keyframes[:shared], first_keyframes)
@@ -232,6 +241,10 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     covered = map_fit(localizer.map.grid, second, reference, localizer.config.matching.max_range)[scored]
     covered = covered >= COVERED_FIT
     covered_median = np.median(errors[scored][covered]) if covered.any() else np.nan
+    # Near the map, the reference carried in through the nearest keyframe: what the map's own walls say.
+    near = scored & near_map
+    disagreement = np.hypot(*(carried[near, :2] - reference[near, :2]).T)
+    against_carried = np.hypot(*(smoothed.poses[near, :2] - carried[near, :2]).T)
     shares = [f"{100 * (state & settled).sum() / settled.sum():.1f}" for state in states.values()]
     return (name, "full-run poses" if full_run_poses else "half map", f"{len(second)}", f"{fix_seconds:.1f}",
             f"{100 * localized[settled].mean():.1f}", *shares, error_figures(errors[scored]),
@@ -242,7 +255,21 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
             f"{covered_median:.3f} ({100 * covered.mean():.0f} %)", f"{sum(r.global_fix for r in results)}",
             f"{sum(r.relocalized for r in results)}", f"{len(second) / cpu_seconds:.0f}",
             f"{len(second) / seconds:.0f}", f"{np.median(residual):.3f} / {residual.max():.3f}",
-            f"{reference_slips(reference, second)}")
+            f"{reference_slips(reference, second)}", f"{100 * near.sum() / scored.sum():.0f}",
+            error_figures(disagreement), error_figures(against_carried))
+
+
+def carried_into_map(reference: FloatArray, full_map: FloatArray,
+                     half_map: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Each reference pose carried into the half map through the map keyframe nearest to it: its pose
+    relative to that keyframe (full run) applied to the same keyframe's pose in the half map. Near the map
+    this is where the map's own walls put the scan, whatever the map's bend elsewhere; and whether the
+    keyframe is within `NEAR_MAP` (m) (farther, a heading difference at the keyframe swings it)."""
+    offsets = reference[:, None, :2] - full_map[None, :, :2]
+    distances = np.hypot(offsets[..., 0], offsets[..., 1])
+    nearest = np.argmin(distances, axis=1)
+    carried = se2.compose(half_map[nearest], se2.relative(full_map[nearest], reference))
+    return carried, distances[np.arange(len(reference)), nearest] <= NEAR_MAP
 
 
 def error_figures(errors: FloatArray) -> str:
@@ -260,7 +287,9 @@ LOCALIZATION_HEADER = (
     "| smoothing CPU (s) "
     "| median error where the map covers the place (m) (share of scans) | global fixes "
     "| local re-acquisitions | scans/s (CPU) | scans/s (wall) "
-    "| alignment residual, median / max (m) | reference slips |"
+    "| alignment residual, median / max (m) | reference slips "
+    "| scans within 3 m of a map keyframe (%) | there: map against the full run (m) "
+    "| there: smoothed error against the full run carried into the map (m) |"
 )
 
 

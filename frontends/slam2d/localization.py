@@ -13,11 +13,15 @@ matching) with the points and normals ICP pairs with.
   prediction and counts as predicted (`LocalizedScan.predicted`).
 - Rolling local map (slam_toolbox's localization mode keeps one too): the scans of the last
   `rolling_map_length` metres at their tracked poses, with the saved keyframes nearest to them, never
-  written into the saved map. A scan the saved map cannot place is matched on it instead: outside the saved
-  map the robot stays tracked in its frame (`LocalizedScan.tracked`), drifting slowly, and back in the
-  map the map's own matches (or the local re-acquisition) take over again. A pose tracked there is not
-  dead reckoning: it is never declared lost for it (near the saved keyframes too, unless
-  `count_rolling_tracks_near_map`).
+  written into the saved map. A scan the saved map places only weakly or not at all is matched on it too,
+  as the SLAM matches its recent keyframes: that match measures the motion from the last scan, far better
+  than wheel odometry (CSAIL's turns by 5° a scan more or less than its wheels tell). A weak match of the
+  saved map is then weighed against that motion instead of the odometry's; where the saved map cannot
+  place the scan, the robot stays tracked in its frame (`LocalizedScan.tracked`), drifting slowly, and a
+  weak match of the saved map does not take over from such a track (one scoring 0.2 pulled CSAIL's pose
+  0.1 m off the track at its re-entry, and back the next scan): a strong one does, or the local
+  re-acquisition. A pose tracked there is not dead reckoning: it is never declared lost for it (near the
+  saved keyframes too, unless `count_rolling_tracks_near_map`).
 - Local re-acquisition: after a few misses, at every `relocalize_every` metres, the last few scans
   (placed by their tracked poses, which odometry keeps consistent with each other) are searched around
   the prediction by branch and bound, in a window growing with the distance driven since the last good
@@ -121,8 +125,8 @@ class LocalizedScan(LocalizedMeasurement):
     motion: FloatArray = field(default_factory=lambda: np.full(3, np.nan))
     """The motion from the previous scan's pose to this one as measured locally, before the saved map
     corrected it: the odometry's (or constant velocity's) prediction, or the rolling local map's match
-    when `tracked`. NaN when the previous scan gave no pose to measure from (the first scan, a global
-    fix)."""
+    when the saved map's was weak or failed. NaN when the previous scan gave no pose to measure from (the
+    first scan, a global fix)."""
     motion_information: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
     """(3, 3) information of `motion`, in the previous pose's frame."""
     map_information: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
@@ -220,6 +224,9 @@ class MapLocalizer:
         self._since_attempt = 0.0
         self._recent: deque[tuple[FloatArray, FloatArray]] = deque(maxlen=self.settings.relocalize_keyframes)
         self._tracker: LaserSlam2D | None = None
+        self._map_matched = True
+        """The last scan was placed by the saved map (else tracked or predicted: a weak match of the saved
+        map does not take over from the rolling local map's track)."""
         self._tracked: list[int] = []
         self._last_tracker_keyframe = -1
         self._next_attempt = self.settings.min_query_keyframes
@@ -326,25 +333,33 @@ class MapLocalizer:
             window = self._tracking_window(has_odometry, reliable)
             found = self._match(points, self.map, prior, prior_information, window, has_odometry,
                                 weigh_weak=True)
-            if not found.accepted and self._rolling:
-                # The saved map does not hold the place: the rolling local map (the recent scans at their
-                # tracked poses, with the saved keyframes nearby) carries the pose. (Where the map saw the
-                # place poorly, its weak match weighed against the prediction stays nearer the map than a
-                # track on the recent scans: ACES 0.06 m median against 0.15 m.)
+            if not found.strong(self.settings.min_tracking_score) and self._rolling:
+                # The saved map places the scan poorly or not at all: the rolling local map (the recent
+                # scans at their tracked poses, with the saved keyframes nearby) measures the motion, as
+                # the SLAM's own matching on its recent keyframes does. (The odometry's motion instead:
+                # ACES, the map at the full run's poses, 0.047 m median, 0.115 m where the map's matches
+                # are weak; CSAIL's heading 5–9° off there.)
                 rolling = self._match(points, self._rolling_map(), prior, prior_information, window,
                                       has_odometry, weigh_weak=False)
                 if rolling.strong(self.settings.min_tracking_score):
-                    found, tracked = rolling, True
+                    own = rolling.own_information(matching.information_scale)
+                    motion = se2.relative(previous, rolling.refined.pose)
+                    motion_information = motion_information + _in_frame(own, float(previous[2]))
+                    if found.accepted and self._map_matched:
+                        # A weak match of the saved map, weighed against the motion the recent scans
+                        # measured instead of the odometry's.
+                        found = self._match(points, self.map, rolling.refined.pose, prior_information,
+                                            window, has_odometry, weigh_weak=True)
+                    else:
+                        found = replace(found, accepted=False)
+                    if not found.accepted:
+                        found, tracked = rolling, True
             inliers, rms = found.refined.inlier_fraction, found.refined.rms
             if found.accepted:
                 pose, matched, score = found.refined.pose, not tracked, found.score
                 information = matching.information_scale * found.refined.information
                 own = found.own_information(matching.information_scale)
-                if tracked:
-                    # Matched on scans placed by the tracking itself: a local measurement of the motion.
-                    motion = se2.relative(previous, pose)
-                    motion_information = motion_information + _in_frame(own, float(previous[2]))
-                else:
+                if not tracked:
                     weak = score < self.settings.min_tracking_score
                     map_information = (self.settings.weak_match_weight if weak else 1.0) * own
                     covariance = np.linalg.inv(information + 1e-12 * np.eye(3))
@@ -354,6 +369,7 @@ class MapLocalizer:
         self._last_motion = se2.relative(self._pose, pose)
         self._pose = np.array(pose)
         self._covariance = covariance
+        self._map_matched = matched
         return LocalizedScan(index, stamp_ns, self._pose.copy(), True, matched, score, inliers, rms,
                              information, tracked=tracked, motion=motion,
                              motion_information=motion_information, map_information=map_information)
@@ -475,6 +491,7 @@ class MapLocalizer:
         self._rolling_submap = None
         self._pose = found.pose.copy()
         self._covariance = self._fix_covariance()
+        self._map_matched = True
         self._misses = 0
         self._since_good = 0.0
         self._dead_reckoned = 0.0
@@ -565,6 +582,7 @@ class MapLocalizer:
         pose = recovered[-1]
         self._pose = pose.copy()
         self._covariance = self._fix_covariance()
+        self._map_matched = True
         self._last_odometry = odometry
         self._last_motion = np.zeros(3)
         self._odometry_hold.reset()
