@@ -5,10 +5,12 @@ with θ = 0, standard aggregation, candidates not improved, one Jacobi step of p
 ω = 4/3 and the "local" weighting, Galerkin coarse operators, pinv on the coarsest level), but the
 prolongation is smoothed as P = T − ω·D⁻¹·(A·T), D the row sums of |A|, where pyamg forms |A|, D⁻¹·A and
 ω·D⁻¹·A, three copies of A (360 MB each at 10⁶ poses), to multiply T once; the two sparse products are
-compiled (`optimizer.hierarchy_products`: scipy's arithmetic in scipy's order, without its intermediates).
-The levels are pyamg's to rounding (same sizes and sparsity, prolongations equal
-to 1e-15 relative; where a block of P cancels to exactly zero one of the two drops it), and with the
-compiled products bit for bit what scipy's products gave.
+compiled (`optimizer.hierarchy_products`: scipy's arithmetic in scipy's order, without its intermediates),
+and no level stores R. The levels are pyamg's to rounding (same sizes and sparsity, prolongations equal
+to 1e-15 relative; where a block of P cancels to exactly zero one of the two drops it). At 10⁶ poses
+(grid world after paper SGD) a build took 6.4–8.0 CPU s and peaked 765 MB above where it started, its
+levels then holding 582 MB, where pyamg's parts with scipy's products had taken 10.6–11.5 s and 1 017 MB
+(834 MB kept); most of the difference is pyamg's R.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ OMEGA = 4.0 / 3.0
 def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray) -> pyamg.MultilevelSolver:
     """The hierarchy of the symmetric positive definite `matrix` (BSR, square blocks) whose near-null space
     is spanned by the columns of `near_null`; every level's A and P in BSR. No R: the restriction is Pᵀ,
-    applied from P's blocks in place (`optimizer.block_smoother.restrict`), not stored (224 MB at 10⁶
+    applied from P's blocks in place (`optimizer.block_smoother.restrict`), not stored (232 MB at 10⁶
     poses)."""
     levels = [pyamg.MultilevelSolver.Level()]
     levels[0].A = matrix
@@ -52,6 +54,10 @@ def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray) -> pyamg.
         coarse = pyamg.MultilevelSolver.Level()
         coarse.A = galerkin_product(fine.A, fine.P)
         levels.append(coarse)
+    for level in levels[:-1]:
+        # pyamg's MultilevelSolver stores R = Pᵀ on every level that has none: 232 MB at 10⁶ poses, and a
+        # second copy while it is made (the transpose, then its conjugate), at the end of the build.
+        level.R = None
     return pyamg.MultilevelSolver(levels, coarse_solver="pinv")
 
 
