@@ -24,6 +24,7 @@ from pyamg.aggregation.aggregate import standard_aggregation
 from pyamg.aggregation.tentative import fit_candidates
 from pyamg.strength import symmetric_strength_of_connection
 
+from optimizer.freed_memory import return_freed_memory
 from optimizer.hierarchy_products import galerkin_product, smoothed_prolongation
 
 FloatArray = NDArray[np.float64]
@@ -41,6 +42,7 @@ def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray) -> pyamg.
     is spanned by the columns of `near_null`; every level's A and P in BSR. No R: the restriction is Pᵀ,
     applied from P's blocks in place (`optimizer.block_smoother.restrict`), not stored (232 MB at 10⁶
     poses)."""
+    return_freed_memory()  # what the caller freed since the last build, before the levels go on top of it
     levels = [pyamg.MultilevelSolver.Level()]
     levels[0].A = matrix
     candidates = np.asarray(near_null, dtype=np.float64)
@@ -58,6 +60,7 @@ def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray) -> pyamg.
         # pyamg's MultilevelSolver stores R = Pᵀ on every level that has none: 232 MB at 10⁶ poses, and a
         # second copy while it is made (the transpose, then its conjugate), at the end of the build.
         level.R = None
+    return_freed_memory()  # the build's scratch, freed below the levels
     return pyamg.MultilevelSolver(levels, coarse_solver="pinv")
 
 
