@@ -27,16 +27,16 @@ Int32Array = NDArray[np.int32]
 
 def smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix,
                           row_weights: FloatArray) -> sp.bsr_matrix:
-    """T − W·(A·T): A (`matrix`) of square b×b blocks, T (`tentative`) of b×c blocks, W the diagonal
-    `row_weights` (one per scalar row). Blocks that cancel to exactly zero are dropped, as scipy's
-    difference drops them."""
+    """T − W·(A·T): A (`matrix`) of 3×3 or 4×4 blocks, T (`tentative`) of b×4 blocks (A's b), W the
+    diagonal `row_weights` (one per scalar row). Blocks that cancel to exactly zero are dropped, as
+    scipy's difference drops them."""
     _check_block_sizes(matrix, tentative)
     a_indptr, a_indices, a_data = matrix.indptr, matrix.indices, matrix.data
     t_indptr, t_indices, t_data = tentative.indptr, tentative.indices, tentative.data
     rows, coarse_columns = a_indptr.shape[0] - 1, tentative.shape[1] // tentative.blocksize[1]
     counts = np.empty(rows, dtype=np.int64)
     canonical = _prolongation_counts(a_indptr, a_indices, t_indptr, t_indices, coarse_columns, counts)
-    indptr = np.zeros(rows + 1, dtype=np.int32)
+    indptr = np.zeros(rows + 1, dtype=_index_type(counts))
     np.cumsum(counts, out=indptr[1:])
     longest = int(counts.max(initial=0))
     del counts
@@ -48,8 +48,8 @@ def smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix,
 
 
 def galerkin_product(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> sp.bsr_matrix:
-    """Pᵀ·A·P, computed as scipy's (R·A)·P with R = Pᵀ: A (`matrix`) of square b×b blocks, P
-    (`prolongation`) of b×c blocks; the result in c×c blocks."""
+    """Pᵀ·A·P, computed as scipy's (R·A)·P with R = Pᵀ: A (`matrix`) of 3×3 or 4×4 blocks, P
+    (`prolongation`) of b×4 blocks (A's b); the result in 4×4 blocks."""
     _check_block_sizes(matrix, prolongation)
     a_indptr, a_indices, a_data = matrix.indptr, matrix.indices, matrix.data
     p_indptr, p_indices, p_data = prolongation.indptr, prolongation.indices, prolongation.data
@@ -61,7 +61,7 @@ def galerkin_product(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> sp.b
     counts = np.empty(coarse_columns, dtype=np.int64)
     longest = _galerkin_counts(a_indptr, a_indices, p_indptr, p_indices, column_indptr, column_rows,
                                fine_rows, counts)
-    indptr = np.zeros(coarse_columns + 1, dtype=np.int32)
+    indptr = np.zeros(coarse_columns + 1, dtype=_index_type(counts))
     np.cumsum(counts, out=indptr[1:])
     del counts
     size = prolongation.blocksize[1]
@@ -70,6 +70,11 @@ def galerkin_product(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> sp.b
     _galerkin_fill_sized(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr, column_rows,
                          column_positions, longest, indptr, indices, data)
     return sp.bsr_matrix((data, indices, indptr), shape=(prolongation.shape[1],) * 2)
+
+
+def _index_type(counts: NDArray[np.int64]) -> type[np.signedinteger]:
+    """32-bit block positions where they fit (scipy's choice too), 64-bit beyond."""
+    return np.int32 if int(counts.sum()) <= np.iinfo(np.int32).max else np.int64
 
 
 def _check_block_sizes(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> None:
@@ -118,7 +123,7 @@ def _prolongation_counts(a_indptr: IntArray, a_indices: IntArray, t_indptr: IntA
 @njit(cache=True)
 def _prolongation_fill_sized(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, t_indptr: IntArray,
                              t_indices: IntArray, t_data: FloatArray, coarse_columns: int,
-                             row_weights: FloatArray, canonical: bool, longest: int, indptr: Int32Array,
+                             row_weights: FloatArray, canonical: bool, longest: int, indptr: IntArray,
                              indices: Int32Array, data: FloatArray) -> int:
     """`_prolongation_fill` for A's block size, passed as a constant: called from Python, a function that
     asks for `literally` arguments raises and retries, and the exception's traceback keeps the arrays it
@@ -133,7 +138,7 @@ def _prolongation_fill_sized(a_indptr: IntArray, a_indices: IntArray, a_data: Fl
 @njit(cache=True)
 def _prolongation_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, t_indptr: IntArray,
                        t_indices: IntArray, t_data: FloatArray, coarse_columns: int, row_weights: FloatArray,
-                       canonical: bool, longest: int, indptr: Int32Array, indices: Int32Array,
+                       canonical: bool, longest: int, indptr: IntArray, indices: Int32Array,
                        data: FloatArray, b: int, c: int) -> int:
     """Fills T − W·(A·T) row by row, dropping zero blocks (rewrites `indptr`); returns the blocks kept.
 
@@ -262,7 +267,7 @@ def _galerkin_counts(a_indptr: IntArray, a_indices: IntArray, p_indptr: IntArray
 def _galerkin_fill_sized(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, p_indptr: IntArray,
                          p_indices: IntArray, p_data: FloatArray, column_indptr: NDArray[np.int64],
                          column_rows: Int32Array, column_positions: NDArray[np.int64], longest: int,
-                         indptr: Int32Array, indices: Int32Array, data: FloatArray) -> None:
+                         indptr: IntArray, indices: Int32Array, data: FloatArray) -> None:
     """`_galerkin_fill` for A's block size, passed as a constant (see `_prolongation_fill_sized`)."""
     if a_data.shape[1] == 3:
         _galerkin_fill(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr, column_rows,
@@ -276,7 +281,7 @@ def _galerkin_fill_sized(a_indptr: IntArray, a_indices: IntArray, a_data: FloatA
 def _galerkin_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, p_indptr: IntArray,
                    p_indices: IntArray, p_data: FloatArray, column_indptr: NDArray[np.int64],
                    column_rows: Int32Array, column_positions: NDArray[np.int64], longest: int,
-                   indptr: Int32Array, indices: Int32Array, data: FloatArray, b: int, c: int) -> None:
+                   indptr: IntArray, indices: Int32Array, data: FloatArray, b: int, c: int) -> None:
     """Row I of Pᵀ·A·P: row I of R·A (Σ over the rows i of P's column I, increasing, of P_iIᵀ·A_i·), then
     that row times P, each accumulated block by block in the order its terms are met (`bsr_matmat`).
     The block sizes b (A) and c (P's columns) are compile-time constants (`literally`): the block products'
