@@ -27,16 +27,30 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int32] | NDArray[np.int64]
 Four = tuple[float, float, float, float]
 
+INVERSION_ROWS = 65_536
+"""Diagonal blocks inverted per call of `np.linalg.inv` (`inverted_diagonal`)."""
+
 
 def inverted_diagonal(matrix: sp.bsr_matrix) -> FloatArray:
-    """The inverses of the square diagonal blocks of `matrix` (pseudo-inverses where one is singular)."""
+    """The inverses of the square diagonal blocks of `matrix` (pseudo-inverses of all of them where one is
+    singular). Inverted in place, `INVERSION_ROWS` blocks at a time: the blocks and their inverses whole
+    would be two arrays of 72 MB at 10⁶ poses where the hierarchy's build peaks (each block's inverse is
+    LAPACK's for that block alone, whatever the chunk)."""
+    blocks = _diagonal_of(matrix)
+    try:
+        for start in range(0, blocks.shape[0], INVERSION_ROWS):
+            chunk = blocks[start:start + INVERSION_ROWS]
+            chunk[...] = np.linalg.inv(chunk)
+    except np.linalg.LinAlgError:  # a pose or aggregate its constraints leave free in some direction
+        return np.linalg.pinv(_diagonal_of(matrix))
+    return blocks
+
+
+def _diagonal_of(matrix: sp.bsr_matrix) -> FloatArray:
     size = matrix.blocksize[0]
     blocks = np.zeros((matrix.shape[0] // size, size, size))
     _diagonal_blocks(matrix.indptr, matrix.indices, matrix.data, blocks)
-    try:
-        return np.linalg.inv(blocks)
-    except np.linalg.LinAlgError:  # a pose or aggregate its constraints leave free in some direction
-        return np.linalg.pinv(blocks)
+    return blocks
 
 
 def gauss_seidel_sweep(matrix: sp.bsr_matrix, inverse_diagonal: FloatArray, solution: FloatArray,

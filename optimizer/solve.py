@@ -296,6 +296,9 @@ class Optimization:
             for iteration in until_stalled(descent) if self._until_stalled else descent:
                 poses = iteration.poses
                 yield iteration
+            # A descent handed over before its last iteration is suspended, not finished: it would hold its
+            # state through the polish (SGD's weights, tree and two sets of poses: 115 MB at 10⁶ poses).
+            del descent
         if not self._method.polish:
             return None
         return (yield from gauss_newton(self._graph, poses, max_iterations=self._polish_cap))

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from optimizer import block_smoother
 from optimizer.block_smoother import (
     gauss_seidel_sweep,
     inverted_diagonal,
@@ -74,6 +75,28 @@ def test_the_inverted_diagonal_is_the_inverse_of_each_diagonal_block() -> None:
     for row in (0, 17, 49):
         block = dense[3 * row:3 * row + 3, 3 * row:3 * row + 3]
         assert np.allclose(inverse[row] @ block, np.eye(3), atol=1e-12)
+
+
+def diagonal_blocks(matrix: sp.bsr_matrix) -> np.ndarray:
+    dense, size = matrix.toarray(), matrix.blocksize[0]
+    return np.array([dense[size * row:size * row + size, size * row:size * row + size]
+                     for row in range(matrix.shape[0] // size)])
+
+
+def test_the_diagonal_is_inverted_in_chunks_as_a_whole(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Chunks of 7 blocks, the last one short: the same inverses, bit for bit, as one call on all blocks.
+    monkeypatch.setattr(block_smoother, "INVERSION_ROWS", 7)
+    matrix = symmetric_block_matrix(4, 50, seed=5)
+    np.testing.assert_array_equal(inverted_diagonal(matrix), np.linalg.inv(diagonal_blocks(matrix)))
+
+
+def test_one_singular_block_makes_every_inverse_a_pseudo_inverse(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The singular block sits in the second chunk: the first chunk's inverses are not kept either.
+    monkeypatch.setattr(block_smoother, "INVERSION_ROWS", 7)
+    matrix = symmetric_block_matrix(3, 30, seed=6)
+    diagonal = matrix.indices == np.repeat(np.arange(30), np.diff(matrix.indptr))
+    matrix.data[np.flatnonzero(diagonal)[10]] = np.diag([1.0, 2.0, 0.0])
+    np.testing.assert_array_equal(inverted_diagonal(matrix), np.linalg.pinv(diagonal_blocks(matrix)))
 
 
 def test_other_block_sizes_are_refused() -> None:

@@ -12,8 +12,7 @@ pytest.importorskip("pyamg")
 
 import pyamg  # needs pyamg: after the skip
 
-from optimizer import multigrid_hierarchy
-from optimizer.multigrid_hierarchy import MAX_COARSE, _absolute_row_sums, _galerkin, smoothed_aggregation
+from optimizer.multigrid_hierarchy import MAX_COARSE, _absolute_row_sums, smoothed_aggregation
 
 
 def system_and_candidates(num_poses: int) -> tuple[sp.bsr_matrix, np.ndarray]:
@@ -50,15 +49,10 @@ def test_absolute_row_sums_read_the_blocks_in_place() -> None:
     np.testing.assert_allclose(sums, np.abs(dense).sum(axis=1), rtol=1e-15)
 
 
-def test_the_banded_galerkin_product_is_the_whole_one(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_no_level_stores_a_restriction() -> None:
+    # The V-cycle restricts with P's blocks read transposed: a stored R = Pᵀ (pyamg's default) would be
+    # 232 MB at 10⁶ poses, at the build's peak.
     matrix, near_null = system_and_candidates(5000)
-    prolongation = smoothed_aggregation(matrix, near_null).levels[0].P
-    whole = _galerkin(matrix, prolongation)
-    monkeypatch.setattr(multigrid_hierarchy, "GALERKIN_BAND_ROWS", 100)  # 29 bands of about 100 block rows
-    banded = _galerkin(matrix, prolongation)
-    reference = (sp.bsr_matrix(prolongation.T) @ matrix) @ prolongation  # pyamg's R·A·P
-    for product in (whole, banded):
-        assert product.blocksize == (4, 4)
-        np.testing.assert_array_equal(product.indptr, reference.indptr)
-        np.testing.assert_array_equal(product.indices, reference.indices)
-        np.testing.assert_array_equal(product.data, reference.data)
+    levels = smoothed_aggregation(matrix, near_null).levels
+    assert len(levels) >= 3
+    assert [getattr(level, "R", None) for level in levels] == [None] * len(levels)

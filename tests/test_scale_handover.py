@@ -4,6 +4,7 @@ before another linear solve is paid for."""
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -63,6 +64,30 @@ def test_the_default_hands_over_early_only_where_sgd_alone_precedes_the_polish(
     assert 2 <= handed_over < solve.DEFAULT_ITERATIONS
     assert run.result.converged
     assert _sgd_iterations(solve.optimize(graph, iterations=40)) == 40  # given iterations run as given
+
+
+def test_a_descent_handed_over_is_let_go_before_the_polish(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Suspended, the paper's SGD would hold its weights, tree and poses through the whole polish (115 MB
+    # at 10⁶ poses): it must be finished by the time the polish yields its first iteration.
+    finished: list[bool] = []
+    paper_sgd = solve.sgd
+
+    def tracked_sgd(*args: object, **kwargs: object) -> Iterator[Iteration]:
+        try:
+            yield from paper_sgd(*args, **kwargs)  # type: ignore[arg-type]
+        finally:
+            finished.append(True)
+
+    monkeypatch.setattr(solve, "sgd", tracked_sgd)
+    monkeypatch.setattr(solve, "LARGEST_FOR_EXTRA_STAGES", 100)  # as if the graph were past the extra stages
+    stages, finished_at_polish = [], []
+    for iteration in solve.optimize(generate_grid_world(400, seed=3).graph):
+        stages.append(iteration.stage)
+        if iteration.stage == "gauss-newton":
+            finished_at_polish = list(finished)
+            break
+    assert 2 <= stages.count("sgd") < solve.DEFAULT_ITERATIONS  # handed over, not run to its end
+    assert finished_at_polish == [True]
 
 
 class _OvershootingSolver:
