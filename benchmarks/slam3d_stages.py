@@ -117,7 +117,7 @@ def _patches(clock: StageClock) -> list[Any]:
     targets = [
         (frontend.LidarFrontend, "__init__", SETUP),
         (odometry.KissOdometry, "_sweep_times", TIMES),
-        (odometry, "deskew", DESKEW),
+        (odometry, "_deskew", DESKEW),
         (kiss_icp.KissICP, "register_frame", KISS_OTHER),
         (preprocess.Preprocessor, "preprocess", KISS_DESKEW),
         (kiss_icp.KissICP, "voxelize", KISS_VOXEL),

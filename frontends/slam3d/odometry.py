@@ -154,17 +154,17 @@ class KissOdometry:
         times, stamp_fraction = self._sweep_times(points, point_times)
         if motion_guess is not None:
             self._kiss.last_delta = np.array(motion_guess, dtype=np.float64)
-        # The motion the deskewing assumes: read before registering replaces it.
-        motion = np.array(self._kiss.last_delta, dtype=np.float64)
+        # The motion the deskewing assumes (read before registering replaces it), as a twist.
+        twist = se3.log(np.array(self._kiss.last_delta, dtype=np.float64))
         frame = np.ascontiguousarray(points, dtype=np.float64)
         if len(times):
-            frame = deskew(frame, times, motion)
+            frame = _deskew(frame, np.ascontiguousarray(times, dtype=np.float64), twist)
         # without times KISS-ICP only drops points out of range
         deskewed, _ = self._kiss.register_frame(frame, NO_TIMES)
         end_pose = np.array(self._kiss.last_pose, dtype=np.float64)
         pose = end_pose
         if stamp_fraction is not None and stamp_fraction != 1.0:
-            pose = end_pose @ se3.exp((stamp_fraction - 1.0) * se3.log(motion))
+            pose = end_pose @ se3.exp((stamp_fraction - 1.0) * twist)
         self._pose = pose
         return OdometryStep(pose, np.asarray(deskewed), end_pose, stamp_fraction is not None)
 
