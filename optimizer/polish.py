@@ -255,15 +255,15 @@ def gauss_newton(
 
         # Nielsen's update: shrink λ the more the linear model predicted the actual decrease.
         predicted = _predicted_decrease(graph, current, linearisation, step)
-        # H is not needed past here: let it go before the next one is assembled (360 MB at 10⁶ poses), unless
-        # the solver keeps it (a multigrid hierarchy kept for the next step shares its blocks).
+        # H is not needed past here: let it go before the next one is assembled (360 MB at 10⁶ poses); the
+        # multigrid solver's hierarchy, which shares its blocks, lets go at `accepted_step`.
         del linearisation
         gain = (current_chi2 - trial_chi2) / predicted if predicted > 0.0 else 0.0
         damping = max(damping * max(_MIN_SHRINK, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
         growth = 2.0
 
         change = last_change = (current_chi2 - trial_chi2) / current_chi2
-        solver.accepted_step(change)
+        solver.accepted_step()
         step_norm = float(np.linalg.norm(step))
         state_norm = float(np.linalg.norm(current[1:]))
         if solver.exact:
