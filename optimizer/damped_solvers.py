@@ -70,8 +70,8 @@ class DirectSolver:
             return None
         return scaled_step if np.all(np.isfinite(scaled_step)) else None
 
-    def accepted_step(self, relative_decrease: float) -> None:
-        """Told after every accepted step; nothing this solver keeps depends on how far the poses moved."""
+    def accepted_step(self) -> None:
+        """Told after every accepted step; nothing this solver keeps depends on the poses."""
 
 
 class ChainPCGSolver:
@@ -114,8 +114,8 @@ class ChainPCGSolver:
             apply, precondition, rhs, self.forcing, self._max_iterations)
         return solution if np.all(np.isfinite(solution)) and self.last_iterations > 0 else None
 
-    def accepted_step(self, relative_decrease: float) -> None:
-        """Told after every accepted step; nothing this solver keeps depends on how far the poses moved."""
+    def accepted_step(self) -> None:
+        """Told after every accepted step; nothing this solver keeps depends on the poses."""
 
 
 def preconditioned_cg(apply: Callable[[FloatArray], FloatArray],

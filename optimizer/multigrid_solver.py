@@ -5,13 +5,16 @@ The normal equations of a pose graph are a weighted graph Laplacian in 3×3 bloc
 world the chain preconditioner of `optimizer.damped_solvers` needs 300–500 CG iterations per step once the
 loops matter, while one multigrid V-cycle per iteration brings a relative residual of 10⁻⁴ in about 16.
 The hierarchy (aggregation of poses, prolongation, coarse operators; `optimizer.multigrid_hierarchy`) costs
-about as much as 10–20 CG iterations to build, so it is built once and kept while it stays good: CG with
-the kept hierarchy gets `rebuild_growth` times the iterations the first solve after the last build needed
-(at least 20); past them, unless the rate it has shown projects the target within what a new hierarchy's
-first solve took, the linearisation has moved too far: the hierarchy is rebuilt and CG goes on from its
-partial solution. A kept hierarchy gets each new linearisation's matrix as its finest level, with the
-smoother's inverted diagonal blocks of its own, and holds no older H (`_hook_in`); its coarse levels are
-stale, which only slows CG, it never changes the step CG converges to. The V-cycle is run directly
+about as much as 10–20 CG iterations to build. It is built for each linearisation and kept across the λ
+tried on it: CG with it at a new λ gets `rebuild_growth` times the iterations the first solve after its
+build needed (at least 20); past them, unless the rate it has shown projects the target within what a new
+hierarchy's first solve took, it is rebuilt for the new λ and CG goes on from its partial solution. A kept
+hierarchy gets the new λ's matrix as its finest level, with the smoother's inverted diagonal blocks of its
+own (`_hook_in`); its coarse levels are stale, which only slows CG, it never changes the step CG converges
+to. A hierarchy is not kept for the next linearisation: its candidates and prolongation come from the
+poses it was built at, and in the last steps at 10⁶ grid-world poses, where the poses still move far along
+the graph's softest modes while χ² hardly changes, CG with the hierarchy of an earlier step needed 15–40
+iterations where a new one needed 11–15. The V-cycle is run directly
 (`_v_cycle`), not through pyamg's `aspreconditioner`, which spends two extra products with H per
 application, with compiled block Gauss–Seidel sweeps, restriction and prolongation
 (`optimizer.block_smoother`). On the 3·10⁵-pose grid world (A/B on the same loaded machine) a CG iteration
@@ -45,13 +48,6 @@ FloatArray = NDArray[np.float64]
 
 _MIN_ITERATIONS_FOR_REBUILD = 20
 """Below this a solve is cheap whatever the hierarchy: no rebuild."""
-_REBUILD_AFTER_DECREASE = 0.01
-"""After an accepted step that lowered χ² by more than this fraction, the next linearisation gets a new
-hierarchy up front: on the 10⁵- and 10⁶-pose grid worlds the kept one then always spent its whole budget of
-20 CG iterations without converging before it was rebuilt (at 10⁶ those 20 iterations cost twice a
-rebuild), while after the small decreases of the last steps it converged within its budget."""
-
-
 class MultigridPCGSolver:
     """Inexact steps by CG on S·H·S + λ·I (BSR, 3×3 blocks) with a smoothed-aggregation V-cycle.
 
@@ -93,9 +89,8 @@ class MultigridPCGSolver:
         iterations = 0
         partial: FloatArray | None = None
         if self._preconditioner is not None:
-            # The kept hierarchy's finest level becomes this linearisation's matrix (`accepted_step` let the
-            # last one go): its residuals are then this system's, with the smoother's inverted diagonal
-            # blocks and the coarse levels from the build.
+            # The same linearisation at a new λ: the kept hierarchy's finest level gets the damped matrix's
+            # new diagonal blocks inverted for its smoother; the coarse levels stay from the build.
             _hook_in(self._preconditioner, matrix)
             # The kept hierarchy gets the budget a good one needs; past it, it is rebuilt and CG goes on
             # from where it got to (new search directions: the preconditioner changed).
@@ -127,17 +122,12 @@ class MultigridPCGSolver:
         self.last_iterations, self.last_converged = iterations, converged
         return solution if np.all(np.isfinite(solution)) and iterations > 0 else None
 
-    def accepted_step(self, relative_decrease: float) -> None:
-        """Told after every accepted step: a large decrease of χ² means the poses moved far (see
-        `_REBUILD_AFTER_DECREASE`)."""
-        if relative_decrease > _REBUILD_AFTER_DECREASE:
-            self._preconditioner = None
-        elif self._preconditioner is not None:
-            # Its finest level shares this linearisation's blocks: unhooked, they can go before the next H
-            # is assembled (two H at once were the polish's peak at 10⁶ poses, 360 MB each); `step` hooks
-            # in the next one.
-            self._preconditioner.levels[0].A = None
-        self._linearisation = None  # nothing refers to its blocks any more: they can go
+    def accepted_step(self) -> None:
+        """Told after every accepted step: the next linearisation gets a new hierarchy (see the module doc),
+        and this one's blocks, which the hierarchy's finest level shares, can go before the next H is
+        assembled (two H at once were the polish's peak at 10⁶ poses, 360 MB each)."""
+        self._preconditioner = None
+        self._linearisation = None
 
     def _solve(self, matrix: sp.bsr_matrix, rhs: FloatArray, max_iterations: int,
                start: FloatArray | None = None) -> tuple[FloatArray, int, bool]:

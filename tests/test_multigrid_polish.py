@@ -122,16 +122,15 @@ def test_multigrid_steps_are_reproducible_and_follow_every_damping_with_one_hier
     assert solver.builds == 1
 
 
-def test_a_large_accepted_decrease_rebuilds_the_hierarchy_and_a_small_one_keeps_it() -> None:
+def test_every_linearisation_gets_a_new_hierarchy_and_its_dampings_share_it() -> None:
     graph = generate_grid_world(300, seed=5).graph
     pattern = BlockPattern.of(graph)
     solver = MultigridPCGSolver(pattern)
-    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
+    linearisation = _linearise(graph, pattern, graph.poses)
+    assert solver.step(linearisation, 1e-3) is not None
+    assert solver.step(linearisation, 4e-3) is not None  # a rejected step's retry at a larger λ
     assert solver.builds == 1
-    solver.accepted_step(1e-4)  # the last steps of a polish: the kept hierarchy still serves
-    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
-    assert solver.builds == 1
-    solver.accepted_step(0.5)  # an early step: the poses moved far, a new hierarchy up front
+    solver.accepted_step()
     assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
     assert solver.builds == 2
 
@@ -224,8 +223,8 @@ def test_a_rebuilt_hierarchy_goes_on_from_where_the_kept_one_stopped(monkeypatch
     graph = generate_grid_world(2000, seed=5).graph
     pattern = BlockPattern.of(graph)
     solver = MultigridPCGSolver(pattern)
-    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
-    solver.accepted_step(1e-4)  # the hierarchy is kept
+    linearisation = _linearise(graph, pattern, graph.poses)
+    assert solver.step(linearisation, 1e-3) is not None
     calls: list[tuple[np.ndarray | None, np.ndarray, int]] = []
 
     def recorded(*args: Any, **kwargs: Any) -> tuple[np.ndarray, int, bool]:
@@ -236,7 +235,7 @@ def test_a_rebuilt_hierarchy_goes_on_from_where_the_kept_one_stopped(monkeypatch
 
     monkeypatch.setattr(multigrid_solver, "preconditioned_cg", recorded)
     solver.forcing = 1e-12  # more than the kept hierarchy's budget of 20 iterations reaches at this λ
-    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-9) is not None
+    assert solver.step(linearisation, 1e-9) is not None
     assert solver.last_converged
     assert solver.builds == 2
     (kept_start, kept_end, kept_iterations), (rebuilt_start, _, _) = calls
@@ -249,12 +248,12 @@ def test_a_kept_hierarchy_close_to_its_target_goes_on_instead_of_being_rebuilt()
     graph = generate_grid_world(2000, seed=5).graph
     pattern = BlockPattern.of(graph)
     solver = MultigridPCGSolver(pattern, rebuild_growth=0.1)
-    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
-    solver.accepted_step(1e-4)
+    linearisation = _linearise(graph, pattern, graph.poses)
+    assert solver.step(linearisation, 1e-3) is not None
     # As if its build's first solve had taken 200 iterations: its budget (20) runs out far short of what a
     # new hierarchy would cost, and the rate it has shown reaches the target well within that.
     solver._iterations_after_build = 200
     solver.forcing = 1e-12
-    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-9) is not None
+    assert solver.step(linearisation, 1e-9) is not None
     assert solver.last_converged and solver.last_iterations > 20
     assert solver.builds == 1

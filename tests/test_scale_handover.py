@@ -107,7 +107,7 @@ class _OvershootingSolver:
         exact = self._direct.step(linearisation, damping)
         return None if exact is None else 3.0 * exact
 
-    def accepted_step(self, relative_decrease: float) -> None:
+    def accepted_step(self) -> None:
         pass
 
 
