@@ -48,6 +48,8 @@ FloatArray = NDArray[np.float64]
 
 _MIN_ITERATIONS_FOR_REBUILD = 20
 """Below this a solve is cheap whatever the hierarchy: no rebuild."""
+
+
 class MultigridPCGSolver:
     """Inexact steps by CG on S·H·S + λ·I (BSR, 3×3 blocks) with a smoothed-aggregation V-cycle.
 
