@@ -152,6 +152,17 @@ def test_a_cloud_replay_never_imports_the_laser_frontend(tmp_path: Path) -> None
     assert loaded == ["frontends.slam2d.config"]
 
 
+def test_a_replay_of_an_mcap_of_ros_messages_imports_neither_protobuf_nor_bag_readers(tmp_path: Path) -> None:
+    # Start-up: protobuf's descriptors (through mcap_protobuf, for Foxglove channels) cost 0.1 s and the ROS
+    # bag readers are of no use on an MCAP; both are imported only when a log needs them.
+    short = drive(town_loop(), sweeps=6, step=0.5, lidar=Lidar(columns=360))
+    path = tmp_path / "short.mcap"
+    write_cloud_log(path, short)
+    loaded = modules_a_fresh_replay_loads(path, tmp_path / "out", (
+        "google.protobuf", "mcap_protobuf", "frontends.logs.containers.rosbag"))
+    assert loaded == []
+
+
 def test_a_log_with_scans_and_clouds_asks_which_and_writes_nothing(tmp_path: Path) -> None:
     path = write_mcap_ros(tmp_path / "both.mcap")  # /scan (LaserScan) and /points (PointCloud2)
     with pytest.raises(TopicSelectionError, match=r"/points .*/scan .*; choose one with --scan-topic"):
