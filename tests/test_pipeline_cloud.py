@@ -129,6 +129,29 @@ def test_the_recording_holds_every_iteration_in_2d_and_3d(
         assert check.returncode == 0, check.stdout + check.stderr
 
 
+def test_keyframe_transform_columns_are_what_rerun_s_transform3d_makes_of_each_keyframe() -> None:
+    import rerun as rr
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.recording.clouds import keyframe_transform_columns, transform_columns
+
+    rng = np.random.default_rng(3)
+    poses = np.tile(np.eye(4, dtype=np.float32), (7, 5, 1, 1))
+    poses[..., :3, :3] = Rotation.random(35, random_state=4).as_matrix().reshape(7, 5, 3, 3)
+    poses[..., :3, 3] = rng.normal(scale=20.0, size=(7, 5, 3))
+    batches = keyframe_transform_columns(poses)
+    assert len(batches) == 5
+    for k, columns in enumerate(batches):
+        quaternions = Rotation.from_matrix(poses[:, k, :3, :3]).as_quat()
+        expected = rr.Transform3D.columns(translation=poses[:, k, :3, 3].astype(np.float32),
+                                          quaternion=quaternions.astype(np.float32))
+        assert [c.component_descriptor() for c in columns] == [c.component_descriptor() for c in expected]
+        assert all(a.as_arrow_array().equals(b.as_arrow_array())
+                   for a, b in zip(columns, expected, strict=True))
+    single = transform_columns(poses[:, 2].astype(np.float64))
+    assert all(a.as_arrow_array().equals(b.as_arrow_array()) for a, b in zip(single, batches[2], strict=True))
+
+
 def test_without_tf_or_point_times_the_poses_are_the_sensor_s(tmp_path: Path) -> None:
     short = drive(town_loop(), sweeps=12, step=0.5, lidar=Lidar(columns=360))
     path = tmp_path / "bare.mcap"
