@@ -176,13 +176,15 @@ def test_a_cloud_replay_never_imports_the_laser_frontend(tmp_path: Path) -> None
 
 
 def test_a_replay_of_an_mcap_of_ros_messages_imports_neither_protobuf_nor_bag_readers(tmp_path: Path) -> None:
-    # Start-up: protobuf's descriptors (through mcap_protobuf, for Foxglove channels) cost 0.1 s and the ROS
-    # bag readers are of no use on an MCAP; both are imported only when a log needs them.
+    # Start-up: protobuf's descriptors (through mcap_protobuf, for Foxglove channels) cost 0.1 s, the ROS bag
+    # readers are of no use on an MCAP, and multiprocessing's process pool only runs several inputs; each
+    # is imported only when needed.
     short = drive(town_loop(), sweeps=6, step=0.5, lidar=Lidar(columns=360))
     path = tmp_path / "short.mcap"
     write_cloud_log(path, short)
     loaded = modules_a_fresh_replay_loads(path, tmp_path / "out", (
-        "google.protobuf", "mcap_protobuf", "frontends.logs.containers.rosbag"))
+        "google.protobuf", "mcap_protobuf", "frontends.logs.containers.rosbag", "multiprocessing",
+        "concurrent.futures.process"))
     assert loaded == []
 
 
