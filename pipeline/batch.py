@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import multiprocessing
 import os
 import re
 import signal
@@ -24,13 +23,10 @@ import socket
 import time
 import traceback
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
-from multiprocessing.context import BaseContext
-from multiprocessing.process import BaseProcess
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pipeline.api import (
     DEFAULT_OUT_DIR,
@@ -46,6 +42,11 @@ from pipeline.api import (
 from pipeline.config import ReplayConfig
 from pipeline.errors import PipelineError
 from pipeline.outputs import install_stop_signals, recover_outputs, stop_signals_held
+
+if TYPE_CHECKING:  # multiprocessing and the process pool are imported only by a run of several inputs
+    from concurrent.futures import Future, ProcessPoolExecutor
+    from multiprocessing.context import BaseContext
+    from multiprocessing.process import BaseProcess
 
 OutcomeCallback = Callable[["BatchOutcome"], None]
 
@@ -207,6 +208,8 @@ STOP_GRACE_S = 5.0
 
 def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, workers: int,
                  on_done: OutcomeCallback | None) -> list[BatchOutcome]:
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
     outcomes: list[BatchOutcome | None] = [None] * len(inputs)
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=pool_context(), initializer=_init_worker)
     try:
@@ -280,6 +283,8 @@ _LEFT_BEHIND = re.compile(r"\.(?P<stem>.+?)(\.staging-.*|\.lock)")
 def _pool_processes(pool: ProcessPoolExecutor) -> list[BaseProcess]:
     """The pool's worker processes: the executor's own table where it has one, else this process's
     children started by multiprocessing (the pool's workers are among them)."""
+    import multiprocessing
+
     processes = getattr(pool, "_processes", None)
     if isinstance(processes, dict):
         return list(processes.values())
@@ -288,6 +293,8 @@ def _pool_processes(pool: ProcessPoolExecutor) -> list[BaseProcess]:
 
 def pool_context() -> BaseContext:
     """forkserver where the platform has it (Linux), else spawn."""
+    import multiprocessing
+
     method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
     return multiprocessing.get_context(method)
 

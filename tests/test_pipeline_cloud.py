@@ -129,6 +129,29 @@ def test_the_recording_holds_every_iteration_in_2d_and_3d(
         assert check.returncode == 0, check.stdout + check.stderr
 
 
+def test_keyframe_transform_columns_are_what_rerun_s_transform3d_makes_of_each_keyframe() -> None:
+    import rerun as rr
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.recording.clouds import keyframe_transform_columns, transform_columns
+
+    rng = np.random.default_rng(3)
+    poses = np.tile(np.eye(4, dtype=np.float32), (7, 5, 1, 1))
+    poses[..., :3, :3] = Rotation.random(35, random_state=4).as_matrix().reshape(7, 5, 3, 3)
+    poses[..., :3, 3] = rng.normal(scale=20.0, size=(7, 5, 3))
+    batches = keyframe_transform_columns(poses)
+    assert len(batches) == 5
+    for k, columns in enumerate(batches):
+        quaternions = Rotation.from_matrix(poses[:, k, :3, :3]).as_quat()
+        expected = rr.Transform3D.columns(translation=poses[:, k, :3, 3].astype(np.float32),
+                                          quaternion=quaternions.astype(np.float32))
+        assert [c.component_descriptor() for c in columns] == [c.component_descriptor() for c in expected]
+        assert all(a.as_arrow_array().equals(b.as_arrow_array())
+                   for a, b in zip(columns, expected, strict=True))
+    single = transform_columns(poses[:, 2].astype(np.float64))
+    assert all(a.as_arrow_array().equals(b.as_arrow_array()) for a, b in zip(single, batches[2], strict=True))
+
+
 def test_without_tf_or_point_times_the_poses_are_the_sensor_s(tmp_path: Path) -> None:
     short = drive(town_loop(), sweeps=12, step=0.5, lidar=Lidar(columns=360))
     path = tmp_path / "bare.mcap"
@@ -150,6 +173,19 @@ def test_a_cloud_replay_never_imports_the_laser_frontend(tmp_path: Path) -> None
         "frontends.slam2d.", "pipeline.recording.scans", "pipeline.recording.map2d"))
     # The 2D settings' dataclass is read by the configuration of every replay; nothing else of 2D.
     assert loaded == ["frontends.slam2d.config"]
+
+
+def test_a_replay_of_an_mcap_of_ros_messages_imports_neither_protobuf_nor_bag_readers(tmp_path: Path) -> None:
+    # Start-up: protobuf's descriptors (through mcap_protobuf, for Foxglove channels) cost 0.1 s, the ROS bag
+    # readers are of no use on an MCAP, and multiprocessing's process pool only runs several inputs; each
+    # is imported only when needed.
+    short = drive(town_loop(), sweeps=6, step=0.5, lidar=Lidar(columns=360))
+    path = tmp_path / "short.mcap"
+    write_cloud_log(path, short)
+    loaded = modules_a_fresh_replay_loads(path, tmp_path / "out", (
+        "google.protobuf", "mcap_protobuf", "frontends.logs.containers.rosbag", "multiprocessing",
+        "concurrent.futures.process"))
+    assert loaded == []
 
 
 def test_a_log_with_scans_and_clouds_asks_which_and_writes_nothing(tmp_path: Path) -> None:

@@ -1,4 +1,7 @@
-"""Choose the container reader from the path and the file's first bytes, never from a flag."""
+"""Choose the container reader from the path and the file's first bytes, never from a flag.
+
+The ROS bag readers (and sqlite3, yaml behind them) are imported only for a file that is not an MCAP.
+"""
 
 from __future__ import annotations
 
@@ -6,15 +9,17 @@ import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from frontends.errors import FrontendError, LogFileError, LogWarning
 from frontends.logs.containers.base import Container
 from frontends.logs.containers.mcap_file import MAGIC as MCAP_MAGIC
 from frontends.logs.containers.mcap_file import McapContainer
-from frontends.logs.containers.rosbag1 import MAGIC as ROSBAG1_MAGIC
-from frontends.logs.containers.rosbag1 import Rosbag1Container
-from frontends.logs.containers.rosbag2 import SQLITE_MAGIC, Rosbag2Container
 from frontends.logs.guard import DATA_ERRORS, check_is_regular, check_readable_file, guarded_call
+
+if TYPE_CHECKING:
+    from frontends.logs.containers.rosbag1 import Rosbag1Container
+    from frontends.logs.containers.rosbag2 import Rosbag2Container
 
 _SPLIT_BAG = re.compile(r"^(?P<prefix>.*)_(?P<number>\d+)\.bag$")
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
@@ -48,8 +53,11 @@ def _open(path: Path) -> Container:
         raise LogFileError(path, "empty file")
     if head.startswith(MCAP_MAGIC):
         return McapContainer(path)
+    from frontends.logs.containers.rosbag1 import MAGIC as ROSBAG1_MAGIC
+    from frontends.logs.containers.rosbag2 import SQLITE_MAGIC, Rosbag2Container
+
     if head.startswith(ROSBAG1_MAGIC):
-        return Rosbag1Container(path, split_bag_files(path))
+        return _rosbag1(path, split_bag_files(path))
     if head.startswith(b"#ROSBAG V"):
         version = head[len(b"#ROSBAG V") :].split(b"\n")[0].decode("ascii", "replace")
         raise LogFileError(
@@ -64,8 +72,16 @@ def _open(path: Path) -> Container:
     raise LogFileError(path, f"not a log ({_EXPECTED})")
 
 
-def _checked_rosbag2(directory: Path) -> Container:
+def _rosbag1(path: Path, parts: tuple[Path, ...]) -> Rosbag1Container:
+    from frontends.logs.containers.rosbag1 import Rosbag1Container
+
+    return Rosbag1Container(path, parts)
+
+
+def _checked_rosbag2(directory: Path) -> Rosbag2Container:
     """A ROS 2 bag directory, once its metadata and every regular file in it are known to be regular."""
+    from frontends.logs.containers.rosbag2 import Rosbag2Container
+
     check_readable_file(directory / "metadata.yaml")
     for entry in directory.iterdir():
         if entry.suffix in (".db3", ".mcap", ".zstd"):
@@ -86,7 +102,7 @@ def _open_directory(path: Path) -> Container:
             raise LogFileError(
                 path, f"several .bag files that are not one split recording: {names}; name one"
             )
-        return Rosbag1Container(path, parts)
+        return _rosbag1(path, parts)
     for pattern in ("*.db3", "*.mcap"):
         found = sorted(path.glob(pattern))
         if len(found) == 1:
@@ -155,7 +171,7 @@ def _bag_span(path: Path) -> _BagSpan | None:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", LogWarning)  # the named file's damage is reported when read
-            info = Rosbag1Container(path, (path,)).info()
+            info = _rosbag1(path, (path,)).info()
     except (FrontendError, *DATA_ERRORS, OSError):
         return None
     counted = {t.name: t.type for t in info.topics if t.count}
