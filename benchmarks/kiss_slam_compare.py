@@ -152,9 +152,10 @@ def timed_process(command: list[str], environment: dict[str, str] | None = None)
     return wall, cpu
 
 
-def replay_process(log: Path, out_dir: Path) -> tuple[float, float]:
-    """Wall and CPU seconds of the `replay` command on `log` in a fresh process, default settings."""
-    command = [sys.executable, "-m", "pipeline.launcher", str(log), "--out", str(out_dir)]
+def replay_process(python: str, log: Path, out_dir: Path) -> tuple[float, float]:
+    """Wall and CPU seconds of the `replay` command on `log` in a fresh `python` process, default settings
+    (our packages from this tree, the dependencies `python` has)."""
+    command = [python, "-m", "pipeline.launcher", str(log), "--out", str(out_dir)]
     return timed_process(command, {**os.environ, "PYTHONPATH": str(REPO)})
 
 
@@ -201,11 +202,11 @@ def startup_seconds(python: str, statement: str) -> tuple[float, float]:
     return cpu, wall
 
 
-def startup_section(python: str, repeats: int) -> dict[str, dict[str, float]]:
+def startup_section(python: str, repeats: int, ours_python: str) -> dict[str, dict[str, float]]:
     """Both start-ups, alternated `repeats` times: the fastest of each (CPU and wall apart)."""
     ours, theirs = [], []
     for _ in range(repeats):
-        ours.append(startup_seconds(sys.executable, OUR_IMPORTS))
+        ours.append(startup_seconds(ours_python, OUR_IMPORTS))
         theirs.append(startup_seconds(python, KISS_SLAM_IMPORTS))
     return {
         "startup_cpu_s": {"ours": min(c for c, _ in ours), "kiss_slam": min(c for c, _ in theirs)},
@@ -225,13 +226,13 @@ def with_startup(section: dict[str, object], startup: dict[str, dict[str, float]
 
 
 def fresh_process_rows(
-    count: int, log: Path, out_dir: Path, slam: KissSlam, repeats: int
+    count: int, log: Path, out_dir: Path, slam: KissSlam, repeats: int, ours_python: str
 ) -> dict[str, dict[str, float]]:
     """Frames per wall and CPU second of whole processes, `replay` on `log` and kiss-slam's runner,
     alternated `repeats` times (kiss-slam's first run is `slam`'s): the fastest of each."""
     ours, theirs = [], [(slam.process_seconds, slam.process_cpu_seconds)]
     for k in range(repeats):
-        ours.append(replay_process(log, out_dir / f"run{k}"))
+        ours.append(replay_process(ours_python, log, out_dir / f"run{k}"))
         if k + 1 < repeats:
             theirs.append(timed_process(slam.command))
     return {
@@ -266,7 +267,7 @@ def relative_to_first(poses: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------- KITTI
 
 
-def kitti_section(shared: Path, python: str, repeats: int) -> dict[str, object]:
+def kitti_section(shared: Path, python: str, repeats: int, ours_python: str) -> dict[str, object]:
     path = shared / KITTI
     with open_log(path) as log:
         frames = [c.points.astype(np.float64) for c in log.clouds()]
@@ -276,7 +277,7 @@ def kitti_section(shared: Path, python: str, repeats: int) -> dict[str, object]:
     with tempfile.TemporaryDirectory() as folder:
         ours = run_ours(path, Path(folder) / "out", config)
         slam = run_kiss_slam(python, frames, times, Path(folder), None)
-        fresh = fresh_process_rows(len(frames), path, Path(folder) / "fresh", slam, repeats)
+        fresh = fresh_process_rows(len(frames), path, Path(folder) / "fresh", slam, repeats, ours_python)
     length = path_length(reference)
     finals = {
         "ours": relative_to_first(ours.polished)[-1],
@@ -317,7 +318,7 @@ def kitti_section(shared: Path, python: str, repeats: int) -> dict[str, object]:
 # ------------------------------------------------------------------------------------------ town loop
 
 
-def town_section(python: str, splitting: float | None, repeats: int) -> dict[str, object]:
+def town_section(python: str, splitting: float | None, repeats: int, ours_python: str) -> dict[str, object]:
     run = loop_drive()
     route = town_loop().route
     columns_fraction = 1.0 - 1.0 / 720  # the last column fires one column short of the full sweep
@@ -331,7 +332,7 @@ def town_section(python: str, splitting: float | None, repeats: int) -> dict[str
         times = [normalized_point_times(t.astype(np.float64))[0] for t in run.times]
         ours = run_ours(log, Path(folder) / "out", config)
         slam = run_kiss_slam(python, frames, times, Path(folder), splitting)
-        fresh = fresh_process_rows(len(frames), log, Path(folder) / "fresh", slam, repeats)
+        fresh = fresh_process_rows(len(frames), log, Path(folder) / "fresh", slam, repeats, ours_python)
     # ours: base poses at the stamps, for the clouds in the trajectory (from the first keyframe on)
     stamps = ours.result.stamps_ns
     first_index = len(run.clouds) - len(stamps)
@@ -457,6 +458,14 @@ def main() -> None:
         default=sys.executable,
         help="an interpreter with kiss-slam installed (default: this one, when the bench extra is installed)",
     )
+    parser.add_argument(
+        "--ours-python",
+        default=sys.executable,
+        help="the interpreter of our start-ups and whole processes (default: this one). A venv with only our "
+        "runtime dependencies, as a user installs them (`python -m venv V && V/bin/pip install .`), is the "
+        "match of kiss-slam's own venv: the test and bench extras (evo, seaborn) bring pandas, which pyarrow "
+        "then imports on rerun's first encoding",
+    )
     parser.add_argument("--shared", type=Path, default=REPO.parent / "shared")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     parser.add_argument(
@@ -482,11 +491,13 @@ def main() -> None:
         compile_bytecode()
     results: dict[str, object] = {"bytecode_compiled_first": args.bytecode}
     print("## Ours against kiss-slam\n")
-    startup = startup_section(args.kiss_slam_python, args.repeats)
+    startup = startup_section(args.kiss_slam_python, args.repeats, args.ours_python)
     results["startup"] = startup
     _table("start-up (a fresh interpreter importing what the run imports)", startup)  # type: ignore[arg-type]
     if (args.shared / KITTI).is_file():
-        results["kitti_city"] = kitti_section(args.shared, args.kiss_slam_python, args.repeats)
+        results["kitti_city"] = kitti_section(
+            args.shared, args.kiss_slam_python, args.repeats, args.ours_python
+        )
         with_startup(results["kitti_city"], startup)  # type: ignore[arg-type]
         _table("kitti_city.mcap (no ground truth: against each other)", results["kitti_city"])  # type: ignore[arg-type]
     else:
@@ -495,7 +506,7 @@ def main() -> None:
     _table(f"town loop, odometry climbing {HEIGHT_DRIFT_RATE} m/m (ours only)", results["height_drift"])  # type: ignore[arg-type]
     for splitting in args.splitting_distance or [None]:
         key = "town_loop" if splitting is None else f"town_loop_split_{splitting:g}"
-        results[key] = town_section(args.kiss_slam_python, splitting, args.repeats)
+        results[key] = town_section(args.kiss_slam_python, splitting, args.repeats, args.ours_python)
         with_startup(results[key], startup)  # type: ignore[arg-type]
         _table(f"synthetic town loop ({key})", results[key])  # type: ignore[arg-type]
     args.out.mkdir(parents=True, exist_ok=True)
