@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from numba import literally, njit
+from numba import get_num_threads, literally, njit, prange
 from numpy.typing import NDArray
 
 from optimizer.errors import OptimizerError
@@ -59,8 +59,11 @@ def galerkin_product(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> sp.b
     column_positions = np.empty(p_indices.shape[0], dtype=np.int64)
     _transpose_pattern(p_indptr, p_indices, column_indptr, column_rows, column_positions)
     counts = np.empty(coarse_columns, dtype=np.int64)
+    # One range of rows per thread (numba's threads asked for here: asked inside a compiled function, the
+    # count is a ctypes call that keeps the function out of numba's cache).
+    chunks = get_num_threads()
     longest = _galerkin_counts(a_indptr, a_indices, p_indptr, p_indices, column_indptr, column_rows,
-                               fine_rows, counts)
+                               fine_rows, counts, chunks)
     indptr = np.zeros(coarse_columns + 1, dtype=_index_type(counts))
     np.cumsum(counts, out=indptr[1:])
     del counts
@@ -68,7 +71,7 @@ def galerkin_product(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> sp.b
     indices = np.empty(int(indptr[-1]), dtype=np.int32)
     data = np.empty((int(indptr[-1]), size, size))
     _galerkin_fill_sized(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr, column_rows,
-                         column_positions, longest, indptr, indices, data)
+                         column_positions, longest, indptr, indices, data, chunks)
     return sp.bsr_matrix((data, indices, indptr), shape=(prolongation.shape[1],) * 2)
 
 
@@ -225,18 +228,40 @@ def _transpose_pattern(indptr: IntArray, indices: IntArray, column_indptr: NDArr
             cursor[column] += 1
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _galerkin_counts(a_indptr: IntArray, a_indices: IntArray, p_indptr: IntArray, p_indices: IntArray,
                      column_indptr: NDArray[np.int64], column_rows: Int32Array, fine_rows: int,
-                     counts: NDArray[np.int64]) -> int:
-    """Blocks of every coarse row of Pᵀ·A·P into `counts`; the longest row of R·A."""
+                     counts: NDArray[np.int64], chunks: int) -> int:
+    """Blocks of every coarse row of Pᵀ·A·P into `counts`; the longest row of R·A. The coarse rows are
+    split into `chunks` contiguous ranges (`_row_range`; one per thread), each with scratch of its own:
+    every row's count is the same whoever counts it."""
+    coarse_rows = column_indptr.shape[0] - 1
+    longest = np.zeros(chunks, dtype=np.int64)
+    for chunk in prange(chunks):
+        first, last = _row_range(coarse_rows, chunks, chunk)
+        longest[chunk] = _galerkin_counts_of(a_indptr, a_indices, p_indptr, p_indices, column_indptr,
+                                             column_rows, fine_rows, counts, first, last)
+    return int(longest.max())
+
+
+@njit(cache=True)
+def _row_range(rows: int, chunks: int, chunk: int) -> tuple[int, int]:
+    """Rows [first, last) of chunk `chunk` of `chunks` contiguous, near-equal ranges."""
+    return rows * chunk // chunks, rows * (chunk + 1) // chunks
+
+
+@njit(cache=True)
+def _galerkin_counts_of(a_indptr: IntArray, a_indices: IntArray, p_indptr: IntArray, p_indices: IntArray,
+                        column_indptr: NDArray[np.int64], column_rows: Int32Array, fine_rows: int,
+                        counts: NDArray[np.int64], first: int, last: int) -> int:
+    """`_galerkin_counts` for the coarse rows [first, last)."""
     coarse_rows = column_indptr.shape[0] - 1
     seen_fine = np.zeros(fine_rows, dtype=np.bool_)
     seen_coarse = np.zeros(coarse_rows, dtype=np.bool_)
     fine = np.empty(fine_rows, dtype=np.int64)
     coarse = np.empty(coarse_rows, dtype=np.int64)
     longest = 0
-    for coarse_row in range(coarse_rows):
+    for coarse_row in range(first, last):
         length = 0
         for t in range(column_indptr[coarse_row], column_indptr[coarse_row + 1]):
             row = column_rows[t]
@@ -263,29 +288,35 @@ def _galerkin_counts(a_indptr: IntArray, a_indices: IntArray, p_indptr: IntArray
     return longest
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _galerkin_fill_sized(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, p_indptr: IntArray,
                          p_indices: IntArray, p_data: FloatArray, column_indptr: NDArray[np.int64],
                          column_rows: Int32Array, column_positions: NDArray[np.int64], longest: int,
-                         indptr: IntArray, indices: Int32Array, data: FloatArray) -> None:
-    """`_galerkin_fill` for A's block size, passed as a constant (see `_prolongation_fill_sized`)."""
-    if a_data.shape[1] == 3:
-        _galerkin_fill(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr, column_rows,
-                       column_positions, longest, indptr, indices, data, 3, 4)
-    else:
-        _galerkin_fill(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr, column_rows,
-                       column_positions, longest, indptr, indices, data, 4, 4)
+                         indptr: IntArray, indices: Int32Array, data: FloatArray, chunks: int) -> None:
+    """`_galerkin_fill` for A's block size, passed as a constant (see `_prolongation_fill_sized`), in
+    `chunks` contiguous ranges of coarse rows (one per thread). A row's blocks go where the counts put them
+    and are summed by one thread in `_galerkin_fill`'s order: the same numbers whatever the threads."""
+    coarse_rows = column_indptr.shape[0] - 1
+    for chunk in prange(chunks):
+        first, last = _row_range(coarse_rows, chunks, chunk)
+        if a_data.shape[1] == 3:
+            _galerkin_fill(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr,
+                           column_rows, column_positions, longest, indptr, indices, data, first, last, 3, 4)
+        else:
+            _galerkin_fill(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr,
+                           column_rows, column_positions, longest, indptr, indices, data, first, last, 4, 4)
 
 
 @njit(cache=True)
 def _galerkin_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, p_indptr: IntArray,
                    p_indices: IntArray, p_data: FloatArray, column_indptr: NDArray[np.int64],
                    column_rows: Int32Array, column_positions: NDArray[np.int64], longest: int,
-                   indptr: IntArray, indices: Int32Array, data: FloatArray, b: int, c: int) -> None:
-    """Row I of Pᵀ·A·P: row I of R·A (Σ over the rows i of P's column I, increasing, of P_iIᵀ·A_i·), then
-    that row times P, each accumulated block by block in the order its terms are met (`bsr_matmat`).
-    The block sizes b (A) and c (P's columns) are compile-time constants (`literally`): the block products'
-    loops are then unrolled, at two thirds of the time."""
+                   indptr: IntArray, indices: Int32Array, data: FloatArray, first: int, last: int, b: int,
+                   c: int) -> None:
+    """Rows [first, last) of Pᵀ·A·P. Row I: row I of R·A (Σ over the rows i of P's column I, increasing,
+    of P_iIᵀ·A_i·), then that row times P, each accumulated block by block in the order its terms are met
+    (`bsr_matmat`). The block sizes b (A) and c (P's columns) are compile-time constants (`literally`):
+    the block products' loops are then unrolled, at two thirds of the time."""
     literally(b)
     literally(c)
     fine_rows = p_indptr.shape[0] - 1
@@ -294,7 +325,7 @@ def _galerkin_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, 
     coarse_slot = np.full(coarse_rows, -1, dtype=np.int64)
     fine = np.empty(longest, dtype=np.int64)
     restricted = np.empty((longest, c, b))
-    for coarse_row in range(coarse_rows):
+    for coarse_row in range(first, last):
         length = 0
         for t in range(column_indptr[coarse_row], column_indptr[coarse_row + 1]):
             row = column_rows[t]
