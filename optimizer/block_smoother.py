@@ -64,13 +64,15 @@ def gauss_seidel_sweep(matrix: sp.bsr_matrix, inverse_diagonal: FloatArray, solu
     _check_block_size(matrix)
     indptr, indices, data = matrix.indptr, matrix.indices, matrix.data.reshape(-1)
     size = matrix.blocksize[0]
-    if forward:
+    if forward or not matrix.has_sorted_indices:
         _sweep(indptr, indices, data, inverse_diagonal.reshape(-1), size, solution, rhs, forward)
         return
     # A backward sweep reaches row i before any row left of it: Σ_{j<i} A_ij·x_j reads only values the
     # sweep has not changed yet, so that half of every row is taken first, row by row on all threads
     # (`_lower_remainders`), and only the blocks right of the diagonal are left to the sequential sweep.
-    # Each row's terms are subtracted in the same order as in one pass: the same numbers to the bit.
+    # In a row whose columns increase (the finest level's; not the coarse levels', which keep the order
+    # scipy's Galerkin product gives) that subtracts its terms in the same order as one pass: the same
+    # numbers to the bit. Elsewhere the one pass stays (the coarse levels are a quarter of a V-cycle).
     remainders = np.empty_like(rhs)
     _lower_remainders(indptr, indices, data, size, solution, rhs, remainders)
     _upper_sweep_backward(indptr, indices, data, inverse_diagonal.reshape(-1), size, solution, remainders)
