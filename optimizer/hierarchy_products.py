@@ -35,7 +35,9 @@ def smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix,
     t_indptr, t_indices, t_data = tentative.indptr, tentative.indices, tentative.data
     rows, coarse_columns = a_indptr.shape[0] - 1, tentative.shape[1] // tentative.blocksize[1]
     counts = np.empty(rows, dtype=np.int64)
-    canonical = _prolongation_counts(a_indptr, a_indices, t_indptr, t_indices, coarse_columns, counts)
+    chunks = get_num_threads()  # one range of rows per thread (see `galerkin_product`)
+    canonical = _prolongation_counts(a_indptr, a_indices, t_indptr, t_indices, coarse_columns, counts,
+                                     chunks)
     indptr = np.zeros(rows + 1, dtype=_index_type(counts))
     np.cumsum(counts, out=indptr[1:])
     longest = int(counts.max(initial=0))
@@ -43,7 +45,7 @@ def smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix,
     indices = np.empty(int(indptr[-1]), dtype=np.int32)
     data = np.empty((int(indptr[-1]), *tentative.blocksize))
     kept = _prolongation_fill_sized(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
-                                    row_weights, canonical, longest, indptr, indices, data)
+                                    row_weights, canonical, longest, indptr, indices, data, chunks)
     return sp.bsr_matrix((data[:kept], indices[:kept], indptr), shape=tentative.shape)
 
 
@@ -88,16 +90,29 @@ def _check_block_sizes(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> No
                              f"{matrix.blocksize} and {prolongation.blocksize}")
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _prolongation_counts(a_indptr: IntArray, a_indices: IntArray, t_indptr: IntArray, t_indices: IntArray,
-                         coarse_columns: int, counts: NDArray[np.int64]) -> bool:
+                         coarse_columns: int, counts: NDArray[np.int64], chunks: int) -> bool:
     """Distinct block columns of T and A·T in every row, into `counts`; whether T and A·T both have
     strictly increasing columns in every row (scipy's difference then takes its merging path, whose rows
-    come out sorted, instead of its general one)."""
+    come out sorted, instead of its general one). In `chunks` ranges of rows, as `_galerkin_counts`."""
+    rows = a_indptr.shape[0] - 1
+    canonical = np.ones(chunks, dtype=np.bool_)
+    for chunk in prange(chunks):
+        first, last = _row_range(rows, chunks, chunk)
+        canonical[chunk] = _prolongation_counts_of(a_indptr, a_indices, t_indptr, t_indices, coarse_columns,
+                                                   counts, first, last)
+    return bool(canonical.all())
+
+
+@njit(cache=True)
+def _prolongation_counts_of(a_indptr: IntArray, a_indices: IntArray, t_indptr: IntArray, t_indices: IntArray,
+                            coarse_columns: int, counts: NDArray[np.int64], first: int, last: int) -> bool:
+    """`_prolongation_counts` for the rows [first, last)."""
     seen = np.full(coarse_columns, -1, dtype=np.int64)
     in_product = np.full(coarse_columns, -1, dtype=np.int64)
     canonical = True
-    for row in range(a_indptr.shape[0] - 1):
+    for row in range(first, last):
         count = 0
         previous = -1
         for kk in range(t_indptr[row], t_indptr[row + 1]):
@@ -123,27 +138,58 @@ def _prolongation_counts(a_indptr: IntArray, a_indices: IntArray, t_indptr: IntA
     return canonical
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _prolongation_fill_sized(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, t_indptr: IntArray,
                              t_indices: IntArray, t_data: FloatArray, coarse_columns: int,
                              row_weights: FloatArray, canonical: bool, longest: int, indptr: IntArray,
-                             indices: Int32Array, data: FloatArray) -> int:
+                             indices: Int32Array, data: FloatArray, chunks: int) -> int:
     """`_prolongation_fill` for A's block size, passed as a constant: called from Python, a function that
     asks for `literally` arguments raises and retries, and the exception's traceback keeps the arrays it
-    was given alive until the cyclic garbage collector runs (hierarchies of 800 MB at 10⁶ poses)."""
-    if a_data.shape[1] == 3:
-        return _prolongation_fill(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
-                                  row_weights, canonical, longest, indptr, indices, data, 3, 4)
-    return _prolongation_fill(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
-                              row_weights, canonical, longest, indptr, indices, data, 4, 4)
+    was given alive until the cyclic garbage collector runs (hierarchies of 800 MB at 10⁶ poses).
+
+    In `chunks` ranges of rows, as `_galerkin_fill_sized`: each row fills the blocks the counts gave it
+    (`indptr` on entry), the blocks it keeps first; `_close_gaps` then moves the rows down over the
+    blocks dropped, in order. Returns the blocks kept."""
+    rows = a_indptr.shape[0] - 1
+    kept = np.empty(rows, dtype=np.int64)
+    for chunk in prange(chunks):
+        first, last = _row_range(rows, chunks, chunk)
+        if a_data.shape[1] == 3:
+            _prolongation_fill(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
+                               row_weights, canonical, longest, indptr, indices, data, kept, first, last,
+                               3, 4)
+        else:
+            _prolongation_fill(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
+                               row_weights, canonical, longest, indptr, indices, data, kept, first, last,
+                               4, 4)
+    return _close_gaps(indptr, indices, data, kept)
+
+
+@njit(cache=True)
+def _close_gaps(indptr: IntArray, indices: Int32Array, data: FloatArray, kept: NDArray[np.int64]) -> int:
+    """Rows of `kept[row]` blocks each from `indptr[row]` on, moved down to follow one another (rewrites
+    `indptr`); the blocks in all."""
+    total = 0
+    for row in range(kept.shape[0]):
+        start = indptr[row]
+        indptr[row] = total
+        if start != total:  # only after a row that dropped a block: rows never move up
+            for k in range(kept[row]):
+                indices[total + k] = indices[start + k]
+                data[total + k] = data[start + k]
+        total += kept[row]
+    indptr[kept.shape[0]] = total
+    return total
 
 
 @njit(cache=True)
 def _prolongation_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, t_indptr: IntArray,
                        t_indices: IntArray, t_data: FloatArray, coarse_columns: int, row_weights: FloatArray,
                        canonical: bool, longest: int, indptr: IntArray, indices: Int32Array,
-                       data: FloatArray, b: int, c: int) -> int:
-    """Fills T − W·(A·T) row by row, dropping zero blocks (rewrites `indptr`); returns the blocks kept.
+                       data: FloatArray, kept: NDArray[np.int64], first: int, last: int, b: int,
+                       c: int) -> None:
+    """Fills the rows [first, last) of T − W·(A·T), each from `indptr[row]` on, zero blocks dropped; the
+    blocks each keeps into `kept`.
 
     A row's columns are listed as scipy's general difference meets them (T's, then A·T's in the order the
     product first meets them) and written in reverse, the order of its linked list; on the merging path
@@ -156,8 +202,7 @@ def _prolongation_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArr
     tentative = np.empty((longest, b, c))
     product = np.empty((longest, b, c))
     order = np.empty(longest, dtype=np.int64)
-    kept = 0
-    for row in range(a_indptr.shape[0] - 1):
+    for row in range(first, last):
         length = 0
         for kk in range(t_indptr[row], t_indptr[row + 1]):
             column = t_indices[kk]
@@ -193,7 +238,7 @@ def _prolongation_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArr
         else:
             for k in range(length):
                 order[k] = length - 1 - k
-        indptr[row] = kept
+        position = indptr[row]
         for k in range(length):
             s = order[k]
             slot[columns[s]] = -1
@@ -202,13 +247,12 @@ def _prolongation_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArr
                 weight = row_weights[row * b + p]
                 for q in range(c):
                     value = tentative[s, p, q] - (0.0 + product[s, p, q] * weight)
-                    data[kept, p, q] = value
+                    data[position, p, q] = value
                     nonzero = nonzero or value != 0.0
             if nonzero:
-                indices[kept] = columns[s]
-                kept += 1
-    indptr[a_indptr.shape[0] - 1] = kept
-    return kept
+                indices[position] = columns[s]
+                position += 1
+        kept[row] = position - indptr[row]
 
 
 @njit(cache=True)
