@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from optimizer import block_smoother
+from optimizer import block_smoother, cost
 from optimizer.block_smoother import gauss_seidel_sweep, inverted_diagonal, prolong_into
 from optimizer.errors import OptimizerError
+from optimizer.gridworld import generate_grid_world
 from optimizer.parallel_products import add_scaled, block_product, scale_and_add
 from tests.test_block_smoother import symmetric_block_matrix
 
@@ -105,6 +106,28 @@ def test_the_split_backward_sweep_is_the_one_pass_sweep_to_the_bit(size: int) ->
         np.testing.assert_array_equal(result, expected)
 
 
+def test_a_backward_sweep_on_unsorted_rows_is_the_one_pass_sweep_to_the_bit() -> None:
+    # The coarse levels' rows list their blocks in the Galerkin product's order, lower and upper mixed:
+    # taking the lower ones first would change the order of the sums, so such a matrix gets the one pass.
+    matrix = symmetric_block_matrix(4, 2000, seed=30)
+    rng = np.random.default_rng(11)
+    for row in range(matrix.shape[0] // 4):  # each row's blocks in a random order
+        start, stop = matrix.indptr[row], matrix.indptr[row + 1]
+        order = start + rng.permutation(stop - start)
+        matrix.indices[start:stop] = matrix.indices[order]
+        matrix.data[start:stop] = matrix.data[order]
+    matrix = sp.bsr_matrix((matrix.data, matrix.indices, matrix.indptr), shape=matrix.shape)
+    assert not matrix.has_sorted_indices
+    rhs, start = rng.normal(size=matrix.shape[0]), rng.normal(size=matrix.shape[0])
+    inverse = inverted_diagonal(matrix)
+    expected = start.copy()
+    block_smoother._sweep(matrix.indptr, matrix.indices, matrix.data.reshape(-1), inverse.reshape(-1), 4,
+                          expected, rhs, False)
+    solution = start.copy()
+    gauss_seidel_sweep(matrix, inverse, solution, rhs, forward=False)
+    np.testing.assert_array_equal(solution, expected)
+
+
 @pytest.mark.parametrize("rows", [3, 4])
 def test_the_prolongation_is_the_same_on_any_number_of_threads(rows: int) -> None:
     rng = np.random.default_rng(9)
@@ -121,3 +144,16 @@ def test_the_prolongation_is_the_same_on_any_number_of_threads(rows: int) -> Non
     np.testing.assert_allclose(results[0], start + prolongation @ coarse, rtol=1e-14, atol=1e-14)
     for result in results[1:]:
         np.testing.assert_array_equal(result, results[0])
+
+
+@pytest.mark.parametrize("chunk", [1000, 65_536])
+def test_chi2_is_the_one_thread_sum_to_the_bit(monkeypatch: pytest.MonkeyPatch, chunk: int) -> None:
+    # Terms on all threads, summed in constraint order on one: `_chi2_kernel`'s number, chunk after chunk.
+    monkeypatch.setattr(cost, "CHI2_CHUNK", chunk)
+    graph = generate_grid_world(3000, seed=3).graph
+    poses = graph.poses + np.random.default_rng(12).normal(scale=0.1, size=graph.poses.shape)
+    expected = cost._chi2_kernel(poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information)
+    assert graph.num_edges > chunk or chunk == 65_536
+    for threads in THREADS:
+        numba.set_num_threads(threads)
+        assert cost.chi2(graph, poses) == expected
