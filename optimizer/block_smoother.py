@@ -16,6 +16,9 @@ the matrix read once, where a sweep and a product read it whole twice.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
 import numpy as np
 import scipy.sparse as sp
 from numba import njit, prange
@@ -40,13 +43,25 @@ def inverted_diagonal(matrix: sp.bsr_matrix) -> FloatArray:
     would be two arrays of 72 MB at 10⁶ poses where the hierarchy's build peaks (each block's inverse is
     LAPACK's for that block alone, whatever the chunk)."""
     blocks = _diagonal_of(matrix)
+    chunks = [blocks[start:start + INVERSION_ROWS] for start in range(0, blocks.shape[0], INVERSION_ROWS)]
+    workers = min(numba.get_num_threads(), len(chunks))
     try:
-        for start in range(0, blocks.shape[0], INVERSION_ROWS):
-            chunk = blocks[start:start + INVERSION_ROWS]
-            chunk[...] = np.linalg.inv(chunk)
+        if workers <= 1:
+            for chunk in chunks:
+                _invert_in_place(chunk)
+        else:
+            # numpy's inversion lets go of the GIL: the chunks on as many threads as numba's kernels use
+            # (one with NUMBA_NUM_THREADS=1). Each block's inverse is the same whichever thread computes it.
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                for inverted in pool.map(_invert_in_place, chunks):
+                    del inverted
     except np.linalg.LinAlgError:  # a pose or aggregate its constraints leave free in some direction
         return np.linalg.pinv(_diagonal_of(matrix))
     return blocks
+
+
+def _invert_in_place(chunk: FloatArray) -> None:
+    chunk[...] = np.linalg.inv(chunk)
 
 
 def _diagonal_of(matrix: sp.bsr_matrix) -> FloatArray:
@@ -93,9 +108,9 @@ def _check_block_size(matrix: sp.bsr_matrix) -> None:
         raise OptimizerError(f"block Gauss–Seidel sweeps take 3×3 or 4×4 blocks, not {matrix.blocksize}")
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _diagonal_blocks(indptr: IntArray, indices: IntArray, data: FloatArray, out: FloatArray) -> None:
-    for row in range(out.shape[0]):
+    for row in prange(out.shape[0]):  # each row's block written by one thread
         for position in range(indptr[row], indptr[row + 1]):
             if indices[position] == row:
                 out[row] += data[position]
