@@ -10,7 +10,7 @@ import pytest
 import scipy.sparse as sp
 
 from optimizer import block_smoother, cost
-from optimizer.block_smoother import gauss_seidel_sweep, inverted_diagonal, prolong_into
+from optimizer.block_smoother import inverted_diagonal, prolong_into
 from optimizer.errors import OptimizerError
 from optimizer.gridworld import generate_grid_world
 from optimizer.parallel_products import add_scaled, block_product, scale_and_add
@@ -82,50 +82,6 @@ def test_the_vector_updates_are_numpys_to_the_bit() -> None:
         np.testing.assert_array_equal(scaled, expected_scaled)
     with pytest.raises(OptimizerError, match="shapes differ"):
         add_scaled(target, 1.0, vector[:-1])
-
-
-@pytest.mark.parametrize("size", [3, 4])
-def test_the_split_backward_sweep_is_the_one_pass_sweep_to_the_bit(size: int) -> None:
-    # The lower halves of the rows on all threads, then the sequential upper halves: the same arithmetic
-    # in the same order as the one-pass sweep (`block_smoother._sweep`), whatever the threads.
-    matrix = symmetric_block_matrix(size, 3000, seed=20 + size)
-    rng = np.random.default_rng(8)
-    rhs, start = rng.normal(size=matrix.shape[0]), rng.normal(size=matrix.shape[0])
-    inverse = inverted_diagonal(matrix)
-    expected = start.copy()
-    block_smoother._sweep(matrix.indptr, matrix.indices, matrix.data.reshape(-1), inverse.reshape(-1), size,
-                          expected, rhs, False)
-    assert not np.allclose(expected, start)
-
-    def sweep() -> np.ndarray:
-        solution = start.copy()
-        gauss_seidel_sweep(matrix, inverse, solution, rhs, forward=False)
-        return solution
-
-    for result in for_each_thread_count(sweep):
-        np.testing.assert_array_equal(result, expected)
-
-
-def test_a_backward_sweep_on_unsorted_rows_is_the_one_pass_sweep_to_the_bit() -> None:
-    # The coarse levels' rows list their blocks in the Galerkin product's order, lower and upper mixed:
-    # taking the lower ones first would change the order of the sums, so such a matrix gets the one pass.
-    matrix = symmetric_block_matrix(4, 2000, seed=30)
-    rng = np.random.default_rng(11)
-    for row in range(matrix.shape[0] // 4):  # each row's blocks in a random order
-        start, stop = matrix.indptr[row], matrix.indptr[row + 1]
-        order = start + rng.permutation(stop - start)
-        matrix.indices[start:stop] = matrix.indices[order]
-        matrix.data[start:stop] = matrix.data[order]
-    matrix = sp.bsr_matrix((matrix.data, matrix.indices, matrix.indptr), shape=matrix.shape)
-    assert not matrix.has_sorted_indices
-    rhs, start = rng.normal(size=matrix.shape[0]), rng.normal(size=matrix.shape[0])
-    inverse = inverted_diagonal(matrix)
-    expected = start.copy()
-    block_smoother._sweep(matrix.indptr, matrix.indices, matrix.data.reshape(-1), inverse.reshape(-1), 4,
-                          expected, rhs, False)
-    solution = start.copy()
-    gauss_seidel_sweep(matrix, inverse, solution, rhs, forward=False)
-    np.testing.assert_array_equal(solution, expected)
 
 
 @pytest.mark.parametrize("rows", [3, 4])
