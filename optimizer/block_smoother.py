@@ -16,9 +16,12 @@ the matrix read once, where a sweep and a product read it whole twice.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
+from numba import njit, prange
 from numpy.typing import NDArray
 
 from optimizer.errors import OptimizerError
@@ -37,13 +40,25 @@ def inverted_diagonal(matrix: sp.bsr_matrix) -> FloatArray:
     would be two arrays of 72 MB at 10⁶ poses where the hierarchy's build peaks (each block's inverse is
     LAPACK's for that block alone, whatever the chunk)."""
     blocks = _diagonal_of(matrix)
+    chunks = [blocks[start:start + INVERSION_ROWS] for start in range(0, blocks.shape[0], INVERSION_ROWS)]
+    workers = min(numba.get_num_threads(), len(chunks))
     try:
-        for start in range(0, blocks.shape[0], INVERSION_ROWS):
-            chunk = blocks[start:start + INVERSION_ROWS]
-            chunk[...] = np.linalg.inv(chunk)
+        if workers <= 1:
+            for chunk in chunks:
+                _invert_in_place(chunk)
+        else:
+            # numpy's inversion lets go of the GIL: the chunks on as many threads as numba's kernels use
+            # (one with NUMBA_NUM_THREADS=1). Each block's inverse is the same whichever thread computes it.
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                for inverted in pool.map(_invert_in_place, chunks):
+                    del inverted
     except np.linalg.LinAlgError:  # a pose or aggregate its constraints leave free in some direction
         return np.linalg.pinv(_diagonal_of(matrix))
     return blocks
+
+
+def _invert_in_place(chunk: FloatArray) -> None:
+    chunk[...] = np.linalg.inv(chunk)
 
 
 def _diagonal_of(matrix: sp.bsr_matrix) -> FloatArray:
@@ -59,6 +74,9 @@ def gauss_seidel_sweep(matrix: sp.bsr_matrix, inverse_diagonal: FloatArray, solu
     reverse, updating `solution` in place: x_i ← D_i⁻¹·(b_i − Σ_{j≠i} A_ij·x_j). Blocks of 3×3 (poses)
     or 4×4 (the coarse levels' aggregates, one unknown per rigid motion)."""
     _check_block_size(matrix)
+    # Sequential in both directions: each row reads the rows swept before it. (Taking the backward sweep's
+    # blocks left of the diagonal first, on all threads, was slower on this 2-core machine, 129–153 ms
+    # against 94–100 at 3·10⁵ poses: a second pass over the rows costs more than the threads save.)
     _sweep(matrix.indptr, matrix.indices, matrix.data.reshape(-1), inverse_diagonal.reshape(-1),
            matrix.blocksize[0], solution, rhs, forward)
 
@@ -78,9 +96,9 @@ def _check_block_size(matrix: sp.bsr_matrix) -> None:
         raise OptimizerError(f"block Gauss–Seidel sweeps take 3×3 or 4×4 blocks, not {matrix.blocksize}")
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _diagonal_blocks(indptr: IntArray, indices: IntArray, data: FloatArray, out: FloatArray) -> None:
-    for row in range(out.shape[0]):
+    for row in prange(out.shape[0]):  # each row's block written by one thread
         for position in range(indptr[row], indptr[row + 1]):
             if indices[position] == row:
                 out[row] += data[position]
@@ -211,13 +229,14 @@ def _prolongation_rows(prolongation: sp.bsr_matrix) -> int:
     return int(rows)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _product_into(indptr: IntArray, indices: IntArray, data: FloatArray, rows: int, vector: FloatArray,
                   out: FloatArray) -> None:
-    """out += P·vector over blocks of `rows`×4, written out as `_subtract_row`."""
+    """out += P·vector over blocks of `rows`×4, written out as `_subtract_row`; block rows split among the
+    threads (each output row is one thread's, summed in one order)."""
     four = rows == 4
     area = 4 * rows
-    for block_row in range(indptr.shape[0] - 1):
+    for block_row in prange(indptr.shape[0] - 1):
         base = block_row * rows
         s0 = s1 = s2 = s3 = 0.0
         for position in range(indptr[block_row], indptr[block_row + 1]):

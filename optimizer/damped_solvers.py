@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from optimizer.graph import PoseGraph
 from optimizer.normal_equations import UpperPattern, edge_linearisation, hessian_product, scaled_upper
+from optimizer.parallel_products import add_scaled, scale_and_add
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -150,15 +151,15 @@ def preconditioned_cg(apply: Callable[[FloatArray], FloatArray],
         if not curvature > 0.0:
             break
         alpha = rho / curvature
-        solution += alpha * direction
-        residual -= alpha * moved
+        # In place on all threads, numpy's numbers to the bit (`optimizer.parallel_products`).
+        add_scaled(solution, alpha, direction)
+        add_scaled(residual, -alpha, moved)
         if float(np.linalg.norm(residual)) <= target:
             converged = True
             break
         precondition(residual, preconditioned)
         rho_next = float(residual @ preconditioned)
-        direction *= rho_next / rho
-        direction += preconditioned
+        scale_and_add(direction, rho_next / rho, preconditioned)
         rho = rho_next
     return solution, iterations, converged
 

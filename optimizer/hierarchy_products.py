@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from numba import literally, njit
+from numba import get_num_threads, literally, njit, prange
 from numpy.typing import NDArray
 
 from optimizer.errors import OptimizerError
@@ -35,7 +35,9 @@ def smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix,
     t_indptr, t_indices, t_data = tentative.indptr, tentative.indices, tentative.data
     rows, coarse_columns = a_indptr.shape[0] - 1, tentative.shape[1] // tentative.blocksize[1]
     counts = np.empty(rows, dtype=np.int64)
-    canonical = _prolongation_counts(a_indptr, a_indices, t_indptr, t_indices, coarse_columns, counts)
+    chunks = get_num_threads()  # one range of rows per thread (see `galerkin_product`)
+    canonical = _prolongation_counts(a_indptr, a_indices, t_indptr, t_indices, coarse_columns, counts,
+                                     chunks)
     indptr = np.zeros(rows + 1, dtype=_index_type(counts))
     np.cumsum(counts, out=indptr[1:])
     longest = int(counts.max(initial=0))
@@ -43,7 +45,7 @@ def smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix,
     indices = np.empty(int(indptr[-1]), dtype=np.int32)
     data = np.empty((int(indptr[-1]), *tentative.blocksize))
     kept = _prolongation_fill_sized(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
-                                    row_weights, canonical, longest, indptr, indices, data)
+                                    row_weights, canonical, longest, indptr, indices, data, chunks)
     return sp.bsr_matrix((data[:kept], indices[:kept], indptr), shape=tentative.shape)
 
 
@@ -59,8 +61,11 @@ def galerkin_product(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> sp.b
     column_positions = np.empty(p_indices.shape[0], dtype=np.int64)
     _transpose_pattern(p_indptr, p_indices, column_indptr, column_rows, column_positions)
     counts = np.empty(coarse_columns, dtype=np.int64)
+    # One range of rows per thread (numba's threads asked for here: asked inside a compiled function, the
+    # count is a ctypes call that keeps the function out of numba's cache).
+    chunks = get_num_threads()
     longest = _galerkin_counts(a_indptr, a_indices, p_indptr, p_indices, column_indptr, column_rows,
-                               fine_rows, counts)
+                               fine_rows, counts, chunks)
     indptr = np.zeros(coarse_columns + 1, dtype=_index_type(counts))
     np.cumsum(counts, out=indptr[1:])
     del counts
@@ -68,7 +73,7 @@ def galerkin_product(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> sp.b
     indices = np.empty(int(indptr[-1]), dtype=np.int32)
     data = np.empty((int(indptr[-1]), size, size))
     _galerkin_fill_sized(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr, column_rows,
-                         column_positions, longest, indptr, indices, data)
+                         column_positions, longest, indptr, indices, data, chunks)
     return sp.bsr_matrix((data, indices, indptr), shape=(prolongation.shape[1],) * 2)
 
 
@@ -85,16 +90,29 @@ def _check_block_sizes(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> No
                              f"{matrix.blocksize} and {prolongation.blocksize}")
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _prolongation_counts(a_indptr: IntArray, a_indices: IntArray, t_indptr: IntArray, t_indices: IntArray,
-                         coarse_columns: int, counts: NDArray[np.int64]) -> bool:
+                         coarse_columns: int, counts: NDArray[np.int64], chunks: int) -> bool:
     """Distinct block columns of T and A·T in every row, into `counts`; whether T and A·T both have
     strictly increasing columns in every row (scipy's difference then takes its merging path, whose rows
-    come out sorted, instead of its general one)."""
+    come out sorted, instead of its general one). In `chunks` ranges of rows, as `_galerkin_counts`."""
+    rows = a_indptr.shape[0] - 1
+    canonical = np.ones(chunks, dtype=np.bool_)
+    for chunk in prange(chunks):
+        first, last = _row_range(rows, chunks, chunk)
+        canonical[chunk] = _prolongation_counts_of(a_indptr, a_indices, t_indptr, t_indices, coarse_columns,
+                                                   counts, first, last)
+    return bool(canonical.all())
+
+
+@njit(cache=True)
+def _prolongation_counts_of(a_indptr: IntArray, a_indices: IntArray, t_indptr: IntArray, t_indices: IntArray,
+                            coarse_columns: int, counts: NDArray[np.int64], first: int, last: int) -> bool:
+    """`_prolongation_counts` for the rows [first, last)."""
     seen = np.full(coarse_columns, -1, dtype=np.int64)
     in_product = np.full(coarse_columns, -1, dtype=np.int64)
     canonical = True
-    for row in range(a_indptr.shape[0] - 1):
+    for row in range(first, last):
         count = 0
         previous = -1
         for kk in range(t_indptr[row], t_indptr[row + 1]):
@@ -120,27 +138,58 @@ def _prolongation_counts(a_indptr: IntArray, a_indices: IntArray, t_indptr: IntA
     return canonical
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _prolongation_fill_sized(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, t_indptr: IntArray,
                              t_indices: IntArray, t_data: FloatArray, coarse_columns: int,
                              row_weights: FloatArray, canonical: bool, longest: int, indptr: IntArray,
-                             indices: Int32Array, data: FloatArray) -> int:
+                             indices: Int32Array, data: FloatArray, chunks: int) -> int:
     """`_prolongation_fill` for A's block size, passed as a constant: called from Python, a function that
     asks for `literally` arguments raises and retries, and the exception's traceback keeps the arrays it
-    was given alive until the cyclic garbage collector runs (hierarchies of 800 MB at 10⁶ poses)."""
-    if a_data.shape[1] == 3:
-        return _prolongation_fill(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
-                                  row_weights, canonical, longest, indptr, indices, data, 3, 4)
-    return _prolongation_fill(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
-                              row_weights, canonical, longest, indptr, indices, data, 4, 4)
+    was given alive until the cyclic garbage collector runs (hierarchies of 800 MB at 10⁶ poses).
+
+    In `chunks` ranges of rows, as `_galerkin_fill_sized`: each row fills the blocks the counts gave it
+    (`indptr` on entry), the blocks it keeps first; `_close_gaps` then moves the rows down over the
+    blocks dropped, in order. Returns the blocks kept."""
+    rows = a_indptr.shape[0] - 1
+    kept = np.empty(rows, dtype=np.int64)
+    for chunk in prange(chunks):
+        first, last = _row_range(rows, chunks, chunk)
+        if a_data.shape[1] == 3:
+            _prolongation_fill(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
+                               row_weights, canonical, longest, indptr, indices, data, kept, first, last,
+                               3, 4)
+        else:
+            _prolongation_fill(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
+                               row_weights, canonical, longest, indptr, indices, data, kept, first, last,
+                               4, 4)
+    return _close_gaps(indptr, indices, data, kept)
+
+
+@njit(cache=True)
+def _close_gaps(indptr: IntArray, indices: Int32Array, data: FloatArray, kept: NDArray[np.int64]) -> int:
+    """Rows of `kept[row]` blocks each from `indptr[row]` on, moved down to follow one another (rewrites
+    `indptr`); the blocks in all."""
+    total = 0
+    for row in range(kept.shape[0]):
+        start = indptr[row]
+        indptr[row] = total
+        if start != total:  # only after a row that dropped a block: rows never move up
+            for k in range(kept[row]):
+                indices[total + k] = indices[start + k]
+                data[total + k] = data[start + k]
+        total += kept[row]
+    indptr[kept.shape[0]] = total
+    return total
 
 
 @njit(cache=True)
 def _prolongation_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, t_indptr: IntArray,
                        t_indices: IntArray, t_data: FloatArray, coarse_columns: int, row_weights: FloatArray,
                        canonical: bool, longest: int, indptr: IntArray, indices: Int32Array,
-                       data: FloatArray, b: int, c: int) -> int:
-    """Fills T − W·(A·T) row by row, dropping zero blocks (rewrites `indptr`); returns the blocks kept.
+                       data: FloatArray, kept: NDArray[np.int64], first: int, last: int, b: int,
+                       c: int) -> None:
+    """Fills the rows [first, last) of T − W·(A·T), each from `indptr[row]` on, zero blocks dropped; the
+    blocks each keeps into `kept`.
 
     A row's columns are listed as scipy's general difference meets them (T's, then A·T's in the order the
     product first meets them) and written in reverse, the order of its linked list; on the merging path
@@ -153,8 +202,7 @@ def _prolongation_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArr
     tentative = np.empty((longest, b, c))
     product = np.empty((longest, b, c))
     order = np.empty(longest, dtype=np.int64)
-    kept = 0
-    for row in range(a_indptr.shape[0] - 1):
+    for row in range(first, last):
         length = 0
         for kk in range(t_indptr[row], t_indptr[row + 1]):
             column = t_indices[kk]
@@ -190,7 +238,7 @@ def _prolongation_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArr
         else:
             for k in range(length):
                 order[k] = length - 1 - k
-        indptr[row] = kept
+        position = indptr[row]
         for k in range(length):
             s = order[k]
             slot[columns[s]] = -1
@@ -199,13 +247,12 @@ def _prolongation_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArr
                 weight = row_weights[row * b + p]
                 for q in range(c):
                     value = tentative[s, p, q] - (0.0 + product[s, p, q] * weight)
-                    data[kept, p, q] = value
+                    data[position, p, q] = value
                     nonzero = nonzero or value != 0.0
             if nonzero:
-                indices[kept] = columns[s]
-                kept += 1
-    indptr[a_indptr.shape[0] - 1] = kept
-    return kept
+                indices[position] = columns[s]
+                position += 1
+        kept[row] = position - indptr[row]
 
 
 @njit(cache=True)
@@ -225,18 +272,40 @@ def _transpose_pattern(indptr: IntArray, indices: IntArray, column_indptr: NDArr
             cursor[column] += 1
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _galerkin_counts(a_indptr: IntArray, a_indices: IntArray, p_indptr: IntArray, p_indices: IntArray,
                      column_indptr: NDArray[np.int64], column_rows: Int32Array, fine_rows: int,
-                     counts: NDArray[np.int64]) -> int:
-    """Blocks of every coarse row of Pᵀ·A·P into `counts`; the longest row of R·A."""
+                     counts: NDArray[np.int64], chunks: int) -> int:
+    """Blocks of every coarse row of Pᵀ·A·P into `counts`; the longest row of R·A. The coarse rows are
+    split into `chunks` contiguous ranges (`_row_range`; one per thread), each with scratch of its own:
+    every row's count is the same whoever counts it."""
+    coarse_rows = column_indptr.shape[0] - 1
+    longest = np.zeros(chunks, dtype=np.int64)
+    for chunk in prange(chunks):
+        first, last = _row_range(coarse_rows, chunks, chunk)
+        longest[chunk] = _galerkin_counts_of(a_indptr, a_indices, p_indptr, p_indices, column_indptr,
+                                             column_rows, fine_rows, counts, first, last)
+    return int(longest.max())
+
+
+@njit(cache=True)
+def _row_range(rows: int, chunks: int, chunk: int) -> tuple[int, int]:
+    """Rows [first, last) of chunk `chunk` of `chunks` contiguous, near-equal ranges."""
+    return rows * chunk // chunks, rows * (chunk + 1) // chunks
+
+
+@njit(cache=True)
+def _galerkin_counts_of(a_indptr: IntArray, a_indices: IntArray, p_indptr: IntArray, p_indices: IntArray,
+                        column_indptr: NDArray[np.int64], column_rows: Int32Array, fine_rows: int,
+                        counts: NDArray[np.int64], first: int, last: int) -> int:
+    """`_galerkin_counts` for the coarse rows [first, last)."""
     coarse_rows = column_indptr.shape[0] - 1
     seen_fine = np.zeros(fine_rows, dtype=np.bool_)
     seen_coarse = np.zeros(coarse_rows, dtype=np.bool_)
     fine = np.empty(fine_rows, dtype=np.int64)
     coarse = np.empty(coarse_rows, dtype=np.int64)
     longest = 0
-    for coarse_row in range(coarse_rows):
+    for coarse_row in range(first, last):
         length = 0
         for t in range(column_indptr[coarse_row], column_indptr[coarse_row + 1]):
             row = column_rows[t]
@@ -263,29 +332,35 @@ def _galerkin_counts(a_indptr: IntArray, a_indices: IntArray, p_indptr: IntArray
     return longest
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _galerkin_fill_sized(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, p_indptr: IntArray,
                          p_indices: IntArray, p_data: FloatArray, column_indptr: NDArray[np.int64],
                          column_rows: Int32Array, column_positions: NDArray[np.int64], longest: int,
-                         indptr: IntArray, indices: Int32Array, data: FloatArray) -> None:
-    """`_galerkin_fill` for A's block size, passed as a constant (see `_prolongation_fill_sized`)."""
-    if a_data.shape[1] == 3:
-        _galerkin_fill(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr, column_rows,
-                       column_positions, longest, indptr, indices, data, 3, 4)
-    else:
-        _galerkin_fill(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr, column_rows,
-                       column_positions, longest, indptr, indices, data, 4, 4)
+                         indptr: IntArray, indices: Int32Array, data: FloatArray, chunks: int) -> None:
+    """`_galerkin_fill` for A's block size, passed as a constant (see `_prolongation_fill_sized`), in
+    `chunks` contiguous ranges of coarse rows (one per thread). A row's blocks go where the counts put them
+    and are summed by one thread in `_galerkin_fill`'s order: the same numbers whatever the threads."""
+    coarse_rows = column_indptr.shape[0] - 1
+    for chunk in prange(chunks):
+        first, last = _row_range(coarse_rows, chunks, chunk)
+        if a_data.shape[1] == 3:
+            _galerkin_fill(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr,
+                           column_rows, column_positions, longest, indptr, indices, data, first, last, 3, 4)
+        else:
+            _galerkin_fill(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr,
+                           column_rows, column_positions, longest, indptr, indices, data, first, last, 4, 4)
 
 
 @njit(cache=True)
 def _galerkin_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, p_indptr: IntArray,
                    p_indices: IntArray, p_data: FloatArray, column_indptr: NDArray[np.int64],
                    column_rows: Int32Array, column_positions: NDArray[np.int64], longest: int,
-                   indptr: IntArray, indices: Int32Array, data: FloatArray, b: int, c: int) -> None:
-    """Row I of Pᵀ·A·P: row I of R·A (Σ over the rows i of P's column I, increasing, of P_iIᵀ·A_i·), then
-    that row times P, each accumulated block by block in the order its terms are met (`bsr_matmat`).
-    The block sizes b (A) and c (P's columns) are compile-time constants (`literally`): the block products'
-    loops are then unrolled, at two thirds of the time."""
+                   indptr: IntArray, indices: Int32Array, data: FloatArray, first: int, last: int, b: int,
+                   c: int) -> None:
+    """Rows [first, last) of Pᵀ·A·P. Row I: row I of R·A (Σ over the rows i of P's column I, increasing,
+    of P_iIᵀ·A_i·), then that row times P, each accumulated block by block in the order its terms are met
+    (`bsr_matmat`). The block sizes b (A) and c (P's columns) are compile-time constants (`literally`):
+    the block products' loops are then unrolled, at two thirds of the time."""
     literally(b)
     literally(c)
     fine_rows = p_indptr.shape[0] - 1
@@ -294,7 +369,7 @@ def _galerkin_fill(a_indptr: IntArray, a_indices: IntArray, a_data: FloatArray, 
     coarse_slot = np.full(coarse_rows, -1, dtype=np.int64)
     fine = np.empty(longest, dtype=np.int64)
     restricted = np.empty((longest, c, b))
-    for coarse_row in range(coarse_rows):
+    for coarse_row in range(first, last):
         length = 0
         for t in range(column_indptr[coarse_row], column_indptr[coarse_row + 1]):
             row = column_rows[t]

@@ -43,6 +43,7 @@ from optimizer.block_smoother import (
 )
 from optimizer.damped_solvers import Linearisation, preconditioned_cg
 from optimizer.multigrid_hierarchy import smoothed_aggregation
+from optimizer.parallel_products import block_product
 
 FloatArray = NDArray[np.float64]
 
@@ -139,7 +140,10 @@ class MultigridPCGSolver:
         def precondition(residual: FloatArray, out: FloatArray) -> None:
             out[:] = _v_cycle(preconditioner, 0, residual)
 
-        return preconditioned_cg(matrix.dot, precondition, rhs, self.forcing, max_iterations, start)
+        def apply(vector: FloatArray) -> FloatArray:
+            return block_product(matrix, vector)  # scipy's matrix.dot to the bit, on all threads
+
+        return preconditioned_cg(apply, precondition, rhs, self.forcing, max_iterations, start)
 
 
 def _iterations_to_finish(matrix: sp.bsr_matrix, rhs: FloatArray, solution: FloatArray, iterations: int,
@@ -147,7 +151,8 @@ def _iterations_to_finish(matrix: sp.bsr_matrix, rhs: FloatArray, solution: Floa
     """How many more CG iterations `solution` (after `iterations` from zero) needs to reach `forcing` at the
     mean rate of residual reduction it has shown so far (inf when it has shown none)."""
     rhs_norm = float(np.linalg.norm(rhs))
-    reduction = float(np.linalg.norm(rhs - matrix @ solution)) / rhs_norm if rhs_norm > 0.0 else math.nan
+    residual_norm = float(np.linalg.norm(rhs - block_product(matrix, solution)))
+    reduction = residual_norm / rhs_norm if rhs_norm > 0.0 else math.nan
     if not 0.0 < reduction < 1.0 or iterations < 1:
         return math.inf
     rate = reduction ** (1.0 / iterations)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import weakref
 
+import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -136,3 +137,40 @@ def test_other_block_sizes_are_refused() -> None:
         smoothed_prolongation(matrix, tentative, np.ones(matrix.shape[0]))
     with pytest.raises(OptimizerError, match="b×4"):
         galerkin_product(matrix, tentative)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_the_galerkin_product_is_scipys_on_any_number_of_threads(threads: int) -> None:
+    # Its rows are counted and filled in one range per thread: the same blocks, bit for bit, whatever the
+    # ranges.
+    matrix, near_null = system_and_candidates(2000)
+    prolongation = ours(matrix, tentative_of(matrix, near_null), random_weights(matrix.shape[0]))
+    reference = (sp.bsr_matrix(prolongation.T) @ matrix) @ prolongation
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        assert_same_blocks(galerkin_product(matrix, prolongation), reference)
+    finally:
+        numba.set_num_threads(before)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_prolongation_is_scipys_on_any_number_of_threads(threads: int) -> None:
+    # Rows filled in one range per thread, then moved down over the blocks that cancelled: scipy's blocks
+    # bit for bit whatever the ranges. Every third pose's row cancels exactly (W·A = I there, as in
+    # `test_blocks_that_cancel_are_dropped`), so the rows after it move.
+    matrix, near_null = system_and_candidates(2000)
+    tentative = tentative_of(matrix, near_null)
+    diagonal = sp.bsr_matrix(sp.identity(matrix.shape[0]) * 4.0, blocksize=(3, 3))
+    weights = np.where(np.arange(matrix.shape[0]) // 3 % 3 == 0, 0.25, 0.1)
+    pose_weights = random_weights(matrix.shape[0])
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        partly = ours(diagonal, tentative, weights)
+        assert 0 < partly.indptr[-1] < tentative.indptr[-1]
+        assert_same_blocks(partly, scipys_prolongation(diagonal, tentative, weights))
+        assert_same_blocks(ours(matrix, tentative, pose_weights),
+                           scipys_prolongation(matrix, tentative, pose_weights))
+    finally:
+        numba.set_num_threads(before)
