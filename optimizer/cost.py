@@ -58,17 +58,7 @@ def _chi2_terms(poses: FloatArray, edge_from: NDArray[np.int64], edge_to: NDArra
     each computed as there."""
     for offset in prange(last - first):
         k = first + offset
-        a = poses[edge_from[k]]
-        b = poses[edge_to[k]]
-        ca, sa = math.cos(a[2]), math.sin(a[2])
-        dx, dy = b[0] - a[0], b[1] - a[1]
-        px, py, pt = ca * dx + sa * dy, -sa * dx + ca * dy, b[2] - a[2]
-        z = measurements[k]
-        cz, sz = math.cos(z[2]), math.sin(z[2])
-        ex, ey = px - z[0], py - z[1]
-        e0 = cz * ex + sz * ey
-        e1 = -sz * ex + cz * ey
-        e2 = se2.wrap_angle(pt - z[2])
+        e0, e1, e2 = _error(poses, edge_from, edge_to, measurements, k)
         info = information[k]
         row = terms[offset]
         row[0] = e0 * info[0, 0] * e0
@@ -100,19 +90,24 @@ def _chi2_kernel(poses: FloatArray, edge_from: NDArray[np.int64], edge_to: NDArr
     total = 0.0
     e = np.empty(3)
     for k in range(edge_from.shape[0]):
-        a = poses[edge_from[k]]
-        b = poses[edge_to[k]]
-        ca, sa = math.cos(a[2]), math.sin(a[2])
-        dx, dy = b[0] - a[0], b[1] - a[1]
-        px, py, pt = ca * dx + sa * dy, -sa * dx + ca * dy, b[2] - a[2]
-        z = measurements[k]
-        cz, sz = math.cos(z[2]), math.sin(z[2])
-        ex, ey = px - z[0], py - z[1]
-        e[0] = cz * ex + sz * ey
-        e[1] = -sz * ex + cz * ey
-        e[2] = se2.wrap_angle(pt - z[2])
+        e[0], e[1], e[2] = _error(poses, edge_from, edge_to, measurements, k)
         info = information[k]
         for i in range(3):
             for j in range(3):
                 total += e[i] * info[i, j] * e[j]
     return total
+
+
+@njit(cache=True, inline="always")
+def _error(poses: FloatArray, edge_from: NDArray[np.int64], edge_to: NDArray[np.int64],
+           measurements: FloatArray, k: int) -> tuple[float, float, float]:
+    """Constraint k's error t2v(Z⁻¹·Xa⁻¹·Xb) in the stored direction (g2o's convention)."""
+    a = poses[edge_from[k]]
+    b = poses[edge_to[k]]
+    ca, sa = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    px, py, pt = ca * dx + sa * dy, -sa * dx + ca * dy, b[2] - a[2]
+    z = measurements[k]
+    cz, sz = math.cos(z[2]), math.sin(z[2])
+    ex, ey = px - z[0], py - z[1]
+    return cz * ex + sz * ey, -sz * ex + cz * ey, se2.wrap_angle(pt - z[2])
