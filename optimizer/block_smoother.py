@@ -50,8 +50,7 @@ def inverted_diagonal(matrix: sp.bsr_matrix) -> FloatArray:
             # numpy's inversion lets go of the GIL: the chunks on as many threads as numba's kernels use
             # (one with NUMBA_NUM_THREADS=1). Each block's inverse is the same whichever thread computes it.
             with ThreadPoolExecutor(max_workers=workers) as pool:
-                for inverted in pool.map(_invert_in_place, chunks):
-                    del inverted
+                list(pool.map(_invert_in_place, chunks))  # waits for every chunk, re-raises its error
     except np.linalg.LinAlgError:  # a pose or aggregate its constraints leave free in some direction
         return np.linalg.pinv(_diagonal_of(matrix))
     return blocks

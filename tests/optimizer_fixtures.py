@@ -1,10 +1,12 @@
-"""Fixtures shared by the optimizer tests: a multi-lap square graph and helpers for polish generators."""
+"""Fixtures shared by the optimizer tests: a multi-lap square graph, helpers for polish generators and a
+block-sparse matrix shaped like a pose graph's normal equations."""
 
 from __future__ import annotations
 
 from collections.abc import Generator
 
 import numpy as np
+import scipy.sparse as sp
 
 from optimizer import se2
 from optimizer.graph import PoseGraph
@@ -56,3 +58,20 @@ def run(polish: Generator[Iteration, None, PolishStatus]) -> tuple[list[Iteratio
 def random_information(rng: np.random.Generator, count: int) -> np.ndarray:
     factors = rng.normal(size=(count, 3, 3))
     return factors @ np.swapaxes(factors, 1, 2) + 0.5 * np.eye(3)
+
+
+def symmetric_block_matrix(size: int, rows: int, seed: int) -> sp.bsr_matrix:
+    """A symmetric, diagonally dominant BSR matrix of `rows` block rows with random off-diagonal blocks
+    (a chain and random pairs, as the poses of a pose graph)."""
+    rng = np.random.default_rng(seed)
+    first = np.concatenate([np.arange(rows - 1), rng.integers(0, rows, 2 * rows)])
+    second = np.concatenate([np.arange(1, rows), rng.integers(0, rows, 2 * rows)])
+    keep = first != second
+    first, second = first[keep], second[keep]
+    blocks = rng.normal(size=(len(first), size, size))
+    dense_rows = np.repeat(first * size, size * size) + np.tile(np.repeat(np.arange(size), size), len(first))
+    dense_cols = np.repeat(second * size, size * size) + np.tile(np.tile(np.arange(size), size), len(first))
+    off = sp.coo_matrix((blocks.reshape(-1), (dense_rows, dense_cols)), shape=(rows * size,) * 2).tocsr()
+    dominance = 4.0 * size * np.abs(off + off.T).sum(axis=1).max()
+    matrix = off + off.T + sp.identity(rows * size) * dominance
+    return sp.bsr_matrix(matrix, blocksize=(size, size))

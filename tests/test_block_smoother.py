@@ -16,27 +16,11 @@ from optimizer.block_smoother import (
     restrict,
 )
 from optimizer.errors import OptimizerError
+from tests.optimizer_fixtures import symmetric_block_matrix
 
 pytest.importorskip("pyamg")
 
 from pyamg.relaxation.relaxation import block_gauss_seidel  # needs pyamg: after the skip
-
-
-def symmetric_block_matrix(size: int, rows: int, seed: int) -> sp.bsr_matrix:
-    """A symmetric, diagonally dominant BSR matrix of `rows` block rows with random off-diagonal blocks
-    (a chain and random pairs, as the poses of a pose graph)."""
-    rng = np.random.default_rng(seed)
-    first = np.concatenate([np.arange(rows - 1), rng.integers(0, rows, 2 * rows)])
-    second = np.concatenate([np.arange(1, rows), rng.integers(0, rows, 2 * rows)])
-    keep = first != second
-    first, second = first[keep], second[keep]
-    blocks = rng.normal(size=(len(first), size, size))
-    dense_rows = np.repeat(first * size, size * size) + np.tile(np.repeat(np.arange(size), size), len(first))
-    dense_cols = np.repeat(second * size, size * size) + np.tile(np.tile(np.arange(size), size), len(first))
-    off = sp.coo_matrix((blocks.reshape(-1), (dense_rows, dense_cols)), shape=(rows * size,) * 2).tocsr()
-    dominance = 4.0 * size * np.abs(off + off.T).sum(axis=1).max()
-    matrix = off + off.T + sp.identity(rows * size) * dominance
-    return sp.bsr_matrix(matrix, blocksize=(size, size))
 
 
 @pytest.mark.parametrize("size", [3, 4])

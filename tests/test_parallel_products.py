@@ -14,7 +14,7 @@ from optimizer.block_smoother import inverted_diagonal, prolong_into
 from optimizer.errors import OptimizerError
 from optimizer.gridworld import generate_grid_world
 from optimizer.parallel_products import add_scaled, block_product, scale_and_add
-from tests.test_block_smoother import symmetric_block_matrix
+from tests.optimizer_fixtures import symmetric_block_matrix
 
 THREADS = sorted({1, 2, numba.config.NUMBA_NUM_THREADS})
 
