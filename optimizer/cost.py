@@ -30,6 +30,11 @@ def edge_chi2(graph: PoseGraph, poses: FloatArray | None = None) -> FloatArray:
 CHI2_CHUNK = 65_536
 """Constraints whose χ² terms are computed at once on all threads before they are summed in order."""
 
+CHI2_PARALLEL_MIN = 16_384
+"""Fewer constraints than this are summed by `_chi2_kernel` on the calling thread: waking numba's threads
+costs more than such a sum (a town loop's 80-keyframe graph: 12 ms a call on a loaded 2-core machine,
+against microseconds on one thread), and the value is the same to the bit."""
+
 
 def chi2(graph: PoseGraph, poses: FloatArray | None = None) -> float:
     """Total χ² of the graph at `poses` (default: the graph's estimate).
@@ -40,6 +45,9 @@ def chi2(graph: PoseGraph, poses: FloatArray | None = None) -> float:
     the bit, whatever the threads."""
     poses = graph.poses if poses is None else np.ascontiguousarray(poses, dtype=np.float64)
     edges = graph.num_edges
+    if edges < CHI2_PARALLEL_MIN:
+        return float(_chi2_kernel(poses, graph.edge_from, graph.edge_to, graph.measurements,
+                                  graph.information))
     terms = np.empty((min(edges, CHI2_CHUNK), 9))
     total = 0.0
     for first in range(0, edges, CHI2_CHUNK):
@@ -86,7 +94,8 @@ def _chi2_kernel(poses: FloatArray, edge_from: NDArray[np.int64], edge_to: NDArr
                  measurements: FloatArray, information: FloatArray) -> float:
     # Compiled rather than vectorized: it runs after every optimizer iteration, and on million-edge
     # graphs the vectorized form's (M, 3) temporaries would dominate the optimizer's memory. One thread:
-    # the reference `chi2` computes in parallel and must equal (tests/test_parallel_products.py).
+    # `chi2` sums small graphs with it, and its parallel terms must equal it
+    # (tests/test_parallel_products.py).
     total = 0.0
     e = np.empty(3)
     for k in range(edge_from.shape[0]):

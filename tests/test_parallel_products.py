@@ -106,6 +106,7 @@ def test_the_prolongation_is_the_same_on_any_number_of_threads(rows: int) -> Non
 def test_chi2_is_the_one_thread_sum_to_the_bit(monkeypatch: pytest.MonkeyPatch, chunk: int) -> None:
     # Terms on all threads, summed in constraint order on one: `_chi2_kernel`'s number, chunk after chunk.
     monkeypatch.setattr(cost, "CHI2_CHUNK", chunk)
+    monkeypatch.setattr(cost, "CHI2_PARALLEL_MIN", 0)  # this graph is small enough for the one-thread sum
     graph = generate_grid_world(3000, seed=3).graph
     poses = graph.poses + np.random.default_rng(12).normal(scale=0.1, size=graph.poses.shape)
     expected = cost._chi2_kernel(poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information)
