@@ -135,7 +135,10 @@ def keyframe_transform_columns(poses: NDArray[np.floating]) -> list[list[rr.Comp
     of the archetype, once per keyframe: a third of the cost of recording a town loop's iterations)."""
     count, keyframes = poses.shape[:2]
     rotations = np.asarray(poses[..., :3, :3], dtype=np.float64).reshape(-1, 3, 3)
-    quaternions = Rotation.from_matrix(rotations).as_quat().astype(np.float32)  # x, y, z, w
+    # The rotations are lifted from planar poses and odometry's roll and pitch, orthonormal to float32's
+    # precision: scipy's projection onto the nearest rotation (an SVD per matrix) changes the quaternions by
+    # one float32 ulp at most and cost 0.3 s per 65 000 matrices (a town loop's iterations × keyframes).
+    quaternions = Rotation.from_matrix(rotations, assume_valid=True).as_quat().astype(np.float32)  # x,y,z,w
     quaternions = quaternions.reshape(count, keyframes, 4)
     translations = np.asarray(poses[..., :3, 3], dtype=np.float32)
     return [
