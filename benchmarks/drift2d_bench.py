@@ -15,7 +15,15 @@ what a log without loops, or the first half of one, gets). Every scan's pose is 
   100 m, or half the log's path where shorter (short logs say little about drift per 100 m: the column
   gives `L`);
 - end: the open-loop run's heading and position at the last scan against the reference's (both runs start
-  at the same pose), and the largest heading difference along the log.
+  at the same pose), and the largest heading difference along the log;
+- turn bias: the slope of the open-loop heading error against the reference's heading turned since the
+  start (%, least squares, with its R²): a matcher that over- or under-rotates by a fixed share of every
+  turn drifts with the net turn, whatever the path length (ACES circles the same way ~3.5 times).
+
+`--assumed-sweep SECONDS` is a diagnostic of where such a bias comes from: each scan is first deskewed in
+rotation as if its beams were taken over that many seconds from the first bearing to the last, at the
+reference's angular rate there (motion distortion: a scan taken while turning is stretched or squeezed).
+It uses the reference, so it is not a frontend; the logs' own LaserScan timing is not read by the frontend.
 
 The reference has errors of its own (a loop closure, the optimizer), so on ACES both runs are also scored
 against the Freiburg relations (Kümmerle et al. 2009): the closed-loop figure is the one the SLAM is judged
@@ -81,6 +89,34 @@ def segment_drift(reference: FloatArray, estimate: FloatArray, length: float) ->
     return float(rotation.mean()), float(translation.mean()), len(starts)
 
 
+def turn_bias(reference: FloatArray, estimate: FloatArray) -> tuple[float, float]:
+    """Slope (%) of the estimate's heading error against the reference's heading turned since the start,
+    and the fit's R²."""
+    turned = np.degrees(np.unwrap(reference[:, 2]) - reference[0, 2])
+    error = np.degrees(se2.wrap_angle(estimate[:, 2] - reference[:, 2]))
+    slope, intercept = np.polyfit(turned, error, 1)
+    residual = error - (slope * turned + intercept)
+    spread = np.sum((error - error.mean()) ** 2)
+    return float(100.0 * slope), float(1.0 - np.sum(residual**2) / spread) if spread > 1e-12 else float("nan")
+
+
+def deskewed(scans: list[LogScan], reference: FloatArray, sweep: float) -> list[LogScan]:
+    """The scans with each point rotated by the reference's turn between the scan's middle and the point's
+    time, its beams taken over `sweep` seconds in order of bearing (a diagnostic, see the module's text)."""
+    seconds = np.array([s.stamp_ns for s in scans], dtype=np.float64) * 1e-9
+    rates = np.gradient(np.unwrap(reference[:, 2]), seconds)
+    out = []
+    for scan, rate in zip(scans, rates, strict=True):
+        bearings = np.arctan2(scan.points[:, 1], scan.points[:, 0])
+        span = max(float(np.ptp(bearings)), 1e-9) if len(bearings) else 1.0
+        angle = rate * sweep * ((bearings - bearings.min()) / span - 0.5) if len(bearings) else bearings
+        c, s = np.cos(angle), np.sin(angle)
+        points = np.stack([c * scan.points[:, 0] - s * scan.points[:, 1],
+                           s * scan.points[:, 0] + c * scan.points[:, 1]], axis=1)
+        out.append(LogScan(scan.stamp_ns, points, scan.odometry, scan.interval))
+    return out
+
+
 def scan_poses(scans: list[LogScan], config: Slam2DConfig,
                optimize: bool) -> tuple[FloatArray, NDArray[np.int64], float, int]:
     """Every scan's pose (optimized when `optimize`), stamps, frontend CPU seconds, loop closures."""
@@ -107,6 +143,8 @@ def main() -> None:
     parser.add_argument("--reference", type=Path,
                         help="also score the open-loop run against DIR/<log>.npy, a closed-loop run saved "
                              "by --save-reference (e.g. of main): a fixed reference for comparing versions")
+    parser.add_argument("--assumed-sweep", type=float, default=0.0,
+                        help="diagnostic: deskew the open-loop scans as if swept over this many seconds")
     args = parser.parse_args()
     closed = Slam2DConfig()
     open_loop = replace(closed, loop_closure=replace(closed.loop_closure, enabled=False))
@@ -119,7 +157,8 @@ def main() -> None:
                 continue
             scans = read_scans(path)
             reference, stamps, closed_seconds, loops = scan_poses(scans, closed, optimize=True)
-            estimate, open_stamps, open_seconds, _ = scan_poses(scans, open_loop, optimize=False)
+            open_scans = deskewed(scans, reference, args.assumed_sweep) if args.assumed_sweep else scans
+            estimate, open_stamps, open_seconds, _ = scan_poses(open_scans, open_loop, optimize=False)
             if not np.array_equal(stamps, open_stamps):
                 raise RuntimeError(f"{name}: the two runs have different scans")
             if args.save_reference is not None:
@@ -140,7 +179,7 @@ def main() -> None:
             rows.append((name, len(scans), travelled, loops, length, segments, rotation, translation,
                          float(np.degrees(abs(se2.wrap_angle(end[2])))),
                          float(np.hypot(*(estimate[-1, :2] - reference[-1, :2]))), float(heading.max()),
-                         open_seconds, closed_seconds))
+                         turn_bias(reference, estimate), open_seconds, closed_seconds))
             if name in RELATIONS:
                 relations = read_relations(args.shared / RELATIONS[name])
                 for run, poses in (("closed loop (as replay)", reference), ("open loop", estimate)):
@@ -152,13 +191,13 @@ def main() -> None:
     print("## Open-loop drift of the 2D frontend against the log's own closed-loop run\n")
     print("| log | scans | path (m) | loop closures (reference) | L (m) | segments | rotation (deg/100 m) "
           "| translation (m/100 m) | end heading (deg) | end position (m) | max heading (deg) "
-          "| open-loop CPU s | closed-loop CPU s |")
-    print("|---" * 13 + "|")
+          "| turn bias (%, R²) | open-loop CPU s | closed-loop CPU s |")
+    print("|---" * 14 + "|")
     for (name, scans_count, travelled, loops, length, segments, rotation, translation, end_heading,
-         end_position, max_heading, open_seconds, closed_seconds) in rows:
+         end_position, max_heading, (bias, fit), open_seconds, closed_seconds) in rows:
         print(f"| {name} | {scans_count} | {travelled:.1f} | {loops} | {length:.1f} | {segments} "
               f"| {rotation:.3f} | {translation:.3f} | {end_heading:.2f} | {end_position:.2f} "
-              f"| {max_heading:.2f} | {open_seconds:.1f} | {closed_seconds:.1f} |")
+              f"| {max_heading:.2f} | {bias:+.3f} ({fit:.2f}) | {open_seconds:.1f} | {closed_seconds:.1f} |")
     if fixed_rows:
         print(f"\n## The open-loop run against the closed-loop run saved in {args.reference}\n")
         print("| log | rotation (deg/100 m) | translation (m/100 m) |")
