@@ -24,6 +24,8 @@ import math
 import numpy as np
 from numba import njit
 
+from optimizer.cost import plus_edge_chi2
+
 TWO_PI = 2.0 * math.pi
 Six = tuple[float, float, float, float, float, float]
 
@@ -485,9 +487,12 @@ def _tree_add(first: int, last: int, a0: float, a1: float, a2: float, weights: n
 def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray,
                        measurements: np.ndarray, information: np.ndarray, weights: np.ndarray,
                        amounts: np.ndarray, tree: np.ndarray, gamma: np.ndarray, t: int, block: int,
-                       out: np.ndarray) -> None:
+                       out: np.ndarray, base_chi2: bool) -> float:
     """One pass over all constraints in O(log N + block) each, from the poses `base` (left as they are);
-    the new poses, θ wrapped, are written to `out` at the end (O(N)).
+    the new poses, θ wrapped, are written to `out` at the end (O(N)). Returns the χ² of `base` if
+    `base_chi2` (else NaN): `optimizer.cost.chi2(graph, base)` to the bit, summed along the pass, which
+    reads each constraint and its poses anyway (a separate χ² costs a third of a pass at 10⁶ poses, most of
+    it in memory traffic, not arithmetic).
 
     `weights` and `tree` ((2·`tree_size`, 3, 3)) must hold what `stiffness_tree` computed with `block`.
 
@@ -503,9 +508,12 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
     tree[:, ACCUMULATED, :] = 0.0
     amounts[:] = 0.0
     pending = np.full(1, -1)
+    chi2 = 0.0 if base_chi2 else np.nan
     for k in range(edge_from.shape[0]):
         a = edge_from[k]
         b = edge_to[k]
+        if base_chi2:
+            chi2 = plus_edge_chi2(chi2, base, edge_from, edge_to, measurements, information, k)
         ax, ay, atheta, bx, by, btheta = _tree_pose_pair(a, b, base, weights, amounts, tree, pending, block)
         r0, r1, r2, d0, d1, d2 = _weighted_residual_one_rotation(ax, ay, atheta, bx, by, btheta,
                                                                  measurements[k], information[k])
@@ -531,3 +539,4 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
         out[i, 0] = base[i, 0] + moved0
         out[i, 1] = base[i, 1] + moved1
         out[i, 2] = _wrap(base[i, 2] + moved2)
+    return chi2
