@@ -52,8 +52,9 @@ def sgd(
     schedule (a smaller learning rate) when re-optimizing an already aligned graph. `tree_block` is the
     number of increments per leaf of the tree (a memory/speed trade-off; results agree to rounding).
 
-    Memory beyond the graph: the tree (`tree_block` = 8: about 67 bytes per pose) and the yielded poses.
-    The tree starts each iteration from the poses it yielded last, which the receiver must not modify.
+    Memory beyond the graph: the tree with its weights and amounts (`tree_block` = 8: about 67 bytes per
+    pose), the yielded poses and the next iteration's: the tree is one pass ahead of its yields (a pass
+    sums the χ² of the poses it starts from, the iteration it then yields).
     """
     if iterations < 0:
         raise OptimizerError(f"iterations must be >= 0, got {iterations}")
