@@ -97,13 +97,27 @@ def _chi2_kernel(poses: FloatArray, edge_from: NDArray[np.int64], edge_to: NDArr
     # `chi2` sums small graphs with it, and its parallel terms must equal it
     # (tests/test_parallel_products.py).
     total = 0.0
-    e = np.empty(3)
     for k in range(edge_from.shape[0]):
-        e[0], e[1], e[2] = _error(poses, edge_from, edge_to, measurements, k)
-        info = information[k]
-        for i in range(3):
-            for j in range(3):
-                total += e[i] * info[i, j] * e[j]
+        total = plus_edge_chi2(total, poses, edge_from, edge_to, measurements, information, k)
+    return total
+
+
+@njit(cache=True, inline="always")
+def plus_edge_chi2(total: float, poses: FloatArray, edge_from: NDArray[np.int64], edge_to: NDArray[np.int64],
+                   measurements: FloatArray, information: FloatArray, k: int) -> float:
+    """total + constraint k's χ² term eᵀ·Ω·e, its nine products eᵢ·Ωᵢⱼ·eⱼ added one at a time (i, then j):
+    what `chi2` adds for it, to the bit (also inside the SGD pass, `optimizer.sgd_kernels`)."""
+    e0, e1, e2 = _error(poses, edge_from, edge_to, measurements, k)
+    info = information[k]
+    total += e0 * info[0, 0] * e0
+    total += e0 * info[0, 1] * e1
+    total += e0 * info[0, 2] * e2
+    total += e1 * info[1, 0] * e0
+    total += e1 * info[1, 1] * e1
+    total += e1 * info[1, 2] * e2
+    total += e2 * info[2, 0] * e0
+    total += e2 * info[2, 1] * e1
+    total += e2 * info[2, 2] * e2
     return total
 
 

@@ -52,8 +52,9 @@ def sgd(
     schedule (a smaller learning rate) when re-optimizing an already aligned graph. `tree_block` is the
     number of increments per leaf of the tree (a memory/speed trade-off; results agree to rounding).
 
-    Memory beyond the graph: the tree (`tree_block` = 8: about 67 bytes per pose) and the yielded poses.
-    The tree starts each iteration from the poses it yielded last, which the receiver must not modify.
+    Memory beyond the graph: the tree with its weights and amounts (`tree_block` = 8: about 67 bytes per
+    pose), the yielded poses and the next iteration's: the tree is one pass ahead of its yields (a pass
+    sums the χ² of the poses it starts from, the iteration it then yields).
     """
     if iterations < 0:
         raise OptimizerError(f"iterations must be >= 0, got {iterations}")
@@ -76,6 +77,9 @@ def sgd(
 
 def _sgd_tree(graph: PoseGraph, iterations: int, base: NDArray[np.float64], first_iteration: int,
               block: int) -> Iterator[Iteration]:
+    """Each iteration is yielded once the next pass has run: that pass sums the χ² of its starting poses
+    (the iteration's) as it reads the constraints, instead of a separate χ² reading them all again. The
+    last iteration's χ² is computed on its own. A receiver that stops early leaves one pass unused."""
     n = graph.num_poses
     edges = (graph.edge_from, graph.edge_to)
     gamma = np.empty(3)
@@ -87,12 +91,15 @@ def _sgd_tree(graph: PoseGraph, iterations: int, base: NDArray[np.float64], firs
         if offset == 0 or recomputes_stiffness(t):
             stiffness_tree(base, *edges, graph.information, weights, amounts, tree, gamma, block)
         poses = np.empty_like(base)
-        sgd_iteration_tree(base, *edges, graph.measurements, graph.information, weights, amounts, tree,
-                           gamma, t, block, poses)
+        base_chi2 = sgd_iteration_tree(base, *edges, graph.measurements, graph.information, weights, amounts,
+                                       tree, gamma, t, block, poses, offset > 0)
+        if offset > 0:
+            yield Iteration("sgd", offset, base, base_chi2)
         if not np.all(np.isfinite(poses[-1])):
             raise OptimizerError(f"SGD diverged at iteration {t} (non-finite poses)")
-        yield Iteration("sgd", offset + 1, poses, chi2(graph, poses))
         base = poses  # θ wrapped: the same poses for the SGD, whose angles only enter through sin, cos, wrap
+    if iterations > 0:
+        yield Iteration("sgd", iterations, base, chi2(graph, base))
 
 
 def _sgd_linear(graph: PoseGraph, iterations: int, state: NDArray[np.float64],

@@ -125,6 +125,27 @@ def test_tree_equals_algorithm_1_on_real_graphs(relative: str, iterations: int) 
         assert _angle_aware_max_difference(a.poses, b.poses) < 1e-9
 
 
+@pytest.mark.parametrize("iterations", [0, 1, 2, 9])
+def test_each_iteration_reports_the_chi2_of_its_own_poses(iterations: int) -> None:
+    # Pass t + 1 sums the χ² of iteration t's poses while it reads the constraints (the last iteration's
+    # is computed on its own): each must be `chi2` of the yielded poses to the bit, with reversed edges and
+    # full (correlated) information, every one of the nine terms nonzero.
+    from optimizer.gridworld import generate_grid_world
+
+    graph = generate_grid_world(400, seed=7).graph
+    rng = np.random.default_rng(2)
+    flip = rng.random(graph.num_edges) < 0.3
+    root = rng.normal(size=(graph.num_edges, 3, 3))
+    information = graph.information + 0.3 * root @ root.transpose(0, 2, 1) * graph.information[:, :1, :1]
+    graph = PoseGraph.build(np.arange(graph.num_poses), graph.poses,
+                            np.where(flip, graph.edge_to, graph.edge_from),
+                            np.where(flip, graph.edge_from, graph.edge_to), graph.measurements, information)
+    steps = list(sgd(graph, iterations))
+    assert [step.index for step in steps] == list(range(1, iterations + 1))
+    for step in steps:
+        assert step.chi2 == chi2(graph, step.poses)
+
+
 def test_continuing_the_schedule_matches_one_long_run() -> None:
     graph, _ = square_loop_graph(noise=0.1, seed=5)
     whole = list(sgd(graph, 6))

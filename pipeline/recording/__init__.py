@@ -49,6 +49,7 @@ from rerun.encodings import Vec2DBatch
 
 from optimizer.iteration import ESTIMATE, Iteration
 from pipeline.errors import OutputError, PipelineError
+from pipeline.recording.stillness import finite_extent, moved_within
 
 if TYPE_CHECKING:
     from frontends.protocol import ScanLocalizations
@@ -573,7 +574,7 @@ class IterationRecorder:
     def _buffer_geometry(self, poses: NDArray[np.float64], *, thin: bool) -> None:
         still = self._still_distance(poses)
         if (thin and still is not None and self._last_drawn is not None
-                and np.max(np.abs(poses[:, :2] - self._last_drawn), initial=0.0) <= still):
+                and moved_within(poses, self._last_drawn, still)):
             self._trajectories.append(None)
             self._loop_segments.append(None)
             return
@@ -588,9 +589,7 @@ class IterationRecorder:
         """How far every pose may move from the last drawn row without a new one; None: always draw."""
         if self._still_fraction is None:
             return self._still_move
-        finite = poses[np.all(np.isfinite(poses[:, :2]), axis=1), :2]
-        extent = float(np.max(np.ptp(finite, axis=0))) if len(finite) else 0.0
-        return max(self._still_move or 0.0, self._still_fraction * extent)
+        return max(self._still_move or 0.0, self._still_fraction * finite_extent(poses))
 
     def _geometry(self, poses: NDArray[np.float64], *, thin: bool) -> tuple[NDArray[np.float32],
                                                                            NDArray[np.float32]]:
