@@ -9,7 +9,7 @@ from numba import njit, prange
 from numpy.typing import NDArray
 
 from optimizer import se2
-from optimizer.graph import PoseGraph
+from optimizer.graph import PoseGraph, read_only
 
 FloatArray = NDArray[np.float64]
 
@@ -43,7 +43,8 @@ def chi2(graph: PoseGraph, poses: FloatArray | None = None) -> float:
     trigonometry is most of the time: 0.3 s a call at 2·10⁶ constraints, once per SGD iteration and per
     polish trial), then added one by one in constraint order on one thread: the sum of `_chi2_kernel`, to
     the bit, whatever the threads."""
-    poses = graph.poses if poses is None else np.ascontiguousarray(poses, dtype=np.float64)
+    # Read-only as the graph's own: one compiled signature of the kernel for both.
+    poses = graph.poses if poses is None else read_only(np.ascontiguousarray(poses, dtype=np.float64))
     edges = graph.num_edges
     if edges < CHI2_PARALLEL_MIN:
         return float(_chi2_kernel(poses, graph.edge_from, graph.edge_to, graph.measurements,

@@ -24,6 +24,15 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
+def read_only(poses: FloatArray) -> FloatArray:
+    """A read-only view of `poses` (no copy), for compiled kernels that also get a graph's own (read-only)
+    poses: numba compiles a kernel once per argument type, and a writable array is another type, compiled
+    again on first use (seconds per kernel in a fresh cache)."""
+    view = poses.view()
+    view.setflags(write=False)
+    return view
+
+
 @dataclass(frozen=True, eq=False)
 class PoseGraph:
     """A 2D pose graph. Build it with `PoseGraph.build`, which validates and normalises the input."""

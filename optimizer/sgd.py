@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from optimizer import se2
 from optimizer.cost import chi2
 from optimizer.errors import OptimizerError
-from optimizer.graph import PoseGraph
+from optimizer.graph import PoseGraph, read_only
 from optimizer.iteration import Iteration
 from optimizer.sgd_kernels import (
     TREE_BLOCK,
@@ -88,11 +88,13 @@ def _sgd_tree(graph: PoseGraph, iterations: int, base: NDArray[np.float64], firs
     tree = np.empty((2 * tree_size(n, block), 3, 3))
     for offset in range(iterations):
         t = first_iteration + offset
+        # Read-only, as the graph's own poses are: one compiled signature of the kernels for both.
+        frozen = read_only(base)
         if offset == 0 or recomputes_stiffness(t):
-            stiffness_tree(base, *edges, graph.information, weights, amounts, tree, gamma, block)
+            stiffness_tree(frozen, *edges, graph.information, weights, amounts, tree, gamma, block)
         poses = np.empty_like(base)
-        base_chi2 = sgd_iteration_tree(base, *edges, graph.measurements, graph.information, weights, amounts,
-                                       tree, gamma, t, block, poses, offset > 0)
+        base_chi2 = sgd_iteration_tree(frozen, *edges, graph.measurements, graph.information, weights,
+                                       amounts, tree, gamma, t, block, poses, offset > 0)
         if offset > 0:
             yield Iteration("sgd", offset, base, base_chi2)
         if not np.all(np.isfinite(poses[-1])):
