@@ -24,7 +24,6 @@ from optimizer import se2
 from optimizer.errors import GraphError, GraphFileError
 from optimizer.file_input import read_bytes_bounded
 from optimizer.graph import SPD_TOLERANCE, PoseGraph, not_positive_definite
-from optimizer.graph_scan import scan_graph_bytes
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -216,6 +215,10 @@ def _scan(path: Path, data: bytes) -> tuple[dict[str, _Block], dict[str, int], s
 
 def _group_plain(data: bytes) -> tuple[dict[str, _Group], dict[str, int]] | None:
     """The compiled fast path; None when the file needs the line-by-line reader (which explains errors)."""
+    # Imported by the first read: its pyarrow.compute costs a replay of a log 0.1 s of start-up to write a
+    # graph it never reads.
+    from optimizer.graph_scan import scan_graph_bytes
+
     tags = tuple(_GRAPH_TAGS)
     scanned = scan_graph_bytes(data, tags, tuple(_VERTEX_FIELDS if _GRAPH_TAGS[tag][1] else _EDGE_FIELDS
                                                  for tag in tags))
