@@ -26,14 +26,9 @@ from numba import njit
 
 from optimizer.cost import plus_edge_chi2
 from optimizer.prefetch import prefetch
+from optimizer.se2 import wrap_scalar
 
-TWO_PI = 2.0 * math.pi
 Six = tuple[float, float, float, float, float, float]
-
-
-@njit(cache=True, inline="always")
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % TWO_PI - math.pi
 
 
 @njit(cache=True, inline="always")
@@ -68,7 +63,7 @@ def _weighted_residual(pa: np.ndarray, pb: np.ndarray, z: np.ndarray, info: np.n
     s = math.sin(pa[2])
     r[0] = pa[0] + c * z[0] - s * z[1] - pb[0]
     r[1] = pa[1] + s * z[0] + c * z[1] - pb[1]
-    r[2] = _wrap(pa[2] + z[2] - pb[2])
+    r[2] = wrap_scalar(pa[2] + z[2] - pb[2])
     _rotated_information(pa[2], info, w_global)
     for j in range(3):
         d[j] = 2.0 * (w_global[j, 0] * r[0] + w_global[j, 1] * r[1] + w_global[j, 2] * r[2])
@@ -84,7 +79,7 @@ def _weighted_residual_one_rotation(ax: float, ay: float, atheta: float, bx: flo
     s = math.sin(atheta)
     r0 = ax + c * z[0] - s * z[1] - bx
     r1 = ay + s * z[0] + c * z[1] - by
-    r2 = _wrap(atheta + z[2] - btheta)
+    r2 = wrap_scalar(atheta + z[2] - btheta)
     ro00 = c * info[0, 0] - s * info[1, 0]
     ro01 = c * info[0, 1] - s * info[1, 1]
     ro10 = s * info[0, 0] + c * info[1, 0]
@@ -576,5 +571,5 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
         moved2 += weights[i, 2] * (amounts[i, 2] + tree[leaf, LAZY, 2])
         out[i, 0] = base[i, 0] + moved0
         out[i, 1] = base[i, 1] + moved1
-        out[i, 2] = _wrap(base[i, 2] + moved2)
+        out[i, 2] = wrap_scalar(base[i, 2] + moved2)
     return chi2
