@@ -31,6 +31,8 @@ from optimizer.se2 import wrap_scalar
 Six = tuple[float, float, float, float, float, float]
 
 
+
+
 @njit(cache=True, inline="always")
 def _rotated_information(theta: float, info: np.ndarray, out: np.ndarray) -> None:
     """out = R Ω Rᵀ with R = Rot(θ): the information of a constraint expressed in the global frame."""
@@ -176,6 +178,17 @@ def tree_size(num_poses: int, block: int = TREE_BLOCK) -> int:
     return 1 << max(blocks - 1, 1).bit_length()
 
 
+@njit(cache=True)
+def spanning_count(edge_from: np.ndarray, edge_to: np.ndarray, block: int) -> int:
+    """Number of constraints whose increments min(a, b)+1..max(a, b) lie in more than one block of the tree:
+    the rows of the `spans` array of `stiffness_tree` and `sgd_iteration_tree`."""
+    count = 0
+    for k in range(edge_from.shape[0]):
+        if (min(edge_from[k], edge_to[k]) + 1) // block != max(edge_from[k], edge_to[k]) // block:
+            count += 1
+    return count
+
+
 @njit(cache=True, inline="always")
 def _block_end(block_index: int, block: int, n: int) -> int:
     """One past the last increment of a block."""
@@ -196,8 +209,10 @@ def _rotated_diagonal(c: float, s: float, info: np.ndarray) -> tuple[float, floa
 @njit(cache=True)
 def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, information: np.ndarray,
                    weights: np.ndarray, amounts: np.ndarray, tree: np.ndarray, gamma: np.ndarray,
-                   block: int) -> None:
-    """Weights w_i = 1/M_i and the tree's interval weights, in O(M (log N + block) + N).
+                   block: int, spans: np.ndarray) -> None:
+    """Weights w_i = 1/M_i and the tree's interval weights, in O(M (log N + block) + N); and `spans`, the
+    total weight Σ w_i of each constraint whose increments lie in more than one block, in the constraints'
+    order ((`spanning_count`, 3)).
 
     M is summed with positive range adds (on the tree's nodes, and on `amounts` at the ends of a range),
     then pushed down to the increments: a running sum of a difference array would cancel catastrophically
@@ -275,6 +290,19 @@ def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
     for node in range(size - 1, 0, -1):
         for j in range(3):
             tree[node, WEIGHT, j] = tree[2 * node, WEIGHT, j] + tree[2 * node + 1, WEIGHT, j]
+    # A pass would otherwise sum them from the tree for every constraint (a walk up both ends of the range,
+    # out of cache for a loop closure), while they only change here. The same sums as `_tree_weight`
+    # there: the same values to the bit.
+    spanning = 0
+    for k in range(edge_from.shape[0]):
+        first = min(edge_from[k], edge_to[k]) + 1
+        last = max(edge_from[k], edge_to[k])
+        if first // block != last // block:
+            w0, w1, w2 = _tree_weight(first, last, weights, tree, block)
+            spans[spanning, 0] = w0
+            spans[spanning, 1] = w1
+            spans[spanning, 2] = w2
+            spanning += 1
 
 
 @njit(cache=True, inline="always")
@@ -509,14 +537,15 @@ def _prefetch_pose(k: int, base: np.ndarray, weights: np.ndarray, amounts: np.nd
 def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray,
                        measurements: np.ndarray, information: np.ndarray, weights: np.ndarray,
                        amounts: np.ndarray, tree: np.ndarray, gamma: np.ndarray, t: int, block: int,
-                       out: np.ndarray, base_chi2: bool) -> float:
+                       out: np.ndarray, base_chi2: bool, spans: np.ndarray) -> float:
     """One pass over all constraints in O(log N + block) each, from the poses `base` (left as they are);
     the new poses, θ wrapped, are written to `out` at the end (O(N)). Returns the χ² of `base` if
     `base_chi2` (else NaN): `optimizer.cost.chi2(graph, base)` to the bit, summed along the pass, which
     reads each constraint and its poses anyway (a separate χ² costs a third of a pass at 10⁶ poses, most of
     it in memory traffic, not arithmetic).
 
-    `weights` and `tree` ((2·`tree_size`, 3, 3)) must hold what `stiffness_tree` computed with `block`.
+    `weights`, `tree` ((2·`tree_size`, 3, 3)) and `spans` must hold what `stiffness_tree` computed with
+    `block`.
 
     The ACCUMULATED of the ancestors of one block, `pending`, may be out of date: a range add re-sums them
     only when a walk reads one of them or a later add has no end in that block. Consecutive constraints
@@ -533,6 +562,7 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
     chi2 = 0.0 if base_chi2 else np.nan
     m = edge_from.shape[0]
     fetched_a = fetched_b = -1  # the blocks asked for last: consecutive constraints mostly share them
+    spanning = 0
     for k in range(m):
         if k + PREFETCH_AHEAD < m:
             ahead_a = edge_from[k + PREFETCH_AHEAD] // block
@@ -553,7 +583,11 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
         lo = min(a, b)
         hi = max(a, b)
         sign = 1.0 if a < b else -1.0
-        w0, w1, w2 = _tree_weight(lo + 1, hi, weights, tree, block)
+        if (lo + 1) // block == hi // block:
+            w0, w1, w2 = _tree_weight(lo + 1, hi, weights, tree, block)
+        else:
+            w0, w1, w2 = spans[spanning, 0], spans[spanning, 1], spans[spanning, 2]
+            spanning += 1
         a0 = sign * _clamped_step(hi - lo, d0, r0, gamma[0], t) / w0
         a1 = sign * _clamped_step(hi - lo, d1, r1, gamma[1], t) / w1
         a2 = sign * _clamped_step(hi - lo, d2, r2, gamma[2], t) / w2
