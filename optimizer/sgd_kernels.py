@@ -305,14 +305,18 @@ def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
             spanning += 1
 
 
+Walk = tuple[float, float, float, float, float, float]
+"""A walk's state at a block's leaf: l = Σ LAZY of the leaf's ancestors, s = the prefix sum of the subtrees
+left of its path (see `_walk_to_block`)."""
+
+
 @njit(cache=True, inline="always")
-def _finish_tree_pose(k: int, node: int, lo: int, hi: int, l0: float, l1: float, l2: float, s0: float,
-                      s1: float, s2: float, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
-                      tree: np.ndarray, pending: np.ndarray, block: int) -> tuple[float, float, float]:
-    """p_k = p⁰_k + Σ_{i≤k} w_i C_i, continuing the walk to k's block from `node` (interval lo..hi−1), with
-    l = Σ LAZY of the ancestors of `node` (itself excluded) and s = the prefix sum gathered so far."""
+def _walk_to_block(target: int, node: int, lo: int, hi: int, l0: float, l1: float, l2: float, s0: float,
+                   s1: float, s2: float, tree: np.ndarray, pending: np.ndarray) -> Walk:
+    """The tree's walk from `node` (interval lo..hi−1) down to block `target`'s leaf, with l = Σ LAZY of the
+    ancestors of `node` (itself excluded) and s = the prefix sum gathered so far: (l, s) at the leaf, its own
+    LAZY not yet added."""
     size = tree.shape[0] // 2
-    target = k // block
     while node < size:
         l0 += tree[node, LAZY, 0]
         l1 += tree[node, LAZY, 1]
@@ -330,10 +334,20 @@ def _finish_tree_pose(k: int, node: int, lo: int, hi: int, l0: float, l1: float,
         else:
             node = left
             hi = mid
-    l0 += tree[node, LAZY, 0]
-    l1 += tree[node, LAZY, 1]
-    l2 += tree[node, LAZY, 2]
-    for i in range(target * block, k + 1):
+    return l0, l1, l2, s0, s1, s2
+
+
+@njit(cache=True, inline="always")
+def _pose_in_block(k: int, walk: Walk, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
+                   tree: np.ndarray, block: int) -> tuple[float, float, float]:
+    """p_k = p⁰_k + Σ_{i≤k} w_i C_i from the walk's state at the leaf of k's block: the leaf's LAZY, then
+    the increments of k's block up to k."""
+    l0, l1, l2, s0, s1, s2 = walk
+    leaf = tree.shape[0] // 2 + k // block
+    l0 += tree[leaf, LAZY, 0]
+    l1 += tree[leaf, LAZY, 1]
+    l2 += tree[leaf, LAZY, 2]
+    for i in range((k // block) * block, k + 1):
         s0 += weights[i, 0] * (amounts[i, 0] + l0)
         s1 += weights[i, 1] * (amounts[i, 1] + l1)
         s2 += weights[i, 2] * (amounts[i, 2] + l2)
@@ -341,12 +355,10 @@ def _finish_tree_pose(k: int, node: int, lo: int, hi: int, l0: float, l1: float,
 
 
 @njit(cache=True, inline="always")
-def _tree_pose_pair(a: int, b: int, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
-                    tree: np.ndarray, pending: np.ndarray,
-                    block: int) -> Six:
-    """p_k = p⁰_k + Σ_{i≤k} w_i C_i for k = a and k = b: the tree's walk from the root to k's block, then
-    k's block. The path both walks share is walked once: most constraints join nearby poses, whose walks
-    part only near the leaves. Each sum adds the same terms in the same order as a walk of its own."""
+def _walks_to_pair(a: int, b: int, tree: np.ndarray, pending: np.ndarray, block: int) -> tuple[Walk, Walk]:
+    """The walks to the blocks of a and b. The path both walks share is walked once: most constraints join
+    nearby poses, whose walks part only near the leaves. Each sum adds the same terms in the same order as a
+    walk of its own."""
     size = tree.shape[0] // 2
     target_a = a // block
     target_b = b // block
@@ -374,11 +386,9 @@ def _tree_pose_pair(a: int, b: int, base: np.ndarray, weights: np.ndarray, amoun
         else:
             node = left
             hi = mid
-    ax, ay, atheta = _finish_tree_pose(a, node, lo, hi, l0, l1, l2, s0, s1, s2, base, weights, amounts, tree,
-                                       pending, block)
-    bx, by, btheta = _finish_tree_pose(b, node, lo, hi, l0, l1, l2, s0, s1, s2, base, weights, amounts, tree,
-                                       pending, block)
-    return ax, ay, atheta, bx, by, btheta
+    walk_a = _walk_to_block(target_a, node, lo, hi, l0, l1, l2, s0, s1, s2, tree, pending)
+    walk_b = _walk_to_block(target_b, node, lo, hi, l0, l1, l2, s0, s1, s2, tree, pending)
+    return walk_a, walk_b
 
 
 @njit(cache=True, inline="always")
@@ -563,6 +573,8 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
     m = edge_from.shape[0]
     fetched_a = fetched_b = -1  # the blocks asked for last: consecutive constraints mostly share them
     spanning = 0
+    kept_block = -1  # the block of the walk kept in `kept`
+    kept = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for k in range(m):
         if k + PREFETCH_AHEAD < m:
             ahead_a = edge_from[k + PREFETCH_AHEAD] // block
@@ -577,7 +589,22 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
         b = edge_to[k]
         if base_chi2:
             chi2 = plus_edge_chi2(chi2, base, edge_from, edge_to, measurements, information, k)
-        ax, ay, atheta, bx, by, btheta = _tree_pose_pair(a, b, base, weights, amounts, tree, pending, block)
+        # The walk to the block of the later pose is kept: the next constraints mostly end there too (a pose's
+        # odometry, then its loop closures), and it holds until an add changes what it read (see below).
+        later = max(a, b) // block
+        if later == kept_block:
+            other = min(a, b) // block
+            if other == kept_block:
+                walk_other = kept
+            else:  # the same terms in the same order as the shared walk of `_walks_to_pair`
+                walk_other = _walk_to_block(other, 1, 0, size, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, tree, pending)
+            walk_a, walk_b = (kept, walk_other) if a > b else (walk_other, kept)
+        else:
+            walk_a, walk_b = _walks_to_pair(a, b, tree, pending, block)
+            kept = walk_b if b > a else walk_a
+            kept_block = later
+        ax, ay, atheta = _pose_in_block(a, walk_a, base, weights, amounts, tree, block)
+        bx, by, btheta = _pose_in_block(b, walk_b, base, weights, amounts, tree, block)
         r0, r1, r2, d0, d1, d2 = _weighted_residual_one_rotation(ax, ay, atheta, bx, by, btheta,
                                                                  measurements[k], information[k])
         lo = min(a, b)
@@ -592,6 +619,12 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
         a1 = sign * _clamped_step(hi - lo, d1, r1, gamma[1], t) / w1
         a2 = sign * _clamped_step(hi - lo, d2, r2, gamma[2], t) / w2
         _tree_add(lo + 1, hi, a0, a1, a2, weights, amounts, tree, pending, block)
+        # A walk reads the LAZY of its block's ancestors and the sums of the subtrees left of its path (with
+        # the pending block's ancestors re-summed first if it lies there). An add whose range starts in or
+        # right of the kept block changes neither: its range covers no ancestor of that block, and it adds to
+        # and re-sums nodes in or right of it; so the kept walk is what a new walk would give.
+        if (lo + 1) // block < kept_block:
+            kept_block = -1
     # Push every LAZY down to the blocks: C_i = amounts_i + its block's LAZY; p_i = p⁰_i + Σ_{m≤i} w_m C_m.
     for node in range(1, size):
         for j in range(3):
