@@ -489,32 +489,29 @@ def _tree_add(first: int, last: int, a0: float, a1: float, a2: float, weights: n
         _resum_pending(pending, tree)  # it may lie under a node of the range, or share ancestors with it
     left = first_block + size
     right = last_block + size
-    if first_block == last_block:
-        _add_to_increments(first, last + 1, a0, a1, a2, weights, amounts, tree, left)
-    else:
-        _add_to_increments(first, _block_end(first_block, block, n), a0, a1, a2, weights, amounts, tree, left)
-        _add_to_increments(last_block * block, last + 1, a0, a1, a2, weights, amounts, tree, right)
-        lo = left
-        hi = right
-        while lo ^ hi != 1:
-            if lo & 1 == 0:
-                _apply(lo ^ 1, a0, a1, a2, tree)
-            if hi & 1 == 1:
-                _apply(hi ^ 1, a0, a1, a2, tree)
-            lo >>= 1
-            hi >>= 1
     # The ancestors of the pending end block (the last one, unless the first was pending already) stay
     # pending; the other end block's are re-summed up to the last one below where the two paths meet.
-    if pending[0] == first_block:
-        left, right = right, left
-    else:
+    keep_first = pending[0] == first_block
+    if not keep_first:
         pending[0] = last_block
-    left >>= 1
-    right >>= 1
-    while left != right:
-        _resum(left, tree)
-        left >>= 1
-        right >>= 1
+    if first_block == last_block:
+        _add_to_increments(first, last + 1, a0, a1, a2, weights, amounts, tree, left)
+        return
+    _add_to_increments(first, _block_end(first_block, block, n), a0, a1, a2, weights, amounts, tree, left)
+    _add_to_increments(last_block * block, last + 1, a0, a1, a2, weights, amounts, tree, right)
+    # One climb from both end blocks: at each level the nodes that tile the range, then the re-summed side's
+    # parent, which reads its two children, both final by then (later levels add to neither): the values of
+    # all adds first and then all re-sums, in one loop.
+    lo = left
+    hi = right
+    while lo ^ hi != 1:
+        if lo & 1 == 0:
+            _apply(lo ^ 1, a0, a1, a2, tree)
+        if hi & 1 == 1:
+            _apply(hi ^ 1, a0, a1, a2, tree)
+        lo >>= 1
+        hi >>= 1
+        _resum(hi if keep_first else lo, tree)
 
 
 PREFETCH_AHEAD = 8
