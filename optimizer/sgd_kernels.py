@@ -552,7 +552,8 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
     it in memory traffic, not arithmetic).
 
     `weights`, `tree` ((2·`tree_size`, 3, 3)) and `spans` must hold what `stiffness_tree` computed with
-    `block`.
+    `block`. `amounts` is scratch, and may be `out` itself: the last loop reads an increment's amounts
+    before it writes that pose, and nothing else writes `out`.
 
     The ACCUMULATED of the ancestors of one block, `pending`, may be out of date: a range add re-sums them
     only when a walk reads one of them or a later add has no end in that block. Consecutive constraints
