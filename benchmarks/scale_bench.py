@@ -177,29 +177,36 @@ def sgd_probe(num_poses: int, iterations: int) -> str:
     from optimizer.cost import chi2
     from optimizer.gridworld import generate_grid_world
     from optimizer.sgd import recomputes_stiffness
-    from optimizer.sgd_kernels import TREE_BLOCK, sgd_iteration_tree, stiffness_tree, tree_size
+    from optimizer.sgd_kernels import (
+        TREE_BLOCK,
+        sgd_iteration_tree,
+        spanning_count,
+        stiffness_tree,
+        tree_size,
+    )
 
     small = generate_grid_world(300, seed=1).graph
     graph = generate_grid_world(num_poses, seed=GRID_WORLD_SEED).graph
     rows = []
     for target, count in ((small, 2), (graph, iterations)):  # the small graph compiles the kernels
         n = target.num_poses
-        gamma, weights, amounts = np.empty(3), np.empty((n, 3)), np.empty((n, 3))
+        gamma, weights = np.empty(3), np.empty((n, 3))
         tree = np.empty((2 * tree_size(n, TREE_BLOCK), 3, 3))
+        spans = np.empty((spanning_count(target.edge_from, target.edge_to, TREE_BLOCK), 3))
         base = target.poses
         for t in range(1, count + 2):
             # Pass t + 1 sums the χ² of iteration t's poses (as `optimizer.sgd` does); the last one's χ² is
             # computed on its own.
             clocks = [(time.perf_counter(), time.process_time())]
+            poses = np.empty_like(base)  # also the kernels' `amounts` scratch, as in `optimizer.sgd`
             if t <= count and (t == 1 or recomputes_stiffness(t)):
-                stiffness_tree(base, target.edge_from, target.edge_to, target.information, weights, amounts,
-                               tree, gamma, TREE_BLOCK)
+                stiffness_tree(base, target.edge_from, target.edge_to, target.information, weights, poses,
+                               tree, gamma, TREE_BLOCK, spans)
             clocks.append((time.perf_counter(), time.process_time()))
-            poses = np.empty_like(base)
             if t <= count:
                 value = sgd_iteration_tree(base, target.edge_from, target.edge_to, target.measurements,
-                                           target.information, weights, amounts, tree, gamma, t, TREE_BLOCK,
-                                           poses, t > 1)
+                                           target.information, weights, poses, tree, gamma, t, TREE_BLOCK,
+                                           poses, t > 1, spans)
             clocks.append((time.perf_counter(), time.process_time()))
             if t > count:
                 value = chi2(target, base)

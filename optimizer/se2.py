@@ -9,17 +9,38 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import vectorize
+from numba import njit, vectorize
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
 
+TWO_PI = 2.0 * math.pi
+
+
+@njit(cache=True, inline="always")
+def wrap_scalar(theta: float) -> float:  # pragma: no cover  (compiled)
+    """(θ + π) mod 2π − π with Python's float modulo, to the bit, for compiled kernels (inlined).
+
+    Python's modulo is fmod and a sign fix, and compiled code calls the C library's fmod for it (a
+    noticeable part of an SGD pass). For the shifted angles that occur, fmod's exact result is known
+    without it: x itself in [0, 2π), and x − 2π in [2π, 4π), a subtraction that is exact (Sterbenz's
+    lemma); below 0, Python's x + 2π. Anything else (far angles, inf, NaN) takes the modulo itself."""
+    shifted = theta + math.pi
+    if 0.0 <= shifted < TWO_PI:
+        return shifted - math.pi
+    if -TWO_PI < shifted < 0.0:
+        return (shifted + TWO_PI) - math.pi
+    if TWO_PI <= shifted < 2.0 * TWO_PI:
+        return (shifted - TWO_PI) - math.pi
+    return shifted % TWO_PI - math.pi
+
+
 @vectorize(["float64(float64)"], cache=True)
 def wrap_angle(theta: float) -> float:  # pragma: no cover  (compiled)
-    """Wrap angles to [-π, π): the project's one definition. A numpy ufunc (scalars and arrays of any
-    shape), callable from compiled kernels too."""
-    return (theta + math.pi) % (2.0 * math.pi) - math.pi
+    """Wrap angles to [-π, π): the project's one definition, (θ + π) mod 2π − π. A numpy ufunc (scalars
+    and arrays of any shape), callable from compiled kernels too."""
+    return wrap_scalar(theta)
 
 
 def compose(a: FloatArray, b: FloatArray) -> FloatArray:

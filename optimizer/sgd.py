@@ -23,6 +23,7 @@ from optimizer.sgd_kernels import (
     TREE_BLOCK,
     sgd_iteration_linear,
     sgd_iteration_tree,
+    spanning_count,
     stiffness_linear,
     stiffness_tree,
     tree_size,
@@ -52,8 +53,9 @@ def sgd(
     schedule (a smaller learning rate) when re-optimizing an already aligned graph. `tree_block` is the
     number of increments per leaf of the tree (a memory/speed trade-off; results agree to rounding).
 
-    Memory beyond the graph: the tree with its weights and amounts (`tree_block` = 8: about 67 bytes per
-    pose), the yielded poses and the next iteration's: the tree is one pass ahead of its yields (a pass
+    Memory beyond the graph: the tree and its weights (`tree_block` = 8: about 43 bytes per pose), each
+    loop's total weight (24 bytes per constraint whose loop spans more than one block, e.g. a loop
+    closure), the yielded poses and the next iteration's: the tree is one pass ahead of its yields (a pass
     sums the χ² of the poses it starts from, the iteration it then yields).
     """
     if iterations < 0:
@@ -84,17 +86,19 @@ def _sgd_tree(graph: PoseGraph, iterations: int, base: NDArray[np.float64], firs
     edges = (graph.edge_from, graph.edge_to)
     gamma = np.empty(3)
     weights = np.empty((n, 3))
-    amounts = np.empty((n, 3))
     tree = np.empty((2 * tree_size(n, block), 3, 3))
+    spans = np.empty((spanning_count(*edges, block), 3))
     for offset in range(iterations):
         t = first_iteration + offset
         # Read-only, as the graph's own poses are: one compiled signature of the kernels for both.
         frozen = read_only(base)
-        if offset == 0 or recomputes_stiffness(t):
-            stiffness_tree(frozen, *edges, graph.information, weights, amounts, tree, gamma, block)
+        # The new poses' array is the kernels' `amounts` scratch until the pass writes the poses over it
+        # (see `sgd_iteration_tree`): one (N, 3) array less.
         poses = np.empty_like(base)
+        if offset == 0 or recomputes_stiffness(t):
+            stiffness_tree(frozen, *edges, graph.information, weights, poses, tree, gamma, block, spans)
         base_chi2 = sgd_iteration_tree(frozen, *edges, graph.measurements, graph.information, weights,
-                                       amounts, tree, gamma, t, block, poses, offset > 0)
+                                       poses, tree, gamma, t, block, poses, offset > 0, spans)
         if offset > 0:
             yield Iteration("sgd", offset, base, base_chi2)
         if not np.all(np.isfinite(poses[-1])):

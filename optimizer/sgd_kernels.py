@@ -26,14 +26,11 @@ from numba import njit
 
 from optimizer.cost import plus_edge_chi2
 from optimizer.prefetch import prefetch
+from optimizer.se2 import wrap_scalar
 
-TWO_PI = 2.0 * math.pi
 Six = tuple[float, float, float, float, float, float]
 
 
-@njit(cache=True, inline="always")
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % TWO_PI - math.pi
 
 
 @njit(cache=True, inline="always")
@@ -68,7 +65,7 @@ def _weighted_residual(pa: np.ndarray, pb: np.ndarray, z: np.ndarray, info: np.n
     s = math.sin(pa[2])
     r[0] = pa[0] + c * z[0] - s * z[1] - pb[0]
     r[1] = pa[1] + s * z[0] + c * z[1] - pb[1]
-    r[2] = _wrap(pa[2] + z[2] - pb[2])
+    r[2] = wrap_scalar(pa[2] + z[2] - pb[2])
     _rotated_information(pa[2], info, w_global)
     for j in range(3):
         d[j] = 2.0 * (w_global[j, 0] * r[0] + w_global[j, 1] * r[1] + w_global[j, 2] * r[2])
@@ -84,7 +81,7 @@ def _weighted_residual_one_rotation(ax: float, ay: float, atheta: float, bx: flo
     s = math.sin(atheta)
     r0 = ax + c * z[0] - s * z[1] - bx
     r1 = ay + s * z[0] + c * z[1] - by
-    r2 = _wrap(atheta + z[2] - btheta)
+    r2 = wrap_scalar(atheta + z[2] - btheta)
     ro00 = c * info[0, 0] - s * info[1, 0]
     ro01 = c * info[0, 1] - s * info[1, 1]
     ro10 = s * info[0, 0] + c * info[1, 0]
@@ -181,6 +178,17 @@ def tree_size(num_poses: int, block: int = TREE_BLOCK) -> int:
     return 1 << max(blocks - 1, 1).bit_length()
 
 
+@njit(cache=True)
+def spanning_count(edge_from: np.ndarray, edge_to: np.ndarray, block: int) -> int:
+    """Number of constraints whose increments min(a, b)+1..max(a, b) lie in more than one block of the tree:
+    the rows of the `spans` array of `stiffness_tree` and `sgd_iteration_tree`."""
+    count = 0
+    for k in range(edge_from.shape[0]):
+        if (min(edge_from[k], edge_to[k]) + 1) // block != max(edge_from[k], edge_to[k]) // block:
+            count += 1
+    return count
+
+
 @njit(cache=True, inline="always")
 def _block_end(block_index: int, block: int, n: int) -> int:
     """One past the last increment of a block."""
@@ -201,8 +209,10 @@ def _rotated_diagonal(c: float, s: float, info: np.ndarray) -> tuple[float, floa
 @njit(cache=True)
 def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, information: np.ndarray,
                    weights: np.ndarray, amounts: np.ndarray, tree: np.ndarray, gamma: np.ndarray,
-                   block: int) -> None:
-    """Weights w_i = 1/M_i and the tree's interval weights, in O(M (log N + block) + N).
+                   block: int, spans: np.ndarray) -> None:
+    """Weights w_i = 1/M_i and the tree's interval weights, in O(M (log N + block) + N); and `spans`, the
+    total weight Σ w_i of each constraint whose increments lie in more than one block, in the constraints'
+    order ((`spanning_count`, 3)).
 
     M is summed with positive range adds (on the tree's nodes, and on `amounts` at the ends of a range),
     then pushed down to the increments: a running sum of a difference array would cancel catastrophically
@@ -280,16 +290,33 @@ def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
     for node in range(size - 1, 0, -1):
         for j in range(3):
             tree[node, WEIGHT, j] = tree[2 * node, WEIGHT, j] + tree[2 * node + 1, WEIGHT, j]
+    # A pass would otherwise sum them from the tree for every constraint (a walk up both ends of the range,
+    # out of cache for a loop closure), while they only change here. The same sums as `_tree_weight`
+    # there: the same values to the bit.
+    spanning = 0
+    for k in range(edge_from.shape[0]):
+        first = min(edge_from[k], edge_to[k]) + 1
+        last = max(edge_from[k], edge_to[k])
+        if first // block != last // block:
+            w0, w1, w2 = _tree_weight(first, last, weights, tree, block)
+            spans[spanning, 0] = w0
+            spans[spanning, 1] = w1
+            spans[spanning, 2] = w2
+            spanning += 1
+
+
+Walk = tuple[float, float, float, float, float, float]
+"""A walk's state at a block's leaf: l = Σ LAZY of the leaf's ancestors, s = the prefix sum of the subtrees
+left of its path (see `_walk_to_block`)."""
 
 
 @njit(cache=True, inline="always")
-def _finish_tree_pose(k: int, node: int, lo: int, hi: int, l0: float, l1: float, l2: float, s0: float,
-                      s1: float, s2: float, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
-                      tree: np.ndarray, pending: np.ndarray, block: int) -> tuple[float, float, float]:
-    """p_k = p⁰_k + Σ_{i≤k} w_i C_i, continuing the walk to k's block from `node` (interval lo..hi−1), with
-    l = Σ LAZY of the ancestors of `node` (itself excluded) and s = the prefix sum gathered so far."""
+def _walk_to_block(target: int, node: int, lo: int, hi: int, l0: float, l1: float, l2: float, s0: float,
+                   s1: float, s2: float, tree: np.ndarray, pending: np.ndarray) -> Walk:
+    """The tree's walk from `node` (interval lo..hi−1) down to block `target`'s leaf, with l = Σ LAZY of the
+    ancestors of `node` (itself excluded) and s = the prefix sum gathered so far: (l, s) at the leaf, its own
+    LAZY not yet added."""
     size = tree.shape[0] // 2
-    target = k // block
     while node < size:
         l0 += tree[node, LAZY, 0]
         l1 += tree[node, LAZY, 1]
@@ -307,10 +334,20 @@ def _finish_tree_pose(k: int, node: int, lo: int, hi: int, l0: float, l1: float,
         else:
             node = left
             hi = mid
-    l0 += tree[node, LAZY, 0]
-    l1 += tree[node, LAZY, 1]
-    l2 += tree[node, LAZY, 2]
-    for i in range(target * block, k + 1):
+    return l0, l1, l2, s0, s1, s2
+
+
+@njit(cache=True, inline="always")
+def _pose_in_block(k: int, walk: Walk, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
+                   tree: np.ndarray, block: int) -> tuple[float, float, float]:
+    """p_k = p⁰_k + Σ_{i≤k} w_i C_i from the walk's state at the leaf of k's block: the leaf's LAZY, then
+    the increments of k's block up to k."""
+    l0, l1, l2, s0, s1, s2 = walk
+    leaf = tree.shape[0] // 2 + k // block
+    l0 += tree[leaf, LAZY, 0]
+    l1 += tree[leaf, LAZY, 1]
+    l2 += tree[leaf, LAZY, 2]
+    for i in range((k // block) * block, k + 1):
         s0 += weights[i, 0] * (amounts[i, 0] + l0)
         s1 += weights[i, 1] * (amounts[i, 1] + l1)
         s2 += weights[i, 2] * (amounts[i, 2] + l2)
@@ -318,12 +355,10 @@ def _finish_tree_pose(k: int, node: int, lo: int, hi: int, l0: float, l1: float,
 
 
 @njit(cache=True, inline="always")
-def _tree_pose_pair(a: int, b: int, base: np.ndarray, weights: np.ndarray, amounts: np.ndarray,
-                    tree: np.ndarray, pending: np.ndarray,
-                    block: int) -> Six:
-    """p_k = p⁰_k + Σ_{i≤k} w_i C_i for k = a and k = b: the tree's walk from the root to k's block, then
-    k's block. The path both walks share is walked once: most constraints join nearby poses, whose walks
-    part only near the leaves. Each sum adds the same terms in the same order as a walk of its own."""
+def _walks_to_pair(a: int, b: int, tree: np.ndarray, pending: np.ndarray, block: int) -> tuple[Walk, Walk]:
+    """The walks to the blocks of a and b. The path both walks share is walked once: most constraints join
+    nearby poses, whose walks part only near the leaves. Each sum adds the same terms in the same order as a
+    walk of its own."""
     size = tree.shape[0] // 2
     target_a = a // block
     target_b = b // block
@@ -351,11 +386,9 @@ def _tree_pose_pair(a: int, b: int, base: np.ndarray, weights: np.ndarray, amoun
         else:
             node = left
             hi = mid
-    ax, ay, atheta = _finish_tree_pose(a, node, lo, hi, l0, l1, l2, s0, s1, s2, base, weights, amounts, tree,
-                                       pending, block)
-    bx, by, btheta = _finish_tree_pose(b, node, lo, hi, l0, l1, l2, s0, s1, s2, base, weights, amounts, tree,
-                                       pending, block)
-    return ax, ay, atheta, bx, by, btheta
+    walk_a = _walk_to_block(target_a, node, lo, hi, l0, l1, l2, s0, s1, s2, tree, pending)
+    walk_b = _walk_to_block(target_b, node, lo, hi, l0, l1, l2, s0, s1, s2, tree, pending)
+    return walk_a, walk_b
 
 
 @njit(cache=True, inline="always")
@@ -456,32 +489,29 @@ def _tree_add(first: int, last: int, a0: float, a1: float, a2: float, weights: n
         _resum_pending(pending, tree)  # it may lie under a node of the range, or share ancestors with it
     left = first_block + size
     right = last_block + size
-    if first_block == last_block:
-        _add_to_increments(first, last + 1, a0, a1, a2, weights, amounts, tree, left)
-    else:
-        _add_to_increments(first, _block_end(first_block, block, n), a0, a1, a2, weights, amounts, tree, left)
-        _add_to_increments(last_block * block, last + 1, a0, a1, a2, weights, amounts, tree, right)
-        lo = left
-        hi = right
-        while lo ^ hi != 1:
-            if lo & 1 == 0:
-                _apply(lo ^ 1, a0, a1, a2, tree)
-            if hi & 1 == 1:
-                _apply(hi ^ 1, a0, a1, a2, tree)
-            lo >>= 1
-            hi >>= 1
     # The ancestors of the pending end block (the last one, unless the first was pending already) stay
     # pending; the other end block's are re-summed up to the last one below where the two paths meet.
-    if pending[0] == first_block:
-        left, right = right, left
-    else:
+    keep_first = pending[0] == first_block
+    if not keep_first:
         pending[0] = last_block
-    left >>= 1
-    right >>= 1
-    while left != right:
-        _resum(left, tree)
-        left >>= 1
-        right >>= 1
+    if first_block == last_block:
+        _add_to_increments(first, last + 1, a0, a1, a2, weights, amounts, tree, left)
+        return
+    _add_to_increments(first, _block_end(first_block, block, n), a0, a1, a2, weights, amounts, tree, left)
+    _add_to_increments(last_block * block, last + 1, a0, a1, a2, weights, amounts, tree, right)
+    # One climb from both end blocks: at each level the nodes that tile the range, then the re-summed side's
+    # parent, which reads its two children, both final by then (later levels add to neither): the values of
+    # all adds first and then all re-sums, in one loop.
+    lo = left
+    hi = right
+    while lo ^ hi != 1:
+        if lo & 1 == 0:
+            _apply(lo ^ 1, a0, a1, a2, tree)
+        if hi & 1 == 1:
+            _apply(hi ^ 1, a0, a1, a2, tree)
+        lo >>= 1
+        hi >>= 1
+        _resum(hi if keep_first else lo, tree)
 
 
 PREFETCH_AHEAD = 8
@@ -514,14 +544,16 @@ def _prefetch_pose(k: int, base: np.ndarray, weights: np.ndarray, amounts: np.nd
 def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray,
                        measurements: np.ndarray, information: np.ndarray, weights: np.ndarray,
                        amounts: np.ndarray, tree: np.ndarray, gamma: np.ndarray, t: int, block: int,
-                       out: np.ndarray, base_chi2: bool) -> float:
+                       out: np.ndarray, base_chi2: bool, spans: np.ndarray) -> float:
     """One pass over all constraints in O(log N + block) each, from the poses `base` (left as they are);
     the new poses, θ wrapped, are written to `out` at the end (O(N)). Returns the χ² of `base` if
     `base_chi2` (else NaN): `optimizer.cost.chi2(graph, base)` to the bit, summed along the pass, which
     reads each constraint and its poses anyway (a separate χ² costs a third of a pass at 10⁶ poses, most of
     it in memory traffic, not arithmetic).
 
-    `weights` and `tree` ((2·`tree_size`, 3, 3)) must hold what `stiffness_tree` computed with `block`.
+    `weights`, `tree` ((2·`tree_size`, 3, 3)) and `spans` must hold what `stiffness_tree` computed with
+    `block`. `amounts` is scratch, and may be `out` itself: the last loop reads an increment's amounts
+    before it writes that pose, and nothing else writes `out`.
 
     The ACCUMULATED of the ancestors of one block, `pending`, may be out of date: a range add re-sums them
     only when a walk reads one of them or a later add has no end in that block. Consecutive constraints
@@ -538,6 +570,9 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
     chi2 = 0.0 if base_chi2 else np.nan
     m = edge_from.shape[0]
     fetched_a = fetched_b = -1  # the blocks asked for last: consecutive constraints mostly share them
+    spanning = 0
+    kept_block = -1  # the block of the walk kept in `kept`
+    kept = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for k in range(m):
         if k + PREFETCH_AHEAD < m:
             ahead_a = edge_from[k + PREFETCH_AHEAD] // block
@@ -552,17 +587,42 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
         b = edge_to[k]
         if base_chi2:
             chi2 = plus_edge_chi2(chi2, base, edge_from, edge_to, measurements, information, k)
-        ax, ay, atheta, bx, by, btheta = _tree_pose_pair(a, b, base, weights, amounts, tree, pending, block)
+        # The walk to the block of the later pose is kept: the next constraints mostly end there too (a pose's
+        # odometry, then its loop closures), and it holds until an add changes what it read (see below).
+        later = max(a, b) // block
+        if later == kept_block:
+            other = min(a, b) // block
+            if other == kept_block:
+                walk_other = kept
+            else:  # the same terms in the same order as the shared walk of `_walks_to_pair`
+                walk_other = _walk_to_block(other, 1, 0, size, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, tree, pending)
+            walk_a, walk_b = (kept, walk_other) if a > b else (walk_other, kept)
+        else:
+            walk_a, walk_b = _walks_to_pair(a, b, tree, pending, block)
+            kept = walk_b if b > a else walk_a
+            kept_block = later
+        ax, ay, atheta = _pose_in_block(a, walk_a, base, weights, amounts, tree, block)
+        bx, by, btheta = _pose_in_block(b, walk_b, base, weights, amounts, tree, block)
         r0, r1, r2, d0, d1, d2 = _weighted_residual_one_rotation(ax, ay, atheta, bx, by, btheta,
                                                                  measurements[k], information[k])
         lo = min(a, b)
         hi = max(a, b)
         sign = 1.0 if a < b else -1.0
-        w0, w1, w2 = _tree_weight(lo + 1, hi, weights, tree, block)
+        if (lo + 1) // block == hi // block:
+            w0, w1, w2 = _tree_weight(lo + 1, hi, weights, tree, block)
+        else:
+            w0, w1, w2 = spans[spanning, 0], spans[spanning, 1], spans[spanning, 2]
+            spanning += 1
         a0 = sign * _clamped_step(hi - lo, d0, r0, gamma[0], t) / w0
         a1 = sign * _clamped_step(hi - lo, d1, r1, gamma[1], t) / w1
         a2 = sign * _clamped_step(hi - lo, d2, r2, gamma[2], t) / w2
         _tree_add(lo + 1, hi, a0, a1, a2, weights, amounts, tree, pending, block)
+        # A walk reads the LAZY of its block's ancestors and the sums of the subtrees left of its path (with
+        # the pending block's ancestors re-summed first if it lies there). An add whose range starts in or
+        # right of the kept block changes neither: its range covers no ancestor of that block, and it adds to
+        # and re-sums nodes in or right of it; so the kept walk is what a new walk would give.
+        if (lo + 1) // block < kept_block:
+            kept_block = -1
     # Push every LAZY down to the blocks: C_i = amounts_i + its block's LAZY; p_i = p⁰_i + Σ_{m≤i} w_m C_m.
     for node in range(1, size):
         for j in range(3):
@@ -576,5 +636,5 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
         moved2 += weights[i, 2] * (amounts[i, 2] + tree[leaf, LAZY, 2])
         out[i, 0] = base[i, 0] + moved0
         out[i, 1] = base[i, 1] + moved1
-        out[i, 2] = _wrap(base[i, 2] + moved2)
+        out[i, 2] = wrap_scalar(base[i, 2] + moved2)
     return chi2

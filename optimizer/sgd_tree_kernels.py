@@ -15,7 +15,8 @@ import math
 import numpy as np
 from numba import njit
 
-from optimizer.sgd_kernels import _clamped_step, _rotated_information, _weighted_residual, _wrap
+from optimizer.se2 import wrap_scalar
+from optimizer.sgd_kernels import _clamped_step, _rotated_information, _weighted_residual
 
 
 @njit(cache=True)
@@ -59,7 +60,7 @@ def parameters_from_poses(poses: np.ndarray, parent: np.ndarray, root: int, para
             q = parent[i]
             params[i, 0] = poses[i, 0] - poses[q, 0]
             params[i, 1] = poses[i, 1] - poses[q, 1]
-            params[i, 2] = _wrap(poses[i, 2] - poses[q, 2])
+            params[i, 2] = wrap_scalar(poses[i, 2] - poses[q, 2])
 
 
 @njit(cache=True)
