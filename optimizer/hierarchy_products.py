@@ -8,10 +8,14 @@ first so that nothing is allocated twice. The arithmetic is scipy's, term for te
 (`bsr_matmat`'s block products accumulated in the order A's and T's blocks are met; `bsr_transpose`
 listing a column's rows in increasing order; the difference T − W·(A·T) through `bsr_binop_bsr`), and so
 is the order of the blocks in each row: the next level's aggregation reads them in that order, so the
-hierarchy is scipy's bit for bit.
+hierarchy is scipy's bit for bit. Each product returns what its symbolic pass found (`ProlongationPattern`,
+`GalerkinPattern`), so that the next build on the same patterns (the polish's next linearisation of the
+same graph) fills without counting again.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -25,56 +29,100 @@ IntArray = NDArray[np.int32] | NDArray[np.int64]
 Int32Array = NDArray[np.int32]
 
 
-def smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix,
-                          row_weights: FloatArray) -> sp.bsr_matrix:
+@dataclass(frozen=True)
+class ProlongationPattern:
+    """What `smoothed_prolongation` derives from the patterns of A and T alone (its symbolic pass), for
+    another product on the same patterns: each row's blocks before zero blocks are dropped, the longest
+    row, and whether scipy's difference takes its merging path."""
+
+    indptr: IntArray
+    longest: int
+    canonical: bool
+
+
+@dataclass(frozen=True)
+class GalerkinPattern:
+    """What `galerkin_product` derives from the patterns of A and P alone (its symbolic pass), for another
+    product on the same patterns: P's block columns (Pᵀ's rows), the coarse rows' blocks, and the longest
+    row of R·A. `prolongation_indptr`/`prolongation_indices` are the P pattern it was derived from."""
+
+    prolongation_indptr: IntArray
+    prolongation_indices: IntArray
+    column_indptr: NDArray[np.int64]
+    column_rows: Int32Array
+    column_positions: NDArray[np.int64]
+    longest: int
+    indptr: IntArray
+
+    def fits(self, prolongation: sp.bsr_matrix) -> bool:
+        """Whether `prolongation` has the pattern this was derived from."""
+        return (np.array_equal(prolongation.indptr, self.prolongation_indptr)
+                and np.array_equal(prolongation.indices, self.prolongation_indices))
+
+
+def smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix, row_weights: FloatArray,
+                          pattern: ProlongationPattern | None = None
+                          ) -> tuple[sp.bsr_matrix, ProlongationPattern]:
     """T − W·(A·T): A (`matrix`) of 3×3 or 4×4 blocks, T (`tentative`) of b×4 blocks (A's b), W the
     diagonal `row_weights` (one per scalar row). Blocks that cancel to exactly zero are dropped, as
-    scipy's difference drops them."""
+    scipy's difference drops them. `pattern`, when given, must be the one returned for a product on the
+    same patterns of A and T: its symbolic pass is then skipped (the numbers are the same either way)."""
     _check_block_sizes(matrix, tentative)
     a_indptr, a_indices, a_data = matrix.indptr, matrix.indices, matrix.data
     t_indptr, t_indices, t_data = tentative.indptr, tentative.indices, tentative.data
     rows, coarse_columns = a_indptr.shape[0] - 1, tentative.shape[1] // tentative.blocksize[1]
-    counts = np.empty(rows, dtype=np.int64)
     chunks = get_num_threads()  # one range of rows per thread (see `galerkin_product`)
-    canonical = _prolongation_counts(a_indptr, a_indices, t_indptr, t_indices, coarse_columns, counts,
-                                     chunks)
-    indptr = np.zeros(rows + 1, dtype=_index_type(counts))
-    np.cumsum(counts, out=indptr[1:])
-    longest = int(counts.max(initial=0))
-    del counts
+    if pattern is None:
+        counts = np.empty(rows, dtype=np.int64)
+        canonical = _prolongation_counts(a_indptr, a_indices, t_indptr, t_indices, coarse_columns, counts,
+                                         chunks)
+        counted = np.zeros(rows + 1, dtype=_index_type(counts))
+        np.cumsum(counts, out=counted[1:])
+        pattern = ProlongationPattern(counted, int(counts.max(initial=0)), canonical)
+        del counts
+    indptr = pattern.indptr.copy()  # the fill moves the rows down over the blocks it drops
     indices = np.empty(int(indptr[-1]), dtype=np.int32)
     data = np.empty((int(indptr[-1]), *tentative.blocksize))
     kept = _prolongation_fill_sized(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
-                                    row_weights, canonical, longest, indptr, indices, data, chunks)
-    return sp.bsr_matrix((data[:kept], indices[:kept], indptr), shape=tentative.shape)
+                                    row_weights, pattern.canonical, pattern.longest, indptr, indices, data,
+                                    chunks)
+    return sp.bsr_matrix((data[:kept], indices[:kept], indptr), shape=tentative.shape), pattern
 
 
-def galerkin_product(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix) -> sp.bsr_matrix:
+def galerkin_product(matrix: sp.bsr_matrix, prolongation: sp.bsr_matrix,
+                     pattern: GalerkinPattern | None = None) -> tuple[sp.bsr_matrix, GalerkinPattern]:
     """Pᵀ·A·P, computed as scipy's (R·A)·P with R = Pᵀ: A (`matrix`) of 3×3 or 4×4 blocks, P
-    (`prolongation`) of b×4 blocks (A's b); the result in 4×4 blocks."""
+    (`prolongation`) of b×4 blocks (A's b); the result in 4×4 blocks. `pattern`, when given, must be the
+    one returned for a product with A of the same pattern and must fit P (`GalerkinPattern.fits`): its
+    symbolic pass is then skipped (the numbers are the same either way)."""
     _check_block_sizes(matrix, prolongation)
     a_indptr, a_indices, a_data = matrix.indptr, matrix.indices, matrix.data
     p_indptr, p_indices, p_data = prolongation.indptr, prolongation.indices, prolongation.data
     fine_rows, coarse_columns = p_indptr.shape[0] - 1, prolongation.shape[1] // prolongation.blocksize[1]
-    column_indptr = np.zeros(coarse_columns + 1, dtype=np.int64)
-    column_rows = np.empty(p_indices.shape[0], dtype=np.int32)
-    column_positions = np.empty(p_indices.shape[0], dtype=np.int64)
-    _transpose_pattern(p_indptr, p_indices, column_indptr, column_rows, column_positions)
-    counts = np.empty(coarse_columns, dtype=np.int64)
     # One range of rows per thread (numba's threads asked for here: asked inside a compiled function, the
     # count is a ctypes call that keeps the function out of numba's cache).
     chunks = get_num_threads()
-    longest = _galerkin_counts(a_indptr, a_indices, p_indptr, p_indices, column_indptr, column_rows,
-                               fine_rows, counts, chunks)
-    indptr = np.zeros(coarse_columns + 1, dtype=_index_type(counts))
-    np.cumsum(counts, out=indptr[1:])
-    del counts
+    if pattern is None:
+        column_indptr = np.zeros(coarse_columns + 1, dtype=np.int64)
+        column_rows = np.empty(p_indices.shape[0], dtype=np.int32)
+        column_positions = np.empty(p_indices.shape[0], dtype=np.int64)
+        _transpose_pattern(p_indptr, p_indices, column_indptr, column_rows, column_positions)
+        counts = np.empty(coarse_columns, dtype=np.int64)
+        longest = _galerkin_counts(a_indptr, a_indices, p_indptr, p_indices, column_indptr, column_rows,
+                                   fine_rows, counts, chunks)
+        counted = np.zeros(coarse_columns + 1, dtype=_index_type(counts))
+        np.cumsum(counts, out=counted[1:])
+        del counts
+        pattern = GalerkinPattern(p_indptr.copy(), p_indices.copy(), column_indptr, column_rows,
+                                  column_positions, longest, counted)
+    indptr = pattern.indptr.copy()  # the coarse level's own: its reader may sort or change it
     size = prolongation.blocksize[1]
     indices = np.empty(int(indptr[-1]), dtype=np.int32)
     data = np.empty((int(indptr[-1]), size, size))
-    _galerkin_fill_sized(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr, column_rows,
-                         column_positions, longest, indptr, indices, data, chunks)
-    return sp.bsr_matrix((data, indices, indptr), shape=(prolongation.shape[1],) * 2)
+    _galerkin_fill_sized(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, pattern.column_indptr,
+                         pattern.column_rows, pattern.column_positions, pattern.longest, indptr, indices,
+                         data, chunks)
+    return sp.bsr_matrix((data, indices, indptr), shape=(prolongation.shape[1],) * 2), pattern
 
 
 def _index_type(counts: NDArray[np.int64]) -> type[np.signedinteger]:

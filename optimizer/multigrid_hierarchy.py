@@ -11,9 +11,17 @@ to 1e-15 relative; where a block of P cancels to exactly zero one of the two dro
 (grid world after paper SGD) a build took 6.4–8.0 CPU s and peaked 765 MB above where it started, its
 levels then holding 582 MB, where pyamg's parts with scipy's products had taken 10.6–11.5 s and 1 017 MB
 (834 MB kept); most of the difference is pyamg's R.
+
+With strength θ = 0 every step that reads only sparsity patterns (strength, aggregation, the products'
+symbolic passes) gives the same result for every matrix of one pattern, which is what the polish builds a
+hierarchy for at each linearisation of one graph: `HierarchyPatterns` keeps those results from one build
+for the next, level by level, as long as the patterns it was derived from are met again. The numbers are
+the same with and without it.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import pyamg
@@ -25,7 +33,12 @@ from pyamg.aggregation.tentative import fit_candidates
 from pyamg.strength import symmetric_strength_of_connection
 
 from optimizer.freed_memory import return_freed_memory
-from optimizer.hierarchy_products import galerkin_product, smoothed_prolongation
+from optimizer.hierarchy_products import (
+    GalerkinPattern,
+    ProlongationPattern,
+    galerkin_product,
+    smoothed_prolongation,
+)
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int32] | NDArray[np.int64]
@@ -37,25 +50,80 @@ OMEGA = 4.0 / 3.0
 """The prolongation smoother's Jacobi weight, relative to the Gershgorin bound of each row."""
 
 
-def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray) -> pyamg.MultilevelSolver:
+@dataclass(frozen=True)
+class _LevelPatterns:
+    """What one level's build derived from patterns alone: its aggregates, and the symbolic passes of its
+    two products."""
+
+    aggregates: sp.csr_array
+    prolongation: ProlongationPattern
+    galerkin: GalerkinPattern
+
+
+class HierarchyPatterns:
+    """The pattern-only results of a build, level by level, for the next build of a matrix of the same
+    pattern (`smoothed_aggregation`). A level's are reused only when its matrix has the pattern they were
+    derived from: the finest level's is compared, a coarse level's follows from the finer level's products
+    when both were reused (a prolongation block that cancels to exactly zero is dropped, so P's pattern,
+    and with it the next level's, can differ between two matrices of one pattern: P's is compared)."""
+
+    def __init__(self) -> None:
+        self._finest_indptr: IntArray | None = None
+        self._finest_indices: IntArray | None = None
+        self._levels: list[_LevelPatterns] = []
+        self.reused_levels = 0
+        """Levels of the last build that reused all three."""
+
+    def keep(self, levels: list[_LevelPatterns], reused: int) -> None:
+        """A build's levels, the first `reused` of them from the kept ones."""
+        self._levels, self.reused_levels = levels, reused
+
+    def matching_levels(self, matrix: sp.bsr_matrix) -> list[_LevelPatterns]:
+        """The kept levels when `matrix` has the finest pattern they come from, else none (and forgets
+        them: the new pattern's replace them)."""
+        if (self._finest_indptr is not None and self._finest_indices is not None
+                and np.array_equal(matrix.indptr, self._finest_indptr)
+                and np.array_equal(matrix.indices, self._finest_indices)):
+            return self._levels
+        self._finest_indptr, self._finest_indices = matrix.indptr.copy(), matrix.indices.copy()
+        self._levels = []
+        return []
+
+
+def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray,
+                         patterns: HierarchyPatterns | None = None) -> pyamg.MultilevelSolver:
     """The hierarchy of the symmetric positive definite `matrix` (BSR, square blocks) whose near-null space
     is spanned by the columns of `near_null`; every level's A and P in BSR. No R: the restriction is Pᵀ,
     applied from P's blocks in place (`optimizer.block_smoother.restrict`), not stored (232 MB at 10⁶
-    poses)."""
+    poses). `patterns` (optional) carries the pattern-only results from one call to the next."""
     return_freed_memory()  # what the caller freed since the last build, before the levels go on top of it
     levels = [pyamg.MultilevelSolver.Level()]
     levels[0].A = matrix
     candidates = np.asarray(near_null, dtype=np.float64)
+    known = patterns.matching_levels(matrix) if patterns is not None else []
+    derived: list[_LevelPatterns] = []
+    reused = 0
     while len(levels) < MAX_LEVELS and levels[-1].A.shape[0] // levels[-1].A.blocksize[0] > MAX_COARSE:
         fine = levels[-1]
-        aggregates, _ = standard_aggregation(symmetric_strength_of_connection(fine.A))
+        # This level's matrix has the kept pattern if every finer level reused its products.
+        same = known[reused] if reused == len(derived) < len(known) else None
+        if same is not None:
+            aggregates = same.aggregates
+        else:
+            aggregates, _ = standard_aggregation(symmetric_strength_of_connection(fine.A))
         tentative, candidates = fit_candidates(aggregates, candidates)
-        del aggregates
-        fine.P = _smoothed_prolongation(fine.A, tentative)
+        fine.P, prolongation = _smoothed_prolongation(fine.A, tentative,
+                                                      same.prolongation if same is not None else None)
         del tentative
+        galerkin = same.galerkin if same is not None and same.galerkin.fits(fine.P) else None
+        reused += galerkin is not None
         coarse = pyamg.MultilevelSolver.Level()
-        coarse.A = galerkin_product(fine.A, fine.P)
+        coarse.A, galerkin = galerkin_product(fine.A, fine.P, galerkin)
+        derived.append(_LevelPatterns(aggregates, prolongation, galerkin))
+        del aggregates
         levels.append(coarse)
+    if patterns is not None:
+        patterns.keep(derived, reused)
     for level in levels[:-1]:
         # pyamg's MultilevelSolver stores R = Pᵀ on every level that has none: 232 MB at 10⁶ poses, and a
         # second copy while it is made (the transpose, then its conjugate), at the end of the build.
@@ -64,13 +132,14 @@ def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray) -> pyamg.
     return pyamg.MultilevelSolver(levels, coarse_solver="pinv")
 
 
-def _smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix) -> sp.bsr_matrix:
+def _smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix,
+                           pattern: ProlongationPattern | None) -> tuple[sp.bsr_matrix, ProlongationPattern]:
     """T − ω·D⁻¹·(A·T), D the row sums of |A| (pyamg's "local" weighting; rows with D = 0 keep T)."""
     weights = np.zeros(matrix.shape[0])
     _absolute_row_sums(matrix.indptr, matrix.data, weights)
     nonzero = weights != 0.0
     weights[nonzero] = OMEGA / weights[nonzero]
-    return smoothed_prolongation(matrix, tentative, weights)
+    return smoothed_prolongation(matrix, tentative, weights, pattern)
 
 
 @njit(cache=True)

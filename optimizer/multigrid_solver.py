@@ -42,7 +42,7 @@ from optimizer.block_smoother import (
     restrict,
 )
 from optimizer.damped_solvers import Linearisation, preconditioned_cg
-from optimizer.multigrid_hierarchy import smoothed_aggregation
+from optimizer.multigrid_hierarchy import HierarchyPatterns, smoothed_aggregation
 from optimizer.parallel_products import block_product
 
 FloatArray = NDArray[np.float64]
@@ -70,6 +70,7 @@ class MultigridPCGSolver:
         self._damping = 0.0
         self._preconditioner: pyamg.MultilevelSolver | None = None
         self._iterations_after_build = 0
+        self._patterns = HierarchyPatterns()
         self.forcing = 1e-2
         self.last_iterations = 0
         self.last_converged = True
@@ -117,7 +118,7 @@ class MultigridPCGSolver:
             # No copy of H for the hierarchy (360 MB at 10⁶ poses): its finest level shares the blocks, so a
             # new λ on this linearisation reaches the V-cycle's residuals too, and its smoother only reads
             # the off-diagonal blocks (the inverted diagonal blocks are kept from the build).
-            self._preconditioner = _hierarchy(matrix, linearisation)
+            self._preconditioner = _hierarchy(matrix, linearisation, self._patterns)
             self.builds += 1
             solution, fresh_iterations, converged = self._solve(matrix, rhs, self._max_iterations, partial)
             self._iterations_after_build = fresh_iterations
@@ -197,7 +198,8 @@ def _v_cycle(hierarchy: pyamg.MultilevelSolver, level: int, rhs: FloatArray) -> 
     return solution
 
 
-def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation) -> pyamg.MultilevelSolver:
+def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation,
+               patterns: HierarchyPatterns | None = None) -> pyamg.MultilevelSolver:
     """Smoothed aggregation on the 3×3 blocks. The near-null space is that of H before the anchor pins the
     graph down: the rigid motions of all poses together, the two translations and the rotation about the
     centroid (δθ = 1, δt = R(π/2)·(t − centroid)), in the scaled variables (S⁻¹ times each motion). Without
@@ -219,7 +221,7 @@ def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation) -> pyamg.Mul
     # One forward Gauss–Seidel sweep before and one backward sweep after the coarse correction keep the
     # V-cycle symmetric (what CG needs) at half the smoothing of two symmetric sweeps: about 8 % more CG
     # iterations, a quarter less time per iteration.
-    hierarchy = smoothed_aggregation(matrix, near_null)
+    hierarchy = smoothed_aggregation(matrix, near_null, patterns)
     for level in hierarchy.levels[:-1]:
         _attach_smoothers(level)
     return hierarchy

@@ -12,7 +12,13 @@ pytest.importorskip("pyamg")
 
 import pyamg  # needs pyamg: after the skip
 
-from optimizer.multigrid_hierarchy import MAX_COARSE, _absolute_row_sums, smoothed_aggregation
+from optimizer.hierarchy_products import GalerkinPattern
+from optimizer.multigrid_hierarchy import (
+    MAX_COARSE,
+    HierarchyPatterns,
+    _absolute_row_sums,
+    smoothed_aggregation,
+)
 
 
 def system_and_candidates(num_poses: int) -> tuple[sp.bsr_matrix, np.ndarray]:
@@ -56,3 +62,69 @@ def test_no_level_stores_a_restriction() -> None:
     levels = smoothed_aggregation(matrix, near_null).levels
     assert len(levels) >= 3
     assert [getattr(level, "R", None) for level in levels] == [None] * len(levels)
+
+
+def assert_same_levels(mine: pyamg.MultilevelSolver, reference: pyamg.MultilevelSolver) -> None:
+    """Every level's A and P equal bit for bit, blocks in the same order."""
+    assert len(mine.levels) == len(reference.levels)
+    for ours, theirs in zip(mine.levels, reference.levels, strict=True):
+        for name in ("A", "P"):
+            if hasattr(theirs, name):
+                a, b = getattr(ours, name), getattr(theirs, name)
+                assert a.shape == b.shape and a.blocksize == b.blocksize
+                np.testing.assert_array_equal(a.indptr, b.indptr)
+                np.testing.assert_array_equal(a.indices, b.indices)
+                np.testing.assert_array_equal(a.data, b.data)
+
+
+def same_pattern_other_values(matrix: sp.bsr_matrix, near_null: np.ndarray,
+                              seed: int) -> tuple[sp.bsr_matrix, np.ndarray]:
+    """D·A·D (D positive diagonal, one factor per pose: still symmetric positive definite, A's pattern)
+    and candidates moved as poses move between two linearisations."""
+    rng = np.random.default_rng(seed)
+    factors = rng.uniform(0.5, 2.0, matrix.shape[0] // 3)
+    rows = np.repeat(np.arange(factors.shape[0]), np.diff(matrix.indptr))
+    data = matrix.data * (factors[rows] * factors[matrix.indices])[:, None, None]
+    other = sp.bsr_matrix((data, matrix.indices.copy(), matrix.indptr.copy()), shape=matrix.shape)
+    return other, near_null * rng.uniform(0.9, 1.1, near_null.shape)
+
+
+def test_a_build_on_kept_patterns_is_the_fresh_build_bit_for_bit() -> None:
+    # The polish builds a hierarchy at each linearisation of one graph: aggregation and the products'
+    # symbolic passes read patterns only (strength θ = 0), so the second build reuses the first's.
+    matrix, near_null = system_and_candidates(5000)
+    patterns = HierarchyPatterns()
+    first = smoothed_aggregation(matrix, near_null, patterns)
+    assert patterns.reused_levels == 0
+    assert_same_levels(first, smoothed_aggregation(matrix, near_null))
+    other, other_null = same_pattern_other_values(matrix, near_null, seed=1)
+    kept = smoothed_aggregation(other, other_null, patterns)
+    assert patterns.reused_levels == len(kept.levels) - 1 >= 2
+    assert_same_levels(kept, smoothed_aggregation(other, other_null))
+
+
+def test_another_pattern_is_built_afresh() -> None:
+    matrix, near_null = system_and_candidates(5000)
+    patterns = HierarchyPatterns()
+    smoothed_aggregation(matrix, near_null, patterns)
+    smaller, smaller_null = system_and_candidates(3000)
+    rebuilt = smoothed_aggregation(smaller, smaller_null, patterns)
+    assert patterns.reused_levels == 0
+    assert_same_levels(rebuilt, smoothed_aggregation(smaller, smaller_null))
+    # ... and what it kept now is the new pattern's.
+    other, other_null = same_pattern_other_values(smaller, smaller_null, seed=2)
+    kept = smoothed_aggregation(other, other_null, patterns)
+    assert patterns.reused_levels == len(kept.levels) - 1
+
+
+def test_a_prolongation_of_another_pattern_gets_a_new_coarse_level(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A prolongation block that cancels to exactly zero is dropped, so P's pattern can differ between two
+    # matrices of one pattern; then the Galerkin product counts afresh, and so does every coarser level.
+    matrix, near_null = system_and_candidates(5000)
+    patterns = HierarchyPatterns()
+    smoothed_aggregation(matrix, near_null, patterns)
+    monkeypatch.setattr(GalerkinPattern, "fits", lambda self, prolongation: False)
+    other, other_null = same_pattern_other_values(matrix, near_null, seed=3)
+    rebuilt = smoothed_aggregation(other, other_null, patterns)
+    assert patterns.reused_levels == 0
+    assert_same_levels(rebuilt, smoothed_aggregation(other, other_null))
