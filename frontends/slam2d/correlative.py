@@ -154,8 +154,8 @@ def match_exhaustive(
 ) -> Match:
     """The best pose of `points` (robot frame) within `window` around `center` on `grid`."""
     angles = _angles(float(center[2]), window)
-    cells_x, cells_y = _base_cells(
-        points, float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
+    cells_x, cells_y = _base_cells(  # contiguous: strided points compiled the kernel a second time
+        np.ascontiguousarray(points), float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
     )
     reach = _reach(window, grid)
     a, tx, ty, score = _exhaustive(grid.values, cells_x, cells_y, reach)
@@ -402,8 +402,8 @@ def prepare_branch_and_bound(
     """What every `match_branch_and_bound` of `points` in `window` around `center` on `grid` computes
     before it searches; see there for `levels` and `crop_pyramid`."""
     angles = _angles(float(center[2]), window)
-    cells_x, cells_y = _base_cells(
-        points, float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
+    cells_x, cells_y = _base_cells(  # contiguous: strided points compiled the kernel a second time
+        np.ascontiguousarray(points), float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
     )
     reach = _reach(window, grid)
     height, width = grid.values.shape
