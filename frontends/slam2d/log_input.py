@@ -168,7 +168,7 @@ def _plausible_motion(
     if count == 0:
         return keep
     keep[0] = True
-    last = 0
+    last = np.int64(0)  # not the literal 0: `_reachable` was compiled for Literal[int](0) besides int64
     kept_run = 1
     rejected_start = -1
     for i in range(1, count):
