@@ -147,7 +147,7 @@ def _prolongation_counts(a_indptr: IntArray, a_indices: IntArray, t_indptr: IntA
     rows = a_indptr.shape[0] - 1
     canonical = np.ones(chunks, dtype=np.bool_)
     for chunk in prange(chunks):
-        first, last = _row_range(rows, chunks, chunk)
+        first, last = _row_range(rows, chunks, np.int64(chunk))
         canonical[chunk] = _prolongation_counts_of(a_indptr, a_indices, t_indptr, t_indices, coarse_columns,
                                                    counts, first, last)
     return bool(canonical.all())
@@ -201,7 +201,7 @@ def _prolongation_fill_sized(a_indptr: IntArray, a_indices: IntArray, a_data: Fl
     rows = a_indptr.shape[0] - 1
     kept = np.empty(rows, dtype=np.int64)
     for chunk in prange(chunks):
-        first, last = _row_range(rows, chunks, chunk)
+        first, last = _row_range(rows, chunks, np.int64(chunk))
         if a_data.shape[1] == 3:
             _prolongation_fill(a_indptr, a_indices, a_data, t_indptr, t_indices, t_data, coarse_columns,
                                row_weights, canonical, longest, indptr, indices, data, kept, first, last,
@@ -330,7 +330,7 @@ def _galerkin_counts(a_indptr: IntArray, a_indices: IntArray, p_indptr: IntArray
     coarse_rows = column_indptr.shape[0] - 1
     longest = np.zeros(chunks, dtype=np.int64)
     for chunk in prange(chunks):
-        first, last = _row_range(coarse_rows, chunks, chunk)
+        first, last = _row_range(coarse_rows, chunks, np.int64(chunk))
         longest[chunk] = _galerkin_counts_of(a_indptr, a_indices, p_indptr, p_indices, column_indptr,
                                              column_rows, fine_rows, counts, first, last)
     return int(longest.max())
@@ -338,7 +338,9 @@ def _galerkin_counts(a_indptr: IntArray, a_indices: IntArray, p_indptr: IntArray
 
 @njit(cache=True)
 def _row_range(rows: int, chunks: int, chunk: int) -> tuple[int, int]:
-    """Rows [first, last) of chunk `chunk` of `chunks` contiguous, near-equal ranges."""
+    """Rows [first, last) of chunk `chunk` of `chunks` contiguous, near-equal ranges. Callers pass the
+    prange index as np.int64: numba types it int64 before its parallel pass and uint64 after, which
+    compiled this twice."""
     return rows * chunk // chunks, rows * (chunk + 1) // chunks
 
 
@@ -390,7 +392,7 @@ def _galerkin_fill_sized(a_indptr: IntArray, a_indices: IntArray, a_data: FloatA
     and are summed by one thread in `_galerkin_fill`'s order: the same numbers whatever the threads."""
     coarse_rows = column_indptr.shape[0] - 1
     for chunk in prange(chunks):
-        first, last = _row_range(coarse_rows, chunks, chunk)
+        first, last = _row_range(coarse_rows, chunks, np.int64(chunk))
         if a_data.shape[1] == 3:
             _galerkin_fill(a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, column_indptr,
                            column_rows, column_positions, longest, indptr, indices, data, first, last, 3, 4)

@@ -11,7 +11,10 @@ from optimizer.cost import chi2
 from optimizer.graph import PoseGraph
 from optimizer.gridworld import generate_grid_world
 from optimizer.polish import gauss_newton
+from tests.conftest import MULTIGRID_STACK
 from tests.optimizer_fixtures import run
+
+pytestmark = MULTIGRID_STACK  # one worker compiles the multigrid polish's kernels (conftest)
 
 
 def moved_rigidly(poses: np.ndarray, motion: np.ndarray) -> np.ndarray:

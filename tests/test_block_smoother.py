@@ -16,11 +16,14 @@ from optimizer.block_smoother import (
     restrict,
 )
 from optimizer.errors import OptimizerError
+from tests.conftest import MULTIGRID_STACK
 from tests.optimizer_fixtures import symmetric_block_matrix
 
 pytest.importorskip("pyamg")
 
 from pyamg.relaxation.relaxation import block_gauss_seidel  # needs pyamg: after the skip
+
+pytestmark = MULTIGRID_STACK  # one worker compiles the multigrid polish's kernels (conftest)
 
 
 @pytest.mark.parametrize("size", [3, 4])

@@ -12,6 +12,7 @@ import scipy.sparse as sp
 
 from optimizer.errors import OptimizerError
 from optimizer.hierarchy_products import galerkin_product, smoothed_prolongation
+from tests.conftest import MULTIGRID_STACK
 from tests.test_multigrid_hierarchy import system_and_candidates
 
 pytest.importorskip("pyamg")
@@ -19,6 +20,8 @@ pytest.importorskip("pyamg")
 from pyamg.aggregation.aggregate import standard_aggregation  # needs pyamg: after the skip
 from pyamg.aggregation.tentative import fit_candidates
 from pyamg.strength import symmetric_strength_of_connection
+
+pytestmark = MULTIGRID_STACK  # one worker compiles the multigrid polish's kernels (conftest)
 
 
 def tentative_of(matrix: sp.bsr_matrix, near_null: np.ndarray) -> sp.bsr_matrix:

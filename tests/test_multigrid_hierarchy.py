@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from tests.conftest import MULTIGRID_STACK
 from tests.test_multigrid_polish import scaled_system
 
 pytest.importorskip("pyamg")
@@ -19,6 +20,8 @@ from optimizer.multigrid_hierarchy import (
     _absolute_row_sums,
     smoothed_aggregation,
 )
+
+pytestmark = MULTIGRID_STACK  # one worker compiles the multigrid polish's kernels (conftest)
 
 
 def system_and_candidates(num_poses: int) -> tuple[sp.bsr_matrix, np.ndarray]:

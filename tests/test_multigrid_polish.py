@@ -22,6 +22,7 @@ from optimizer.damped_solvers import DirectSolver, Linearisation, preconditioned
 from optimizer.gridworld import generate_grid_world
 from optimizer.normal_equations import UpperPattern
 from optimizer.polish import _linearise, gauss_newton
+from tests.conftest import MULTIGRID_STACK
 from tests.optimizer_fixtures import polish_poses
 from tests.test_normal_equations import dense_system, tangled_graph
 from tests.test_polish import run
@@ -33,6 +34,8 @@ from pyamg.relaxation.smoothing import setup_block_gauss_seidel
 
 from optimizer import multigrid_solver
 from optimizer.multigrid_solver import MultigridPCGSolver, _hierarchy, _v_cycle
+
+pytestmark = MULTIGRID_STACK  # one worker compiles the multigrid polish's kernels (conftest)
 
 
 def assembled(graph_seed: int) -> tuple[BlockPattern, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -14,7 +14,10 @@ from optimizer.block_smoother import inverted_diagonal, prolong_into
 from optimizer.errors import OptimizerError
 from optimizer.gridworld import generate_grid_world
 from optimizer.parallel_products import add_scaled, block_product, scale_and_add
+from tests.conftest import MULTIGRID_STACK
 from tests.optimizer_fixtures import symmetric_block_matrix
+
+pytestmark = MULTIGRID_STACK  # one worker compiles the multigrid polish's kernels (conftest)
 
 THREADS = sorted({1, 2, numba.config.NUMBA_NUM_THREADS})
 

@@ -13,8 +13,10 @@ from optimizer.graph_files import read_graph
 from optimizer.gridworld import generate_grid_world
 from optimizer.polish import PolishStatus, _gradient, edge_jacobians, gauss_newton, moved_by
 from optimizer.sgd import sgd
-from tests.conftest import shared_file
+from tests.conftest import MULTIGRID_STACK, shared_file
 from tests.optimizer_fixtures import random_information, run
+
+pytestmark = MULTIGRID_STACK  # one worker compiles the multigrid polish's kernels (conftest)
 
 
 def square_loop(rng: np.random.Generator, noise: float = 0.0) -> tuple[PoseGraph, np.ndarray]:

@@ -369,7 +369,7 @@ def test_top_level_scores_are_each_candidates_sum_of_its_points_clamped_blocks()
     cells_x = rng.integers(-12, 40, size=(3, 25)).astype(np.int64)
     cells_y = rng.integers(-12, 48, size=(3, 25)).astype(np.int64)
     reach = 13
-    scores, keys = correlative._top_level(levels, cells_x, cells_y, reach)
+    scores, keys = correlative._top_level(levels[-1], len(levels) - 1, cells_x, cells_y, reach)
     top = levels[-1]
     height, width = top.shape
 

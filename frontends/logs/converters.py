@@ -81,7 +81,7 @@ class BearingTable:
 
 @njit(cache=True)
 def _keep_beams(
-    ranges: NDArray[np.floating[Any]],
+    ranges: NDArray[np.float64],
     bearings: NDArray[np.float64],
     cos: NDArray[np.float64],
     sin: NDArray[np.float64],
@@ -120,10 +120,12 @@ def _scan(
     low: float,
     high: float,
 ) -> Scan2D:
-    if not ranges.dtype.isnative:
-        ranges = ranges.astype(ranges.dtype.newbyteorder("="))
+    # One type for `_keep_beams` whatever the message held (float32 or float64, either byte order, strided;
+    # limits of int or float): each other type was compiled again, seconds on a cold cache. Exact: float32
+    # widens to float64 losslessly and the kernel compared and widened in float64 anyway.
+    ranges = np.ascontiguousarray(ranges, dtype=np.float64)
     bearings, cos, sin = table
-    points, kept, kept_bearings = _keep_beams(ranges, bearings, cos, sin, low, high)
+    points, kept, kept_bearings = _keep_beams(ranges, bearings, cos, sin, float(low), float(high))
     return Scan2D(stamp_ns, log_time_ns, frame_id, points, kept, kept_bearings, ranges.shape[0])
 
 

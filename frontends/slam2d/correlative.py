@@ -23,6 +23,12 @@ from frontends.slam2d.grid import LikelihoodGrid
 
 FloatArray = NDArray[np.float64]
 
+PYRAMID_SLOTS = 8
+"""Levels `_branch_and_bound` takes: a shorter pyramid is padded to this many with its top level (never
+read: the kernel is told the top), so every `levels` up to 7 shares one compiled kernel. numba compiles a
+tuple argument once per length: the 3, 4 and 5 levels of the odometry, loop and localization searches
+were three compilations of it, seconds each on a cold cache."""
+
 
 @dataclass(frozen=True)
 class SearchWindow:
@@ -148,8 +154,8 @@ def match_exhaustive(
 ) -> Match:
     """The best pose of `points` (robot frame) within `window` around `center` on `grid`."""
     angles = _angles(float(center[2]), window)
-    cells_x, cells_y = _base_cells(
-        points, float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
+    cells_x, cells_y = _base_cells(  # contiguous: strided points compiled the kernel a second time
+        np.ascontiguousarray(points), float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
     )
     reach = _reach(window, grid)
     a, tx, ty, score = _exhaustive(grid.values, cells_x, cells_y, reach)
@@ -178,18 +184,18 @@ def _block_cell(cell: int, span: int, size: int) -> int:
 
 @njit(cache=True)
 def _top_level(
-    levels: tuple[NDArray[np.float32], ...],
+    values: NDArray[np.float32],
+    top: int,
     cells_x: NDArray[np.int64],
     cells_y: NDArray[np.int64],
     reach: int,
 ) -> tuple[FloatArray, NDArray[np.int64]]:
-    """Scores of every candidate (angle, tx, ty) of the coarsest level, and those keys.
+    """Scores of every candidate (angle, tx, ty) of the coarsest level, level `top` (its `values`), and
+    those keys.
 
     Each point adds its cells of all translations at once (the cell `_score` reads, clamped alike), so its
     row is read for all of them together; every total sums the points in `_score`'s order: equal scores."""
-    top = len(levels) - 1
     span = 1 << top
-    values = levels[top]
     height, width = values.shape
     starts = np.arange(-reach, reach + 1, span)
     side = starts.shape[0]
@@ -261,6 +267,7 @@ def _child_scores(
 @njit(cache=True)
 def _branch_and_bound(
     levels: tuple[NDArray[np.float32], ...],
+    top: int,
     cells_x: NDArray[np.int64],
     cells_y: NDArray[np.int64],
     reach: int,
@@ -272,9 +279,9 @@ def _branch_and_bound(
     exclude_radius: int,
 ) -> tuple[int, int, int, float]:
     """The best leaf above `min_score`, skipping translations within `exclude_radius` cells of
-    (exclude_x, exclude_y) (a negative radius excludes nothing); `top_scores` and `keys` are
-    `_top_level`'s, shared by every search of the same points on the same pyramid."""
-    top = len(levels) - 1
+    (exclude_x, exclude_y) (a negative radius excludes nothing); `levels[top]` is the coarsest level
+    (`levels` may hold more, `PYRAMID_SLOTS`); `top_scores` and `keys` are `_top_level`'s, shared by every
+    search of the same points on the same pyramid."""
     span = 1 << top
     count = top_scores.shape[0]
     scores = top_scores.copy()
@@ -372,9 +379,11 @@ class BranchAndBoundSearch:
             exclude_x = round((x - center[0]) / resolution)
             exclude_y = round((y - center[1]) / resolution)
             exclude_radius = round(radius / resolution)
+        top = len(self.pyramid) - 1
+        padded = self.pyramid + (self.pyramid[-1],) * max(PYRAMID_SLOTS - len(self.pyramid), 0)
         a, tx, ty, score = _branch_and_bound(
-            self.pyramid, self.cells_x, self.cells_y, self.reach, self.top_scores, self.top_keys, min_score,
-            exclude_x, exclude_y, exclude_radius,
+            padded, top, self.cells_x, self.cells_y, self.reach, self.top_scores, self.top_keys,
+            float(min_score), exclude_x, exclude_y, exclude_radius,
         )
         if score < 0.0:
             return None
@@ -393,8 +402,8 @@ def prepare_branch_and_bound(
     """What every `match_branch_and_bound` of `points` in `window` around `center` on `grid` computes
     before it searches; see there for `levels` and `crop_pyramid`."""
     angles = _angles(float(center[2]), window)
-    cells_x, cells_y = _base_cells(
-        points, float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
+    cells_x, cells_y = _base_cells(  # contiguous: strided points compiled the kernel a second time
+        np.ascontiguousarray(points), float(center[0]), float(center[1]), angles, grid.origin, grid.resolution
     )
     reach = _reach(window, grid)
     height, width = grid.values.shape
@@ -413,7 +422,7 @@ def prepare_branch_and_bound(
     pyramid = tuple(grid.pyramid(levels, (top, bottom, left, right)))
     cells_x = cells_x - left
     cells_y = cells_y - top
-    top_scores, top_keys = _top_level(pyramid, cells_x, cells_y, reach)
+    top_scores, top_keys = _top_level(pyramid[-1], len(pyramid) - 1, cells_x, cells_y, reach)
     return BranchAndBoundSearch(np.asarray(center, dtype=np.float64), grid.resolution, angles, reach, pyramid,
                                 cells_x, cells_y, top_scores, top_keys)
 

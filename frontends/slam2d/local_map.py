@@ -37,12 +37,14 @@ def one_per_cell_each(points: FloatArray, offsets: NDArray[np.int64],
     """`one_per_cell` (first points) of each segment `points[offsets[s]:offsets[s + 1]]` in one call, the
     non-finite points dropped: which points are kept, and how many of each segment."""
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
-    return _one_per_cell_each(points, np.asarray(offsets, dtype=np.int64), float(cell))
+    # keep_last passed in, not the constant False: a constant is typed as a literal, which compiled
+    # `_one_per_cell` and `_one_per_key` a second time (seconds each on a cold cache)
+    return _one_per_cell_each(points, np.asarray(offsets, dtype=np.int64), float(cell), False)
 
 
 @njit(cache=True)
-def _one_per_cell_each(points: FloatArray, offsets: NDArray[np.int64],
-                       cell: float) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+def _one_per_cell_each(points: FloatArray, offsets: NDArray[np.int64], cell: float,
+                       keep_last: bool) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
     keep = np.zeros(points.shape[0], dtype=np.bool_)
     counts = np.zeros(offsets.shape[0] - 1, dtype=np.int64)
     for segment in range(offsets.shape[0] - 1):
@@ -53,7 +55,7 @@ def _one_per_cell_each(points: FloatArray, offsets: NDArray[np.int64],
             if np.isfinite(points[i, 0]) and np.isfinite(points[i, 1]):
                 finite[count] = i
                 count += 1
-        kept = _one_per_cell(points[finite[:count]], cell, False)
+        kept = _one_per_cell(points[finite[:count]], cell, keep_last)
         for k in kept:
             keep[finite[k]] = True
         counts[segment] = kept.shape[0]

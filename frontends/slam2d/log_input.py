@@ -137,7 +137,9 @@ def read_odometry(
     keep = np.ones(len(stamp_array), dtype=bool)
     keep[1:] = stamp_array[1:] != stamp_array[:-1]  # repeated stamps: the first message wins
     stamp_array, pose_array = stamp_array[keep], pose_array[keep]
-    plausible = _plausible_motion(stamp_array, pose_array, checks.max_speed, checks.max_turn_rate)
+    # float(): a limit a config file wrote as an integer would compile the kernels again (seconds, cold)
+    plausible = _plausible_motion(stamp_array, pose_array, float(checks.max_speed),
+                                  float(checks.max_turn_rate))
     _add(counts, "odometry_dropped_jumps", int(np.count_nonzero(~plausible)))
     stamp_array, pose_array = stamp_array[plausible], pose_array[plausible]
     if len(stamp_array) < 2:
@@ -166,7 +168,7 @@ def _plausible_motion(
     if count == 0:
         return keep
     keep[0] = True
-    last = 0
+    last = np.int64(0)  # not the literal 0: `_reachable` was compiled for Literal[int](0) besides int64
     kept_run = 1
     rejected_start = -1
     for i in range(1, count):
