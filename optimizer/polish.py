@@ -382,10 +382,14 @@ def _linearise(graph: PoseGraph, pattern: Pattern, poses: FloatArray) -> Lineari
 
 
 def _starting_poses(graph: PoseGraph, poses: FloatArray | None) -> FloatArray:
+    """A checked copy of the starting poses, θ wrapped, read-only like every later iterate: numba compiles
+    a kernel once per argument type, and a writable start took a second compile of the assembly and the
+    quadratic form in every fresh cache (a user's first polish)."""
     start = np.array(graph.poses if poses is None else poses, dtype=np.float64, copy=True)
     if start.shape != graph.poses.shape:
         raise GraphError(f"expected poses of shape {graph.poses.shape}, got {start.shape}")
     if not np.all(np.isfinite(start)):
         raise GraphError("the starting poses contain non-finite values")
     start[:, 2] = se2.wrap_angle(start[:, 2])
+    start.setflags(write=False)
     return start

@@ -78,7 +78,7 @@ def symmetric_block_matrix(size: int, rows: int, seed: int) -> sp.bsr_matrix:
 
 
 def polish_poses(graph: PoseGraph) -> np.ndarray:
-    """The graph's poses as the polish passes them to its kernels: a writable copy (the graph's own are
-    read-only). A read-only array is another signature for numba, compiled again in a cold cache for no
-    case the polish meets."""
-    return graph.poses.copy()
+    """The graph's poses as the polish passes them to its kernels: read-only, like the graph's own (a
+    writable array is another signature for numba, compiled again in a cold cache for no case the polish
+    meets)."""
+    return graph.poses
