@@ -178,13 +178,20 @@ def tree_size(num_poses: int, block: int = TREE_BLOCK) -> int:
     return 1 << max(blocks - 1, 1).bit_length()
 
 
+@njit(cache=True, inline="always")
+def _spans_blocks(a: int, b: int, block: int) -> bool:
+    """Whether a constraint's increments min(a, b)+1..max(a, b) lie in more than one block of the tree:
+    its total weight is then one row of `spans` (`stiffness_tree`)."""
+    return (min(a, b) + 1) // block != max(a, b) // block
+
+
 @njit(cache=True)
 def spanning_count(edge_from: np.ndarray, edge_to: np.ndarray, block: int) -> int:
-    """Number of constraints whose increments min(a, b)+1..max(a, b) lie in more than one block of the tree:
-    the rows of the `spans` array of `stiffness_tree` and `sgd_iteration_tree`."""
+    """Number of constraints that span more than one block: the rows of the `spans` array of
+    `stiffness_tree` and `sgd_iteration_tree`."""
     count = 0
     for k in range(edge_from.shape[0]):
-        if (min(edge_from[k], edge_to[k]) + 1) // block != max(edge_from[k], edge_to[k]) // block:
+        if _spans_blocks(edge_from[k], edge_to[k], block):
             count += 1
     return count
 
@@ -295,17 +302,16 @@ def stiffness_tree(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
     # there: the same values to the bit.
     spanning = 0
     for k in range(edge_from.shape[0]):
-        first = min(edge_from[k], edge_to[k]) + 1
-        last = max(edge_from[k], edge_to[k])
-        if first // block != last // block:
-            w0, w1, w2 = _tree_weight(first, last, weights, tree, block)
+        if _spans_blocks(edge_from[k], edge_to[k], block):
+            w0, w1, w2 = _tree_weight(min(edge_from[k], edge_to[k]) + 1, max(edge_from[k], edge_to[k]),
+                                      weights, tree, block)
             spans[spanning, 0] = w0
             spans[spanning, 1] = w1
             spans[spanning, 2] = w2
             spanning += 1
 
 
-Walk = tuple[float, float, float, float, float, float]
+Walk = Six
 """A walk's state at a block's leaf: l = Σ LAZY of the leaf's ancestors, s = the prefix sum of the subtrees
 left of its path (see `_walk_to_block`)."""
 
@@ -608,11 +614,11 @@ def sgd_iteration_tree(base: np.ndarray, edge_from: np.ndarray, edge_to: np.ndar
         lo = min(a, b)
         hi = max(a, b)
         sign = 1.0 if a < b else -1.0
-        if (lo + 1) // block == hi // block:
-            w0, w1, w2 = _tree_weight(lo + 1, hi, weights, tree, block)
-        else:
+        if _spans_blocks(a, b, block):
             w0, w1, w2 = spans[spanning, 0], spans[spanning, 1], spans[spanning, 2]
             spanning += 1
+        else:
+            w0, w1, w2 = _tree_weight(lo + 1, hi, weights, tree, block)
         a0 = sign * _clamped_step(hi - lo, d0, r0, gamma[0], t) / w0
         a1 = sign * _clamped_step(hi - lo, d1, r1, gamma[1], t) / w1
         a2 = sign * _clamped_step(hi - lo, d2, r2, gamma[2], t) / w2

@@ -75,10 +75,3 @@ def symmetric_block_matrix(size: int, rows: int, seed: int) -> sp.bsr_matrix:
     dominance = 4.0 * size * np.abs(off + off.T).sum(axis=1).max()
     matrix = off + off.T + sp.identity(rows * size) * dominance
     return sp.bsr_matrix(matrix, blocksize=(size, size))
-
-
-def polish_poses(graph: PoseGraph) -> np.ndarray:
-    """The graph's poses as the polish passes them to its kernels: read-only, like the graph's own (a
-    writable array is another signature for numba, compiled again in a cold cache for no case the polish
-    meets)."""
-    return graph.poses

@@ -23,7 +23,6 @@ from optimizer.gridworld import generate_grid_world
 from optimizer.normal_equations import UpperPattern
 from optimizer.polish import _linearise, gauss_newton
 from tests.conftest import MULTIGRID_STACK
-from tests.optimizer_fixtures import polish_poses
 from tests.test_normal_equations import dense_system, tangled_graph
 from tests.test_polish import run
 
@@ -44,7 +43,7 @@ def assembled(graph_seed: int) -> tuple[BlockPattern, np.ndarray, np.ndarray, np
     pattern = BlockPattern.of(graph)
     blocks = np.empty((pattern.num_blocks, 3, 3))
     assembled_gradient = np.empty(3 * pattern.free)
-    assemble_blocks(polish_poses(graph), graph.edge_from, graph.edge_to, graph.measurements,
+    assemble_blocks(graph.poses, graph.edge_from, graph.edge_to, graph.measurements,
                     graph.information, pattern.edge_blocks, blocks, assembled_gradient)
     return pattern, blocks, assembled_gradient, hessian, gradient
 
@@ -81,9 +80,9 @@ def test_multigrid_steps_match_the_direct_steps_for_every_damping() -> None:
     pattern = BlockPattern.of(graph)
     solver = MultigridPCGSolver(pattern)
     solver.forcing = 1e-10
-    linearisation = _linearise(graph, pattern, polish_poses(graph))
+    linearisation = _linearise(graph, pattern, graph.poses)
     for damping in (1e-4, 3e-2):
-        direct = direct_solver.step(_linearise(graph, upper, polish_poses(graph)), damping)
+        direct = direct_solver.step(_linearise(graph, upper, graph.poses), damping)
         step = solver.step(linearisation, damping)
         assert direct is not None and step is not None
         assert solver.last_converged
@@ -109,18 +108,18 @@ def test_multigrid_steps_are_reproducible_and_follow_every_damping_with_one_hier
     for _ in range(2):
         solver = MultigridPCGSolver(pattern)
         solver.forcing = 1e-10
-        step = solver.step(_linearise(graph, pattern, polish_poses(graph)), 1e-3)
+        step = solver.step(_linearise(graph, pattern, graph.poses), 1e-3)
         assert step is not None
         steps.append(step)
     np.testing.assert_array_equal(steps[0], steps[1])
-    linearisation = _linearise(graph, pattern, polish_poses(graph))
+    linearisation = _linearise(graph, pattern, graph.poses)
     solver = MultigridPCGSolver(pattern, rebuild_growth=1e6)  # keep the first hierarchy
     solver.forcing = 1e-10
     upper = UpperPattern.of(graph)
     direct_solver = DirectSolver(upper)
     for damping in (1e-3, 0.5, 1e-6):
         step = solver.step(linearisation, damping)
-        direct = direct_solver.step(_linearise(graph, upper, polish_poses(graph)), damping)
+        direct = direct_solver.step(_linearise(graph, upper, graph.poses), damping)
         assert step is not None and direct is not None
         np.testing.assert_allclose(step, direct, rtol=1e-6, atol=1e-8 * np.abs(direct).max())
     assert solver.builds == 1
@@ -130,12 +129,12 @@ def test_every_linearisation_gets_a_new_hierarchy_and_its_dampings_share_it() ->
     graph = generate_grid_world(300, seed=5).graph
     pattern = BlockPattern.of(graph)
     solver = MultigridPCGSolver(pattern)
-    linearisation = _linearise(graph, pattern, polish_poses(graph))
+    linearisation = _linearise(graph, pattern, graph.poses)
     assert solver.step(linearisation, 1e-3) is not None
     assert solver.step(linearisation, 4e-3) is not None  # a rejected step's retry at a larger λ
     assert solver.builds == 1
     solver.accepted_step()
-    assert solver.step(_linearise(graph, pattern, polish_poses(graph)), 1e-3) is not None
+    assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
     assert solver.builds == 2
 
 
@@ -143,7 +142,7 @@ def scaled_system(num_poses: int) -> tuple[sp.bsr_matrix, Linearisation]:
     """S·H·S + 1e-6·I of a grid world of `num_poses` at its file estimate, and its linearisation."""
     graph = generate_grid_world(num_poses, seed=6).graph
     pattern = BlockPattern.of(graph)
-    linearisation = _linearise(graph, pattern, polish_poses(graph))
+    linearisation = _linearise(graph, pattern, graph.poses)
     blocks = linearisation.hessian
     scale_blocks(blocks, pattern.indptr, pattern.indices, linearisation.scale)
     add_to_diagonal(blocks, pattern.diagonal_block, 1e-6)
@@ -227,7 +226,7 @@ def test_a_rebuilt_hierarchy_goes_on_from_where_the_kept_one_stopped(monkeypatch
     graph = generate_grid_world(2000, seed=5).graph
     pattern = BlockPattern.of(graph)
     solver = MultigridPCGSolver(pattern)
-    linearisation = _linearise(graph, pattern, polish_poses(graph))
+    linearisation = _linearise(graph, pattern, graph.poses)
     assert solver.step(linearisation, 1e-3) is not None
     calls: list[tuple[np.ndarray | None, np.ndarray, int]] = []
 
@@ -252,7 +251,7 @@ def test_a_kept_hierarchy_close_to_its_target_goes_on_instead_of_being_rebuilt()
     graph = generate_grid_world(2000, seed=5).graph
     pattern = BlockPattern.of(graph)
     solver = MultigridPCGSolver(pattern, rebuild_growth=0.1)
-    linearisation = _linearise(graph, pattern, polish_poses(graph))
+    linearisation = _linearise(graph, pattern, graph.poses)
     assert solver.step(linearisation, 1e-3) is not None
     # As if its build's first solve had taken 200 iterations: its budget (20) runs out far short of what a
     # new hierarchy would cost, and the rate it has shown reaches the target well within that.

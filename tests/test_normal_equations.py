@@ -24,7 +24,7 @@ from optimizer.normal_equations import (
     quadratic_form,
 )
 from optimizer.polish import _linearise, edge_jacobians, gauss_newton
-from tests.optimizer_fixtures import polish_poses, random_information, run
+from tests.optimizer_fixtures import random_information, run
 
 
 def tangled_graph(seed: int) -> PoseGraph:
@@ -56,7 +56,7 @@ def test_assembly_matches_the_dense_normal_equations() -> None:
     pattern = UpperPattern.of(graph)
     data = np.empty(pattern.nnz)
     assembled_gradient = np.empty(pattern.size)
-    assemble(polish_poses(graph), graph.edge_from, graph.edge_to, graph.measurements, graph.information,
+    assemble(graph.poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information,
              pattern.edge_block, pattern.indptr, pattern.block_count, data, assembled_gradient)
     upper = sp.csc_matrix((data, pattern.indices, pattern.indptr), shape=hessian.shape).toarray()
     np.testing.assert_allclose(upper, np.triu(hessian), atol=1e-9)
@@ -71,7 +71,7 @@ def test_matrix_free_products_match_the_dense_hessian() -> None:
     hessian, gradient = dense_system(graph)
     vector = np.random.default_rng(3).normal(size=len(gradient))
     product = np.empty_like(vector)
-    arrays = (polish_poses(graph), graph.edge_from, graph.edge_to, graph.measurements, graph.information)
+    arrays = (graph.poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information)
     hessian_product(*arrays, vector, product)
     np.testing.assert_allclose(product, hessian @ vector, atol=1e-9)
     assert quadratic_form(*arrays, vector) == pytest.approx(vector @ hessian @ vector, rel=1e-12)
@@ -106,7 +106,7 @@ def test_chain_preconditioner_is_exact_on_a_pure_chain() -> None:
     poses = se2.compose_chain(measurements, start=np.zeros(3)) + rng.normal(0, 0.1, (count, 3))
     graph = PoseGraph.build(np.arange(count), poses, np.arange(count - 1), np.arange(1, count), measurements,
                             random_information(rng, count - 1))
-    linearisation = _linearise(graph, UpperPattern.of(graph), polish_poses(graph))
+    linearisation = _linearise(graph, UpperPattern.of(graph), graph.poses)
     direct = DirectSolver(UpperPattern.of(graph)).step(linearisation, 1e-3)
     iterative = ChainPCGSolver(graph)
     iterative.forcing = 1e-12
