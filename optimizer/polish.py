@@ -34,6 +34,7 @@ from optimizer.damped_solvers import ChainPCGSolver, DirectSolver, Linearisation
 from optimizer.errors import GraphError, OptimizerError
 from optimizer.graph import PoseGraph
 from optimizer.iteration import Iteration
+from optimizer.locality_order import locality_order, renumbered
 from optimizer.normal_equations import UpperPattern, assemble, diagonal_of, hessian_diagonal, quadratic_form
 
 if TYPE_CHECKING:
@@ -185,7 +186,9 @@ def gauss_newton(
     decrease while the gradient test fails (a stall, not an optimum). `linear_solver` "direct" is qdldl's
     exact LDLᵀ, "multigrid" conjugate gradients preconditioned by smoothed-aggregation multigrid (pyamg),
     "cg" conjugate gradients preconditioned by the pose chain; "auto" takes "direct" up to
-    `DIRECT_SOLVER_MAX_POSES` poses and "multigrid" above.
+    `DIRECT_SOLVER_MAX_POSES` poses and "multigrid" above. The multigrid descent runs on the graph with its
+    poses renumbered for memory locality (`optimizer.locality_order`); its iterations are yielded with the
+    poses in the graph's own order.
     """
     if max_iterations < 0:
         raise OptimizerError(f"max_iterations must be >= 0, got {max_iterations}")
@@ -195,7 +198,36 @@ def gauss_newton(
             raise OptimizerError(f"{name} must be >= 0, got {value}")
     if linear_solver not in LINEAR_SOLVERS:
         raise OptimizerError(f"unknown linear solver {linear_solver!r}; choose {', '.join(LINEAR_SOLVERS)}")
-    current = _starting_poses(graph, poses)
+    start = _starting_poses(graph, poses)
+    if _resolved(graph, linear_solver) == "multigrid" and graph.num_poses > 2:
+        order = locality_order(graph)
+        descent = _descent(renumbered(graph, order), start[order], max_iterations, relative_tolerance,
+                           step_tolerance, gradient_tolerance, "multigrid")
+        return (yield from _numbered_back(descent, order))
+    return (yield from _descent(graph, start, max_iterations, relative_tolerance, step_tolerance,
+                                gradient_tolerance, linear_solver))
+
+
+def _numbered_back(descent: Generator[Iteration, None, PolishStatus],
+                   order: IntArray) -> Generator[Iteration, None, PolishStatus]:
+    """The iterations of a descent on the graph renumbered by `order` (`optimizer.locality_order`), their
+    poses in the graph's own order."""
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.shape[0])
+    while True:
+        try:
+            iteration = next(descent)
+        except StopIteration as stop:
+            return stop.value
+        poses = iteration.poses[rank]
+        poses.setflags(write=False)
+        yield Iteration(iteration.stage, iteration.index, poses, iteration.chi2, iteration.start)
+
+
+def _descent(graph: PoseGraph, current: FloatArray, max_iterations: int, relative_tolerance: float,
+             step_tolerance: float, gradient_tolerance: float,
+             linear_solver: LinearSolver) -> Generator[Iteration, None, PolishStatus]:
+    """`gauss_newton` on `graph` as numbered, from `current` (`_starting_poses`: a copy of its own)."""
     current_chi2 = chi2(graph, current)
     if graph.num_poses < 2:
         return PolishStatus(True, "a single pose: nothing to optimize", 0)
@@ -342,11 +374,17 @@ Pattern = UpperPattern | BlockPattern | None
 """How H is assembled: upper CSC (direct), 3×3 blocks (multigrid), or not at all (matrix-free chain CG)."""
 
 
+def _resolved(graph: PoseGraph, linear_solver: LinearSolver) -> LinearSolver:
+    """The solver "auto" stands for on `graph`."""
+    if linear_solver == "auto":
+        return "direct" if graph.num_poses <= DIRECT_SOLVER_MAX_POSES else "multigrid"
+    return linear_solver
+
+
 def _solver_for(graph: PoseGraph, linear_solver: LinearSolver
                 ) -> tuple[Pattern, DirectSolver | ChainPCGSolver | MultigridPCGSolver]:
     """The linear solver and the pattern H is assembled in (None: matrix-free)."""
-    if linear_solver == "auto":
-        linear_solver = "direct" if graph.num_poses <= DIRECT_SOLVER_MAX_POSES else "multigrid"
+    linear_solver = _resolved(graph, linear_solver)
     if linear_solver == "direct":
         upper = UpperPattern.of(graph)
         return upper, DirectSolver(upper)
