@@ -13,7 +13,7 @@ import scipy.sparse as sp
 from optimizer.errors import OptimizerError
 from optimizer.hierarchy_products import galerkin_product, smoothed_prolongation
 from tests.conftest import MULTIGRID_STACK
-from tests.test_multigrid_hierarchy import system_and_candidates
+from tests.optimizer_fixtures import system_and_candidates
 
 pytest.importorskip("pyamg")
 

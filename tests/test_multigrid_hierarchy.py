@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse as sp
 
 from tests.conftest import MULTIGRID_STACK
-from tests.test_multigrid_polish import scaled_system
+from tests.optimizer_fixtures import system_and_candidates
 
 pytest.importorskip("pyamg")
 
@@ -23,16 +23,6 @@ from optimizer.multigrid_hierarchy import (
 
 pytestmark = MULTIGRID_STACK  # one worker compiles the multigrid polish's kernels (conftest)
 
-
-def system_and_candidates(num_poses: int) -> tuple[sp.bsr_matrix, np.ndarray]:
-    """`scaled_system` and the rigid motions as near-null candidates (in the scaled variables)."""
-    matrix, linearisation = scaled_system(num_poses)
-    poses = linearisation.poses[1:]
-    motions = np.zeros((poses.shape[0], 3, 4))
-    motions[:, 0, 0] = motions[:, 1, 1] = motions[:, 2, 2] = motions[:, 2, 3] = 1.0
-    motions[:, 0, 3] = -poses[:, 1]
-    motions[:, 1, 3] = poses[:, 0]
-    return matrix, (motions / linearisation.scale.reshape(-1, 3)[:, :, None]).reshape(-1, 4)
 
 
 def test_the_hierarchy_is_pyamgs_smoothed_aggregation_to_rounding() -> None:

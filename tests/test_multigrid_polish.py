@@ -18,13 +18,12 @@ from optimizer.block_normal_equations import (
     scale_blocks,
 )
 from optimizer.cost import chi2
-from optimizer.damped_solvers import DirectSolver, Linearisation, preconditioned_cg
+from optimizer.damped_solvers import DirectSolver, preconditioned_cg
 from optimizer.gridworld import generate_grid_world
 from optimizer.normal_equations import UpperPattern
 from optimizer.polish import _linearise, gauss_newton
 from tests.conftest import MULTIGRID_STACK
-from tests.test_normal_equations import dense_system, tangled_graph
-from tests.test_polish import run
+from tests.optimizer_fixtures import dense_system, run, scaled_system, tangled_graph
 
 pytest.importorskip("pyamg")
 
@@ -136,18 +135,6 @@ def test_every_linearisation_gets_a_new_hierarchy_and_its_dampings_share_it() ->
     solver.accepted_step()
     assert solver.step(_linearise(graph, pattern, graph.poses), 1e-3) is not None
     assert solver.builds == 2
-
-
-def scaled_system(num_poses: int) -> tuple[sp.bsr_matrix, Linearisation]:
-    """S·H·S + 1e-6·I of a grid world of `num_poses` at its file estimate, and its linearisation."""
-    graph = generate_grid_world(num_poses, seed=6).graph
-    pattern = BlockPattern.of(graph)
-    linearisation = _linearise(graph, pattern, graph.poses)
-    blocks = linearisation.hessian
-    scale_blocks(blocks, pattern.indptr, pattern.indices, linearisation.scale)
-    add_to_diagonal(blocks, pattern.diagonal_block, 1e-6)
-    size = 3 * pattern.free
-    return sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(size, size)), linearisation
 
 
 def scaled_hierarchy(num_poses: int) -> pyamg.MultilevelSolver:

@@ -23,31 +23,8 @@ from optimizer.normal_equations import (
     hessian_product,
     quadratic_form,
 )
-from optimizer.polish import _linearise, edge_jacobians, gauss_newton
-from tests.optimizer_fixtures import random_information, run
-
-
-def tangled_graph(seed: int) -> PoseGraph:
-    """Seven poses; edges in both directions (a > b kept as given), a duplicate, edges at the anchor."""
-    rng = np.random.default_rng(seed)
-    poses = rng.uniform([-4, -4, -np.pi], [4, 4, np.pi], size=(7, 3))
-    edge_from = np.array([0, 1, 2, 3, 4, 5, 6, 3, 5, 5, 2])
-    edge_to = np.array([1, 2, 3, 4, 5, 6, 0, 1, 2, 2, 6])
-    measurements = rng.uniform([-2, -2, -np.pi], [2, 2, np.pi], size=(len(edge_from), 3))
-    return PoseGraph(poses, edge_from, edge_to, measurements, random_information(rng, len(edge_from)),
-                     np.arange(7))
-
-
-def dense_system(graph: PoseGraph) -> tuple[np.ndarray, np.ndarray]:
-    """H = JᵀΩJ and g = JᵀΩe from the stacked per-edge Jacobians, anchor columns dropped."""
-    errors, jac_a, jac_b = edge_jacobians(graph)
-    jacobian = np.zeros((3 * graph.num_edges, 3 * graph.num_poses))
-    for k, (a, b) in enumerate(zip(graph.edge_from, graph.edge_to, strict=True)):
-        jacobian[3 * k:3 * k + 3, 3 * a:3 * a + 3] += jac_a[k]
-        jacobian[3 * k:3 * k + 3, 3 * b:3 * b + 3] += jac_b[k]
-    omega = sp.block_diag(list(graph.information)).toarray()
-    jacobian = jacobian[:, 3:]
-    return jacobian.T @ omega @ jacobian, jacobian.T @ omega @ errors.reshape(-1)
+from optimizer.polish import _linearise, gauss_newton
+from tests.optimizer_fixtures import dense_system, random_information, run, tangled_graph
 
 
 def test_assembly_matches_the_dense_normal_equations() -> None:
