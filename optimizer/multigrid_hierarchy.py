@@ -58,6 +58,8 @@ class _LevelPatterns:
     aggregates: sp.csr_array
     prolongation: ProlongationPattern
     galerkin: GalerkinPattern
+    coarse_visit_order: IntArray | None
+    """The order the next level's aggregation visits its block rows in (`_aggregated_in_order`)."""
 
 
 class HierarchyPatterns:
@@ -91,7 +93,8 @@ class HierarchyPatterns:
 
 
 def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray,
-                         patterns: HierarchyPatterns | None = None) -> pyamg.MultilevelSolver:
+                         patterns: HierarchyPatterns | None = None,
+                         visit_order: IntArray | None = None) -> pyamg.MultilevelSolver:
     """The hierarchy of the symmetric positive definite `matrix` (BSR, square blocks) whose near-null space
     is spanned by the columns of `near_null`; every level's A and P in BSR. No R: the restriction is Pᵀ,
     applied from P's blocks in place (`optimizer.block_smoother.restrict`), not stored (232 MB at 10⁶
@@ -108,9 +111,13 @@ def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray,
         # This level's matrix has the kept pattern if every finer level reused its products.
         same = known[reused] if reused == len(derived) < len(known) else None
         if same is not None:
-            aggregates = same.aggregates
+            aggregates, coarse_visit_order = same.aggregates, same.coarse_visit_order
+        elif visit_order is not None:
+            aggregates, coarse_visit_order = _aggregated_in_order(symmetric_strength_of_connection(fine.A),
+                                                                  visit_order)
         else:
             aggregates, _ = standard_aggregation(symmetric_strength_of_connection(fine.A))
+            coarse_visit_order = None
         tentative, candidates = fit_candidates(aggregates, candidates)
         fine.P, prolongation = _smoothed_prolongation(fine.A, tentative,
                                                       same.prolongation if same is not None else None)
@@ -119,8 +126,9 @@ def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray,
         reused += galerkin is not None
         coarse = pyamg.MultilevelSolver.Level()
         coarse.A, galerkin = galerkin_product(fine.A, fine.P, galerkin)
-        derived.append(_LevelPatterns(aggregates, prolongation, galerkin))
+        derived.append(_LevelPatterns(aggregates, prolongation, galerkin, coarse_visit_order))
         del aggregates
+        visit_order = coarse_visit_order
         levels.append(coarse)
     if patterns is not None:
         patterns.keep(derived, reused)
@@ -130,6 +138,36 @@ def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray,
         level.R = None
     return_freed_memory()  # the build's scratch, freed below the levels
     return pyamg.MultilevelSolver(levels, coarse_solver="pinv")
+
+
+def _aggregated_in_order(strength: sp.csr_array, visit_order: IntArray) -> tuple[sp.csr_array, IntArray]:
+    """pyamg's standard aggregation of the rows of `strength` visited in `visit_order` (row `visit_order[k]`
+    k-th; within a row its neighbours in that order too), the aggregates numbered by their first row, and
+    the order they were formed in (the number of the aggregate formed j-th, for each j).
+
+    Standard aggregation is greedy, so the shape of the aggregates depends on the order it meets the rows in;
+    numbering the aggregates by their first row keeps the coarse levels in the rows' order."""
+    visit_order = np.asarray(visit_order, dtype=np.int64)
+    visited = sp.csr_array(strength)[visit_order][:, visit_order]
+    visited.sort_indices()
+    aggregates_visited, _ = standard_aggregation(visited)
+    aggregates_visited = sp.csr_array(aggregates_visited)
+    rows = visit_order.shape[0]
+    position = np.empty(rows, dtype=np.int64)
+    position[visit_order] = np.arange(rows)
+    in_rows = aggregates_visited[position]  # row r of the strength is visited row position[r]
+    members = np.diff(in_rows.indptr) > 0
+    member_rows = np.flatnonzero(members)
+    formation = in_rows.indices.astype(np.int64)
+    count = aggregates_visited.shape[1]
+    first_row = np.full(count, rows, dtype=np.int64)
+    np.minimum.at(first_row, formation, member_rows)
+    number = np.empty(count, dtype=np.int64)
+    number[np.argsort(first_row, kind="stable")] = np.arange(count)
+    renumbered = sp.csr_array((np.ones(member_rows.shape[0], dtype=np.int32),
+                               number[formation].astype(in_rows.indices.dtype), in_rows.indptr),
+                              shape=(rows, count))
+    return renumbered, number
 
 
 def _smoothed_prolongation(matrix: sp.bsr_matrix, tentative: sp.bsr_matrix,

@@ -46,6 +46,7 @@ from optimizer.multigrid_hierarchy import HierarchyPatterns, smoothed_aggregatio
 from optimizer.parallel_products import block_product
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 _MIN_ITERATIONS_FOR_REBUILD = 20
 """Below this a solve is cheap whatever the hierarchy: no rebuild."""
@@ -62,8 +63,9 @@ class MultigridPCGSolver:
     exact = False
 
     def __init__(self, pattern: BlockPattern, *, max_iterations: int = 500,
-                 rebuild_growth: float = 3.0) -> None:
+                 rebuild_growth: float = 3.0, aggregation_order: IntArray | None = None) -> None:
         self._pattern = pattern
+        self._aggregation_order = aggregation_order
         self._max_iterations = max_iterations
         self._rebuild_growth = rebuild_growth
         self._linearisation: Linearisation | None = None
@@ -118,7 +120,7 @@ class MultigridPCGSolver:
             # No copy of H for the hierarchy (360 MB at 10⁶ poses): its finest level shares the blocks, so a
             # new λ on this linearisation reaches the V-cycle's residuals too, and its smoother only reads
             # the off-diagonal blocks (the inverted diagonal blocks are kept from the build).
-            self._preconditioner = _hierarchy(matrix, linearisation, self._patterns)
+            self._preconditioner = _hierarchy(matrix, linearisation, self._patterns, self._aggregation_order)
             self.builds += 1
             solution, fresh_iterations, converged = self._solve(matrix, rhs, self._max_iterations, partial)
             self._iterations_after_build = fresh_iterations
@@ -199,7 +201,8 @@ def _v_cycle(hierarchy: pyamg.MultilevelSolver, level: int, rhs: FloatArray) -> 
 
 
 def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation,
-               patterns: HierarchyPatterns | None = None) -> pyamg.MultilevelSolver:
+               patterns: HierarchyPatterns | None = None,
+               aggregation_order: IntArray | None = None) -> pyamg.MultilevelSolver:
     """Smoothed aggregation on the 3×3 blocks. The near-null space is that of H before the anchor pins the
     graph down: the rigid motions of all poses together, the two translations and the rotation about the
     centroid (δθ = 1, δt = R(π/2)·(t − centroid)), in the scaled variables (S⁻¹ times each motion). Without
@@ -221,7 +224,7 @@ def _hierarchy(matrix: sp.bsr_matrix, linearisation: Linearisation,
     # One forward Gauss–Seidel sweep before and one backward sweep after the coarse correction keep the
     # V-cycle symmetric (what CG needs) at half the smoothing of two symmetric sweeps: about 8 % more CG
     # iterations, a quarter less time per iteration.
-    hierarchy = smoothed_aggregation(matrix, near_null, patterns)
+    hierarchy = smoothed_aggregation(matrix, near_null, patterns, aggregation_order)
     for level in hierarchy.levels[:-1]:
         _attach_smoothers(level)
     return hierarchy

@@ -34,7 +34,7 @@ from optimizer.damped_solvers import ChainPCGSolver, DirectSolver, Linearisation
 from optimizer.errors import GraphError, OptimizerError
 from optimizer.graph import PoseGraph
 from optimizer.iteration import Iteration
-from optimizer.locality_order import locality_order, renumbered
+from optimizer.locality_order import inverse, locality_order, renumbered
 from optimizer.normal_equations import UpperPattern, assemble, diagonal_of, hessian_diagonal, quadratic_form
 
 if TYPE_CHECKING:
@@ -201,8 +201,11 @@ def gauss_newton(
     start = _starting_poses(graph, poses)
     if _resolved(graph, linear_solver) == "multigrid" and graph.num_poses > 2:
         order = locality_order(graph)
+        rank = inverse(order)
+        # The multigrid hierarchy aggregates the free poses in the graph's own order (`rank[1:] - 1`: the
+        # renumbered free pose of each in turn), as it would without the renumbering.
         descent = _descent(renumbered(graph, order), start[order], max_iterations, relative_tolerance,
-                           step_tolerance, gradient_tolerance, "multigrid")
+                           step_tolerance, gradient_tolerance, "multigrid", rank[1:] - 1)
         return (yield from _numbered_back(descent, order))
     return (yield from _descent(graph, start, max_iterations, relative_tolerance, step_tolerance,
                                 gradient_tolerance, linear_solver))
@@ -212,8 +215,7 @@ def _numbered_back(descent: Generator[Iteration, None, PolishStatus],
                    order: IntArray) -> Generator[Iteration, None, PolishStatus]:
     """The iterations of a descent on the graph renumbered by `order` (`optimizer.locality_order`), their
     poses in the graph's own order."""
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.shape[0])
+    rank = inverse(order)
     while True:
         try:
             iteration = next(descent)
@@ -226,14 +228,16 @@ def _numbered_back(descent: Generator[Iteration, None, PolishStatus],
 
 def _descent(graph: PoseGraph, current: FloatArray, max_iterations: int, relative_tolerance: float,
              step_tolerance: float, gradient_tolerance: float,
-             linear_solver: LinearSolver) -> Generator[Iteration, None, PolishStatus]:
-    """`gauss_newton` on `graph` as numbered, from `current` (`_starting_poses`: a copy of its own)."""
+             linear_solver: LinearSolver, aggregation_order: IntArray | None = None
+             ) -> Generator[Iteration, None, PolishStatus]:
+    """`gauss_newton` on `graph` as numbered, from `current` (`_starting_poses`: a copy of its own);
+    `aggregation_order`: the order the multigrid solver's aggregation visits the free poses in."""
     current_chi2 = chi2(graph, current)
     if graph.num_poses < 2:
         return PolishStatus(True, "a single pose: nothing to optimize", 0)
     if current_chi2 == 0.0:
         return PolishStatus(True, "χ² is zero", 0)
-    pattern, solver = _solver_for(graph, linear_solver)
+    pattern, solver = _solver_for(graph, linear_solver, aggregation_order)
     damping = _INITIAL_LAMBDA
     growth = 2.0
     last_change = float("nan")
@@ -381,7 +385,7 @@ def _resolved(graph: PoseGraph, linear_solver: LinearSolver) -> LinearSolver:
     return linear_solver
 
 
-def _solver_for(graph: PoseGraph, linear_solver: LinearSolver
+def _solver_for(graph: PoseGraph, linear_solver: LinearSolver, aggregation_order: IntArray | None = None
                 ) -> tuple[Pattern, DirectSolver | ChainPCGSolver | MultigridPCGSolver]:
     """The linear solver and the pattern H is assembled in (None: matrix-free)."""
     linear_solver = _resolved(graph, linear_solver)
@@ -392,7 +396,7 @@ def _solver_for(graph: PoseGraph, linear_solver: LinearSolver
         from optimizer.multigrid_solver import MultigridPCGSolver  # pyamg only where it is used
 
         blocks = BlockPattern.of(graph)
-        return blocks, MultigridPCGSolver(blocks)
+        return blocks, MultigridPCGSolver(blocks, aggregation_order=aggregation_order)
     return None, ChainPCGSolver(graph)
 
 

@@ -12,17 +12,19 @@ from tests.optimizer_fixtures import system_and_candidates
 pytest.importorskip("pyamg")
 
 import pyamg  # needs pyamg: after the skip
+from pyamg.aggregation.aggregate import standard_aggregation
+from pyamg.strength import symmetric_strength_of_connection
 
 from optimizer.hierarchy_products import GalerkinPattern
 from optimizer.multigrid_hierarchy import (
     MAX_COARSE,
     HierarchyPatterns,
     _absolute_row_sums,
+    _aggregated_in_order,
     smoothed_aggregation,
 )
 
 pytestmark = MULTIGRID_STACK  # one worker compiles the multigrid polish's kernels (conftest)
-
 
 
 def test_the_hierarchy_is_pyamgs_smoothed_aggregation_to_rounding() -> None:
@@ -121,3 +123,31 @@ def test_a_prolongation_of_another_pattern_gets_a_new_coarse_level(monkeypatch: 
     rebuilt = smoothed_aggregation(other, other_null, patterns)
     assert patterns.reused_levels == 0
     assert_same_levels(rebuilt, smoothed_aggregation(other, other_null))
+
+
+def aggregate_of_each_row(aggregates: sp.csr_array) -> np.ndarray:
+    labels = np.full(aggregates.shape[0], -1)
+    rows = np.repeat(np.arange(aggregates.shape[0]), np.diff(aggregates.indptr))
+    labels[rows] = aggregates.indices
+    return labels
+
+
+def test_aggregation_in_a_visit_order_is_the_aggregation_of_the_rows_in_that_order() -> None:
+    matrix, _ = system_and_candidates(3000)
+    strength = symmetric_strength_of_connection(matrix)
+    shuffle = np.random.default_rng(3).permutation(strength.shape[0])  # row shuffle[k] becomes row k
+    shuffled = sp.csr_array(strength)[shuffle][:, shuffle]
+    shuffled.sort_indices()
+    position = np.empty_like(shuffle)
+    position[shuffle] = np.arange(shuffle.shape[0])
+    # Visiting the shuffled rows in the strength's own order: the same aggregates as pyamg's in that order.
+    aggregates, formed = _aggregated_in_order(shuffled, position)
+    reference, _ = standard_aggregation(sp.csr_array(strength))
+    mine, theirs = aggregate_of_each_row(aggregates), aggregate_of_each_row(reference)[shuffle]
+    assert np.all(mine >= 0) and aggregates.shape[1] == reference.shape[1]
+    pairs = set(zip(mine.tolist(), theirs.tolist(), strict=True))
+    assert len(pairs) == aggregates.shape[1]  # one to one: the same partition of the rows
+    # pyamg's aggregate j (formed j-th) is ours formed[j]; ours are numbered by their first row.
+    assert pairs == set(zip(formed.tolist(), range(reference.shape[1]), strict=True))
+    first_rows = [int(np.flatnonzero(mine == label)[0]) for label in range(aggregates.shape[1])]
+    assert first_rows == sorted(first_rows)
