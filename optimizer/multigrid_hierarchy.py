@@ -28,8 +28,8 @@ import pyamg
 import scipy.sparse as sp
 from numba import njit
 from numpy.typing import NDArray
+from pyamg import amg_core
 from pyamg.aggregation.aggregate import standard_aggregation
-from pyamg.aggregation.tentative import fit_candidates
 from pyamg.strength import symmetric_strength_of_connection
 
 from optimizer.freed_memory import return_freed_memory
@@ -118,7 +118,7 @@ def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray,
         else:
             aggregates, _ = standard_aggregation(symmetric_strength_of_connection(fine.A))
             coarse_visit_order = None
-        tentative, candidates = fit_candidates(aggregates, candidates)
+        tentative, candidates = _tentative_prolongation(aggregates, candidates)
         fine.P, prolongation = _smoothed_prolongation(fine.A, tentative,
                                                       same.prolongation if same is not None else None)
         del tentative
@@ -138,6 +138,33 @@ def smoothed_aggregation(matrix: sp.bsr_matrix, near_null: FloatArray,
         level.R = None
     return_freed_memory()  # the build's scratch, freed below the levels
     return pyamg.MultilevelSolver(levels, coarse_solver="pinv")
+
+
+FIT_TOLERANCE = 1e-10
+"""pyamg's `fit_candidates` default: a candidate whose norm on an aggregate falls below it is dropped
+there."""
+
+
+def _tentative_prolongation(aggregates: sp.csr_array,
+                            candidates: FloatArray) -> tuple[sp.bsr_matrix, FloatArray]:
+    """pyamg's `fit_candidates(aggregates, candidates)`: the tentative prolongation T (BSR, one block per
+    aggregated row) and the coarse candidates, from pyamg's own compiled fit, but with T's blocks put in
+    row order directly. pyamg builds Tᵀ and transposes it, with a copy of the blocks on the way: 0.5 of a
+    build's 3.4 s at 10⁶ poses. The same arrays, bit for bit (tested)."""
+    rows, count = aggregates.shape
+    per_row = candidates.shape[0] // rows
+    width = candidates.shape[1]
+    by_aggregate = aggregates.tocsc()
+    flat_candidates = np.ascontiguousarray(candidates, dtype=np.float64).reshape(-1)
+    fitted = np.empty((aggregates.nnz, per_row, width))
+    coarse = np.empty((count, width, width))
+    amg_core.fit_candidates(rows, count, per_row, width, by_aggregate.indptr, by_aggregate.indices,
+                            fitted.reshape(-1), flat_candidates, coarse.reshape(-1), FIT_TOLERANCE)
+    blocks = np.empty_like(fitted)
+    blocks[aggregates.indptr[by_aggregate.indices]] = fitted  # the fit lists each aggregate's rows in turn
+    tentative = sp.bsr_matrix((blocks, aggregates.indices, aggregates.indptr),
+                              shape=(per_row * rows, width * count))
+    return tentative, coarse.reshape(-1, width)
 
 
 def _aggregated_in_order(strength: sp.csr_array, visit_order: IntArray) -> tuple[sp.csr_array, IntArray]:

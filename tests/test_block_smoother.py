@@ -70,19 +70,30 @@ def diagonal_blocks(matrix: sp.bsr_matrix) -> np.ndarray:
                      for row in range(matrix.shape[0] // size)])
 
 
-def test_the_diagonal_is_inverted_in_chunks_as_a_whole(monkeypatch: pytest.MonkeyPatch) -> None:
-    # Chunks of 7 blocks, the last one short: the same inverses, bit for bit, as one call on all blocks.
-    monkeypatch.setattr(block_smoother, "INVERSION_ROWS", 7)
-    matrix = symmetric_block_matrix(4, 50, seed=5)
-    np.testing.assert_array_equal(inverted_diagonal(matrix), np.linalg.inv(diagonal_blocks(matrix)))
+@pytest.mark.parametrize("size", [3, 4])
+def test_each_diagonal_block_is_inverted_as_lapack_does_to_rounding(size: int) -> None:
+    # More blocks than one chunk; some need a row swap (a zero first entry) to be inverted.
+    rows = block_smoother.INVERSION_CHUNK + 50
+    matrix = symmetric_block_matrix(size, rows, seed=5)
+    diagonal = np.flatnonzero(matrix.indices == np.repeat(np.arange(rows), np.diff(matrix.indptr)))
+    rng = np.random.default_rng(8)
+    for position in diagonal[rng.choice(rows, 40, replace=False)]:
+        block = rng.normal(size=(size, size))
+        block[0, 0] = 0.0
+        matrix.data[position] = block
+    expected = np.linalg.inv(diagonal_blocks(matrix))
+    inverse = inverted_diagonal(matrix)
+    assert np.abs(inverse - expected).max() <= 1e-11 * np.abs(expected).max()
+    identity = np.einsum("bij,bjk->bik", inverse, diagonal_blocks(matrix))
+    assert np.abs(identity - np.eye(size)).max() <= 1e-10
 
 
-def test_one_singular_block_makes_every_inverse_a_pseudo_inverse(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_one_singular_block_makes_every_inverse_a_pseudo_inverse() -> None:
     # The singular block sits in the second chunk: the first chunk's inverses are not kept either.
-    monkeypatch.setattr(block_smoother, "INVERSION_ROWS", 7)
-    matrix = symmetric_block_matrix(3, 30, seed=6)
-    diagonal = matrix.indices == np.repeat(np.arange(30), np.diff(matrix.indptr))
-    matrix.data[np.flatnonzero(diagonal)[10]] = np.diag([1.0, 2.0, 0.0])
+    rows = block_smoother.INVERSION_CHUNK + 30
+    matrix = symmetric_block_matrix(3, rows, seed=6)
+    diagonal = matrix.indices == np.repeat(np.arange(rows), np.diff(matrix.indptr))
+    matrix.data[np.flatnonzero(diagonal)[rows - 10]] = np.diag([1.0, 2.0, 0.0])
     np.testing.assert_array_equal(inverted_diagonal(matrix), np.linalg.pinv(diagonal_blocks(matrix)))
 
 

@@ -13,6 +13,7 @@ pytest.importorskip("pyamg")
 
 import pyamg  # needs pyamg: after the skip
 from pyamg.aggregation.aggregate import standard_aggregation
+from pyamg.aggregation.tentative import fit_candidates
 from pyamg.strength import symmetric_strength_of_connection
 
 from optimizer.hierarchy_products import GalerkinPattern
@@ -21,6 +22,7 @@ from optimizer.multigrid_hierarchy import (
     HierarchyPatterns,
     _absolute_row_sums,
     _aggregated_in_order,
+    _tentative_prolongation,
     smoothed_aggregation,
 )
 
@@ -151,3 +153,16 @@ def test_aggregation_in_a_visit_order_is_the_aggregation_of_the_rows_in_that_ord
     assert pairs == set(zip(formed.tolist(), range(reference.shape[1]), strict=True))
     first_rows = [int(np.flatnonzero(mine == label)[0]) for label in range(aggregates.shape[1])]
     assert first_rows == sorted(first_rows)
+
+
+def test_the_tentative_prolongation_is_pyamgs_bit_for_bit() -> None:
+    matrix, near_null = system_and_candidates(3000)
+    aggregates, _ = standard_aggregation(symmetric_strength_of_connection(matrix))
+    tentative, coarse = _tentative_prolongation(aggregates, near_null)
+    reference, reference_coarse = fit_candidates(aggregates, near_null)
+    reference = sp.bsr_matrix(reference)
+    assert tentative.blocksize == reference.blocksize == (3, 4) and tentative.shape == reference.shape
+    np.testing.assert_array_equal(tentative.indptr, reference.indptr)
+    np.testing.assert_array_equal(tentative.indices, reference.indices)
+    np.testing.assert_array_equal(tentative.data, reference.data)
+    np.testing.assert_array_equal(coarse, reference_coarse)
