@@ -19,6 +19,7 @@ from pyamg.strength import symmetric_strength_of_connection
 from optimizer.hierarchy_products import GalerkinPattern
 from optimizer.multigrid_hierarchy import (
     MAX_COARSE,
+    CoarsestSolver,
     HierarchyPatterns,
     _absolute_row_sums,
     _aggregated_in_order,
@@ -166,3 +167,21 @@ def test_the_tentative_prolongation_is_pyamgs_bit_for_bit() -> None:
     np.testing.assert_array_equal(tentative.indices, reference.indices)
     np.testing.assert_array_equal(tentative.data, reference.data)
     np.testing.assert_array_equal(coarse, reference_coarse)
+
+
+def test_the_coarsest_level_is_solved_exactly_when_regular_and_by_pseudo_inverse_when_singular() -> None:
+    rng = np.random.default_rng(9)
+    factors = rng.normal(size=(40, 40))
+    regular = factors @ factors.T + np.eye(40)
+    rhs = rng.normal(size=40)
+    np.testing.assert_allclose(CoarsestSolver()(sp.csr_array(regular), rhs), np.linalg.solve(regular, rhs),
+                               rtol=1e-10)
+    # A dropped candidate: a zero row and column. The pseudo-inverse's answer, as pyamg's "pinv" gives.
+    singular = regular.copy()
+    singular[7, :] = singular[:, 7] = 0.0
+    solver = CoarsestSolver()
+    solution = solver(sp.csr_array(singular), rhs)
+    np.testing.assert_allclose(solution, np.linalg.pinv(singular) @ rhs, rtol=1e-9, atol=1e-12)
+    assert abs(solution[7]) <= 1e-12 * np.abs(solution).max()
+    # Factorised once: later right-hand sides reuse it (the level's matrix is not read again).
+    np.testing.assert_allclose(solver(sp.csr_array(regular), rhs), solution)
