@@ -122,10 +122,15 @@ def _check_block_size(matrix: sp.bsr_matrix) -> None:
 
 @njit(cache=True, parallel=True)
 def _diagonal_blocks(indptr: IntArray, indices: IntArray, data: FloatArray, out: FloatArray) -> None:
+    size = out.shape[1]
     for row in prange(out.shape[0]):  # each row's block written by one thread
         for position in range(indptr[row], indptr[row + 1]):
             if indices[position] == row:
-                out[row] += data[position]
+                # Entry by entry: `out[row] += data[position]` made a temporary block per row, 0.12 s at
+                # 10⁶ poses, at every build and every λ.
+                for p in range(size):
+                    for q in range(size):
+                        out[row, p, q] += data[position, p, q]
 
 
 @njit(cache=True)
