@@ -34,7 +34,7 @@ import typer
 from typer.core import TyperCommand, TyperGroup
 
 from optimizer.robust import KERNELS
-from optimizer.solve import MAX_ITERATIONS, METHODS
+from optimizer.solve import DEFAULT_ITERATIONS, MAX_ITERATIONS, METHODS
 from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, input_kind
 from pipeline.bundled import SAMPLE_DESCRIPTION, sample_log
 from pipeline.errors import PipelineError
@@ -197,7 +197,8 @@ def run(
              "(with sgd+gn or sgd; off by default: it changes the objective).")] = None,
     iterations: Annotated[int | None, typer.Option(
         "--iterations", "-n", min=0, max=MAX_ITERATIONS, show_default=False,
-        help="SGD (or Gauss-Seidel) iterations; default 100. With gn: the Gauss-Newton cap.")] = None,
+        help="SGD (or Gauss-Seidel) iterations; default 100 (over 200 000 poses a cap: the default "
+             "method's SGD hands over to the polish once it stalls). With gn: the Gauss-Newton cap.")] = None,
     repair_information: Annotated[bool, typer.Option(
         "--repair-information", help="Clamp the eigenvalues of information matrices that are not positive "
                                      "definite, instead of rejecting the file.")] = False,
@@ -529,7 +530,9 @@ class _ProgressDisplay:
                 progress.update(first_task, visible=log)
                 return
             if stage not in stage_tasks:
-                total = config.optimizer.iterations if stage in _STAGES_WITH_KNOWN_LENGTH else None
+                iterations = config.optimizer.iterations
+                total = ((DEFAULT_ITERATIONS if iterations is None else iterations)
+                         if stage in _STAGES_WITH_KNOWN_LENGTH else None)
                 stage_tasks[stage] = progress.add_task(f"{name}: {stage}", info="", total=total)
             progress.update(stage_tasks[stage], completed=iteration.index, info=f"chi2 {iteration.chi2:.6g}")
 

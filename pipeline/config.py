@@ -50,6 +50,7 @@ from optimizer.solve import (
     DEFAULT_ITERATIONS,
     DEFAULT_METHOD,
     DEFAULT_POLISH_ITERATIONS,
+    LARGEST_FOR_EXTRA_STAGES,
     MAX_ITERATIONS,
     METHODS,
 )
@@ -246,10 +247,12 @@ _METHOD_CHOICE = Literal[METHODS]  # type: ignore[valid-type]
 
 class OptimizerSection(_Section):
     """The [optimizer] section. `iterations`: SGD (or Gauss–Seidel) iterations; with method "gn", the cap on
-    Gauss–Newton iterations. Left out, it is 100, or the polish cap (5000) for "gn"."""
+    Gauss–Newton iterations. Left out (None), the optimizer's default: 100 iterations, except that on a
+    graph of more than 200 000 poses the default method's SGD hands over to the polish once it stalls
+    (`optimizer.solve.until_stalled`, at most 100), and the polish cap (5000) for "gn"."""
 
     method: _METHOD_CHOICE = DEFAULT_METHOD  # type: ignore[valid-type]
-    iterations: int = Field(DEFAULT_ITERATIONS, ge=0, le=MAX_ITERATIONS)
+    iterations: int | None = Field(None, ge=0, le=MAX_ITERATIONS)
     robust: Literal["none", *KERNELS] = "none"  # type: ignore[valid-type]
     """A robust kernel against false loop closures: "cauchy" or "dcs" (methods sgd+gn and sgd)."""
 
@@ -321,8 +324,10 @@ _SECTION_COMMENTS = {
              '# odom_topic = "/odom"    # default: the log\'s only odometry topic, if any\n'
              '# base_frame = "base_link"  # default: the frame tf mounts the sensor on, else base_link\n',
     "optimizer": f"# method: one of {', '.join(METHODS)}\n"
-                 f"# iterations: SGD (or Gauss-Seidel) iterations; with gn, the Gauss-Newton cap "
-                 f"(left out: {DEFAULT_POLISH_ITERATIONS})\n"
+                 f"# iterations: SGD (or Gauss-Seidel) iterations (left out: {DEFAULT_ITERATIONS}; on "
+                 f"graphs over {LARGEST_FOR_EXTRA_STAGES:_} poses\n#   a cap: the default method's SGD "
+                 f"hands over to the polish once it stalls); with gn, the Gauss-Newton cap\n#   (left out: "
+                 f"{DEFAULT_POLISH_ITERATIONS})\n"
                  f"# robust: none, {' or '.join(KERNELS)}: a robust kernel against false loop closures\n",
     "slam2d": "# The 2D laser SLAM (logs of LaserScan messages): frontends.slam2d.Slam2DConfig\n",
     "slam3d": "# The 3D LiDAR SLAM (logs of PointCloud2 messages): frontends.slam3d.Slam3DConfig.\n"

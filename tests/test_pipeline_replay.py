@@ -411,3 +411,25 @@ def test_replay_group_routes_to_subcommands_and_defaults_to_run() -> None:
         assert runner.invoke(grown, args).exit_code == 0, args
     assert calls == [("run", ("a.g2o", True)), ("run", (None, False)), ("info", "b.mcap"),
                      ("run", ("c.g2o", False))]
+
+
+@pytest.mark.parametrize(("options", "expected"), [((), None), (("--iterations", "7"), 7)])
+def test_the_command_leaves_the_iterations_to_the_optimizer_unless_given(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, options: tuple[str, ...],
+        expected: int | None) -> None:
+    # None lets the default method hand a large graph's SGD over to the polish once it stalls
+    # (optimizer.solve.until_stalled): a count passed down would be run to its end.
+    import pipeline.replay_graph as module
+    from pipeline.errors import PipelineError
+
+    asked: dict[str, object] = {}
+
+    def replay_graph_stand_in(path: Path, **options: object) -> None:
+        asked.update(options)
+        raise PipelineError("stand-in: stop here")
+
+    monkeypatch.setattr(module, "replay_graph", replay_graph_stand_in)
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    result = run_replay(str(graph), "--out", str(tmp_path / "out"), *options)
+    assert result.exit_code == 2 and "stand-in" in result.output
+    assert asked["iterations"] == expected

@@ -116,7 +116,8 @@ def test_a_rejected_inexact_step_is_shortened_before_another_solve(monkeypatch: 
     graph = world.graph
     pattern = UpperPattern.of(graph)
     solver = _OvershootingSolver(pattern)
-    monkeypatch.setattr(polish, "_solver_for", lambda graph, linear_solver, aggregation_order=None: (pattern, solver))
+    monkeypatch.setattr(polish, "_solver_for",
+                        lambda graph, linear_solver, aggregation_order=None: (pattern, solver))
     accepted = list(polish.gauss_newton(graph, world.ground_truth, max_iterations=6))
     assert len(accepted) == 6
     assert solver.solves == len(accepted)  # every overshooting step was halved, never re-solved
