@@ -49,9 +49,8 @@ DEFAULT_MAX_ITERATIONS = 5000
 100/10 iterations); M3500, CSAIL, FR079 and 10⁵-pose grid worlds 10–20."""
 DIRECT_SOLVER_MAX_POSES = 200_000
 """Above this the factorisation's fill outgrows the machine: multigrid-preconditioned CG instead. At 10⁶
-grid-world poses the default's polish takes 10 steps, 153 CPU s at load 2.4–3 (41 in 7 hierarchy builds, 94
-in 154 CG iterations), to χ² 3 044 220.327 (benchmarks/README.md, scale section). At
-2·10⁵ poses from paper-SGD 100
+grid-world poses the default's polish takes 11 steps, 109–132 s wall (11 hierarchy builds, 101 CG
+iterations), to χ² 3 044 220.327 (benchmarks/README.md, scale section). At 2·10⁵ poses from paper-SGD 100
 multigrid took 22.3 CPU s (7 steps) where the direct solver took 56.9 (11 steps, before `moved_by`), to
 the same χ² 596 032.94715: the threshold was not re-measured since."""
 _INITIAL_LAMBDA = 1e-5
