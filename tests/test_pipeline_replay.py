@@ -433,3 +433,15 @@ def test_the_command_leaves_the_iterations_to_the_optimizer_unless_given(
     result = run_replay(str(graph), "--out", str(tmp_path / "out"), *options)
     assert result.exit_code == 2 and "stand-in" in result.output
     assert asked["iterations"] == expected
+
+
+def test_rerun_disabled_by_the_environment_is_a_clear_error_not_a_silent_empty_recording(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # RERUN=off makes the SDK drop every log call (and fail on the blueprint with a traceback).
+    monkeypatch.setenv("RERUN", "off")
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    result = run_replay(str(graph), "--out", str(tmp_path / "out"))
+    assert result.exit_code == 2
+    assert "Rerun logging is disabled by the environment (RERUN=off)" in result.output
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "out").exists()  # a folder this run created is removed again

@@ -166,6 +166,9 @@ def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.Rec
     if reason is not None:
         raise OutputError(f"{path}: cannot write the recording: {reason}")
     recording = rr.RecordingStream(APPLICATION_ID)
+    if not recording.is_enabled():  # RERUN=off in the environment: the SDK would drop everything silently
+        raise OutputError(f"{path}: cannot write the recording: Rerun logging is disabled by the environment "
+                          f"(RERUN={os.environ.get('RERUN', '')}); unset RERUN to replay")
     if with_map:
         from pipeline.recording import scans  # the scans module builds on this one
 
