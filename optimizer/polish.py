@@ -203,7 +203,9 @@ def gauss_newton(
         rank = inverse(order)
         # The multigrid hierarchy aggregates the free poses in the graph's own order (`rank[1:] - 1`: the
         # renumbered free pose of each in turn), as it would without the renumbering.
-        descent = _descent(renumbered(graph, order), start[order], max_iterations, relative_tolerance,
+        renumbered_start = start[order]
+        renumbered_start.setflags(write=False)  # read-only like every iterate (`_starting_poses`)
+        descent = _descent(renumbered(graph, order), renumbered_start, max_iterations, relative_tolerance,
                            step_tolerance, gradient_tolerance, "multigrid", rank[1:] - 1)
         return (yield from _numbered_back(descent, order))
     return (yield from _descent(graph, start, max_iterations, relative_tolerance, step_tolerance,
