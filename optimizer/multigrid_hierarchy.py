@@ -41,6 +41,7 @@ from optimizer.hierarchy_products import (
     galerkin_product,
     smoothed_prolongation,
 )
+from optimizer.locality_order import inverse
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int32] | NDArray[np.int64]
@@ -185,8 +186,7 @@ def _aggregated_in_order(strength: sp.csr_array, visit_order: IntArray) -> tuple
     aggregates_visited, _ = standard_aggregation(visited)
     aggregates_visited = sp.csr_array(aggregates_visited)
     rows = visit_order.shape[0]
-    position = np.empty(rows, dtype=np.int64)
-    position[visit_order] = np.arange(rows)
+    position = inverse(visit_order)
     in_rows = aggregates_visited[position]  # row r of the strength is visited row position[r]
     members = np.diff(in_rows.indptr) > 0
     member_rows = np.flatnonzero(members)

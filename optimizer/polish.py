@@ -207,16 +207,15 @@ def gauss_newton(
         renumbered_start.setflags(write=False)  # read-only like every iterate (`_starting_poses`)
         descent = _descent(renumbered(graph, order), renumbered_start, max_iterations, relative_tolerance,
                            step_tolerance, gradient_tolerance, "multigrid", rank[1:] - 1)
-        return (yield from _numbered_back(descent, order))
+        return (yield from _numbered_back(descent, rank))
     return (yield from _descent(graph, start, max_iterations, relative_tolerance, step_tolerance,
                                 gradient_tolerance, linear_solver))
 
 
 def _numbered_back(descent: Generator[Iteration, None, PolishStatus],
-                   order: IntArray) -> Generator[Iteration, None, PolishStatus]:
-    """The iterations of a descent on the graph renumbered by `order` (`optimizer.locality_order`), their
-    poses in the graph's own order."""
-    rank = inverse(order)
+                   rank: IntArray) -> Generator[Iteration, None, PolishStatus]:
+    """The iterations of a descent on the graph renumbered so that pose i is pose `rank[i]`
+    (`optimizer.locality_order`), their poses in the graph's own order."""
     while True:
         try:
             iteration = next(descent)
