@@ -11,13 +11,17 @@ g2o `I11 I12 I13 I22 I23 I33` (xx xy xθ yy yθ θθ), TORO `xx xy yy θθ xθ y
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.csv as pa_csv
+from numba import get_num_threads
 from numpy.typing import NDArray
 
 from optimizer import se2
@@ -51,6 +55,9 @@ _3D_TAG_PREFIXES = ("VERTEX_SE3", "EDGE_SE3")
 # Row, column of each g2o upper-triangle slot (xx xy xθ yy yθ θθ) in the 3×3 matrix.
 _UPPER_ROWS = np.array([0, 0, 0, 1, 1, 2])
 _UPPER_COLS = np.array([0, 1, 2, 1, 2, 2])
+
+WRITE_CHUNK_ROWS = 1 << 16
+"""Lines formatted at once when writing: some 7 MB of edge lines, so a few held at once cost little."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -465,13 +472,35 @@ def _write(path: Path, graph: PoseGraph, poses: FloatArray | None, format_name: 
     vertices = _table(vertex_tag, [graph.vertex_ids], poses)
     edges = _table(edge_tag, [graph.vertex_ids[graph.edge_from], graph.vertex_ids[graph.edge_to]],
                    np.concatenate([graph.measurements, upper], axis=1))
-    options = pa_csv.WriteOptions(include_header=False, delimiter=" ", quoting_style="none")
     try:
         with path.open("wb") as file:
-            pa_csv.write_csv(vertices, file, options)
-            pa_csv.write_csv(edges, file, options)
+            _write_rows(file, [vertices, edges])
     except OSError as error:
         raise GraphFileError(path, f"cannot write the file: {error.strerror or error}") from error
+
+
+def _write_rows(file: BinaryIO, tables: Sequence[pa.Table]) -> None:
+    """Write the rows of `tables` in order, formatted `WRITE_CHUNK_ROWS` at a time on as many threads as
+    numba's kernels use (`NUMBA_NUM_THREADS`): Arrow's CSV writer formats on one thread, and lets go of the
+    GIL while it does. At most one chunk of text per thread is held at once."""
+    options = pa_csv.WriteOptions(include_header=False, delimiter=" ", quoting_style="none")
+
+    def formatted(rows: pa.Table) -> pa.Buffer:
+        sink = pa.BufferOutputStream()
+        pa_csv.write_csv(rows, sink, options)
+        return sink.getvalue()
+
+    chunks = (table.slice(start, WRITE_CHUNK_ROWS) for table in tables
+              for start in range(0, table.num_rows, WRITE_CHUNK_ROWS))
+    workers = get_num_threads()
+    pending: deque[Future[pa.Buffer]] = deque()
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for chunk in chunks:
+            pending.append(pool.submit(formatted, chunk))
+            if len(pending) > workers:
+                file.write(pending.popleft().result())
+        while pending:
+            file.write(pending.popleft().result())
 
 
 def _table(tag: str, ids: list[IntArray], values: FloatArray) -> pa.Table:

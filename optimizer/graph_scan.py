@@ -12,12 +12,13 @@ stands.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from numba import njit
+from numba import get_num_threads, njit
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
@@ -48,45 +49,119 @@ class ScannedFile:
 
 def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]) -> ScannedFile | None:
     """Group the lines of `data` by tag, parsing the lines of `tags` (each with `fields` numbers after
-    the tag); None when the file is not plain enough for the fast path."""
+    the tag); None when the file is not plain enough for the fast path.
+
+    A large file is cut at line ends into one piece per thread of numba's (`NUMBA_NUM_THREADS`), and the
+    pieces are scanned and converted side by side: the scanner and Arrow's cast both let go of the GIL."""
     raw = np.frombuffer(data, dtype=np.uint8)
     start = len(_UTF8_BOM) if data.startswith(_UTF8_BOM) else 0
     tag_bytes = np.frombuffer("".join(tags).encode("ascii"), dtype=np.uint8)
     tag_bounds = np.concatenate([[0], np.cumsum([len(tag) for tag in tags])]).astype(np.int64)
     expected = np.asarray(fields, dtype=np.int64)
 
+    def scan(bounds: tuple[int, int]) -> _Piece | None:
+        return _scan_piece(raw, bounds, tag_bytes, tag_bounds, expected)
+
+    bounds = _piece_bounds(data, start, get_num_threads())
+    if len(bounds) == 1:
+        pieces = [scan(bounds[0])]
+    else:
+        with ThreadPoolExecutor(max_workers=len(bounds)) as pool:
+            pieces = list(pool.map(scan, bounds))
+    if any(piece is None for piece in pieces):
+        return None
+    scanned_pieces = [piece for piece in pieces if piece is not None]
+
+    first_line = 0
+    for piece in scanned_pieces:
+        piece.lines += first_line
+        first_line += piece.line_count
+    scanned: dict[str, ScannedTag] = {}
+    for index, tag in enumerate(tags):
+        parts = [piece.tag_rows(index, fields[index]) for piece in scanned_pieces]
+        if len(parts) == 1:
+            scanned[tag] = ScannedTag(parts[0][0].copy(), parts[0][1])
+        else:
+            scanned[tag] = ScannedTag(np.concatenate([lines for lines, _ in parts]),
+                                      np.concatenate([values for _, values in parts]))
+    others = len(tags)
+    other_tags = [data[first:stop].decode("ascii") for piece in scanned_pieces
+                  for first, stop in piece.other_spans[:, :piece.counts[others, 0]].T.tolist()]
+    other_lines = np.concatenate([piece.lines[others, :piece.counts[others, 0]] for piece in scanned_pieces])
+    return ScannedFile(scanned, other_tags, other_lines)
+
+
+@dataclass
+class _Piece:
+    """What the scanner found in one piece of the file: counts, line numbers (within the piece until
+    `scan_graph_bytes` shifts them), first tokens and spans of other tags (in the file) as `_scan` lays
+    them out, and every token's value."""
+
+    counts: IntArray
+    lines: IntArray
+    first_tokens: IntArray
+    other_spans: IntArray
+    values: FloatArray
+    line_count: int
+
+    def tag_rows(self, tag: int, fields: int) -> tuple[IntArray, FloatArray]:
+        """The line numbers and values, (rows, fields), of tag `tag`'s lines in this piece."""
+        rows = int(self.counts[tag, 0])
+        first = self.first_tokens[tag, :rows]
+        if rows and first[-1] - first[0] == (rows - 1) * fields:  # one run of lines: a view
+            values = self.values[first[0]:first[0] + rows * fields].reshape(rows, fields)
+        else:
+            values = self.values[first[:, None] + np.arange(fields)]
+        return self.lines[tag, :rows], values
+
+
+PIECE_MIN_BYTES = 8 << 20
+"""Files below this are scanned whole: splitting them would save less than starting the threads costs."""
+
+
+def _piece_bounds(data: bytes, start: int, count: int) -> list[tuple[int, int]]:
+    """Up to `count` byte ranges covering `data` from `start`, each ending just after a line end (the last
+    at the end of the file), none smaller than `PIECE_MIN_BYTES`."""
+    count = max(1, min(count, (len(data) - start) // PIECE_MIN_BYTES))
+    bounds: list[tuple[int, int]] = []
+    first = start
+    for k in range(1, count):
+        cut = data.find(b"\n", max(first, start + (len(data) - start) * k // count)) + 1
+        if cut <= first:
+            break
+        bounds.append((first, cut))
+        first = cut
+    bounds.append((first, len(data)))
+    return bounds
+
+
+def _scan_piece(raw: NDArray[np.uint8], bounds: tuple[int, int], tag_bytes: NDArray[np.uint8],
+                tag_bounds: IntArray, expected: IntArray) -> _Piece | None:
+    """Scan `raw[bounds[0]:bounds[1]]` (whole lines, after any byte-order mark) and convert its tokens;
+    None when it is not plain."""
+    first, stop = bounds
+    piece = raw[first:stop]
+    num_tags = len(expected)
     # Upper bounds: untouched pages of np.empty are never made resident, so only what is used costs memory.
-    line_bound = data.count(b"\n") + 1
-    counts = np.zeros((len(tags) + 1, 2), dtype=np.int64)  # rows, tokens of each tag; last row: others
-    lines = np.empty((len(tags) + 1, line_bound), dtype=np.int64)
-    first_tokens = np.empty((len(tags), line_bound), dtype=np.int64)
+    line_bound = int(np.count_nonzero(piece == _NEWLINE)) + 1
+    counts = np.zeros((num_tags + 1, 2), dtype=np.int64)  # rows, tokens of each tag; last row: others
+    lines = np.empty((num_tags + 1, line_bound), dtype=np.int64)
+    first_tokens = np.empty((num_tags, line_bound), dtype=np.int64)
     other_spans = np.empty((2, line_bound), dtype=np.int64)
-    token_bytes = np.empty(len(data), dtype=np.uint8)
-    wide = len(data) >= 2**31
-    offsets = np.empty(len(data) // 2 + 2, dtype=np.int64 if wide else np.int32)
-    token_count = _scan(raw, start, tag_bytes, tag_bounds, expected, counts, lines, first_tokens, other_spans,
-                        token_bytes, offsets)
+    token_bytes = np.empty(len(piece), dtype=np.uint8)
+    wide = len(piece) >= 2**31
+    offsets = np.empty(len(piece) // 2 + 2, dtype=np.int64 if wide else np.int32)
+    token_count, line_count = _scan(piece, tag_bytes, tag_bounds, expected, counts, lines, first_tokens,
+                                    other_spans, token_bytes, offsets)
     if token_count < 0:
         return None
     strings = pa.Array.from_buffers(
         pa.large_string() if wide else pa.string(), token_count,
         [None, pa.py_buffer(offsets[:token_count + 1]), pa.py_buffer(token_bytes[:offsets[token_count]])])
     del token_bytes, offsets
-    values = pc.cast(strings, pa.float64()).to_numpy(zero_copy_only=False)  # every token, in file order
-    del strings
-
-    scanned: dict[str, ScannedTag] = {}
-    for index, tag in enumerate(tags):
-        rows = int(counts[index, 0])
-        first = first_tokens[index, :rows]
-        if rows and first[-1] - first[0] == (rows - 1) * fields[index]:  # one run of lines: a view
-            tag_values = values[first[0]:first[0] + rows * fields[index]].reshape(rows, fields[index])
-        else:
-            tag_values = values[first[:, None] + np.arange(fields[index])]
-        scanned[tag] = ScannedTag(lines[index, :rows].copy(), tag_values)
-    others = int(counts[-1, 0])
-    other_tags = [data[first:stop].decode("ascii") for first, stop in other_spans[:, :others].T.tolist()]
-    return ScannedFile(scanned, other_tags, lines[-1, :others].copy())
+    values = pc.cast(strings, pa.float64()).to_numpy(zero_copy_only=False)  # every token, in piece order
+    other_spans += first
+    return _Piece(counts, lines, first_tokens, other_spans, values, line_count)
 
 
 @njit(cache=True, inline="always")
@@ -127,11 +202,12 @@ def _number_end(raw: np.ndarray, first: int, stop: int) -> int:
     return k
 
 
-@njit(cache=True)
-def _scan(raw: np.ndarray, start: int, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expected: np.ndarray,
+@njit(cache=True, nogil=True)
+def _scan(raw: np.ndarray, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expected: np.ndarray,
           counts: np.ndarray, lines: np.ndarray, first_tokens: np.ndarray, other_spans: np.ndarray,
-          token_bytes: np.ndarray, offsets: np.ndarray) -> int:
-    """One pass over the file; -1 as soon as a line is not plain, else the number of tokens. Per tag t
+          token_bytes: np.ndarray, offsets: np.ndarray) -> tuple[int, int]:
+    """One pass over the file (or whole lines of it); (-1, line) as soon as a line is not plain, else the
+    number of tokens and of lines. Per tag t
     (row t of `counts`, `lines`, `first_tokens`; the last row of `counts` and `lines`: other lines) it
     counts rows and writes their line numbers and first tokens; every token goes to `token_bytes`, end
     to end, with its end in `offsets` (an Arrow string array's layout)."""
@@ -139,7 +215,7 @@ def _scan(raw: np.ndarray, start: int, tag_bytes: np.ndarray, tag_bounds: np.nda
     token_count = 0
     offsets[0] = 0
     size = raw.shape[0]
-    position = start
+    position = 0
     line = 0
     while position < size:
         line += 1
@@ -147,7 +223,7 @@ def _scan(raw: np.ndarray, start: int, tag_bytes: np.ndarray, tag_bounds: np.nda
         while end < size and raw[end] != _NEWLINE:
             byte = raw[end]
             if (byte < _SPACE and byte != _TAB and byte != _CR) or byte >= 127:
-                return -1  # control or non-ASCII bytes: the line-by-line reader decides
+                return -1, line  # control or non-ASCII bytes: the line-by-line reader decides
             end += 1
         stop = end
         if stop > position and raw[stop - 1] == _CR:
@@ -162,7 +238,7 @@ def _scan(raw: np.ndarray, start: int, tag_bytes: np.ndarray, tag_bounds: np.nda
         tag_first = i
         while i < stop and raw[i] != _SPACE and raw[i] != _TAB:
             if raw[i] == _CR:
-                return -1  # a carriage return inside a line
+                return -1, line  # a carriage return inside a line
             i += 1
         tag = -1
         for t in range(num_tags):
@@ -193,7 +269,7 @@ def _scan(raw: np.ndarray, start: int, tag_bytes: np.ndarray, tag_bounds: np.nda
                 break
             token_end = _number_end(raw, i, stop)
             if token_end < 0:
-                return -1
+                return -1, line
             used = offsets[token_count]
             for c in range(token_end - i):
                 token_bytes[used + c] = raw[i + c]
@@ -203,8 +279,8 @@ def _scan(raw: np.ndarray, start: int, tag_bytes: np.ndarray, tag_bounds: np.nda
             tokens += 1
             i = token_end
         if tokens != expected[tag]:
-            return -1
+            return -1, line
         lines[tag, counts[tag, 0]] = line
         counts[tag, 0] += 1
         position = next_position
-    return token_count
+    return token_count, line

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -260,6 +261,21 @@ def test_round_trip_is_exact(tmp_path: Path, writer) -> None:
         np.column_stack([other[:, :2], se2.wrap_angle(other[:, 2])])).poses.tobytes()
 
 
+@pytest.mark.parametrize("writer", [write_g2o, write_toro])
+def test_a_file_written_in_chunks_is_the_file_written_whole(tmp_path: Path, writer,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    from optimizer import graph_files
+
+    graph = read_graph(_write(tmp_path, _tiny("VERTEX_SE2", "EDGE_SE2", G2O_UPPER))).graph
+    writer(tmp_path / "whole.txt", graph)
+    whole = (tmp_path / "whole.txt").read_bytes()
+    assert whole.count(b"\n") == graph.num_poses + graph.num_edges
+    for rows in (1, 2):  # chunks of one line, and chunks that straddle the vertex and edge lines
+        monkeypatch.setattr(graph_files, "WRITE_CHUNK_ROWS", rows)
+        writer(tmp_path / f"chunks{rows}.txt", graph)
+        assert (tmp_path / f"chunks{rows}.txt").read_bytes() == whole
+
+
 @st.composite
 def random_graphs(draw: st.DrawFn) -> PoseGraph:
     seed = draw(st.integers(0, 2**32 - 1))
@@ -387,8 +403,19 @@ PLAIN_FILES = {
 }
 
 
+@pytest.fixture(params=[1, 3], ids=["whole", "in 3 pieces"])
+def scan_pieces(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> int:
+    """The fast path scanning files whole, or cut into up to 3 pieces scanned side by side (as a large
+    file is on a machine with 3 threads): these small files are cut between almost every line."""
+    from optimizer import graph_scan
+
+    monkeypatch.setattr(graph_scan, "get_num_threads", lambda: request.param)
+    monkeypatch.setattr(graph_scan, "PIECE_MIN_BYTES", 1)
+    return request.param
+
+
 @pytest.mark.parametrize("name", PLAIN_FILES)
-def test_fast_path_agrees_with_the_line_by_line_reader(name: str, tmp_path: Path) -> None:
+def test_fast_path_agrees_with_the_line_by_line_reader(name: str, tmp_path: Path, scan_pieces: int) -> None:
     from optimizer.graph_files import _group_lines, _group_plain, _parse_block
 
     text = PLAIN_FILES[name]
@@ -422,10 +449,36 @@ def test_fast_path_agrees_with_the_line_by_line_reader(name: str, tmp_path: Path
     "VERTEX_SE2 0 0 0 0\nVERTEX_SE3:QUAT 1 0 0 0 0 0 0 1\n",
     "VERTEX3 0 0 0 0 0 0 0\n",
 ])
-def test_fast_path_leaves_irregular_files_to_the_line_by_line_reader(text: str) -> None:
+def test_fast_path_leaves_irregular_files_to_the_line_by_line_reader(text: str, scan_pieces: int) -> None:
     from optimizer.graph_files import _group_plain
 
+    plain = "VERTEX_SE2 7 0 0 0\n" * 4
     assert _group_plain(text.encode("utf-8")) is None
+    assert _group_plain((plain + text).encode("utf-8")) is None, "an irregular line in a later piece"
+    assert _group_plain(plain.encode("utf-8")) is not None
+
+
+def test_pieces_cut_at_line_ends_and_cover_the_file(monkeypatch: pytest.MonkeyPatch) -> None:
+    from optimizer import graph_scan
+
+    data = b"\xef\xbb\xbf" + b"".join(b"EDGE_SE2 %d %d 1 0 0 1 0 0 1 0 1\n" % (k, k + 1) for k in range(1000))
+    assert graph_scan._piece_bounds(data, 3, 4) == [(3, len(data))], "a small file is scanned whole"
+    monkeypatch.setattr(graph_scan, "PIECE_MIN_BYTES", 1)
+    for count in (1, 2, 3, 7):
+        bounds = graph_scan._piece_bounds(data, 3, count)
+        assert len(bounds) == count
+        assert bounds[0][0] == 3 and bounds[-1][1] == len(data)
+        assert all(stop == first for (_, stop), (first, _) in itertools.pairwise(bounds))
+        assert all(data[stop - 1:stop] == b"\n" for _, stop in bounds[:-1])
+
+
+def test_a_bad_line_in_a_later_piece_is_named_with_its_line(tmp_path: Path, scan_pieces: int) -> None:
+    lines = ["VERTEX_SE2 0 0 0 0"] + [f"EDGE_SE2 {k} {k + 1} 1 0 0 1 0 0 1 0 1" for k in range(30)]
+    lines[25] = "EDGE_SE2 24 25 1 0 nan 1 0 0 1 0 1"
+    path = _write(tmp_path, "\n".join(lines) + "\n")
+    with pytest.raises(GraphFileError) as caught:
+        read_graph(path)
+    assert f"{path}:26: " in str(caught.value)
 
 
 def test_gershgorin_shortcut_never_passes_a_matrix_the_eigenvalues_reject() -> None:
