@@ -21,7 +21,7 @@ from typing import BinaryIO
 import numpy as np
 import pyarrow as pa
 import pyarrow.csv as pa_csv
-from numba import get_num_threads
+from numba import config as numba_config
 from numpy.typing import NDArray
 
 from optimizer import se2
@@ -492,7 +492,7 @@ def _write_rows(file: BinaryIO, tables: Sequence[pa.Table]) -> None:
 
     chunks = (table.slice(start, WRITE_CHUNK_ROWS) for table in tables
               for start in range(0, table.num_rows, WRITE_CHUNK_ROWS))
-    workers = get_num_threads()
+    workers = numba_config.NUMBA_NUM_THREADS  # without starting numba's thread pool
     pending: deque[Future[pa.Buffer]] = deque()
     with ThreadPoolExecutor(max_workers=workers) as pool:
         for chunk in chunks:

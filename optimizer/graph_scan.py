@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from numba import get_num_threads, njit
+from numba import config as numba_config
+from numba import njit
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
@@ -62,7 +63,8 @@ def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]
     def scan(bounds: tuple[int, int]) -> _Piece | None:
         return _scan_piece(raw, bounds, tag_bytes, tag_bounds, expected)
 
-    bounds = _piece_bounds(data, start, get_num_threads())
+    # The configured count, read without starting numba's thread pool (a log replay never starts it).
+    bounds = _piece_bounds(data, start, numba_config.NUMBA_NUM_THREADS)
     if len(bounds) == 1:
         pieces = [scan(bounds[0])]
     else:

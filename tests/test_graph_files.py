@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -409,7 +410,7 @@ def scan_pieces(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch)
     file is on a machine with 3 threads): these small files are cut between almost every line."""
     from optimizer import graph_scan
 
-    monkeypatch.setattr(graph_scan, "get_num_threads", lambda: request.param)
+    monkeypatch.setattr(graph_scan, "numba_config", SimpleNamespace(NUMBA_NUM_THREADS=request.param))
     monkeypatch.setattr(graph_scan, "PIECE_MIN_BYTES", 1)
     return request.param
 
