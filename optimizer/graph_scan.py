@@ -60,44 +60,46 @@ def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]
     tag_bounds = np.concatenate([[0], np.cumsum([len(tag) for tag in tags])]).astype(np.int64)
     expected = np.asarray(fields, dtype=np.int64)
 
-    def scan(bounds: tuple[int, int]) -> _Piece | None:
-        return _scan_piece(raw, bounds, tag_bytes, tag_bounds, expected)
-
     # The configured count, read without starting numba's thread pool (a log replay never starts it).
     bounds = _piece_bounds(data, start, numba_config.NUMBA_NUM_THREADS)
+    line_counts = [data.count(b"\n", first, stop) + 1 for first, stop in bounds]  # upper bounds
+
+    def scan(piece: int) -> _Piece | None:
+        return _scan_piece(raw, bounds[piece], line_counts[piece], tag_bytes, tag_bounds, expected)
+
     if len(bounds) == 1:
-        pieces = [scan(bounds[0])]
+        pieces = [scan(0)]
     else:
         with ThreadPoolExecutor(max_workers=len(bounds)) as pool:
-            pieces = list(pool.map(scan, bounds))
+            pieces = list(pool.map(scan, range(len(bounds))))
     if any(piece is None for piece in pieces):
         return None
     scanned_pieces = [piece for piece in pieces if piece is not None]
 
-    first_line = 0
+    lines_before = 0
     for piece in scanned_pieces:
-        piece.lines += first_line
-        first_line += piece.line_count
+        piece.lines_before = lines_before
+        lines_before += piece.line_count
     scanned: dict[str, ScannedTag] = {}
     for index, tag in enumerate(tags):
         parts = [piece.tag_rows(index, fields[index]) for piece in scanned_pieces]
         if len(parts) == 1:
-            scanned[tag] = ScannedTag(parts[0][0].copy(), parts[0][1])
+            scanned[tag] = ScannedTag(*parts[0])
         else:
             scanned[tag] = ScannedTag(np.concatenate([lines for lines, _ in parts]),
                                       np.concatenate([values for _, values in parts]))
     others = len(tags)
     other_tags = [data[first:stop].decode("ascii") for piece in scanned_pieces
                   for first, stop in piece.other_spans[:, :piece.counts[others, 0]].T.tolist()]
-    other_lines = np.concatenate([piece.lines[others, :piece.counts[others, 0]] for piece in scanned_pieces])
+    other_lines = np.concatenate([piece.line_numbers(others) for piece in scanned_pieces])
     return ScannedFile(scanned, other_tags, other_lines)
 
 
 @dataclass
 class _Piece:
-    """What the scanner found in one piece of the file: counts, line numbers (within the piece until
-    `scan_graph_bytes` shifts them), first tokens and spans of other tags (in the file) as `_scan` lays
-    them out, and every token's value."""
+    """What the scanner found in one piece of the file: counts, line numbers within the piece, first
+    tokens and spans of other tags (in the file) as `_scan` lays them out, every token's value, and the
+    number of lines in the piece and before it."""
 
     counts: IntArray
     lines: IntArray
@@ -105,16 +107,21 @@ class _Piece:
     other_spans: IntArray
     values: FloatArray
     line_count: int
+    lines_before: int = 0
+
+    def line_numbers(self, tag: int) -> IntArray:
+        """The file's line numbers of tag `tag`'s lines in this piece (the last tag: other lines)."""
+        return self.lines[tag, :self.counts[tag, 0]] + self.lines_before
 
     def tag_rows(self, tag: int, fields: int) -> tuple[IntArray, FloatArray]:
-        """The line numbers and values, (rows, fields), of tag `tag`'s lines in this piece."""
+        """The file's line numbers and the values, (rows, fields), of tag `tag`'s lines in this piece."""
         rows = int(self.counts[tag, 0])
         first = self.first_tokens[tag, :rows]
         if rows and first[-1] - first[0] == (rows - 1) * fields:  # one run of lines: a view
             values = self.values[first[0]:first[0] + rows * fields].reshape(rows, fields)
         else:
             values = self.values[first[:, None] + np.arange(fields)]
-        return self.lines[tag, :rows], values
+        return self.line_numbers(tag), values
 
 
 PIECE_MIN_BYTES = 8 << 20
@@ -137,15 +144,14 @@ def _piece_bounds(data: bytes, start: int, count: int) -> list[tuple[int, int]]:
     return bounds
 
 
-def _scan_piece(raw: NDArray[np.uint8], bounds: tuple[int, int], tag_bytes: NDArray[np.uint8],
-                tag_bounds: IntArray, expected: IntArray) -> _Piece | None:
-    """Scan `raw[bounds[0]:bounds[1]]` (whole lines, after any byte-order mark) and convert its tokens;
-    None when it is not plain."""
+def _scan_piece(raw: NDArray[np.uint8], bounds: tuple[int, int], line_bound: int,
+                tag_bytes: NDArray[np.uint8], tag_bounds: IntArray, expected: IntArray) -> _Piece | None:
+    """Scan `raw[bounds[0]:bounds[1]]` (whole lines, after any byte-order mark; at most `line_bound` of
+    them) and convert its tokens; None when it is not plain."""
     first, stop = bounds
     piece = raw[first:stop]
     num_tags = len(expected)
     # Upper bounds: untouched pages of np.empty are never made resident, so only what is used costs memory.
-    line_bound = int(np.count_nonzero(piece == _NEWLINE)) + 1
     counts = np.zeros((num_tags + 1, 2), dtype=np.int64)  # rows, tokens of each tag; last row: others
     lines = np.empty((num_tags + 1, line_bound), dtype=np.int64)
     first_tokens = np.empty((num_tags, line_bound), dtype=np.int64)
