@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import accumulate
 
 import numpy as np
 import pyarrow as pa
@@ -62,10 +63,13 @@ def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]
 
     # The configured count, read without starting numba's thread pool (a log replay never starts it).
     bounds = _piece_bounds(data, start, numba_config.NUMBA_NUM_THREADS)
-    line_counts = [data.count(b"\n", first, stop) + 1 for first, stop in bounds]  # upper bounds
+    # Every piece but the last ends with a line end, so its line ends count its lines.
+    line_ends = [data.count(b"\n", first, stop) for first, stop in bounds]
+    lines_before = [0, *accumulate(line_ends[:-1])]
 
     def scan(piece: int) -> _Piece | None:
-        return _scan_piece(raw, bounds[piece], line_counts[piece], tag_bytes, tag_bounds, expected)
+        return _scan_piece(raw, bounds[piece], line_ends[piece] + 1, lines_before[piece], tag_bytes,
+                           tag_bounds, expected)
 
     if len(bounds) == 1:
         pieces = [scan(0)]
@@ -76,10 +80,6 @@ def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]
         return None
     scanned_pieces = [piece for piece in pieces if piece is not None]
 
-    lines_before = 0
-    for piece in scanned_pieces:
-        piece.lines_before = lines_before
-        lines_before += piece.line_count
     scanned: dict[str, ScannedTag] = {}
     for index, tag in enumerate(tags):
         parts = [piece.tag_rows(index, fields[index]) for piece in scanned_pieces]
@@ -95,19 +95,18 @@ def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]
     return ScannedFile(scanned, other_tags, other_lines)
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Piece:
     """What the scanner found in one piece of the file: counts, line numbers within the piece, first
     tokens and spans of other tags (in the file) as `_scan` lays them out, every token's value, and the
-    number of lines in the piece and before it."""
+    number of lines before the piece."""
 
     counts: IntArray
     lines: IntArray
     first_tokens: IntArray
     other_spans: IntArray
     values: FloatArray
-    line_count: int
-    lines_before: int = 0
+    lines_before: int
 
     def line_numbers(self, tag: int) -> IntArray:
         """The file's line numbers of tag `tag`'s lines in this piece (the last tag: other lines)."""
@@ -144,10 +143,11 @@ def _piece_bounds(data: bytes, start: int, count: int) -> list[tuple[int, int]]:
     return bounds
 
 
-def _scan_piece(raw: NDArray[np.uint8], bounds: tuple[int, int], line_bound: int,
+def _scan_piece(raw: NDArray[np.uint8], bounds: tuple[int, int], line_bound: int, lines_before: int,
                 tag_bytes: NDArray[np.uint8], tag_bounds: IntArray, expected: IntArray) -> _Piece | None:
     """Scan `raw[bounds[0]:bounds[1]]` (whole lines, after any byte-order mark; at most `line_bound` of
-    them) and convert its tokens; None when it is not plain."""
+    them, `lines_before` lines before them in the file) and convert its tokens; None when it is not
+    plain."""
     first, stop = bounds
     piece = raw[first:stop]
     num_tags = len(expected)
@@ -159,8 +159,8 @@ def _scan_piece(raw: NDArray[np.uint8], bounds: tuple[int, int], line_bound: int
     token_bytes = np.empty(len(piece), dtype=np.uint8)
     wide = len(piece) >= 2**31
     offsets = np.empty(len(piece) // 2 + 2, dtype=np.int64 if wide else np.int32)
-    token_count, line_count = _scan(piece, tag_bytes, tag_bounds, expected, counts, lines, first_tokens,
-                                    other_spans, token_bytes, offsets)
+    token_count = _scan(piece, tag_bytes, tag_bounds, expected, counts, lines, first_tokens, other_spans,
+                        token_bytes, offsets)
     if token_count < 0:
         return None
     strings = pa.Array.from_buffers(
@@ -169,7 +169,7 @@ def _scan_piece(raw: NDArray[np.uint8], bounds: tuple[int, int], line_bound: int
     del token_bytes, offsets
     values = pc.cast(strings, pa.float64()).to_numpy(zero_copy_only=False)  # every token, in piece order
     other_spans += first
-    return _Piece(counts, lines, first_tokens, other_spans, values, line_count)
+    return _Piece(counts, lines, first_tokens, other_spans, values, lines_before)
 
 
 @njit(cache=True, inline="always")
@@ -213,9 +213,9 @@ def _number_end(raw: np.ndarray, first: int, stop: int) -> int:
 @njit(cache=True, nogil=True)
 def _scan(raw: np.ndarray, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expected: np.ndarray,
           counts: np.ndarray, lines: np.ndarray, first_tokens: np.ndarray, other_spans: np.ndarray,
-          token_bytes: np.ndarray, offsets: np.ndarray) -> tuple[int, int]:
-    """One pass over the file (or whole lines of it); (-1, line) as soon as a line is not plain, else the
-    number of tokens and of lines. Per tag t
+          token_bytes: np.ndarray, offsets: np.ndarray) -> int:
+    """One pass over the file (or whole lines of it); -1 as soon as a line is not plain, else the number
+    of tokens. Per tag t
     (row t of `counts`, `lines`, `first_tokens`; the last row of `counts` and `lines`: other lines) it
     counts rows and writes their line numbers and first tokens; every token goes to `token_bytes`, end
     to end, with its end in `offsets` (an Arrow string array's layout)."""
@@ -231,7 +231,7 @@ def _scan(raw: np.ndarray, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expect
         while end < size and raw[end] != _NEWLINE:
             byte = raw[end]
             if (byte < _SPACE and byte != _TAB and byte != _CR) or byte >= 127:
-                return -1, line  # control or non-ASCII bytes: the line-by-line reader decides
+                return -1  # control or non-ASCII bytes: the line-by-line reader decides
             end += 1
         stop = end
         if stop > position and raw[stop - 1] == _CR:
@@ -246,7 +246,7 @@ def _scan(raw: np.ndarray, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expect
         tag_first = i
         while i < stop and raw[i] != _SPACE and raw[i] != _TAB:
             if raw[i] == _CR:
-                return -1, line  # a carriage return inside a line
+                return -1  # a carriage return inside a line
             i += 1
         tag = -1
         for t in range(num_tags):
@@ -277,7 +277,7 @@ def _scan(raw: np.ndarray, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expect
                 break
             token_end = _number_end(raw, i, stop)
             if token_end < 0:
-                return -1, line
+                return -1
             used = offsets[token_count]
             for c in range(token_end - i):
                 token_bytes[used + c] = raw[i + c]
@@ -287,8 +287,8 @@ def _scan(raw: np.ndarray, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expect
             tokens += 1
             i = token_end
         if tokens != expected[tag]:
-            return -1, line
+            return -1
         lines[tag, counts[tag, 0]] = line
         counts[tag, 0] += 1
         position = next_position
-    return token_count, line
+    return token_count
