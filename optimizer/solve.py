@@ -8,8 +8,9 @@ iterations and are never reported as converged.
 
 The default, "sgd+gn", is built for the paper's case, a poor initial estimate: the paper's SGD, then the
 tree-parameterised SGD from where it ended, then the polish; and, as another candidate, the chordal
-initialisation polished directly. The chordal candidate runs first: it is cheap, and its final χ² lets a
-later candidate whose polish crawls far above it be abandoned (`crawl_verdict`) instead of running for
+initialisation polished directly. A polish that runs long (`PEEK_AFTER` iterations) while no candidate
+has converged yet has the chordal candidate optimized aside, unrecorded (it runs again, recorded, in its
+turn), so that a polish crawling far above it is abandoned (`crawl_verdict`) instead of running for
 thousands of iterations; when candidates end in the same minimum the graph's own estimate (the SGD path)
 is the one kept. Measured on M3500-shaped worlds whose odometry headings carry σθ = 0.2
 rad of noise, the paper's SGD alone leaves the polish 240–530 times above the minimum; after the tree SGD
@@ -72,6 +73,11 @@ best-known table: a polish that reaches a minimum takes at most 2.1× the iterat
 that crawls (the reversed anisotropic σθ = 0.1 world, SGD path) takes 4 363 against 19 and ends 3.2× above;
 with fewer SGD iterations the polish may have more to do (INTEL after 1, 3, 10, 30: 118, 45, 48, 46
 against 22, at most 5.4×; M3500 and CSAIL at most 2.3×), still below the factor."""
+PEEK_AFTER = 100
+"""Polish iterations after which a candidate with no converged candidate before it has the chordal one
+optimized aside as its reference (`Optimization._aside`). A reference polish takes at least about 10
+iterations (the 22 best-known graphs: 9–3 688), so a shorter polish could not be abandoned anyway; the
+polishes from the SGD path of the shared graphs take 9–44."""
 SYNC_DISAGREEMENT = 1e-3
 """The sync start runs only when the earlier candidates' final χ² differ by more than this fraction: when
 the SGD path and the chordal start polish into the same minimum, a third start has not been seen to find a
@@ -260,7 +266,7 @@ class Optimization:
         abandoned: set[str] = set()
         plans = [(name, start, True) for name, start in self._starts.items()]
         if self._with_chordal:
-            plans.insert(0, (CHORDAL, None, False))
+            plans.append((CHORDAL, None, False))
         for name, start, descend in self._with_sync_plan(plans, candidates):
             if start is None:
                 start = BUILT_STARTS[name](self._graph)
@@ -281,8 +287,12 @@ class Optimization:
                 last = dataclasses.replace(iteration, start=name)
                 count += 1
                 yield last
-                if iteration.stage == POLISH_STAGE and reference is not None:
-                    polish_chi2.append(float(last.chi2))
+                if iteration.stage != POLISH_STAGE:
+                    continue
+                polish_chi2.append(float(last.chi2))
+                if reference is None and len(polish_chi2) == PEEK_AFTER and not candidates:
+                    reference = self._aside(CHORDAL, polish_counts)
+                if reference is not None:
                     verdict = crawl_verdict(polish_chi2, reference.chi2, polish_counts[reference.start],
                                             reference.start)
                     if verdict is not None:
@@ -303,6 +313,28 @@ class Optimization:
             yield Iteration("selected", 0, best.poses, best.chi2, start=best.start)
         self._result = OptimizationResult(np.array(best.poses), float(best.chi2), winner.converged,
                                           winner.reason, winner.start, tuple(candidates))
+
+    def _aside(self, name: str, polish_counts: dict[str, int]) -> Candidate | None:
+        """Candidate `name` (a built start, polished directly) optimized without yielding its iterations,
+        if the method has it and its polish converges: then its polish count goes into `polish_counts`. It
+        runs again, recorded, in its turn: the recording keeps the candidates' order (the graph's estimate
+        and the paper's SGD first), and keeping its iterations instead could take more memory than the
+        graph."""
+        if name != CHORDAL or not self._with_chordal:
+            return None
+        start = BUILT_STARTS[name](self._graph)
+        stages = self._stages(start, descend=False)
+        last_chi2 = chi2(self._graph, start)
+        while True:
+            try:
+                last_chi2 = float(next(stages).chi2)
+            except StopIteration as stop:
+                status: PolishStatus | None = stop.value
+                break
+        if status is None or not status.converged:
+            return None
+        polish_counts[name] = status.iterations
+        return Candidate(name, last_chi2, True, status.reason, status.iterations)
 
     def _with_sync_plan(self, plans: list[tuple[str, FloatArray | None, bool]],
                         candidates: list[Candidate]) -> Iterator[tuple[str, FloatArray | None, bool]]:

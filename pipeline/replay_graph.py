@@ -91,9 +91,7 @@ class GraphReplayResult:
 
     @property
     def initial_chi2(self) -> float:
-        """The χ² of the graph's own estimate (the default optimizes the chordal start before it)."""
-        own = (record for record in self.iterations if record.stage == "initial" and record.start == ESTIMATE)
-        return next(own, self.iterations[0]).chi2
+        return self.iterations[0].chi2
 
     @property
     def final_chi2(self) -> float:
