@@ -24,8 +24,8 @@ field. kiss-slam's poses are the sensor's at each sweep's end (KISS-ICP's conven
 are moved to the base with the mount and compared with the truth at that time. Frames/s: ours end to end
 (reading, odometry, loop closures, SGD, SE(3) polish, recording, map, files) and our frontend alone;
 kiss-slam's processing loop alone (frames in memory, no outputs). Timings depend on the machine's load;
-frames per CPU second (process CPU time, every thread: ours end to end with its KISS-ICP worker process,
-kiss-slam's loop, KISS-ICP alone) depend on it less, and are what to compare on a shared machine.
+frames per CPU second (process CPU time, every thread: ours end to end, kiss-slam's loop, KISS-ICP alone)
+depend on it less, and are what to compare on a shared machine.
 
 Neither figure counts starting up (the interpreter and the imports: rerun, numba's cached kernels, scipy
 for ours; open3d, map_closures for kiss-slam): `startup` measures it apart, as a fresh interpreter's CPU
@@ -102,11 +102,9 @@ class Ours:
 
 def run_ours(log: Path, out_dir: Path, config: Slam3DConfig) -> Ours:
     """`replay_log` (the SE(3) polish included: `result.poses`), and the poses without the polish."""
-    started, cpu_started, worker_started = time.perf_counter(), time.process_time(), children_cpu()
+    started, cpu_started = time.perf_counter(), time.process_time()
     result = replay_log(log, out_dir=out_dir, slam3d=config)
-    seconds = time.perf_counter() - started
-    # the replay's CPU and its KISS-ICP worker process's (reaped when the frontend finished)
-    cpu_seconds = time.process_time() - cpu_started + children_cpu() - worker_started
+    seconds, cpu_seconds = time.perf_counter() - started, time.process_time() - cpu_started
     graph = result.frontend.result
     lifted = graph.lift(result.keyframe_poses)
     polish_started = time.perf_counter()  # timed again alone: the replay's total includes it once

@@ -13,8 +13,6 @@ the loop search counts only once). CPU time is the process's (`time.process_time
 KISS-ICP's and small_gicp's worker threads are counted, and so is rerun's writer thread, charged to the
 stage running beside it). On a loaded machine the wall times mostly measure the load; compare CPU.
 The wrapping is done here, by patching the functions for the run: the library has no timing hooks.
-KISS-ICP runs in the replay's own process here (a replay runs it in a worker process, whose functions the
-patches would not reach): the stages are those of one process doing everything, one after the other.
 """
 
 from __future__ import annotations
@@ -118,7 +116,7 @@ def _patches(clock: StageClock) -> list[Any]:
     """(owner, attribute, stage) of every function timed; see `ORDER` for the stages."""
     targets = [
         (frontend.LidarFrontend, "__init__", SETUP),
-        (odometry.SweepFrames, "_sweep_times", TIMES),
+        (odometry.KissOdometry, "_sweep_times", TIMES),
         (odometry, "_deskew", DESKEW),
         (kiss_icp.KissICP, "register_frame", KISS_OTHER),
         (preprocess.Preprocessor, "preprocess", KISS_DESKEW),
@@ -152,8 +150,6 @@ def _patches(clock: StageClock) -> list[Any]:
     ]
     patches = [mock.patch.object(owner, name, clock.timed(getattr(owner, name), stage))
                for owner, name, stage in targets]
-    patches.append(mock.patch.object(
-        frontend, "start_odometry", lambda config: odometry.InlineOdometry(odometry.KissOdometry(config))))
     measurements = frontend.LidarFrontend.measurements
     patches.append(mock.patch.object(
         frontend.LidarFrontend, "measurements",

@@ -73,12 +73,7 @@ class LogFrontend(Protocol):
     def add(self, measurement: Any) -> Estimate: ...
 
     def finish(self) -> None:
-        """The last online optimization (no more measurements are added); the methods below need it."""
-        ...
-
-    def close(self) -> None:
-        """Release what processing measurements holds (a worker process) when the replay ends early: no
-        more measurements are added. Called again, or after `finish`, it does nothing."""
+        """The last online optimization; the methods below need it."""
         ...
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
@@ -277,9 +272,6 @@ class LogFrontendBase(Generic[ConfigT, ResultT]):
         return self.result.odometry_chain
 
     def keyframe_wheel_odometry(self) -> FloatArray | None:
-        return None
-
-    def close(self) -> None:
         return None
 
     def settings(self) -> dict[str, Any]:

@@ -389,19 +389,16 @@ class _Run:
             else:
                 frontend = self.session.frontend_for(sensor, kind, log, topic, configs[kind], options)
             timings = {"read_odometry_tf": time.perf_counter() - started}
+            stream = recording.create_recording(staged["rrd"], name=self.path.name,
+                                                with_map=sensor.recording.with_map)
             try:
-                stream = recording.create_recording(staged["rrd"], name=self.path.name,
-                                                    with_map=sensor.recording.with_map)
-                try:
-                    recorder = (sensor.localization_recording if localizing else sensor.recording)(
-                        stream, frontend)  # type: ignore[arg-type]
-                    result = self.through(frontend, topic, recorder, stream, timings)
-                finally:
-                    close_started = time.perf_counter()
-                    recording.close_recording(stream)
-                    timings["record_close"] = time.perf_counter() - close_started
+                recorder = (sensor.localization_recording if localizing else sensor.recording)(
+                    stream, frontend)  # type: ignore[arg-type]
+                result = self.through(frontend, topic, recorder, stream, timings)
             finally:
-                frontend.close()  # a replay ended early stops the frontend's worker process here
+                close_started = time.perf_counter()
+                recording.close_recording(stream)
+                timings["record_close"] = time.perf_counter() - close_started
             write_started = time.perf_counter()
             write_tum(staged["tum"], frontend.stamps_ns, result.poses)
             if outputs.kitti is not None:

@@ -8,11 +8,11 @@ from kiss_icp.preprocess import Preprocessor
 
 from frontends.slam3d import se3
 from frontends.slam3d.config import OdometryConfig
-from frontends.slam3d.kiss_registration import kiss_config
 from frontends.slam3d.odometry import (
     KissOdometry,
     deskew,
     downsample,
+    kiss_config,
     normalized_point_times,
 )
 from tests.lidar_world import Drive, Lidar, drive, mount_matrix, planar_to_matrix, town_loop

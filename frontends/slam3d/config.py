@@ -1,9 +1,9 @@
 """Settings of the 3D LiDAR SLAM frontend (KISS-ICP odometry, keyframes, loop closures).
 
 The odometry settings are KISS-ICP's own, each mapped onto one field of its `KISSConfig` in
-`frontends.slam3d.kiss_registration.kiss_config`; the defaults are KISS-ICP's but one: the ICP stops once
-an update is below 1e-3 (1 mm, 1 mrad) instead of 1e-4, which takes 1.5–1.7× less CPU for the same
-trajectory within 0.02 % of the path on kitti_city (see `OdometryConfig.convergence_criterion`).
+`frontends.slam3d.odometry.kiss_config`; the defaults are KISS-ICP's but one: the ICP stops once an update
+is below 1e-3 (1 mm, 1 mrad) instead of 1e-4, which takes 1.5–1.7× less CPU for the same trajectory
+within 0.02 % of the path on kitti_city (see `OdometryConfig.convergence_criterion`).
 """
 
 from __future__ import annotations

@@ -13,8 +13,6 @@ from frontends.errors import FrontendError
 from frontends.logs import Cloud3D, LogReader, TransformTree
 from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, SessionArrays
 from frontends.slam3d.config import Slam3DConfig
-from frontends.slam3d.odometry import OdometryQueue
-from frontends.slam3d.odometry_worker import start_odometry
 from frontends.slam3d.pose_graph3d import PolishResult
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
 from frontends.slam3d.vehicle import LidarMount, OdometryPrior, lidar_mount
@@ -40,11 +38,7 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
     else the frame that moves). The log's odometry (its odometry topic, else tf's odom edge), when it
     has one, is read before the clouds and gives KISS-ICP its motion guess (`vehicle.OdometryPrior`).
     Final poses: the planar optimum lifted to 3D, then polished in SE(3) when `config.se3_polish.enabled`
-    (`polish` holds how that went).
-
-    KISS-ICP runs in a worker process (`odometry_worker.start_odometry`), started here so that its
-    start-up overlaps the rest of the replay's, and stopped by `finish` or `close`. While `measurements()`
-    streams the log, `add` submits the next cloud to it before processing the current one."""
+    (`polish` holds how that went)."""
 
     def __init__(self, log: LogReader, topic: str, config: Slam3DConfig | None = None,
                  options: FrontendOptions | None = None) -> None:
@@ -58,18 +52,9 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         """The LiDAR's mount on the base (from tf at the first cloud; identity without one)."""
         self.polish: PolishResult | None = None
         self._polished_for: bytes | None = None
-        self._upcoming: tuple[Cloud3D, Cloud3D | None] | None = None
-        """The cloud `measurements` yielded last, and the one after it (None: the last cloud)."""
-        self._odometry: OdometryQueue = start_odometry(self.config.odometry)
 
     def measurements(self) -> Iterator[Cloud3D]:
-        clouds = iter(self._log.clouds(self._topic))
-        upcoming = next(clouds, None)
-        while upcoming is not None:
-            # read (and decode) the cloud after this one while the odometry registers this one
-            cloud, upcoming = upcoming, next(clouds, None)
-            self._upcoming = (cloud, upcoming)
-            yield cloud
+        return self._log.clouds(self._topic)
 
     def add(self, measurement: Cloud3D) -> CloudEstimate:
         if self._slam is None:
@@ -82,22 +67,12 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
             self._prior = self._prior_of_base(mount, measurement.stamp_ns)
         self._clouds += 1
         self._points += len(measurement.points)
-        upcoming = None
-        if self._upcoming is not None and self._upcoming[0] is measurement:
-            upcoming = self._upcoming[1]
-        return self._slam.add_cloud(measurement, self._odometry_pose(measurement), upcoming,
-                                    None if upcoming is None else self._odometry_pose(upcoming))
-
-    def _odometry_pose(self, cloud: Cloud3D) -> FloatArray | None:
-        return None if self._prior is None else self._prior.at(cloud.stamp_ns)
+        odometry_pose = None if self._prior is None else self._prior.at(measurement.stamp_ns)
+        return self._slam.add_cloud(measurement, odometry_pose)
 
     def _make_slam(self, sensor_to_base: FloatArray) -> LidarSlam3D:
-        """The SLAM the clouds go to (a session's frontends start it from a saved map), on `_odometry`."""
-        return LidarSlam3D(self.config, sensor_to_base=sensor_to_base, odometry=self._odometry)
-
-    def close(self) -> None:
-        """Stop the odometry's worker (no more clouds can be added)."""
-        self._odometry.close()
+        """The SLAM the clouds go to (a session's frontends start it from a saved map)."""
+        return LidarSlam3D(self.config, sensor_to_base=sensor_to_base)
 
     def _prior_of_base(self, mount: LidarMount, stamp_ns: int) -> OdometryPrior | None:
         """The odometry as poses of the mount's base frame; None when tf cannot relate the two."""
@@ -120,7 +95,6 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         return self.polish.poses
 
     def finish(self) -> None:
-        self.close()
         if self._slam is None:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no point clouds")
         self._result = self._slam.finish()

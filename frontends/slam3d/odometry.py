@@ -22,30 +22,47 @@ it and the deskewing uses it. KISS-ICP 1.3 has no argument for this; its `regist
 The deskewing itself is done here (`deskew`, the same motion model) and KISS-ICP gets the cloud without
 times: its C++ deskewing evaluates a full SE(3) exponential (Sophus) per point, three quarters of its
 preprocessing (2.4 of 3.2 ms on a town-loop sweep of 22 k points).
-
-The SLAM talks to its odometry through an `OdometryQueue`: a cloud is submitted, and its step received
-later, so that the next cloud can register while the SLAM works on the last one. `InlineOdometry` queues
-an `Odometry` of this process (registering on `receive`); `odometry_worker.OdometryWorker` runs
-`KissOdometry` in a worker process. KISS-ICP's configuration classes (pydantic, 0.2 s of start-up) are
-imported only where a `KissOdometry` is made: a process whose odometry runs in a worker never loads them.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Protocol
 
 import numpy as np
+from kiss_icp.config import KISSConfig
+from kiss_icp.config.config import AdaptiveThresholdConfig, DataConfig, MappingConfig, RegistrationConfig
+from kiss_icp.kiss_icp import KissICP
 from kiss_icp.voxelization import voxel_down_sample
 from numba import njit
 from numpy.typing import NDArray
 
-from frontends.errors import FrontendError
 from frontends.slam3d import se3
 from frontends.slam3d.config import OdometryConfig
-from frontends.slam3d.kiss_registration import NO_TIMES, KissRegistration
 
 FloatArray = NDArray[np.float64]
+
+NO_TIMES = np.empty(0, dtype=np.float64)
+
+
+def kiss_config(config: OdometryConfig) -> KISSConfig:
+    """Our odometry settings as KISS-ICP's configuration, every field set explicitly."""
+    return KISSConfig(
+        data=DataConfig(max_range=config.max_range, min_range=config.min_range, deskew=config.deskew),
+        mapping=MappingConfig(
+            voxel_size=config.map_voxel_size, max_points_per_voxel=config.max_points_per_voxel
+        ),
+        registration=RegistrationConfig(
+            max_num_iterations=config.max_iterations,
+            convergence_criterion=config.convergence_criterion,
+            max_num_threads=config.max_threads,
+        ),
+        adaptive_threshold=AdaptiveThresholdConfig(
+            fixed_threshold=config.fixed_threshold,
+            initial_threshold=config.initial_threshold,
+            min_motion_th=config.min_motion_threshold,
+        ),
+    )
 
 
 def azimuth_point_times(
@@ -109,103 +126,47 @@ class Odometry(Protocol):
     ) -> OdometryStep | None: ...
 
 
-@runtime_checkable
-class OdometryQueue(Protocol):
-    """An odometry one cloud ahead: `submit` a cloud, `receive` its step (None: too few points) before
-    submitting the next; `close` releases what it holds (nothing more is submitted)."""
+class KissOdometry:
+    """Feed clouds in time order with `register`."""
 
-    def submit(
-        self,
-        points: NDArray[np.floating],
-        point_times: NDArray[np.float64] | None,
-        motion_guess: NDArray[np.float64] | None,
-    ) -> None: ...
+    def __init__(self, config: OdometryConfig | None = None) -> None:
+        self.config = config or OdometryConfig()
+        self._kiss = KissICP(kiss_config(self.config))
+        self._pose = np.eye(4)
 
-    def receive(self) -> OdometryStep | None: ...
-
-    def close(self) -> None: ...
-
-
-class InlineOdometry:
-    """An `Odometry` of this process as an `OdometryQueue`: the cloud is registered when received."""
-
-    def __init__(self, odometry: Odometry) -> None:
-        self.odometry = odometry
-        self._submitted: tuple[NDArray[np.floating], NDArray[np.float64] | None,
-                               NDArray[np.float64] | None] | None = None
-
-    def submit(
-        self,
-        points: NDArray[np.floating],
-        point_times: NDArray[np.float64] | None,
-        motion_guess: NDArray[np.float64] | None,
-    ) -> None:
-        if self._submitted is not None:
-            raise FrontendError("a cloud was submitted to the odometry before the last one was received")
-        self._submitted = (points, point_times, motion_guess)
-
-    def receive(self) -> OdometryStep | None:
-        if self._submitted is None:
-            raise FrontendError("no cloud was submitted to the odometry")
-        submitted, self._submitted = self._submitted, None
-        return self.odometry.register(*submitted)
-
-    def close(self) -> None:
-        self._submitted = None
-
-
-@dataclass(frozen=True, eq=False)
-class SweepFrame:
-    """A cloud ready for KISS-ICP, and what turns KISS-ICP's pose into that of the cloud's stamp."""
-
-    frame: FloatArray
-    """(N, 3) the points, deskewed when the cloud has (or its azimuths give) times."""
-    motion_guess: FloatArray | None
-    twist: FloatArray
-    """log of the sensor's motion from the previous registered cloud, as the deskewing assumed it."""
-    stamp_fraction: float | None
-    """Where the stamp falls in the sweep (1: its end); None when not deskewed."""
-
-
-class SweepFrames:
-    """The odometry's work before and after KISS-ICP registers a cloud (`prepare`, `registered`): times,
-    deskewing, the pose at the stamp. It keeps the motion KISS-ICP estimated last, which deskews the next
-    cloud: every cloud prepared is registered, in order, before the next one is prepared."""
-
-    def __init__(self, config: OdometryConfig) -> None:
-        self.config = config
-        self._motion = np.eye(4)
-        """KISS-ICP's last frame-to-frame motion (its `last_delta`: identity before the first cloud)."""
-        self.pose = np.eye(4)
+    @property
+    def pose(self) -> FloatArray:
         """The latest registered pose (at its cloud's stamp)."""
+        return self._pose.copy()
 
-    def prepare(
+    def register(
         self,
         points: NDArray[np.floating],
-        point_times: NDArray[np.float64] | None,
-        motion_guess: NDArray[np.float64] | None,
-    ) -> SweepFrame | None:
-        """The cloud as KISS-ICP gets it; None when it has fewer than `min_points` points."""
+        point_times: NDArray[np.float64] | None = None,
+        motion_guess: NDArray[np.float64] | None = None,
+    ) -> OdometryStep | None:
+        """Register one cloud, (N, 3) points in the sensor frame with optional times (s, relative to the
+        stamp); None (and nothing changes) when it has fewer than `min_points` points. `motion_guess`
+        (4×4, the sensor's motion since the previous registered cloud, stamp to stamp) replaces the
+        constant-velocity prediction."""
         if len(points) < self.config.min_points:
             return None
         times, stamp_fraction = self._sweep_times(points, point_times)
-        guess = None if motion_guess is None else np.array(motion_guess, dtype=np.float64)
-        # The motion the deskewing assumes: the guess replaces KISS-ICP's last one, as a twist.
-        twist = se3.log(self._motion if guess is None else guess)
+        if motion_guess is not None:
+            self._kiss.last_delta = np.array(motion_guess, dtype=np.float64)
+        # The motion the deskewing assumes (read before registering replaces it), as a twist.
+        twist = se3.log(np.array(self._kiss.last_delta, dtype=np.float64))
         frame = np.ascontiguousarray(points, dtype=np.float64)
         if len(times):
             frame = _deskew(frame, np.ascontiguousarray(times, dtype=np.float64), twist)
-        return SweepFrame(frame, guess, twist, stamp_fraction)
-
-    def registered(self, frame: SweepFrame, points: FloatArray, end_pose: FloatArray,
-                   motion: FloatArray) -> OdometryStep:
-        """The step of a prepared cloud KISS-ICP registered (`KissRegistration.register`'s result)."""
-        self._motion = motion
+        # without times KISS-ICP only drops points out of range
+        deskewed, _ = self._kiss.register_frame(frame, NO_TIMES)
+        end_pose = np.array(self._kiss.last_pose, dtype=np.float64)
         pose = end_pose
-        if frame.stamp_fraction is not None and frame.stamp_fraction != 1.0:
-            pose = end_pose @ se3.exp((frame.stamp_fraction - 1.0) * frame.twist)
-        self.pose = pose
-        return OdometryStep(pose, points, end_pose, frame.stamp_fraction is not None)
+        if stamp_fraction is not None and stamp_fraction != 1.0:
+            pose = end_pose @ se3.exp((stamp_fraction - 1.0) * twist)
+        self._pose = pose
+        return OdometryStep(pose, np.asarray(deskewed), end_pose, stamp_fraction is not None)
 
     def _sweep_times(
         self, points: NDArray[np.floating], point_times: NDArray[np.float64] | None
@@ -223,35 +184,6 @@ class SweepFrames:
         if not covers_the_circle(times):
             return NO_TIMES, None
         return normalized_point_times(times - (1.0 if config.stamp_at_sweep_end else 0.0))
-
-
-class KissOdometry:
-    """Feed clouds in time order with `register` (KISS-ICP in this process)."""
-
-    def __init__(self, config: OdometryConfig | None = None) -> None:
-        self.config = config or OdometryConfig()
-        self._frames = SweepFrames(self.config)
-        self._registration = KissRegistration(self.config)
-
-    @property
-    def pose(self) -> FloatArray:
-        """The latest registered pose (at its cloud's stamp)."""
-        return self._frames.pose.copy()
-
-    def register(
-        self,
-        points: NDArray[np.floating],
-        point_times: NDArray[np.float64] | None = None,
-        motion_guess: NDArray[np.float64] | None = None,
-    ) -> OdometryStep | None:
-        """Register one cloud, (N, 3) points in the sensor frame with optional times (s, relative to the
-        stamp); None (and nothing changes) when it has fewer than `min_points` points. `motion_guess`
-        (4×4, the sensor's motion since the previous registered cloud, stamp to stamp) replaces the
-        constant-velocity prediction."""
-        frame = self._frames.prepare(points, point_times, motion_guess)
-        if frame is None:
-            return None
-        return self._frames.registered(frame, *self._registration.register(frame.frame, frame.motion_guess))
 
 
 def downsample(points: NDArray[np.floating], voxel: float) -> FloatArray:

@@ -34,7 +34,7 @@ from frontends.protocol import FloatArray, IntArray
 from frontends.slam3d import se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.localization import CloudLocalizationConfig, CloudLocalizer, LocalizedCloud
-from frontends.slam3d.odometry import Odometry, OdometryQueue, OdometryStep
+from frontends.slam3d.odometry import Odometry, OdometryStep
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph, keyframe_descriptor
 
 BRIDGE_SIGMA_LINEAR = 100.0
@@ -69,7 +69,7 @@ class ResumedLidarSlam3D(LidarSlam3D):
     """`LidarSlam3D` started from a saved keyframe graph (see the module's docstring)."""
 
     def __init__(self, saved: SavedGraph3D, config: Slam3DConfig | None = None, *,
-                 sensor_to_base: ArrayLike | None = None, odometry: Odometry | OdometryQueue | None = None,
+                 sensor_to_base: ArrayLike | None = None, odometry: Odometry | None = None,
                  localization: CloudLocalizationConfig | None = None) -> None:
         super().__init__(config, sensor_to_base=sensor_to_base, odometry=odometry)
         poses = np.asarray(saved.keyframe_poses, dtype=np.float64).reshape(-1, 4, 4)

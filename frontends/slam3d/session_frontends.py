@@ -26,7 +26,7 @@ from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.frontend import MAP_VOXEL, LidarFrontend
 from frontends.slam3d.localization import CloudLocalizationConfig, CloudLocalizer, LocalizedCloud
-from frontends.slam3d.odometry import OdometryQueue, OdometryStep, downsample
+from frontends.slam3d.odometry import OdometryStep, downsample
 from frontends.slam3d.resume import ResumedLidarSlam3D, SavedGraph3D
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
 from optimizer.graph import PoseGraph
@@ -73,7 +73,7 @@ class ContinuingLidarFrontend(LidarFrontend):
 
     def _make_slam(self, sensor_to_base: FloatArray) -> LidarSlam3D:
         self._resumed = ResumedLidarSlam3D(self.saved.graph, self.config, sensor_to_base=sensor_to_base,
-                                           odometry=self._odometry, localization=self._localization)
+                                           localization=self._localization)
         return self._resumed
 
     def counts(self) -> dict[str, int]:
@@ -109,9 +109,8 @@ class CloudLocalizations(ScanLocalizations):
 class _LocalizingSlam3D(LidarSlam3D):
     """The odometry of `LidarSlam3D` (registration, mount) feeding a `CloudLocalizer`: no keyframes."""
 
-    def __init__(self, localizer: CloudLocalizer, config: Slam3DConfig, sensor_to_base: FloatArray,
-                 odometry: OdometryQueue) -> None:
-        super().__init__(config, sensor_to_base=sensor_to_base, odometry=odometry)
+    def __init__(self, localizer: CloudLocalizer, config: Slam3DConfig, sensor_to_base: FloatArray) -> None:
+        super().__init__(config, sensor_to_base=sensor_to_base)
         self.localizer = localizer
         self.found: list[LocalizedCloud] = []
         self._last_odometry: FloatArray | None = None
@@ -145,12 +144,11 @@ class LocalizingLidarFrontend(SavedMapLocalization[CloudLocalizations], LidarFro
         self._localizations: CloudLocalizations | None = None
 
     def _make_slam(self, sensor_to_base: FloatArray) -> LidarSlam3D:
-        self._tracker = _LocalizingSlam3D(self._localizer, self.config, sensor_to_base, self._odometry)
+        self._tracker = _LocalizingSlam3D(self._localizer, self.config, sensor_to_base)
         return self._tracker
 
     def finish(self) -> None:
         """Raises `MapPlacementError` when no cloud could be placed in the saved map."""
-        self.close()
         if self._tracker is None:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no point clouds")
         rows = self._tracker.found

@@ -40,14 +40,7 @@ from frontends.slam3d.loop_closure import (
     scan_context,
     verify_loop,
 )
-from frontends.slam3d.odometry import (
-    InlineOdometry,
-    KissOdometry,
-    Odometry,
-    OdometryQueue,
-    OdometryStep,
-    downsample,
-)
+from frontends.slam3d.odometry import KissOdometry, Odometry, OdometryStep, downsample
 from frontends.slam3d.pose_graph3d import PolishResult
 from frontends.slam3d.voxel_map import place_one_per_voxel
 from optimizer import se2
@@ -173,9 +166,7 @@ class LidarSlam3D:
 
     `sensor_to_base` is the 4×4 pose of the sensor in the vehicle's base frame (its mount); poses and
     keyframe clouds are the base's. Identity: the sensor frame is the base frame. `odometry` replaces
-    KISS-ICP in this process (built from `config.odometry` by default) by another source of registered
-    clouds, or by a queue to one (`odometry_worker.OdometryWorker`: KISS-ICP in a worker process, which
-    its owner closes).
+    KISS-ICP (built from `config.odometry` by default) by another source of registered clouds.
     """
 
     def __init__(
@@ -183,19 +174,14 @@ class LidarSlam3D:
         config: Slam3DConfig | None = None,
         *,
         sensor_to_base: ArrayLike | None = None,
-        odometry: Odometry | OdometryQueue | None = None,
+        odometry: Odometry | None = None,
     ) -> None:
         self.config = config or Slam3DConfig()
         self._mount = np.eye(4) if sensor_to_base is None else np.array(sensor_to_base, dtype=np.float64)
         if self._mount.shape != (4, 4):
             raise ValueError(f"sensor_to_base must be 4×4, got {self._mount.shape}")
         self._mount_inverse = se3.inverse(self._mount)
-        odometry = odometry or KissOdometry(self.config.odometry)
-        self._odometry = odometry if isinstance(odometry, OdometryQueue) else InlineOdometry(odometry)
-        self._ahead: Cloud3D | None = None
-        """The cloud submitted to the odometry ahead of its `add_cloud`."""
-        self._submitted_odometry: FloatArray | None = None
-        """The vehicle odometry's pose at the cloud last submitted."""
+        self._odometry = odometry or KissOdometry(self.config.odometry)
         self._odometry_origin = np.eye(4)
         """Pose of the odometry frame in the frame keyframe odometry poses are kept in: identity, but for a
         SLAM resumed on a saved map (`frontends.slam3d.resume`), where it places the new run in the map."""
@@ -225,40 +211,22 @@ class LidarSlam3D:
 
     # ------------------------------------------------------------------------------------------ clouds
 
-    def add_cloud(self, cloud: Cloud3D, odometry_pose: ArrayLike | None = None,
-                  upcoming: Cloud3D | None = None, upcoming_odometry_pose: ArrayLike | None = None
-                  ) -> CloudEstimate:
+    def add_cloud(self, cloud: Cloud3D, odometry_pose: ArrayLike | None = None) -> CloudEstimate:
         """Process one cloud (points in the sensor frame). `odometry_pose` (4×4, optional) is the base's
         pose at the cloud's stamp from the vehicle's own odometry (`vehicle.OdometryPrior.at`): its motion
-        since the previous registered cloud is the registration's starting guess. `upcoming` (with its
-        `upcoming_odometry_pose`), the cloud to be added next when it is known, is submitted to the
-        odometry before this one is processed: an odometry in a worker process registers it meanwhile.
-        The results are the same with it or without."""
+        since the previous registered cloud is the registration's starting guess."""
         index = self._clouds_seen
         self._clouds_seen += 1
-        if self._ahead is None:
-            self._submit(cloud, odometry_pose)
-        elif self._ahead is not cloud:
-            raise FrontendError("a cloud was added in place of the upcoming one announced before it")
-        self._ahead = None
-        step = self._odometry.receive()
-        if step is not None:
-            # the guess is relative to the last registered cloud: no odometry there, no guess next time
-            self._last_odometry_pose = self._submitted_odometry
-        if upcoming is not None:
-            self._submit(upcoming, upcoming_odometry_pose)
-            self._ahead = upcoming
-        return self._add_step(index, int(cloud.stamp_ns), step)
-
-    def _submit(self, cloud: Cloud3D, odometry_pose: ArrayLike | None) -> None:
-        """Send the cloud to the odometry with its motion guess (from the vehicle's odometry, if any)."""
         odometry = None if odometry_pose is None else np.asarray(odometry_pose, dtype=np.float64)
         motion_guess = None
         if odometry is not None and self._last_odometry_pose is not None:
             base_motion = se3.relative(self._last_odometry_pose, odometry)
             motion_guess = self._mount_inverse @ base_motion @ self._mount
-        self._odometry.submit(cloud.points, cloud.point_times, motion_guess)
-        self._submitted_odometry = odometry
+        step = self._odometry.register(cloud.points, cloud.point_times, motion_guess)
+        if step is not None:
+            # the guess is relative to the last registered cloud: no odometry there, no guess next time
+            self._last_odometry_pose = odometry
+        return self._add_step(index, int(cloud.stamp_ns), step)
 
     def _base_pose(self, step: OdometryStep) -> FloatArray:
         """4×4 pose of the base at a registered cloud, in the frame keyframe odometry poses are kept in."""
