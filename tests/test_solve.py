@@ -255,8 +255,9 @@ def test_crawl_verdict_abandons_only_a_long_slow_polish_above_the_reference() ->
 
 
 def test_candidates_in_the_same_minimum_keep_the_sgd_path() -> None:
-    # Where both reach one minimum the graph's estimate, brought there by the paper's SGD, is the result,
-    # even when the chordal start ends a rounding error lower: its last iteration is the one selected.
+    # Where both reach one minimum the graph's estimate, brought there by the paper's SGD, is the result:
+    # its last iteration is the one selected. (Here the chordal candidate ends lower by rounding, 7e-16
+    # relative: the lower χ² alone would pick it.)
     graph = generate_grid_world(400, seed=2).graph
     run = optimize(graph)
     iterations = list(run)
