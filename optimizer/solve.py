@@ -8,8 +8,8 @@ iterations and are never reported as converged.
 
 The default, "sgd+gn", is built for the paper's case, a poor initial estimate: the paper's SGD, then the
 tree-parameterised SGD from where it ended, then the polish; and, as another candidate, the chordal
-initialisation polished directly. A polish that runs long (`PEEK_AFTER` iterations) while no candidate
-has converged yet has the chordal candidate optimized aside, unrecorded (it runs again, recorded, in its
+initialisation polished directly. A first polish that runs long (`PEEK_AFTER` iterations) has the chordal
+candidate optimized beside it, unrecorded and a tenth as far (`_Aside`; it runs again, recorded, in its
 turn), so that a polish crawling far above it is abandoned (`crawl_verdict`) instead of running for
 thousands of iterations; when candidates end in the same minimum the graph's own estimate (the SGD path)
 is the one kept. Measured on M3500-shaped worlds whose odometry headings carry σθ = 0.2
@@ -74,10 +74,8 @@ that crawls (the reversed anisotropic σθ = 0.1 world, SGD path) takes 4 363 ag
 with fewer SGD iterations the polish may have more to do (INTEL after 1, 3, 10, 30: 118, 45, 48, 46
 against 22, at most 5.4×; M3500 and CSAIL at most 2.3×), still below the factor."""
 PEEK_AFTER = 100
-"""Polish iterations after which a candidate with no converged candidate before it has the chordal one
-optimized aside as its reference (`Optimization._aside`). A reference polish takes at least about 10
-iterations (the 22 best-known graphs: 9–3 688), so a shorter polish could not be abandoned anyway; the
-polishes from the SGD path of the shared graphs take 9–44."""
+"""Polish iterations of the first candidate after which the chordal one is optimized beside it (`_Aside`)
+as its reference. The polishes from the SGD path of the shared graphs take 9–44: they never pay for it."""
 SYNC_DISAGREEMENT = 1e-3
 """The sync start runs only when the earlier candidates' final χ² differ by more than this fraction: when
 the SGD path and the chordal start polish into the same minimum, a third start has not been seen to find a
@@ -250,6 +248,7 @@ class Optimization:
                               and 2 <= graph.num_poses <= LARGEST_FOR_EXTRA_STAGES)
         self._with_sync = (self._with_chordal and self._method.sync_start
                            and graph.num_poses <= LARGEST_FOR_SYNC)
+        self._built: dict[str, FloatArray] = {}
         self._result: OptimizationResult | None = None
 
     @property
@@ -269,7 +268,7 @@ class Optimization:
             plans.append((CHORDAL, None, False))
         for name, start, descend in self._with_sync_plan(plans, candidates):
             if start is None:
-                start = BUILT_STARTS[name](self._graph)
+                start = self._built_start(name)
             last = Iteration("initial", 0, start, chi2(self._graph, start), start=name)
             yield last
             count = 0
@@ -278,6 +277,7 @@ class Optimization:
             polish_chi2: list[float] = []
             status: PolishStatus | None = None
             stages = self._stages(last.poses, descend)
+            aside: _Aside | None = None
             while True:
                 try:
                     iteration = next(stages)
@@ -290,8 +290,12 @@ class Optimization:
                 if iteration.stage != POLISH_STAGE:
                     continue
                 polish_chi2.append(float(last.chi2))
-                if reference is None and len(polish_chi2) == PEEK_AFTER and not candidates:
-                    reference = self._aside(CHORDAL, polish_counts)
+                if aside is None and len(polish_chi2) == PEEK_AFTER and not candidates and self._with_chordal:
+                    aside = _Aside(self._stages(self._built_start(CHORDAL), descend=False))
+                if reference is None and aside is not None:
+                    reference = aside.advance_to(len(polish_chi2) // ABANDON_FACTOR)
+                    if reference is not None:
+                        polish_counts[CHORDAL] = reference.iterations
                 if reference is not None:
                     verdict = crawl_verdict(polish_chi2, reference.chi2, polish_counts[reference.start],
                                             reference.start)
@@ -300,6 +304,7 @@ class Optimization:
                         abandoned.add(name)
                         status = PolishStatus(False, verdict, len(polish_chi2))
                         break
+            del aside  # its polish state, as large as the graph's
             if status is not None:
                 converged, reason = status.converged, status.reason
                 if converged:
@@ -314,27 +319,11 @@ class Optimization:
         self._result = OptimizationResult(np.array(best.poses), float(best.chi2), winner.converged,
                                           winner.reason, winner.start, tuple(candidates))
 
-    def _aside(self, name: str, polish_counts: dict[str, int]) -> Candidate | None:
-        """Candidate `name` (a built start, polished directly) optimized without yielding its iterations,
-        if the method has it and its polish converges: then its polish count goes into `polish_counts`. It
-        runs again, recorded, in its turn: the recording keeps the candidates' order (the graph's estimate
-        and the paper's SGD first), and keeping its iterations instead could take more memory than the
-        graph."""
-        if name != CHORDAL or not self._with_chordal:
-            return None
-        start = BUILT_STARTS[name](self._graph)
-        stages = self._stages(start, descend=False)
-        last_chi2 = chi2(self._graph, start)
-        while True:
-            try:
-                last_chi2 = float(next(stages).chi2)
-            except StopIteration as stop:
-                status: PolishStatus | None = stop.value
-                break
-        if status is None or not status.converged:
-            return None
-        polish_counts[name] = status.iterations
-        return Candidate(name, last_chi2, True, status.reason, status.iterations)
+    def _built_start(self, name: str) -> FloatArray:
+        """The start `name` builds from the graph (the chordal or sync initialisation), built once."""
+        if name not in self._built:
+            self._built[name] = BUILT_STARTS[name](self._graph)
+        return self._built[name]
 
     def _with_sync_plan(self, plans: list[tuple[str, FloatArray | None, bool]],
                         candidates: list[Candidate]) -> Iterator[tuple[str, FloatArray | None, bool]]:
@@ -369,6 +358,33 @@ class Optimization:
         if not self._method.polish:
             return None
         return (yield from gauss_newton(self._graph, poses, max_iterations=self._polish_cap))
+
+
+class _Aside:
+    """The chordal candidate optimized beside a running polish, step by step and unrecorded, so that it can
+    serve as the reference of `crawl_verdict` (which needs a converged candidate). A polish that has taken
+    n iterations can only be abandoned against a reference that converged within n / `ABANDON_FACTOR`, so
+    the aside is advanced no further: at most a tenth of the running polish's cost."""
+
+    def __init__(self, stages: Iterator[Iteration]) -> None:
+        self._stages = stages
+        self._steps = 0
+        self._chi2 = math.inf
+        self._finished = False
+        self._result: Candidate | None = None
+
+    def advance_to(self, steps: int) -> Candidate | None:
+        """Advance to `steps` iterations (or its end): the candidate once its polish converged, else None."""
+        while not self._finished and self._steps < steps:
+            try:
+                self._chi2 = float(next(self._stages).chi2)
+                self._steps += 1
+            except StopIteration as stop:
+                self._finished = True
+                status: PolishStatus | None = stop.value
+                if status is not None and status.converged:
+                    self._result = Candidate(CHORDAL, self._chi2, True, status.reason, status.iterations)
+        return self._result
 
 
 def crawl_verdict(polish_chi2: Sequence[float], reference_chi2: float, reference_iterations: int,

@@ -8,6 +8,7 @@ import itertools
 import numpy as np
 import pytest
 
+from optimizer import solve
 from optimizer.benchmark_graphs import noisy_manhattan, reversed_anisotropic_variant
 from optimizer.cost import chi2
 from optimizer.errors import OptimizerError
@@ -209,7 +210,8 @@ def test_the_default_skips_the_sync_start_when_its_candidates_agree() -> None:
 # ------------------------------------------------------------------- a crawling candidate is abandoned
 
 
-def test_a_candidate_whose_polish_crawls_far_above_the_chordal_one_is_abandoned_not_converged() -> None:
+def test_a_candidate_whose_polish_crawls_far_above_the_chordal_one_is_abandoned_not_converged(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     # This world's loop closures stored reversed with anisotropic information: the paper's SGD leaves the
     # estimate 10⁵ times above the minimum and the polish from there crawls along a curved valley (4 000+
     # iterations, each lowering χ² by a sliver) into a minimum 3.2 times above the one the chordal start
@@ -218,8 +220,13 @@ def test_a_candidate_whose_polish_crawls_far_above_the_chordal_one_is_abandoned_
     # abandoned, listed as such, and the result is the chordal candidate's minimum (recorded after the SGD
     # path, in its turn), confirmed by the sync start.
     graph = reversed_anisotropic_variant(noisy_manhattan(sigma_theta=0.1, seed=0).graph, seed=0)
+    built: list[str] = []
+    for name, build in dict(solve.BUILT_STARTS).items():
+        monkeypatch.setitem(solve.BUILT_STARTS, name, lambda g, name=name, build=build: (built.append(name),
+                                                                                          build(g))[1])
     run = optimize(graph)
     iterations = list(run)
+    assert built == ["chordal", "sync"]  # the chordal start built once, for the aside and its own turn
     result = run.result
     by_start = {candidate.start: candidate for candidate in result.candidates}
     assert list(by_start) == [ESTIMATE, "chordal", "sync"]
