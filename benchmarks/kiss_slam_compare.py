@@ -34,6 +34,9 @@ frontend included), and `frames_per_cpu_second_with_startup` adds it. What a use
 process, so `fresh_process_fps` and `frames_per_cpu_second_fresh_process` time one: ours the `replay`
 command on the log (interpreter, imports, numba kernels loaded from their cache, reading, everything
 written), kiss-slam its runner (interpreter, imports, the frames loaded from their `.npz`, the loop).
+`startup` is a plain `python -c`, with the cyclic collector on: the `replay` command pauses it while
+importing and freezes what the imports built (`pipeline.launcher`), so ours counts collections (0.1–0.5
+CPU s with the machine's load) that the whole process no longer pays.
 Start-ups and whole processes alternate `--repeats` times and the fastest of each counts: on a shared
 machine the load comes and goes within a run, and the minimum is the figure it disturbs least.
 
