@@ -260,8 +260,7 @@ class Optimization:
     def __iter__(self) -> Iterator[Iteration]:
         candidates: list[Candidate] = []
         finals: dict[str, Iteration] = {}
-        polish_counts: dict[str, int] = {}
-        """Polish iterations of every candidate that converged (the references a crawl is judged by)."""
+        references: list[_Reference] = []  # every candidate that converged: what a crawl is judged by
         abandoned: set[str] = set()
         plans = [(name, start, True) for name, start in self._starts.items()]
         if self._with_chordal:
@@ -273,7 +272,7 @@ class Optimization:
             yield last
             count = 0
             converged, reason = False, f"{self._sweeps} iterations of a method without a convergence test"
-            reference = _lowest_converged(candidates, polish_counts)
+            reference = min(references, key=lambda converged: converged.chi2, default=None)
             polish_chi2: list[float] = []
             status: PolishStatus | None = None
             stages = self._stages(last.poses, descend)
@@ -294,10 +293,8 @@ class Optimization:
                     aside = _Aside(self._stages(self._built_start(CHORDAL), descend=False))
                 if reference is None and aside is not None:
                     reference = aside.advance_to(len(polish_chi2) // ABANDON_FACTOR)
-                    if reference is not None:
-                        polish_counts[CHORDAL] = reference.iterations
                 if reference is not None:
-                    verdict = crawl_verdict(polish_chi2, reference.chi2, polish_counts[reference.start],
+                    verdict = crawl_verdict(polish_chi2, reference.chi2, reference.polish_iterations,
                                             reference.start)
                     if verdict is not None:
                         stages.close()
@@ -308,7 +305,7 @@ class Optimization:
             if status is not None:
                 converged, reason = status.converged, status.reason
                 if converged:
-                    polish_counts[name] = status.iterations
+                    references.append(_Reference(name, float(last.chi2), status.iterations))
             candidates.append(Candidate(name, float(last.chi2), converged, reason, count))
             finals[name] = last
         preference = [*self._starts, CHORDAL, SYNC]
@@ -360,6 +357,15 @@ class Optimization:
         return (yield from gauss_newton(self._graph, poses, max_iterations=self._polish_cap))
 
 
+@dataclass(frozen=True)
+class _Reference:
+    """A converged candidate, as `crawl_verdict` judges a later polish against it."""
+
+    start: str
+    chi2: float
+    polish_iterations: int
+
+
 class _Aside:
     """The chordal candidate optimized beside a running polish, step by step and unrecorded, so that it can
     serve as the reference of `crawl_verdict` (which needs a converged candidate). A polish that has taken
@@ -371,9 +377,9 @@ class _Aside:
         self._steps = 0
         self._chi2 = math.inf
         self._finished = False
-        self._result: Candidate | None = None
+        self._result: _Reference | None = None
 
-    def advance_to(self, steps: int) -> Candidate | None:
+    def advance_to(self, steps: int) -> _Reference | None:
         """Advance to `steps` iterations (or its end): the candidate once its polish converged, else None."""
         while not self._finished and self._steps < steps:
             try:
@@ -383,7 +389,7 @@ class _Aside:
                 self._finished = True
                 status: PolishStatus | None = stop.value
                 if status is not None and status.converged:
-                    self._result = Candidate(CHORDAL, self._chi2, True, status.reason, status.iterations)
+                    self._result = _Reference(CHORDAL, self._chi2, status.iterations)
         return self._result
 
 
@@ -410,12 +416,6 @@ def crawl_verdict(polish_chi2: Sequence[float], reference_chi2: float, reference
             f"above its {reference_chi2:.6g} after as many again")
 
 
-def _lowest_converged(candidates: Sequence[Candidate], polish_counts: Mapping[str, int]) -> Candidate | None:
-    """The candidate with the lowest final χ² among those whose polish converged, if any."""
-    converged = [candidate for candidate in candidates if candidate.start in polish_counts]
-    return min(converged, key=lambda candidate: candidate.chi2, default=None)
-
-
 def _same_minimum_first(candidates: Sequence[Candidate], preference: Sequence[str]) -> Candidate:
     """The candidate with the lowest final χ²; among those within `SAME_MINIMUM` of it (the same minimum),
     the earliest in `preference`."""
@@ -434,7 +434,7 @@ def optimize(
     robust: str | None = None,
 ) -> Optimization:
     """The optimization of `graph` by `method` from `starts` (name → poses; default: the graph's own
-    estimate, named "estimate", and for the default method the chordal initialisation too, run first), each
+    estimate, named "estimate", and for the default method the chordal initialisation after it), each
     in turn, the lowest final χ² winning (the earliest start given when several end in the same minimum). A
     candidate whose polish crawls far above an earlier converged one is abandoned (`crawl_verdict`): listed
     with its χ² there, not converged, its reason saying so.
