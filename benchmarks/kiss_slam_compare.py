@@ -78,8 +78,10 @@ from frontends.slam3d.odometry import (  # noqa: E402
 )
 from pipeline.replay_log import LogReplayResult, replay_log  # noqa: E402
 from tests.lidar_world import (  # noqa: E402
+    START_NS,
     SWEEP_PERIOD,
     DistortedOdometry,
+    Drive,
     loop_drive,
     planar_to_matrix,
     town_loop,
@@ -88,6 +90,7 @@ from tests.lidar_world import (  # noqa: E402
 
 KITTI = "data/logs/kitti/kitti_city.mcap"
 RUNNER = REPO / "benchmarks" / "kiss_slam_runner.py"
+OURS_RUNNER = REPO / "benchmarks" / "ours_runner.py"
 HEIGHT_DRIFT_RATE = 0.01
 
 
@@ -250,6 +253,47 @@ def fresh_process_rows(
     }
 
 
+def in_memory_rows(run: Drive, folder: Path, slam: KissSlam, repeats: int, ours_python: str
+                   ) -> dict[str, object]:
+    """Both SLAMs on the frames in memory, each in fresh processes alternated `repeats` times (kiss-slam's
+    first is `slam`'s): its runner and `ours_runner.py`, each timing from after its imports and the frames
+    loaded to its final poses (no reading, recording or files on either side). Frames/s of the median and
+    the fastest process of each, and frames per CPU second of the median."""
+    stamps = START_NS + np.arange(len(run.clouds), dtype=np.int64) * int(SWEEP_PERIOD * 1e9)
+    arrays: dict[str, np.ndarray] = {"count": np.array(len(run.clouds)), "stamps_ns": stamps,
+                                     "sensor_to_base": run.mount}
+    for k, (points, times) in enumerate(zip(run.clouds, run.times, strict=True)):
+        arrays[f"points_{k}"] = points
+        arrays[f"times_{k}"] = times.astype(np.float64)
+    np.savez(folder / "ours_frames.npz", **arrays)
+    command = [ours_python, str(OURS_RUNNER), str(folder / "ours_frames.npz"), str(folder / "ours.npz")]
+    ours, theirs = [], [(slam.seconds, slam.cpu_seconds)]
+    closures = set()
+    for k in range(repeats):
+        timed_process(command, {**os.environ, "PYTHONPATH": str(REPO)})
+        out = np.load(folder / "ours.npz")
+        ours.append((float(out["seconds"]), float(out["cpu_seconds"])))
+        closures.add(int(out["closures"]))
+        if k + 1 < repeats:
+            timed_process(slam.command)
+            theirs_out = np.load(Path(slam.command[3]))
+            theirs.append((float(theirs_out["seconds"]), float(theirs_out["cpu_seconds"])))
+    count = len(run.clouds)
+    return {
+        "in_memory_processes": repeats,
+        "in_memory_fps_median": {"ours": count / float(np.median([w for w, _ in ours])),
+                                 "kiss_slam": count / float(np.median([w for w, _ in theirs]))},
+        "in_memory_fps_fastest": {"ours": count / min(w for w, _ in ours),
+                                  "kiss_slam": count / min(w for w, _ in theirs)},
+        "in_memory_frames_per_cpu_second_median": {
+            "ours": count / float(np.median([c for _, c in ours])),
+            "kiss_slam": count / float(np.median([c for _, c in theirs]))},
+        "in_memory_seconds": {"ours": ", ".join(f"{w:.2f}" for w, _ in ours),
+                              "kiss_slam": ", ".join(f"{w:.2f}" for w, _ in theirs)},
+        "in_memory_loop_closures_ours": ", ".join(str(c) for c in sorted(closures)),
+    }
+
+
 def path_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
 
@@ -321,7 +365,8 @@ def kitti_section(shared: Path, python: str, repeats: int, ours_python: str) -> 
 # ------------------------------------------------------------------------------------------ town loop
 
 
-def town_section(python: str, splitting: float | None, repeats: int, ours_python: str) -> dict[str, object]:
+def town_section(python: str, splitting: float | None, repeats: int, ours_python: str,
+                 in_memory_repeats: int) -> dict[str, object]:
     run = loop_drive()
     route = town_loop().route
     columns_fraction = 1.0 - 1.0 / 720  # the last column fires one column short of the full sweep
@@ -336,6 +381,7 @@ def town_section(python: str, splitting: float | None, repeats: int, ours_python
         ours = run_ours(log, Path(folder) / "out", config)
         slam = run_kiss_slam(python, frames, times, Path(folder), splitting)
         fresh = fresh_process_rows(len(frames), log, Path(folder) / "fresh", slam, repeats, ours_python)
+        in_memory = in_memory_rows(run, Path(folder), slam, in_memory_repeats, ours_python)
     # ours: base poses at the stamps, for the clouds in the trajectory (from the first keyframe on)
     stamps = ours.result.stamps_ns
     first_index = len(run.clouds) - len(stamps)
@@ -379,6 +425,7 @@ def town_section(python: str, splitting: float | None, repeats: int, ours_python
             "kiss_slam": count / slam.cpu_seconds,
         },
         **fresh,
+        **in_memory,
         "polish_seconds": ours.polish_seconds,
         "sweep_period_s": SWEEP_PERIOD,
     }
@@ -484,6 +531,13 @@ def main() -> None:
         help="whole processes of each (ours, kiss-slam), alternated; the fastest counts (default 3)",
     )
     parser.add_argument(
+        "--in-memory-repeats",
+        type=int,
+        default=5,
+        help="town loop: fresh processes of each runner on the frames in memory, alternated (default 5)",
+    )
+    parser.add_argument("--town-only", action="store_true", help="skip kitti_city and the height drift run")
+    parser.add_argument(
         "--no-bytecode",
         dest="bytecode",
         action="store_false",
@@ -497,7 +551,9 @@ def main() -> None:
     startup = startup_section(args.kiss_slam_python, args.repeats, args.ours_python)
     results["startup"] = startup
     _table("start-up (a fresh interpreter importing what the run imports)", startup)  # type: ignore[arg-type]
-    if (args.shared / KITTI).is_file():
+    if args.town_only:
+        print("(kitti_city skipped: --town-only)\n")
+    elif (args.shared / KITTI).is_file():
         results["kitti_city"] = kitti_section(
             args.shared, args.kiss_slam_python, args.repeats, args.ours_python
         )
@@ -505,11 +561,13 @@ def main() -> None:
         _table("kitti_city.mcap (no ground truth: against each other)", results["kitti_city"])  # type: ignore[arg-type]
     else:
         print(f"(skipped kitti_city: {args.shared / KITTI} not found)\n")
-    results["height_drift"] = height_drift_section(HEIGHT_DRIFT_RATE)
-    _table(f"town loop, odometry climbing {HEIGHT_DRIFT_RATE} m/m (ours only)", results["height_drift"])  # type: ignore[arg-type]
+    if not args.town_only:
+        results["height_drift"] = height_drift_section(HEIGHT_DRIFT_RATE)
+        _table(f"town loop, odometry climbing {HEIGHT_DRIFT_RATE} m/m (ours only)", results["height_drift"])  # type: ignore[arg-type]
     for splitting in args.splitting_distance or [None]:
         key = "town_loop" if splitting is None else f"town_loop_split_{splitting:g}"
-        results[key] = town_section(args.kiss_slam_python, splitting, args.repeats, args.ours_python)
+        results[key] = town_section(args.kiss_slam_python, splitting, args.repeats, args.ours_python,
+                                    args.in_memory_repeats)
         with_startup(results[key], startup)  # type: ignore[arg-type]
         _table(f"synthetic town loop ({key})", results[key])  # type: ignore[arg-type]
     args.out.mkdir(parents=True, exist_ok=True)
