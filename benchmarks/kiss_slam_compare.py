@@ -78,10 +78,14 @@ from frontends.slam3d.odometry import (  # noqa: E402
 )
 from pipeline.replay_log import LogReplayResult, replay_log  # noqa: E402
 from tests.lidar_world import (  # noqa: E402
+    LOOP_STEP,
+    LOOP_SWEEPS,
     START_NS,
     SWEEP_PERIOD,
     DistortedOdometry,
     Drive,
+    Lidar,
+    drive,
     loop_drive,
     planar_to_matrix,
     town_loop,
@@ -365,9 +369,19 @@ def kitti_section(shared: Path, python: str, repeats: int, ours_python: str) -> 
 # ------------------------------------------------------------------------------------------ town loop
 
 
+def town_drive(laps: int) -> Drive:
+    """The town loop's drive (`loop_drive`), or one `laps` times around: the same start, speed and LiDAR,
+    and every further lap adds the loop's perimeter of travel (and its loop closures)."""
+    if laps == 1:
+        return loop_drive()
+    route = town_loop().route
+    extra = round((laps - 1) * route.perimeter / LOOP_STEP)
+    return drive(town_loop(), sweeps=LOOP_SWEEPS + extra, step=LOOP_STEP, lidar=Lidar(columns=720))
+
+
 def town_section(python: str, splitting: float | None, repeats: int, ours_python: str,
-                 in_memory_repeats: int) -> dict[str, object]:
-    run = loop_drive()
+                 in_memory_repeats: int, laps: int = 1) -> dict[str, object]:
+    run = town_drive(laps)
     route = town_loop().route
     columns_fraction = 1.0 - 1.0 / 720  # the last column fires one column short of the full sweep
     truth_at_stamps = planar_to_matrix(run.base_poses)
@@ -537,6 +551,8 @@ def main() -> None:
         help="town loop: fresh processes of each runner on the frames in memory, alternated (default 5)",
     )
     parser.add_argument("--town-only", action="store_true", help="skip kitti_city and the height drift run")
+    parser.add_argument("--laps", type=int, default=1,
+                        help="drive the town loop this many times around (default once, the issue's drive)")
     parser.add_argument(
         "--no-bytecode",
         dest="bytecode",
@@ -566,8 +582,9 @@ def main() -> None:
         _table(f"town loop, odometry climbing {HEIGHT_DRIFT_RATE} m/m (ours only)", results["height_drift"])  # type: ignore[arg-type]
     for splitting in args.splitting_distance or [None]:
         key = "town_loop" if splitting is None else f"town_loop_split_{splitting:g}"
+        key += "" if args.laps == 1 else f"_{args.laps}_laps"
         results[key] = town_section(args.kiss_slam_python, splitting, args.repeats, args.ours_python,
-                                    args.in_memory_repeats)
+                                    args.in_memory_repeats, args.laps)
         with_startup(results[key], startup)  # type: ignore[arg-type]
         _table(f"synthetic town loop ({key})", results[key])  # type: ignore[arg-type]
     args.out.mkdir(parents=True, exist_ok=True)
