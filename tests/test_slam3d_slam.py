@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +77,37 @@ def test_loop_closures_undo_the_odometry_drift(drifting_run: tuple[Slam3DGraph, 
     ]
     assert all(a < 10 and b > graph.num_keyframes - 12 for a, b in loops)
     assert sum(len(e.new_loop_closures) for e in estimates) == graph.loop_closures_accepted
+
+
+def closing_keyframes(graph: Slam3DGraph, estimates: list) -> tuple[np.ndarray, np.ndarray]:
+    """The keyframes whose loop search accepted loop closures, and every keyframe's path length (m)."""
+    keyframes = np.array(sorted({e.keyframe for e in estimates if e.new_loop_closures}), dtype=np.int64)
+    steps = np.linalg.norm(np.diff(graph.keyframe_odometry[:, :3, 3], axis=0), axis=1)
+    return keyframes, np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def test_a_revisited_stretch_closes_once_per_travel_between_closures(
+    drifting_run: tuple[Slam3DGraph, list, Drive],
+) -> None:
+    graph, estimates, loop = drifting_run
+    spacing = Slam3DConfig().loop_closure.travel_between_closures
+    assert spacing > 0
+    closing, travel = closing_keyframes(graph, estimates)
+    assert len(closing) >= 1 and np.all(np.diff(travel[closing]) >= spacing)
+    # Without the spacing the same drive closes at one searching keyframe after another, each a verification.
+    config = Slam3DConfig()
+    every = replace(config, loop_closure=replace(config.loop_closure, travel_between_closures=0.0))
+    slam = LidarSlam3D(every, sensor_to_base=loop.mount, odometry=DistortedOdometry(yaw_drift))
+    every_estimates = [slam.add_cloud(cloud) for cloud in clouds(loop)]
+    every_graph = slam.finish()
+    every_closing, every_travel = closing_keyframes(every_graph, every_estimates)
+    assert len(every_closing) > len(closing)
+    assert np.any(np.diff(every_travel[every_closing]) < spacing)
+    assert every_graph.loop_closures_accepted > graph.loop_closures_accepted
+    # …and ends no closer to the truth than the spaced closures do
+    spaced_error = planar_errors(graph, graph.keyframe_poses, loop.base_poses)[-1]
+    every_error = planar_errors(every_graph, every_graph.keyframe_poses, loop.base_poses)[-1]
+    assert spaced_error < every_error + 0.05
 
 
 def test_the_se3_polish_keeps_a_level_loop_level(drifting_run: tuple[Slam3DGraph, list, Drive]) -> None:

@@ -103,6 +103,12 @@ class LoopClosureConfig(LoopSearchRadius, LoopSearchCadence):
     search_radius: float = 5.0
     max_search_radius: float = 30.0
     candidates_per_keyframe: int = 2
+    travel_between_closures: float = 10.0
+    """After a keyframe closes a loop, keyframes search again once the vehicle has travelled this far (m;
+    0: every searching keyframe). A revisited street otherwise closes at every other keyframe, each
+    closure registered against nearly the submap the last one used (`submap_keyframes` on each side): one
+    closure per stretch corrects the drift, and each verification costs tens of milliseconds of GICP.
+    Three laps of the town loop: 117 closures and 34 of 52 s in verification without it."""
     descriptor_rings: int = 20
     """Scan Context descriptor: rings × sectors polar bins holding the highest point above the ground."""
     descriptor_sectors: int = 60
@@ -151,8 +157,10 @@ class LoopClosureConfig(LoopSearchRadius, LoopSearchCadence):
     """A hypothesis not confirmed within this many keyframes is dropped."""
     chi2_threshold: float = 30.0
     """After optimizing, a loop closure whose planar error exceeds this χ² (3 dof) is rejected."""
-    optimize_every_loop_closures: int = 3
-    """Re-optimize the graph after this many new loop closures (and at the end)."""
+    optimize_every_loop_closures: int = 1
+    """Re-optimize the graph after this many new loop closures (and at the end). One: with
+    `travel_between_closures` they come at most once per stretch of that length, and the map (and every
+    later loop search) should stand corrected from the first."""
 
 
 @dataclass(frozen=True)

@@ -202,6 +202,8 @@ class LidarSlam3D:
         self._untracked = 0
         self._dropped = 0
         self._pending_loops = 0
+        self._last_closure_travel = -np.inf
+        """Path length (m) at the keyframe that last closed a loop."""
         self._hypotheses = HypothesisPool(
             self.config.loop_closure.small_correction_linear,
             self.config.loop_closure.small_correction_angular,
@@ -322,6 +324,8 @@ class LidarSlam3D:
         if not settings.enabled or current % settings.every_keyframes:
             return ()
         travel = np.array(self._keyframe_travel)
+        if travel[current] - self._last_closure_travel < settings.travel_between_closures:
+            return ()
         older = int(np.searchsorted(travel, travel[current] - settings.min_travel, side="right"))
         if older == 0:
             return ()
@@ -361,6 +365,7 @@ class LidarSlam3D:
                 )
                 found.append((accepted.candidate, accepted.current))
         if found:
+            self._last_closure_travel = float(travel[current])
             self._candidates["accepted"] += len(found)
             self._pending_loops += len(found)
             if self._pending_loops >= settings.optimize_every_loop_closures:
