@@ -95,6 +95,8 @@ from tests.lidar_world import (  # noqa: E402
 KITTI = "data/logs/kitti/kitti_city.mcap"
 RUNNER = REPO / "benchmarks" / "kiss_slam_runner.py"
 OURS_RUNNER = REPO / "benchmarks" / "ours_runner.py"
+KISS_SLAM_RESULT = "kiss_slam.npz"
+"""What kiss-slam's runner writes into the run's folder (read after every run of it)."""
 HEIGHT_DRIFT_RATE = 0.01
 
 
@@ -138,6 +140,11 @@ class KissSlam:
 PACKAGES = ("pipeline", "frontends", "optimizer")
 
 
+def ours_environment() -> dict[str, str]:
+    """The environment of our processes: this one, with this tree's packages importable."""
+    return {**os.environ, "PYTHONPATH": str(REPO)}
+
+
 def compile_bytecode() -> None:
     """Byte-compile our packages into their `__pycache__` folders (what pip does when installing a wheel):
     Python reads the cached bytecode even when PYTHONDONTWRITEBYTECODE keeps it from writing any."""
@@ -166,7 +173,7 @@ def replay_process(python: str, log: Path, out_dir: Path) -> tuple[float, float]
     """Wall and CPU seconds of the `replay` command on `log` in a fresh `python` process, default settings
     (our packages from this tree, the dependencies `python` has)."""
     command = [python, "-m", "pipeline.launcher", str(log), "--out", str(out_dir)]
-    return timed_process(command, {**os.environ, "PYTHONPATH": str(REPO)})
+    return timed_process(command, ours_environment())
 
 
 def run_kiss_slam(
@@ -177,11 +184,11 @@ def run_kiss_slam(
         arrays[f"points_{k}"] = points
         arrays[f"times_{k}"] = stamps
     np.savez(folder / "frames.npz", **arrays)
-    command = [python, str(RUNNER), str(folder / "frames.npz"), str(folder / "kiss_slam.npz")]
+    command = [python, str(RUNNER), str(folder / "frames.npz"), str(folder / KISS_SLAM_RESULT)]
     if splitting is not None:
         command += ["--splitting-distance", str(splitting)]
     process_seconds, process_cpu_seconds = timed_process(command)
-    out = np.load(folder / "kiss_slam.npz")
+    out = np.load(folder / KISS_SLAM_RESULT)
     return KissSlam(out["poses"], int(out["closures"]), float(out["seconds"]), float(out["cpu_seconds"]),
                     command, process_seconds, process_cpu_seconds)
 
@@ -208,7 +215,7 @@ KISS_SLAM_IMPORTS = "from kiss_slam.config import load_config; from kiss_slam.sl
 
 def startup_seconds(python: str, statement: str) -> tuple[float, float]:
     """CPU (user + system, every thread) and wall seconds of a fresh `python -c statement`."""
-    wall, cpu = timed_process([python, "-c", statement], {**os.environ, "PYTHONPATH": str(REPO)})
+    wall, cpu = timed_process([python, "-c", statement], ours_environment())
     return cpu, wall
 
 
@@ -274,13 +281,13 @@ def in_memory_rows(run: Drive, folder: Path, slam: KissSlam, repeats: int, ours_
     ours, theirs = [], [(slam.seconds, slam.cpu_seconds)]
     closures = set()
     for k in range(repeats):
-        timed_process(command, {**os.environ, "PYTHONPATH": str(REPO)})
+        timed_process(command, ours_environment())
         out = np.load(folder / "ours.npz")
         ours.append((float(out["seconds"]), float(out["cpu_seconds"])))
         closures.add(int(out["closures"]))
         if k + 1 < repeats:
             timed_process(slam.command)
-            theirs_out = np.load(Path(slam.command[3]))
+            theirs_out = np.load(folder / KISS_SLAM_RESULT)
             theirs.append((float(theirs_out["seconds"]), float(theirs_out["cpu_seconds"])))
     count = len(run.clouds)
     return {

@@ -323,9 +323,9 @@ class LidarSlam3D:
             current = len(self._keyframe_poses) - 1
         if not settings.enabled or current % settings.every_keyframes:
             return ()
-        travel = np.array(self._keyframe_travel)
-        if travel[current] - self._last_closure_travel < settings.travel_between_closures:
+        if self._keyframe_travel[current] - self._last_closure_travel < settings.travel_between_closures:
             return ()
+        travel = np.array(self._keyframe_travel)
         older = int(np.searchsorted(travel, travel[current] - settings.min_travel, side="right"))
         if older == 0:
             return ()
