@@ -32,8 +32,9 @@ from tests.laser_world import between
 from tests.pipeline_fixtures import read_recording, write_drive, write_loop_graph
 
 HOUR_NS = 3600 * 10**9
-MAP_TOLERANCE = 0.06
-"""Position error (m) allowed against the truth: the first map itself is off by up to ~4.5 cm."""
+MAP_TOLERANCE = 0.07
+"""Position error (m) allowed against the truth: the first map itself is off by up to ~4.6 cm, and a
+localized scan adds its own match's error (up to ~2 cm here)."""
 
 
 @dataclass(frozen=True)

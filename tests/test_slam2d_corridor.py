@@ -34,12 +34,12 @@ def mapped(run: Run, *, with_odometry: bool) -> Slam2DGraph:
     return slam.finish()
 
 
-def keyframe_steps(result: Slam2DGraph) -> tuple[np.ndarray, np.ndarray]:
+def keyframe_steps(result: Slam2DGraph, at_least: int = 20) -> tuple[np.ndarray, np.ndarray]:
     """The odometry constraints' measurements (K, 3) and covariances (K, 3, 3), in the earlier keyframe's
-    frame (the robot heads along the corridor: x is along it, y across)."""
+    frame (the robot heads along the corridor: x is along it, y across); `at_least` of them."""
     graph = result.graph
     odometry = graph.edge_to - graph.edge_from == 1
-    assert odometry.sum() >= 20  # the drive made keyframes all along the corridor
+    assert odometry.sum() >= at_least  # the drive made keyframes all along the corridor
     return graph.measurements[odometry], np.linalg.inv(graph.information[odometry])
 
 
@@ -65,7 +65,9 @@ def test_without_wheel_odometry_a_corridor_step_stays_loosely_known(corridor_run
     """No wheels, nothing to fuse: along the corridor the step stays at least twice looser than wheels
     would have made it (only the constant-velocity guess and the score's plateau speak there), across it
     the walls pin it."""
-    steps, covariances = keyframe_steps(mapped(corridor_run, with_odometry=False))
+    # Without wheels nothing measures the motion along the corridor: the estimate barely moves along it
+    # and makes few keyframes.
+    steps, covariances = keyframe_steps(mapped(corridor_run, with_odometry=False), at_least=10)
     settings = OdometryConfig()
     wheels = settings.odometry_sigma_linear + settings.odometry_sigma_per_metre * np.hypot(steps[:, 0],
                                                                                              steps[:, 1])

@@ -17,13 +17,14 @@ from frontends.errors import MapExtentError
 from frontends.logs.types import Scan2D, Transform
 from frontends.loop_closing import Constraints, path_lengths
 from frontends.slam2d import correlative, stage_times
+from frontends.slam2d import slam as slam_module
 from frontends.slam2d.correlative import (
     SearchWindow,
     match_branch_and_bound,
     match_exhaustive,
     prepare_branch_and_bound,
 )
-from frontends.slam2d.grid import build_likelihood_grid, max_pyramid
+from frontends.slam2d.grid import build_likelihood_grid, max_pyramid, stamp_more
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.log_input import OdometryTrack, scans_in_base_frame
@@ -36,7 +37,8 @@ from frontends.slam2d.slam import (
     _match_without_odometry,
 )
 from frontends.slam2d.stage_times import StageTimes
-from tests.laser_world import between, simulate_scan, square_loop
+from optimizer.solve import optimize
+from tests.laser_world import align_to_first, between, simulate_run, simulate_scan, square_loop
 
 RESOLUTION = 0.05
 SIGMA = 0.06
@@ -183,6 +185,77 @@ def test_a_keyframe_placed_from_its_cache_is_placed_as_by_place() -> None:
     submap = Submap.of([keyframe], [np.array([0.5, 0.0, -2.0])], resolution=RESOLUTION,
                        likelihood_sigma=SIGMA, margin=0.5, pairing_distance=0.3)
     assert len(submap.points) > 0.5 * len(points)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), old=st.integers(2, 400), new=st.integers(0, 400),
+       pairing=st.sampled_from([0.0, 0.3]))
+def test_points_stamped_into_a_grid_give_the_grid_built_from_all_of_them(
+        seed: int, old: int, new: int, pairing: float) -> None:
+    rng = np.random.default_rng(seed)
+    # The old points hold the box's corners, the new ones lie inside it: both grids span the same cells.
+    corners = np.array([[-4.0, -3.0], [5.0, 4.0]])
+    earlier = np.concatenate([corners, rng.uniform(-4.0, 5.0, (old, 2)) * [1.0, 7.0 / 9.0]])
+    later = rng.uniform([-4.0, -3.0], [5.0, 4.0], (new, 2))
+    later[: new // 2] = earlier[rng.integers(0, len(earlier), new // 2)]  # ties with old points
+    points = np.concatenate([earlier, later])
+    whole = build_likelihood_grid(points, RESOLUTION, SIGMA, 0.5, pairing)
+    first = build_likelihood_grid(earlier, RESOLUTION, SIGMA, 0.5, pairing)
+    stamped = stamp_more(first, points, len(earlier), SIGMA, pairing)
+    np.testing.assert_array_equal(stamped.origin, whole.origin)
+    np.testing.assert_array_equal(stamped.nearest, whole.nearest)
+    np.testing.assert_array_equal(stamped.values, whole.values)
+
+
+def test_a_keyframe_reaching_past_the_margin_leaves_the_local_map_untouched() -> None:
+    world = square_loop().segments
+    scan = simulate_scan(world, np.array([6.5, 9.0, 0.3]))[:, :2].copy()
+    keyframe = Keyframe(scan, scan_normals(scan))
+    submap = Submap.of([keyframe], [np.zeros(3)], resolution=RESOLUTION, likelihood_sigma=SIGMA, margin=1.0,
+                       pairing_distance=0.3)
+    values, nearest, points = submap.grid.values.copy(), submap.grid.nearest.copy(), submap.points.copy()
+    settings = {"likelihood_sigma": SIGMA, "margin": 1.0, "pairing_distance": 0.3}
+    assert submap.extended(keyframe, np.array([1.2, 0.0, 0.0]), **settings) is None  # 0.2 m into the margin
+    np.testing.assert_array_equal(submap.grid.values, values)
+    np.testing.assert_array_equal(submap.grid.nearest, nearest)
+    np.testing.assert_array_equal(submap.points, points)
+    inside = Keyframe(0.9 * scan, scan_normals(0.9 * scan))  # the room seen 10 % smaller: within the grid
+    extended = submap.extended(inside, np.zeros(3), **settings)
+    assert extended is not None
+    np.testing.assert_array_equal(extended.points[: len(points)], points)
+    assert len(extended.points) > len(points)
+    assert extended.grid is not submap.grid  # a fresh grid object: no pyramid of the old values
+
+
+def test_the_local_map_grows_in_place_between_builds_and_tracks_as_well(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    run = simulate_run(square_loop(), seed=1)
+    builds: dict[str, int] = {}
+    errors: dict[str, float] = {}
+    original = LaserSlam2D._rebuild_local_map
+    for mode, growth in (("in place", slam_module.LOCAL_MAP_GROWTH), ("every keyframe", -1)):
+        monkeypatch.setattr(slam_module, "LOCAL_MAP_GROWTH", growth)
+        count = [0]
+
+        def counted(slam: LaserSlam2D, counter: list[int] = count) -> None:
+            counter[0] += 1
+            original(slam)
+
+        monkeypatch.setattr(LaserSlam2D, "_rebuild_local_map", counted)
+        slam = LaserSlam2D()
+        for stamp, scan, odometry in zip(run.stamps_ns, run.scans, run.odometry, strict=True):
+            slam.add_scan(int(stamp), scan, odometry)
+        result = slam.finish()
+        *_, final = optimize(result.graph)
+        aligned = align_to_first(result.scan_poses(final.poses), run.truth)
+        errors[mode] = float(np.hypot(*(aligned[:, :2] - run.truth[:, :2]).T).max())
+        builds[mode] = count[0]
+        keyframes = len(result.graph.poses)
+    # Until the map holds `local_map_keyframes`, every keyframe is added in place in both modes.
+    assert builds["every keyframe"] >= keyframes - LaserSlam2D().config.keyframes.local_map_keyframes
+    assert builds["in place"] < 0.5 * builds["every keyframe"]
+    assert errors["in place"] < 0.1  # the loop drifts metres on odometry (`test_slam2d_slam`)
+    assert errors["in place"] < 1.5 * errors["every keyframe"] + 0.01
 
 
 class FakeClock:

@@ -181,6 +181,56 @@ def _stamp(
                 values[iy, ix] = math.exp(-(dx * dx + dy * dy) * inverse_two_sigma2)
 
 
+def stamp_more(grid: LikelihoodGrid, points: FloatArray, first_new: int, sigma: float,
+               pairing_distance: float = 0.0) -> LikelihoodGrid:
+    """`grid`, built by `build_likelihood_grid` from `points[:first_new]` with the same `sigma` and
+    `pairing_distance`, with `points[first_new:]` stamped too: each cell they reach takes the nearest of its
+    old and new points (the old one on a tie), as a grid built from all of them would. The arrays are
+    changed in place and returned in a new grid (its pyramids are those of the new values): `grid` must
+    not be used again. Points are stamped where they fall inside the grid only."""
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    radius_cells = max(1, math.ceil(max(3.0 * sigma, pairing_distance) / grid.resolution))
+    _stamp_more(points, first_new, grid.origin, grid.resolution, sigma, radius_cells, grid.values,
+                grid.nearest)
+    return LikelihoodGrid(grid.origin, grid.resolution, grid.values, grid.nearest)
+
+
+@njit(cache=True)
+def _stamp_more(
+    points: FloatArray,
+    first_new: int,
+    origin: FloatArray,
+    resolution: float,
+    sigma: float,
+    radius: int,
+    values: NDArray[np.float32],
+    nearest: NDArray[np.int32],
+) -> None:
+    """`_stamp` of points[first_new:] onto cells holding the Gaussian of their nearest old point: the
+    old point's squared distance is computed again, with `_stamp`'s arithmetic, where a new point
+    competes; cells a new point wins take its index and Gaussian."""
+    height, width = values.shape
+    inverse_two_sigma2 = 1.0 / (2.0 * sigma * sigma)
+    for k in range(first_new, points.shape[0]):
+        fx = (points[k, 0] - origin[0]) / resolution
+        fy = (points[k, 1] - origin[1]) / resolution
+        cx = int(math.floor(fx))
+        cy = int(math.floor(fy))
+        for iy in range(max(cy - radius, 0), min(cy + radius + 1, height)):
+            dy = (iy + 0.5 - fy) * resolution
+            for ix in range(max(cx - radius, 0), min(cx + radius + 1, width)):
+                dx = (ix + 0.5 - fx) * resolution
+                squared = dx * dx + dy * dy
+                old = nearest[iy, ix]
+                if old >= 0:
+                    old_dx = (ix + 0.5 - (points[old, 0] - origin[0]) / resolution) * resolution
+                    old_dy = (iy + 0.5 - (points[old, 1] - origin[1]) / resolution) * resolution
+                    if not squared < np.float32(old_dx * old_dx + old_dy * old_dy):
+                        continue
+                nearest[iy, ix] = k
+                values[iy, ix] = math.exp(-squared * inverse_two_sigma2)
+
+
 def max_pyramid(values: NDArray[np.float32], levels: int) -> list[NDArray[np.float32]]:
     """[values, M1, M2, …]: M_h[y, x] = max of values[y : y + 2^h, x : x + 2^h] (0 past the edge)."""
     return [values, *_coarse_levels(values, levels)] if levels > 0 else [values]

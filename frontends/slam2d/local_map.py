@@ -9,7 +9,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from frontends.slam2d.grid import LikelihoodGrid, build_likelihood_grid
+from frontends.slam2d.grid import LikelihoodGrid, build_likelihood_grid, stamp_more
 
 FloatArray = NDArray[np.float64]
 
@@ -166,3 +166,23 @@ class Submap:
         normals = np.ascontiguousarray(normals[keep])
         grid = build_likelihood_grid(points, resolution, likelihood_sigma, margin, pairing_distance)
         return cls(grid, points, normals)
+
+    def extended(self, keyframe: Keyframe, pose: FloatArray, *, likelihood_sigma: float, margin: float,
+                 pairing_distance: float) -> Submap | None:
+        """This map with `keyframe` added at `pose`, its points thinned among themselves (the map's own
+        stay: a wall seen again gets a second point per half cell) and stamped into the grid in place
+        (`stamp_more`: this map must not be used again). None, and this map untouched, when a point would
+        fall within `margin` of the grid's edge: the map must then be built again, larger."""
+        points, normals = keyframe.placed(pose)
+        keep = one_per_cell(points, 0.5 * self.grid.resolution, keep_last=True)
+        points, normals = points[keep], normals[keep]
+        grid = self.grid
+        if len(points):
+            size = np.array(grid.values.shape[::-1]) * grid.resolution
+            low, high = points.min(axis=0) - grid.origin, points.max(axis=0) - grid.origin
+            if not (np.all(low >= margin) and np.all(high <= size - margin)):
+                return None
+        all_points = np.concatenate([self.points, points])
+        grid = stamp_more(grid, all_points, len(self.points), likelihood_sigma, pairing_distance)
+        return Submap(grid, all_points, np.concatenate([self.normals, normals]))
+

@@ -180,6 +180,10 @@ class ResumedSlam2D(LaserSlam2D):
         self._scan_keyframes.append(new)
         self._scan_offsets.append(np.zeros(3))
 
+    def _extend_local_map(self) -> None:
+        """Built again at every keyframe: which old keyframes it holds changes as the robot moves."""
+        self._rebuild_local_map()
+
     def _rebuild_local_map(self) -> None:
         """Recent new keyframes, topped up with the old keyframes nearest the robot."""
         if len(self._keyframe_poses) <= self._old_count:
@@ -204,9 +208,9 @@ class ResumedSlam2D(LaserSlam2D):
             [self._keyframe_poses[k] for k in chosen],
             resolution=matching.resolution,
             likelihood_sigma=matching.likelihood_sigma,
-            margin=self.config.odometry.window_linear_without_odometry + 1.0,
+            margin=self._local_map_margin(),
             pairing_distance=matching.icp_max_distance,
-            reach=2.0 * matching.max_range + self.config.odometry.window_linear_without_odometry + 1.0,
+            reach=2.0 * matching.max_range + self._local_map_margin(),
         )
 
     def _optimization_due(self, accepted: Sequence[_LoopHypothesis]) -> bool:

@@ -64,6 +64,13 @@ BRANCH_AND_BOUND_LEVELS = 4
 """Coarsest candidates span 2⁴ cells (0.8 m at 5 cm). The optimum does not depend on it; the work does:
 a 3.2 m block bounds every pose inside it by nearly the best score anywhere (some wall is always that
 close), so little is pruned, and on CSAIL 6 levels cost ~1.4× the verification time of 4."""
+LOCAL_MAP_GROWTH = 4
+"""A new keyframe is stamped into the local map in place until the map holds this many keyframes more than
+`local_map_keyframes`; the next one builds it again from the last `local_map_keyframes`. Building it
+stamps every point of every keyframe (a quarter of the 2D replay's time when built at every keyframe);
+adding one stamps that keyframe's alone."""
+LOCAL_MAP_SLACK = 2.0
+"""The local map's grid reaches this much (m) beyond its margin, room for the keyframes added in place."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -188,6 +195,8 @@ class LaserSlam2D:
         self._odometry_hold = OdometryHold()
         """While the wheel odometry repeats its last value: the motion tracked since it last changed."""
         self._local_map: Submap | None = None
+        self._local_map_first = 0
+        """The oldest keyframe in the local map (the map holds it and every later one)."""
         self._pending_loops = 0
         self._hypotheses = HypothesisPool(SMALL_CORRECTION_LINEAR, SMALL_CORRECTION_ANGULAR)
         self._rejected = 0
@@ -355,23 +364,46 @@ class LaserSlam2D:
         count = len(self._keyframe_poses)
         if step is not None:
             self._edges.add(count - 2, count - 1, step, information, is_loop=False)
+        self._extend_local_map()
+
+    def _local_map_margin(self) -> float:
+        """How far beyond its points the local map's grid reaches: the widest odometry search window."""
+        return self.config.odometry.window_linear_without_odometry + 1.0
+
+    def _extend_local_map(self) -> None:
+        """Add the newest keyframe to the local map in place (`Submap.extended`), or build the map again
+        from the last `local_map_keyframes` when it holds `LOCAL_MAP_GROWTH` keyframes more than that, or
+        the keyframe reaches past its grid."""
+        matching = self.config.matching
+        local = self._local_map
+        held = len(self._keyframe_poses) - 1 - self._local_map_first
+        if local is not None and held < self.config.keyframes.local_map_keyframes + LOCAL_MAP_GROWTH:
+            extended = local.extended(self._keyframes[-1], self._keyframe_poses[-1],
+                                      likelihood_sigma=matching.likelihood_sigma,
+                                      margin=self._local_map_margin(),
+                                      pairing_distance=matching.icp_max_distance)
+            if extended is not None:
+                self._local_map = extended
+                return
         self._rebuild_local_map()
 
     def _rebuild_local_map(self) -> None:
-        recent = slice(max(0, len(self._keyframe_poses) - self.config.keyframes.local_map_keyframes), None)
+        self._local_map_first = max(0, len(self._keyframe_poses) - self.config.keyframes.local_map_keyframes)
+        recent = slice(self._local_map_first, None)
         matching = self.config.matching
         keyframes = self._keyframes[recent]
         if sum(len(k.points) for k in keyframes) < matching.min_points:
             self._local_map = None
             return
+        margin = self._local_map_margin()
         self._local_map = Submap.of(
             keyframes,
             self._keyframe_poses[recent],
             resolution=matching.resolution,
             likelihood_sigma=matching.likelihood_sigma,
-            margin=self.config.odometry.window_linear_without_odometry + 1.0,
+            margin=margin + LOCAL_MAP_SLACK,
             pairing_distance=matching.icp_max_distance,
-            reach=2.0 * matching.max_range + self.config.odometry.window_linear_without_odometry + 1.0,
+            reach=2.0 * matching.max_range + margin,
         )
 
     # ---------------------------------------------------------------------------------- loop closures
