@@ -43,8 +43,27 @@ def wrap_angle(theta: float) -> float:  # pragma: no cover  (compiled)
     return wrap_scalar(theta)
 
 
+def _one_pose_each(a: FloatArray, b: FloatArray) -> bool:
+    """Whether `a` and `b` are single poses, float64 arrays of shape (3,): the frontends' per-scan calls,
+    which the arithmetic on Python floats below serves in a fifth of the array code's time."""
+    return (type(a) is np.ndarray and type(b) is np.ndarray and a.shape == (3,) == b.shape
+            and a.dtype == np.float64 == b.dtype)
+
+
+def _wrapped(theta: float) -> float:
+    """`wrap_angle` of one Python float, to the bit: its definition with Python's float modulo."""
+    return (theta + math.pi) % TWO_PI - math.pi
+
+
 def compose(a: FloatArray, b: FloatArray) -> FloatArray:
     """a·b for arrays of poses of shape (..., 3); θ of the result is wrapped."""
+    if _one_pose_each(a, b):
+        ax, ay, at = a.tolist()
+        bx, by, bt = b.tolist()
+        # numpy's cosine, not math's: numpy's array code may use its own (SIMD) one, and the two paths
+        # must give the same bits.
+        c, s = float(np.cos(at)), float(np.sin(at))
+        return np.array([ax + c * bx - s * by, ay + s * bx + c * by, _wrapped(at + bt)])
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
@@ -68,6 +87,12 @@ def inverse(a: FloatArray) -> FloatArray:
 
 def relative(a: FloatArray, b: FloatArray) -> FloatArray:
     """a⁻¹·b: the pose of b in the frame of a."""
+    if _one_pose_each(a, b):
+        ax, ay, at = a.tolist()
+        bx, by, bt = b.tolist()
+        c, s = float(np.cos(at)), float(np.sin(at))
+        dx, dy = bx - ax, by - ay
+        return np.array([c * dx + s * dy, -s * dx + c * dy, _wrapped(bt - at)])
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])

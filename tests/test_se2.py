@@ -35,3 +35,24 @@ def test_wrap_angle_is_pythons_modulo_to_the_bit() -> None:
     same = (expected.view(np.int64) == got.view(np.int64)) | (np.isnan(expected) & np.isnan(got))
     assert same.all(), [a for a, s in zip(angles, same, strict=True) if not s][:5]
     assert all(se2.wrap_angle(a) == _python_wrap(a) for a in angles[:50])
+
+
+def test_one_pose_each_gives_the_array_codes_bits() -> None:
+    """`compose` and `relative` of two single poses (the frontends' per-scan calls, on Python floats)
+    against the same poses in arrays, angles at every wrap boundary and non-finite ones included."""
+    rng = np.random.default_rng(11)
+    angles = _angles()
+    count = len(angles)
+    a = np.column_stack([rng.uniform(-50.0, 50.0, (count, 2)), angles])
+    b = np.column_stack([rng.uniform(-50.0, 50.0, (count, 2)), rng.permutation(angles)])
+    b[:20, 2] = a[:20, 2]  # a pose seen from itself
+    for operation in (se2.compose, se2.relative):
+        with np.errstate(invalid="ignore"):
+            together = operation(a, b)
+            one_by_one = np.array([operation(p, q) for p, q in zip(a, b, strict=True)])
+        same = ((together.view(np.int64) == one_by_one.view(np.int64))
+                | (np.isnan(together) & np.isnan(one_by_one)))
+        assert same.all(), f"{operation.__name__}: {np.argwhere(~same)[:3].tolist()}"
+    # Other shapes and types still broadcast through the array code.
+    assert se2.relative(np.array([0, 0, 0]), np.array([[1.0, 2.0, 0.5]])).shape == (1, 3)
+    np.testing.assert_array_equal(se2.compose([1.0, 0.0, 0.0], [1.0, 0.0, 0.0]), [2.0, 0.0, 0.0])
