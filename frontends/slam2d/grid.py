@@ -211,9 +211,12 @@ def _stamp_more(
     competes; cells a new point wins take its index and Gaussian."""
     height, width = values.shape
     inverse_two_sigma2 = 1.0 / (2.0 * sigma * sigma)
+    # Every point's position in cells, divided once (the old ones are read wherever a new point competes).
+    cells_x = (points[:, 0] - origin[0]) / resolution
+    cells_y = (points[:, 1] - origin[1]) / resolution
     for k in range(first_new, points.shape[0]):
-        fx = (points[k, 0] - origin[0]) / resolution
-        fy = (points[k, 1] - origin[1]) / resolution
+        fx = cells_x[k]
+        fy = cells_y[k]
         cx = int(math.floor(fx))
         cy = int(math.floor(fy))
         for iy in range(max(cy - radius, 0), min(cy + radius + 1, height)):
@@ -223,8 +226,8 @@ def _stamp_more(
                 squared = dx * dx + dy * dy
                 old = nearest[iy, ix]
                 if old >= 0:
-                    old_dx = (ix + 0.5 - (points[old, 0] - origin[0]) / resolution) * resolution
-                    old_dy = (iy + 0.5 - (points[old, 1] - origin[1]) / resolution) * resolution
+                    old_dx = (ix + 0.5 - cells_x[old]) * resolution
+                    old_dy = (iy + 0.5 - cells_y[old]) * resolution
                     if not squared < np.float32(old_dx * old_dx + old_dy * old_dy):
                         continue
                 nearest[iy, ix] = k
