@@ -95,7 +95,8 @@ class KeyframeConfig:
     """A scan taken while the robot turns faster than this (rad/s) is not made a keyframe: a laser
     sweeping for 0.1–0.2 s smears it by several degrees, and a smeared scan must not enter the map."""
     local_map_keyframes: int = 25
-    """The local map the odometry matches against: this many recent keyframes."""
+    """The local map the odometry matches against: built from this many recent keyframes, then grown in
+    place by the next few (`frontends.slam2d.slam.LOCAL_MAP_GROWTH`) before it is built again."""
 
 
 @dataclass(frozen=True)
