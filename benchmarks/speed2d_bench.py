@@ -192,8 +192,7 @@ def print_tables(runs: list[LogRun]) -> None:
               f"| {r.real_time:.0f} | {r.real_time_cpu:.0f} | {r.scans / r.wall_s:.0f} | {r.keyframes} "
               f"| {r.loops_accepted} / {r.loops_rejected} |")
     stages = list(runs[0].stages_cpu_s)
-    # CPU counts every thread of the process: a stage that hands work to the helper thread
-    # (`frontends.helper_thread`) shows it there, and its saving in the wall table.
+    # CPU counts every thread of the process (rerun's, BLAS's): the wall table is what the replay waited for.
     for clock, seconds in (("CPU", lambda r: r.stages_cpu_s), ("wall", lambda r: r.stages_wall_s)):
         print(f"\n## Per stage ({clock} s)\n")
         print("| log | " + " | ".join(s.replace("_", " ") for s in stages) + " |")

@@ -83,8 +83,8 @@ def build_likelihood_grid(
     # while the points are stamped, then the Gaussian of them.
     values = np.zeros((int(shape[1]), int(shape[0])), dtype=np.float32)
     nearest = np.full(values.shape, -1, dtype=np.int32)
-    radius_cells = max(1, math.ceil(max(3.0 * sigma, pairing_distance) / resolution))
-    _stamp(points, low, resolution, sigma, radius_cells, values, nearest)
+    _stamp(points, low, resolution, sigma, _stamp_radius(sigma, pairing_distance, resolution), values,
+           nearest)
     return LikelihoodGrid(low, resolution, values, nearest)
 
 
@@ -181,6 +181,11 @@ def _stamp(
                 values[iy, ix] = math.exp(-(dx * dx + dy * dy) * inverse_two_sigma2)
 
 
+def _stamp_radius(sigma: float, pairing_distance: float, resolution: float) -> int:
+    """How many cells around its own a point stamps: max(3σ, `pairing_distance`), at least one."""
+    return max(1, math.ceil(max(3.0 * sigma, pairing_distance) / resolution))
+
+
 def stamp_more(grid: LikelihoodGrid, points: FloatArray, first_new: int, sigma: float,
                pairing_distance: float = 0.0) -> LikelihoodGrid:
     """`grid`, built by `build_likelihood_grid` from `points[:first_new]` with the same `sigma` and
@@ -189,9 +194,8 @@ def stamp_more(grid: LikelihoodGrid, points: FloatArray, first_new: int, sigma: 
     changed in place and returned in a new grid (its pyramids are those of the new values): `grid` must
     not be used again. Points are stamped where they fall inside the grid only."""
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
-    radius_cells = max(1, math.ceil(max(3.0 * sigma, pairing_distance) / grid.resolution))
-    _stamp_more(points, first_new, grid.origin, grid.resolution, sigma, radius_cells, grid.values,
-                grid.nearest)
+    radius = _stamp_radius(sigma, pairing_distance, grid.resolution)
+    _stamp_more(points, first_new, grid.origin, grid.resolution, sigma, radius, grid.values, grid.nearest)
     return LikelihoodGrid(grid.origin, grid.resolution, grid.values, grid.nearest)
 
 
