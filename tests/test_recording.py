@@ -222,6 +222,7 @@ def test_the_occupancy_grid_lies_in_world_metres_north_up(tmp_path: Path) -> Non
     origin, resolution = np.array([10.0, 20.0]), 0.5
     picture = np.full((3, 4), map2d.GRID_FREE, dtype=np.uint8)
     picture[0, 3] = map2d.GRID_OCCUPIED  # image row 0 is the northern edge
+    picture[2, 0] = map2d.GRID_UNKNOWN
     path = tmp_path / "grid.rrd"
     stream = recording.create_recording(path, name="grid")
     map2d.log_occupancy(stream, picture, origin, resolution)
@@ -233,6 +234,9 @@ def test_the_occupancy_grid_lies_in_world_metres_north_up(tmp_path: Path) -> Non
     image_row = entities["/world/occupancy/grid"].static_columns
     blob = np.asarray(image_row["EncodedImage:blob"][0], dtype=np.uint8).tobytes()
     decoded = np.asarray(Image.open(io.BytesIO(blob)))
+    # Every cell in the colour of its grey, pixel for pixel.
+    expected = [[map2d.OCCUPANCY_VIEW_COLORS[grey] for grey in row] for row in picture.tolist()]
+    np.testing.assert_array_equal(decoded, np.array(expected, dtype=np.uint8))
     rows, cols = np.nonzero(np.all(decoded == map2d.OCCUPANCY_VIEW_COLORS[map2d.GRID_OCCUPIED], axis=-1))
     assert (rows.tolist(), cols.tolist()) == ([0], [3])
     centre = translation[:2] + scale[:2] * (np.array([cols[0], rows[0]]) + 0.5)

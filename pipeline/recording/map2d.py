@@ -99,11 +99,12 @@ def log_occupancy(recording: rr.RecordingStream, image: NDArray[np.uint8], origi
     from PIL import Image  # as pipeline.outputs.write_png: only when a map is recorded
 
     height = image.shape[0]
-    colored = np.zeros((*image.shape, 4), dtype=np.uint8)
+    colors = np.zeros((256, 4), dtype=np.uint8)  # one lookup: a mask per grey took three times as long
     for grey, rgba in OCCUPANCY_VIEW_COLORS.items():
-        colored[image == grey] = rgba
+        colors[grey] = rgba
     png = io.BytesIO()
-    Image.fromarray(colored, mode="RGBA").save(png, format="PNG")  # a few % of the raw RGBA
+    # zlib's fastest level: still a few % of the raw RGBA, in half the time of the default.
+    Image.fromarray(colors[image], mode="RGBA").save(png, format="PNG", compress_level=1)
     # Pixel (u, v) covers x = origin_x + u·res, y = top − v·res: image rows run south.
     recording.log(
         OCCUPANCY_ENTITY,
