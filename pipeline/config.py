@@ -97,6 +97,7 @@ _BOUNDS: dict[str, dict[str, dict[str, float]]] = {
                         "min_inlier_fraction": _FRACTION, "angular_step": _STEP_FLOOR},
     "slam2d.keyframes": {"max_turn_rate": {"gt": 0, "le": 3600}},
     "slam2d.loop_closure": {"search_radius_per_metre": _NON_NEGATIVE, "submap_keyframes": _NON_NEGATIVE,
+                            "travel_between_closures": _NON_NEGATIVE,
                             "min_score": _FRACTION, "ambiguity_ratio": _POSITIVE_FRACTION,
                             "min_inlier_fraction": _FRACTION, "angular_step": _STEP_FLOOR},
     "slam3d.odometry": {"min_range": {"ge": 0, "le": 1000}, "max_range": _RANGE_CEILING,

@@ -4,11 +4,12 @@ drifting wheel odometry or none, degenerate scans, and a world of two identical 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
 
+from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
 from optimizer.solve import optimize
 from tests.laser_world import Run, align_to_first, between, compose, simulate_run, square_loop, twin_rooms
@@ -23,8 +24,8 @@ class Outcome:
     """Every scan's pose from the optimized keyframe graph."""
 
 
-def run_slam(run: Run, *, with_odometry: bool) -> Outcome:
-    slam = LaserSlam2D()
+def run_slam(run: Run, *, with_odometry: bool, config: Slam2DConfig | None = None) -> Outcome:
+    slam = LaserSlam2D(config)
     estimates = [slam.add_scan(int(stamp), scan, odometry if with_odometry else None)
                  for stamp, scan, odometry in zip(run.stamps_ns, run.scans, run.odometry, strict=True)]
     result = slam.finish()
@@ -121,6 +122,33 @@ def test_the_loop_is_closed_with_correct_constraints(name: str, request: pytest.
     # Closures are found on the second pass over the start, between keyframes far apart in time.
     assert all(b - a >= 40 for a, b in reported)
     assert wrong_loop_closures(outcome) == []
+
+
+def closing_travel(outcome: Outcome) -> np.ndarray:
+    """How far the keyframes had travelled (m, along the odometry chain) at each keyframe closing a loop."""
+    chain = outcome.result.odometry_chain
+    travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(chain[:, :2], axis=0).T))])
+    closing = sorted({b for e in outcome.estimates for _, b in e.new_loop_closures})
+    return travel[closing]
+
+
+def test_a_revisited_stretch_closes_once_per_travel_between_closures(
+        loop_run: Run, with_odometry: Outcome) -> None:
+    spacing = Slam2DConfig().loop_closure.travel_between_closures
+    assert spacing > 0
+    spaced = closing_travel(with_odometry)
+    assert len(spaced) >= 1 and np.all(np.diff(spaced) >= spacing)
+    # Without the spacing the same drive closes at one searching keyframe after another.
+    config = Slam2DConfig()
+    unspaced_config = replace(config, loop_closure=replace(config.loop_closure, travel_between_closures=0.0))
+    every = run_slam(loop_run, with_odometry=True, config=unspaced_config)
+    unspaced = closing_travel(every)
+    assert len(unspaced) > len(spaced) and np.any(np.diff(unspaced) < spacing)
+    assert every.result.loop_closures_accepted > with_odometry.result.loop_closures_accepted
+    # …and the spaced closures end no farther from the truth (within 2 cm).
+    truth = loop_run.truth
+    assert (position_errors(with_odometry.final_scan_poses, truth).max()
+            < position_errors(every.final_scan_poses, truth).max() + 0.02)
 
 
 def test_a_scan_with_too_few_points_follows_the_wheel_odometry(loop_run: Run) -> None:

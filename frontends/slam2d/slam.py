@@ -198,6 +198,10 @@ class LaserSlam2D:
         self._local_map_first = 0
         """The oldest keyframe in the local map (the map holds it and every later one)."""
         self._pending_loops = 0
+        self._travel = 0.0
+        """How far the keyframes have travelled (m), step by step."""
+        self._last_closure_travel = -math.inf
+        """`_travel` at the last keyframe that closed a loop."""
         self._hypotheses = HypothesisPool(SMALL_CORRECTION_LINEAR, SMALL_CORRECTION_ANGULAR)
         self._rejected = 0
         self._unmatched = 0
@@ -364,6 +368,7 @@ class LaserSlam2D:
         count = len(self._keyframe_poses)
         if step is not None:
             self._edges.add(count - 2, count - 1, step, information, is_loop=False)
+            self._travel += math.hypot(step[0], step[1])
         self._extend_local_map()
 
     def _local_map_margin(self) -> float:
@@ -413,6 +418,8 @@ class LaserSlam2D:
         current = len(self._keyframe_poses) - 1
         if not settings.enabled or current % LOOP_SEARCH_EVERY_KEYFRAMES:
             return ()
+        if self._travel - self._last_closure_travel < settings.travel_between_closures:
+            return ()
         scan = self._keyframes[current].points
         if len(scan) < self.config.matching.min_points:
             return ()
@@ -448,6 +455,7 @@ class LaserSlam2D:
                 found.append((accepted.candidate, accepted.current))
                 accepted_now.append(accepted)
         if found:
+            self._last_closure_travel = self._travel
             self._pending_loops += len(found)
             if self._optimization_due(accepted_now):
                 self.optimize_online()
