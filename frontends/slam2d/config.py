@@ -112,7 +112,7 @@ class LoopClosureConfig(LoopSearchRadius, LoopClosureSwitch):
     0: every searching keyframe). Closures a few keyframes apart match the same walls in nearly the same
     submap: their errors are one error counted again, each with the confidence of an independent one.
     On synthetic three-lap drives with ground truth, 2 m between closures left a quarter less trajectory
-    error than closing at every searching keyframe, and CSAIL's replay took a quarter less time
+    error than closing at every searching keyframe, and CSAIL's replay took 12–19 % less time
     (`benchmarks/loop_spacing2d_bench.py`). The 3D SLAM's rule of the same name."""
     angular_window: float = math.radians(25.0)
     angular_step: float = math.radians(0.75)
