@@ -185,4 +185,3 @@ class Submap:
         all_points = np.concatenate([self.points, points])
         grid = stamp_more(grid, all_points, len(self.points), likelihood_sigma, pairing_distance)
         return Submap(grid, all_points, np.concatenate([self.normals, normals]))
-
