@@ -110,7 +110,8 @@ _BOUNDS: dict[str, dict[str, dict[str, float]]] = {
                             "search_radius_per_metre": _NON_NEGATIVE,
                             "submap_keyframes": _NON_NEGATIVE, "small_correction_linear": _NON_NEGATIVE,
                             "small_correction_angular": _NON_NEGATIVE, "min_inlier_fraction": _FRACTION,
-                            "ambiguity_ratio": _POSITIVE_FRACTION, "registration_voxel": _STEP_FLOOR},
+                            "ambiguity_ratio": _POSITIVE_FRACTION, "registration_voxel": _STEP_FLOOR,
+                            "threads": _NON_NEGATIVE},  # 0: all cores
     "slam3d.se3_polish": {"max_iterations": {"gt": 0, "le": 1000}},
 }
 """Section → key → bounds of the numbers that differ from the rule: greater than 0, at most `_MAX_ANGLE`

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +19,7 @@ from frontends.slam3d.loop_closure import (
     RegistrationTarget,
     descriptor_distances,
     fit_information,
+    registration_threads,
     scan_context,
     verify_loop,
 )
@@ -127,3 +133,45 @@ def test_fit_information_keeps_the_fit_s_weak_directions_and_the_floors() -> Non
     assert information[1, 1] <= CONFIG.min_sigma_linear**-2
     assert information[5, 5] <= CONFIG.min_sigma_angular**-2
     assert information[1, 1] > 0.5 * CONFIG.min_sigma_linear**-2  # a strong fit: the floor dominates
+
+
+def test_a_verification_on_every_core_is_the_one_thread_verification() -> None:
+    """`threads = 0` (the default) registers on every core the process may use: the same match as one
+    thread, to rounding (the threads only split the sums of the Gauss–Newton steps)."""
+    world = town_loop()
+    candidate = cloud_at(world.boxes, sensor_pose(18.0, 0.0, 0.0), seed=4)
+    current = cloud_at(world.boxes, sensor_pose(19.5, 0.8, math.radians(6.0)), seed=5)
+    verdicts = []
+    for threads in (1, 0):
+        config = dataclasses.replace(CONFIG, threads=threads)
+        verdicts.append(verify_loop(RegistrationTarget(candidate, config), current, [np.eye(4)], config))
+    one, every = (verdict.match for verdict in verdicts)
+    assert one is not None and every is not None
+    np.testing.assert_allclose(every.relative, one.relative, atol=1e-6)
+    assert every.inlier_fraction == pytest.approx(one.inlier_fraction, abs=1e-3)
+    assert registration_threads(dataclasses.replace(CONFIG, threads=3)) == 3
+    assert registration_threads(CONFIG) == len(os.sched_getaffinity(0))
+
+
+@pytest.mark.parametrize(("user_policy", "spin_count"), [(None, "0"), ("ACTIVE", None)])
+def test_small_gicp_threads_sleep_at_barriers_unless_the_user_chose(user_policy: str | None,
+                                                                   spin_count: str | None) -> None:
+    """small_gicp's libgomp is loaded passive (no spinning: beside a busy process, spinning threads doubled
+    a replay's wall time) unless OMP_WAIT_POLICY says otherwise; the process's environment is left as it
+    was. libgomp prints its settings at load with OMP_DISPLAY_ENV=verbose."""
+    environment = {key: value for key, value in os.environ.items() if key != "OMP_WAIT_POLICY"}
+    environment["OMP_DISPLAY_ENV"] = "verbose"
+    if user_policy is not None:
+        environment["OMP_WAIT_POLICY"] = user_policy
+    program = ("import os, frontends.slam3d.loop_closure; "
+               "print(os.environ.get('OMP_WAIT_POLICY'))")
+    run = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=120,
+                         env=environment, cwd=Path(__file__).resolve().parents[1], check=True)
+    assert run.stdout.strip() == str(user_policy)
+    shown = [line.split("=")[1].strip().strip("'") for line in run.stderr.splitlines()
+             if line.strip().startswith("GOMP_SPINCOUNT")]
+    assert len(shown) == 1
+    if spin_count is None:
+        assert shown[0] != "0"
+    else:
+        assert shown[0] == spin_count

@@ -18,16 +18,29 @@ Hypothesis confirmation and the χ² test after optimization live in `frontends.
 
 from __future__ import annotations
 
+import functools
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import small_gicp
 from numba import njit
 from numpy.typing import NDArray
 
 from frontends.slam3d import se3
 from frontends.slam3d.config import LoopClosureConfig
+
+# small_gicp's own libgomp reads the wait policy once, when it is loaded. By default its threads spin at
+# every barrier for a while before sleeping: beside another busy process (a batch's second job) a replay of
+# three town laps then took 41–51 s instead of 21–22 s. Passive threads sleep at once, and cost a single
+# replay on idle cores almost nothing. Only that import sees the setting; the user's own choice wins.
+_USER_WAIT_POLICY = os.environ.get("OMP_WAIT_POLICY")
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+try:
+    import small_gicp
+finally:
+    if _USER_WAIT_POLICY is None:
+        os.environ.pop("OMP_WAIT_POLICY", None)
 
 FloatArray = NDArray[np.float64]
 
@@ -46,6 +59,18 @@ the others are taken as unable to compete. Measured on the town loop's 24 rival 
 resolution, a coarse rival that stayed elsewhere changed its score by at most 0.05 of the threshold (0.25
 is the margin); the one that gained more went back to the match, and no decision differed from registering
 every start finely."""
+
+
+def registration_threads(config: LoopClosureConfig) -> int:
+    """small_gicp's threads: `config.threads`, or with 0 every core this process may run on."""
+    return config.threads or _usable_cores()
+
+
+@functools.cache
+def _usable_cores() -> int:
+    if hasattr(os, "sched_getaffinity"):  # a process pinned to some cores (taskset, a container) uses those
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 # ------------------------------------------------------------------------------------------ descriptor
@@ -143,7 +168,7 @@ class RegistrationTarget:
             np.ascontiguousarray(points, dtype=np.float64),
             downsampling_resolution=config.registration_voxel,
             num_neighbors=COVARIANCE_NEIGHBOURS,
-            num_threads=config.threads,
+            num_threads=registration_threads(config),
         )
         self._points = self.cloud.points()[:, :3]
         self._normals = self.cloud.normals()[:, :3]
@@ -170,7 +195,7 @@ class RegistrationTarget:
             init_T_target_source=np.asarray(guess, dtype=np.float64),
             registration_type="GICP",
             max_correspondence_distance=config.max_correspondence_distance,
-            num_threads=config.threads,
+            num_threads=registration_threads(config),
             max_iterations=config.registration_iterations,
         )
 
@@ -179,7 +204,8 @@ class RegistrationTarget:
         its inliers to the target's surface (m; inf without inliers)."""
         config = self.config
         placed = se3.transform_points(transform, source.points()[:, :3])
-        nearest, squared = self.tree.batch_nearest_neighbor_search(placed, num_threads=config.threads)
+        threads = registration_threads(config)
+        nearest, squared = self.tree.batch_nearest_neighbor_search(placed, num_threads=threads)
         nearest = np.asarray(nearest, dtype=np.int64)
         inliers = (np.asarray(squared, dtype=np.float64) <= config.inlier_distance**2) & (nearest >= 0)
         count = int(inliers.sum())
@@ -199,7 +225,7 @@ def prepare_source(
         np.ascontiguousarray(points, dtype=np.float64),
         downsampling_resolution=config.registration_voxel if voxel is None else voxel,
         num_neighbors=COVARIANCE_NEIGHBOURS,
-        num_threads=config.threads,
+        num_threads=registration_threads(config),
     )
     return cloud
 
