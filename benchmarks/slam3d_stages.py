@@ -1,12 +1,13 @@
 """Where a point-cloud replay spends its time: process CPU and wall seconds per stage (issue 12, item 3).
 
-    python benchmarks/slam3d_stages.py [LOG.mcap ...] [--shared ../shared] [--town]
+    python benchmarks/slam3d_stages.py [LOG.mcap ...] [--shared ../shared] [--town [--laps N]]
 
 Runs `replay_log` (what `replay LOG` runs) with the stages' functions wrapped by timers, then KISS-ICP
 alone (its default configuration, `kiss_icp.config.load_config(None)` as in `slam3d_bench.py`) on the
 same decoded frames, deskewed from the azimuths as our default does (or with their per-point times).
 Default log: `kitti_city.mcap`; `--town` adds the synthetic town loop of `kiss_slam_compare.py`
-(`tests.lidar_world.loop_drive`, written as an MCAP in a temporary folder): loop closures happen there.
+(`tests.lidar_world.loop_drive`, written as an MCAP in a temporary folder): loop closures happen there;
+`--laps N` drives it N times around (`kiss_slam_compare.town_drive`).
 
 Times are *exclusive*: entering a stage pauses the one it was entered from (a loop verification inside
 the loop search counts only once). CPU time is the process's (`time.process_time`: every thread, so
@@ -38,12 +39,13 @@ from kiss_icp import kiss_icp, mapping, preprocess, registration  # noqa: E402
 from kiss_icp.config import load_config  # noqa: E402
 
 import pipeline.replay_log as replay_module  # noqa: E402
+from benchmarks.kiss_slam_compare import town_drive  # noqa: E402
 from frontends.logs import open_log  # noqa: E402
 from frontends.slam3d import frontend, odometry, pose_graph3d, slam  # noqa: E402
 from frontends.slam3d.odometry import azimuth_point_times, normalized_point_times  # noqa: E402
 from pipeline import recording  # noqa: E402
 from pipeline.recording import clouds as cloud_recording  # noqa: E402
-from tests.lidar_world import loop_drive, write_cloud_log  # noqa: E402
+from tests.lidar_world import write_cloud_log  # noqa: E402
 
 KITTI = "data/logs/kitti/kitti_city.mcap"
 
@@ -182,11 +184,12 @@ def main() -> None:
     parser.add_argument("logs", nargs="*", type=Path)
     parser.add_argument("--shared", type=Path, default=REPO.parent / "shared")
     parser.add_argument("--town", action="store_true", help="also the synthetic town loop")
+    parser.add_argument("--laps", type=int, default=1, help="with --town: drive the loop this many times")
     args = parser.parse_args()
     logs = list(args.logs) or [args.shared / KITTI]
     if args.town:
         town = Path(tempfile.mkdtemp()) / "town_loop.mcap"
-        write_cloud_log(town, loop_drive())
+        write_cloud_log(town, town_drive(args.laps))
         logs.append(town)
     for path in logs:
         clock = StageClock()
