@@ -17,7 +17,7 @@ from typing import Any, Generic, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.errors import FrontendError
+from frontends.errors import FrontendError, LogFileError
 from frontends.logs import LogReader, TransformTree
 from optimizer.graph import PoseGraph
 
@@ -259,7 +259,15 @@ class LogFrontendBase(Generic[ConfigT, ResultT]):
         self._tree = log.transform_tree()
         self.sensor_frame = ""
         self.base_frame: str | None = options.base_frame
+        self._requested_base_frame = options.base_frame
         self._result: ResultT | None = None
+
+    def _unlinked_base_frame(self, sensor_frame: str, sensor: str) -> LogFileError:
+        """The error for a base frame the user named that tf does not link to the sensor's frame: poses of
+        the sensor given as poses of a misspelt base would be silently wrong."""
+        known = ", ".join(sorted(self._tree.frames)) or "none"
+        return LogFileError(self._log.path, f"tf does not link base frame {self._requested_base_frame!r} to "
+                                            f"the {sensor} frame {sensor_frame!r} (frames in tf: {known})")
 
     @property
     def result(self) -> ResultT:

@@ -262,3 +262,21 @@ def test_options_and_progress_reach_the_3d_replay(tmp_path: Path) -> None:
     with pytest.raises(TopicSelectionError, match=r"/nowhere.*--odom-topic"):
         replay(path, ReplayConfig(input={"odom_topic": "/nowhere"}), out_dir=tmp_path / "other")
     assert not (tmp_path / "other").exists()
+
+
+def test_a_base_frame_tf_does_not_link_is_a_one_line_error_naming_the_log(tmp_path: Path) -> None:
+    """`--base-frame` misspelt: the poses would be the LiDAR's, given as the base's; refused, the same
+    rule and message as a laser log (`test_pipeline_log`)."""
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    path = tmp_path / "street.mcap"
+    write_cloud_log(path, drive(town_loop(), sweeps=3, step=0.5, lidar=Lidar(columns=360)))
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, [str(path), "--out", str(out), "--base-frame", "base_footprnt"])
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [
+        f"replay: error: {path}: tf does not link base frame 'base_footprnt' to the LiDAR frame 'lidar' "
+        "(frames in tf: base_link, lidar)"]
+    assert not out.exists() or not any(out.iterdir())

@@ -194,6 +194,21 @@ def test_a_log_without_scans_is_a_one_line_error_and_writes_nothing(tmp_path: Pa
     assert not out.exists()
 
 
+def test_a_base_frame_tf_does_not_link_is_a_one_line_error_naming_the_log(
+    drive_log: tuple[Path, np.ndarray], tmp_path: Path
+) -> None:
+    """`--base-frame` misspelt: the scans would stay in the laser's frame and the poses be the laser's,
+    given as the base's; refused. Without the option the base comes from tf (the first test)."""
+    path, _ = drive_log
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, [str(path), "--out", str(out), "--base-frame", "base_footprnt"])
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [
+        f"replay: error: {path}: tf does not link base frame 'base_footprnt' to the laser frame 'laser' "
+        "(frames in tf: base_link, laser, odom)"]
+    assert not out.exists() or not any(out.iterdir())
+
+
 def test_info_lists_topics_from_the_summary(tmp_path: Path) -> None:
     path = tmp_path / "short.mcap"
     write_drive(path, scans=5)

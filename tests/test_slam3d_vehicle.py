@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from frontends.errors import FrontendError
 from frontends.logs import Cloud3D, OdometryPose, Transform, TransformTree
 from frontends.slam3d import LidarFrontend, LidarSlam3D, se3
 from frontends.slam3d.config import OdometryConfig
@@ -81,10 +80,11 @@ def test_a_sensor_frame_tf_does_not_know_is_its_own_base() -> None:
     assert default_base_frame(TransformTree(), "velodyne") == "velodyne"
 
 
-def test_a_base_frame_tf_does_not_link_is_an_error() -> None:
+def test_a_base_frame_tf_does_not_link_has_no_mount() -> None:
+    """(The frontend turns it into an error naming the log: `test_pipeline_log`, `test_pipeline_cloud`.)"""
     tree = _tree(_edge("base_link", "lidar", (0.0, 0.0, 1.0), IDENTITY_Q, static=True))
-    with pytest.raises(FrontendError, match="base_footprint"):
-        lidar_mount(tree, "lidar", 0, base_frame="base_footprint")
+    assert lidar_mount(tree, "lidar", 0, base_frame="base_footprint") is None
+    assert lidar_mount(tree, "lidar", 0, base_frame="base_link") is not None
 
 
 # ------------------------------------------------------------------------------------ odometry prior

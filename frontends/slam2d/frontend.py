@@ -57,6 +57,8 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
             if not self.sensor_frame:
                 self.sensor_frame = scan.frame_id if mount is None else mount.child_frame
                 self.base_frame = base or default_base_frame(self._tree, self.sensor_frame)
+                if mount is None and self._requested_base_frame not in (None, self.sensor_frame):
+                    raise self._unlinked_base_frame(self.sensor_frame, "laser")
             yield scan, mount
 
     def add(self, measurement: ScanInBase) -> ScanEstimate:

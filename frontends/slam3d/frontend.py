@@ -61,6 +61,8 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
             self.sensor_frame = measurement.frame_id
             requested = self.base_frame
             mount = lidar_mount(self._tree, measurement.frame_id, measurement.stamp_ns, requested)
+            if mount is None:
+                raise self._unlinked_base_frame(measurement.frame_id, "LiDAR")
             self.base_frame = mount.base_frame if mount.from_tf or requested is not None else None
             self.sensor_to_base = np.asarray(mount.sensor_to_base, dtype=np.float64)
             self._slam = self._make_slam(self.sensor_to_base)

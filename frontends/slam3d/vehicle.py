@@ -57,21 +57,15 @@ def default_base_frame(tree: TransformTree, sensor_frame: str) -> str:
 
 def lidar_mount(
     tree: TransformTree, sensor_frame: str, stamp_ns: int, base_frame: str | None = None
-) -> LidarMount:
+) -> LidarMount | None:
     """The sensor's mount on the base at `stamp_ns` (the first cloud's), the base being `base_frame` or
-    else `default_base_frame`. Raises `FrontendError` when `base_frame` is given and tf does not link
-    it to the sensor frame (a misspelt frame should not silently give poses of the sensor)."""
+    else `default_base_frame`. None when `base_frame` is given and tf does not link it to the sensor
+    frame (the default base is always linked: it is found along the sensor's tf chain)."""
     chosen = base_frame if base_frame is not None else default_base_frame(tree, sensor_frame)
     if chosen == sensor_frame:
         return LidarMount(chosen, sensor_frame, np.eye(4), sensor_frame in tree.frames)
     mount = tree.sensor_mount(chosen, sensor_frame, stamp_ns)
-    if mount is None:
-        known = ", ".join(sorted(tree.frames)) or "none"
-        raise FrontendError(
-            f"tf does not link base frame {chosen!r} to the LiDAR frame {sensor_frame!r} "
-            f"(frames in tf: {known})"
-        )
-    return LidarMount(chosen, sensor_frame, mount.matrix(), True)
+    return None if mount is None else LidarMount(chosen, sensor_frame, mount.matrix(), True)
 
 
 class OdometryPrior:
