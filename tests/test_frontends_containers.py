@@ -253,6 +253,8 @@ def test_topic_selection_errors_name_the_log_and_candidates(logs: dict[str, Path
         log.sensor_topic()
     assert log.sensor_topic("/points") == ("/points", "cloud")
     assert log.odometry_topic() == "/odom"
+    with pytest.raises(TopicSelectionError, match=r"carries sensor_msgs/msg/LaserScan, not an odometry type"):
+        log.odometry_topic("/scan")
 
 
 def test_no_scan_topic_lists_what_the_log_has(tmp_path: Path) -> None:

@@ -31,6 +31,10 @@ from frontends.logs.types import Cloud3D, LogInfo, OdometryPose, Scan2D, Transfo
 
 SCAN_TOPIC_OPTION = "--scan-topic"
 ODOMETRY_TOPIC_OPTION = "--odom-topic"
+def _article(word: str) -> str:
+    return "an" if word[:1].lower() in "aeiou" else "a"
+
+
 _KIND_NAMES = {
     "scan": "LaserScan",
     "cloud": "PointCloud",
@@ -100,7 +104,8 @@ class LogReader:
             if types:
                 raise TopicSelectionError(
                     self.path,
-                    f"topic {topic} carries {', '.join(types)}, not a {wanted} type we can read",
+                    f"topic {topic} carries {', '.join(types)}, not {_article(wanted)} {wanted} type we can "
+                    "read",
                     candidates,
                     option,
                 )
