@@ -17,7 +17,7 @@ from typing import Any, Generic, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.errors import FrontendError, LogFileError
+from frontends.errors import FrontendError, LogFileError, MapPlacementError
 from frontends.logs import LogReader, TransformTree
 from optimizer.graph import PoseGraph
 
@@ -243,6 +243,11 @@ class _SlamResult(Protocol):
 
 ConfigT = TypeVar("ConfigT")
 ResultT = TypeVar("ResultT", bound=_SlamResult)
+FinishedT = TypeVar("FinishedT", covariant=True)
+
+
+class _Finishing(Protocol[FinishedT]):
+    def finish(self) -> FinishedT: ...
 
 
 class LogFrontendBase(Generic[ConfigT, ResultT]):
@@ -261,6 +266,14 @@ class LogFrontendBase(Generic[ConfigT, ResultT]):
         self.base_frame: str | None = options.base_frame
         self._requested_base_frame = options.base_frame
         self._result: ResultT | None = None
+
+    def _finished(self, slam: _Finishing[ResultT]) -> ResultT:
+        """`slam.finish()`, its `MapPlacementError` (a continued run that never matched the saved map)
+        naming the log."""
+        try:
+            return slam.finish()
+        except MapPlacementError as error:
+            raise MapPlacementError(f"{self._log.path}: {error}") from None
 
     def _unlinked_base_frame(self, sensor_frame: str, sensor: str) -> LogFileError:
         """The error for a base frame the user named that tf does not link to the sensor's frame: poses of

@@ -167,17 +167,21 @@ def test_map_writes_the_smoothed_trajectory_and_keeps_the_online_states(logs: Lo
     assert position_errors(poses, logs.in_map_frame(logs.second_truth)).max() < MAP_TOLERANCE
 
 
-def test_a_log_never_placed_in_the_map_is_one_line_and_publishes_nothing(logs: Logs, tmp_path: Path) -> None:
+@pytest.mark.parametrize("mode", ["map", "continue"])
+def test_a_log_never_placed_in_the_map_is_one_line_naming_it_and_publishes_nothing(logs: Logs, tmp_path: Path,
+                                                                                   mode: str) -> None:
     short = tmp_path / "short.mcap"
     write_drive(short, part=slice(60, 63), later_ns=3 * HOUR_NS)  # three scans: too little to search with
     out = tmp_path / "out"
-    result = run_replay(short, "--out", out, "--map", logs.session)
+    result = run_replay(short, "--out", out, f"--{mode}", logs.session)
     assert result.exit_code == 2
     lines = result.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith("replay: error: ") and "saved map" in lines[0]
+    assert str(short) in lines[0]
     assert file_names(out) == set()
     with pytest.raises(MapPlacementError):
-        pipeline.replay(short, out_dir=out, map=logs.session)
+        pipeline.replay(short, out_dir=out, **({"map": logs.session} if mode == "map"
+                                               else {"continue_from": logs.session}))
 
 
 # -------------------------------------------------------------------------------------- --continue

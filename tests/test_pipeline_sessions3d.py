@@ -296,6 +296,18 @@ def test_sessions_of_the_other_sensor_kind_are_refused(logs: Logs, tmp_path: Pat
     assert file_names(out) == set()
 
 
+@pytest.mark.parametrize("mode", ["map", "continue"])
+def test_a_log_never_placed_in_the_map_is_one_line_naming_it(logs: Logs, tmp_path: Path, mode: str) -> None:
+    """Two clouds where the first map never drove: too little to place; the error names the log."""
+    far = tmp_path / "far.mcap"
+    two_clouds = drive(town_loop(), sweeps=2, step=STEP, start=75.0, lidar=Lidar(columns=720), seed=5)
+    write_cloud_log(far, two_clouds, later_ns=HOUR_NS)
+    out = tmp_path / "out"
+    line = one_error_line(run_replay(far, "--out", out, f"--{mode}", logs.session))
+    assert "saved map" in line and str(far) in line
+    assert file_names(out) == set()
+
+
 @pytest.mark.parametrize("damage", ["cut", "newer", "no poses"])
 def test_a_damaged_or_newer_cloud_session_is_one_line_naming_it(logs: Logs, tmp_path: Path,
                                                                 damage: str) -> None:

@@ -90,7 +90,7 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
         if not self._counts["scans_with_tf_mount"] and self.sensor_frame != self.base_frame:
             self.base_frame = None
-        self._result = self._slam.finish()
+        self._result = self._finished(self._slam)
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         graph = self.result.graph

@@ -99,7 +99,7 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
     def finish(self) -> None:
         if self._slam is None:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no point clouds")
-        self._result = self._slam.finish()
+        self._result = self._finished(self._slam)
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         return self.result.planar_graph(planar_poses)
