@@ -43,9 +43,21 @@ class FrontendOptions:
 
 
 def default_base_frame(tree: TransformTree, sensor_frame: str) -> str:
-    """The frame a sensor is mounted on: its parent in tf when that edge is static, else `base_link`."""
-    parent = tree.parent(sensor_frame)
-    return parent if parent is not None and tree.is_static(sensor_frame) else DEFAULT_BASE_FRAME
+    """The frame that carries the sensor, for laser and LiDAR logs alike: walking up the sensor's tf chain
+    over static edges, the first frame whose edge to its parent is dynamic (REP 105's odom → base_link:
+    the frame that moves); a chain of static edges only ends at `base_link` when it passes through it, else
+    at its root. A sensor frame tf does not know is its own base."""
+    frame = sensor_frame
+    chain = [frame]
+    while tree.parent(frame) is not None and tree.is_static(frame):
+        frame = tree.parent(frame)  # type: ignore[assignment]
+        if frame in chain:
+            raise FrontendError(f"the transform tree has a cycle through {frame!r}")
+        chain.append(frame)
+    moving = tree.parent(frame) is not None  # stopped at a dynamic edge: `frame` is what moves
+    if not moving and DEFAULT_BASE_FRAME in chain:
+        return DEFAULT_BASE_FRAME
+    return frame
 
 
 class Estimate(Protocol):

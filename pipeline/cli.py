@@ -209,9 +209,9 @@ def run(
         "--odom-topic", metavar="TOPIC", help="The odometry topic, when the log has several.")] = None,
     base_frame: Annotated[str | None, typer.Option(
         "--base-frame", metavar="FRAME", show_default=False,
-        help="The vehicle frame the poses are of; tf must link it to the sensor. Default: the frame tf "
-             "mounts the sensor on (for laser logs with odometry: the odometry's child frame), else "
-             "base_link.")] = None,
+        help="The vehicle frame the poses are of; tf must link it to the sensor. Default: the frame that "
+             "moves, up the sensor's tf chain (for laser logs with odometry: the odometry's child "
+             "frame).")] = None,
     jobs: Annotated[int, typer.Option(
         "--jobs", "-j", min=1, max=MAX_JOBS, metavar="N",
         help="Inputs replayed at the same time (worker processes).")] = 1,

@@ -200,3 +200,35 @@ def test_ordering_keeps_each_sources_own_pace() -> None:
     assert [item.stamp_ns for item in moving] == sorted(item.stamp_ns for item in moving)
     # The static transform, stamped 0, passed straight through instead of counting as late.
     assert sum(getattr(item, "is_static", False) for item in out) == 1
+
+
+class _ScanLog:
+    """The part of a `LogReader` `scans_in_base_frame` reads: scans of one topic, and a path."""
+
+    path = Path("drive.mcap")
+
+    def __init__(self, scans: list[Scan2D]) -> None:
+        self._scans = scans
+
+    def scans(self, topic: str) -> list[Scan2D]:
+        return self._scans
+
+
+def test_laser_scans_default_to_the_frame_that_moves_as_clouds_do() -> None:
+    """One rule for both sensors (`frontends.protocol.default_base_frame`): up the laser's static tf chain to
+    the frame whose edge moves, here base_footprint under odom, not the laser's parent base_link."""
+    from frontends.slam2d.log_input import scans_in_base_frame
+
+    identity = np.array([0.0, 0.0, 0.0, 1.0])
+    tree = TransformTree().extend([
+        Transform("odom", "base_footprint", 0, 0, np.zeros(3), identity, False),
+        Transform("base_footprint", "base_link", 0, 0, np.array([0.0, 0.0, 0.1]), identity, True),
+        Transform("base_link", "laser", 0, 0, np.array([0.2, 0.0, 0.3]), identity, True),
+    ])
+    points = np.array([[1.0, 0.0], [0.0, 2.0]])
+    scan = Scan2D(0, 0, "laser", points, np.array([1.0, 2.0]), np.array([0.0, math.pi / 2]), 2)
+    [(moved, mount)] = list(scans_in_base_frame(_ScanLog([scan]), "/scan", tree, None,  # type: ignore[arg-type]
+                                                 min_points=1))
+    assert mount is not None and mount.parent_frame == "base_footprint"
+    assert moved.frame_id == "base_footprint"
+    np.testing.assert_allclose(moved.points, points + np.array([0.2, 0.0]))

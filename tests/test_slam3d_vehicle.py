@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from frontends.logs import Cloud3D, OdometryPose, Transform, TransformTree
+from frontends.protocol import default_base_frame
 from frontends.slam3d import LidarFrontend, LidarSlam3D, se3
 from frontends.slam3d.config import OdometryConfig
 from frontends.slam3d.odometry import KissOdometry, azimuth_point_times, normalized_point_times
-from frontends.slam3d.vehicle import OdometryPrior, default_base_frame, lidar_mount
+from frontends.slam3d.vehicle import OdometryPrior, lidar_mount
 from tests.lidar_world import (
     Drive,
     Lidar,

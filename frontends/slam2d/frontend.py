@@ -88,9 +88,14 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
     def finish(self) -> None:
         if self._counts["scans"] == 0:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
-        if not self._counts["scans_with_tf_mount"] and self.sensor_frame != self.base_frame:
-            self.base_frame = None
+        self._unmounted_means_sensor_poses()
         self._result = self._finished(self._slam)
+
+    def _unmounted_means_sensor_poses(self) -> None:
+        """No scan placed on a base by tf, and no base named by the user: the poses are the laser's, and
+        the result says so (`base_frame` None), as the LiDAR frontend's does."""
+        if not self._counts["scans_with_tf_mount"] and self._requested_base_frame is None:
+            self.base_frame = None
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         graph = self.result.graph

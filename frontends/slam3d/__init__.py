@@ -27,7 +27,6 @@ if TYPE_CHECKING:
     from frontends.slam3d.slam import Slam3DGraph as Slam3DGraph
     from frontends.slam3d.vehicle import LidarMount as LidarMount
     from frontends.slam3d.vehicle import OdometryPrior as OdometryPrior
-    from frontends.slam3d.vehicle import default_base_frame as default_base_frame
     from frontends.slam3d.vehicle import lidar_mount as lidar_mount
 
 __getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submodules=["planar"], submod_attrs={
@@ -38,5 +37,5 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submodules=["planar
     "pose_graph3d": ["PolishResult"],
     "resume": ["ResumedLidarSlam3D", "SavedGraph3D"],
     "slam": ["CloudEstimate", "LidarSlam3D", "Slam3DGraph"],
-    "vehicle": ["LidarMount", "OdometryPrior", "default_base_frame", "lidar_mount"],
+    "vehicle": ["LidarMount", "OdometryPrior", "lidar_mount"],
 })

@@ -1,9 +1,7 @@
 """Where the LiDAR sits on the vehicle (tf) and what the vehicle's own odometry says about its motion.
 
 - `lidar_mount` finds the base frame the poses are of and the sensor's pose in it. By default the base is
-  the frame that moves: walking up the sensor's tf chain over static edges, the first frame whose edge to
-  its parent is dynamic (REP 105's odom → base_link); a chain of static edges only ends at `base_link`
-  when it passes through it, else at its root. A sensor frame tf does not know is its own base.
+  the frame that moves (`frontends.protocol.default_base_frame`, the laser logs' rule too).
 - `OdometryPrior` holds the log's wheel / INS odometry (`frontends.logs.OdometryPose` stream) and
   interpolates the base's pose at a cloud's stamp; `LidarSlam3D.add_cloud(cloud, odometry_pose=...)` turns
   two of them into KISS-ICP's motion guess.
@@ -19,11 +17,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from frontends.errors import FrontendError
 from frontends.logs import OdometryPose, TransformTree, rotations
+from frontends.protocol import default_base_frame
 from frontends.slam3d import se3
 
 FloatArray = NDArray[np.float64]
 
-CONVENTIONAL_BASE_FRAME = "base_link"
 DEFAULT_MAX_ODOMETRY_GAP_NS = 500_000_000
 """The prior is not interpolated across a gap in the odometry longer than this (0.5 s)."""
 
@@ -38,21 +36,6 @@ class LidarMount:
     """4×4: maps points from the sensor frame into the base frame (identity when they are one frame)."""
     from_tf: bool
     """False when tf does not know the sensor frame: the base is the sensor."""
-
-
-def default_base_frame(tree: TransformTree, sensor_frame: str) -> str:
-    """The frame that carries the sensor: see the module's docstring for the rule."""
-    frame = sensor_frame
-    chain = [frame]
-    while tree.parent(frame) is not None and tree.is_static(frame):
-        frame = tree.parent(frame)  # type: ignore[assignment]
-        if frame in chain:
-            raise FrontendError(f"the transform tree has a cycle through {frame!r}")
-        chain.append(frame)
-    moving = tree.parent(frame) is not None  # stopped at a dynamic edge: `frame` is what moves
-    if not moving and CONVENTIONAL_BASE_FRAME in chain:
-        return CONVENTIONAL_BASE_FRAME
-    return frame
 
 
 def lidar_mount(
