@@ -194,7 +194,12 @@ def nearest_pose(stamps_ns: IntArray, wanted_ns: IntArray, tolerance_ns: int) ->
 def evaluate_files(
     trajectory_path: str | Path, relations_path: str | Path, *, tolerance_ns: int = DEFAULT_TOLERANCE_NS
 ) -> RelationsResult:
-    """`relations_error` of a TUM trajectory file against a relations file (its poses taken as planar)."""
+    """`relations_error` of a TUM trajectory file against a relations file (its poses taken as planar); an
+    `EvaluationError` names both files."""
     trajectory = read_tum(trajectory_path)
     relations = read_relations(relations_path)
-    return relations_error(trajectory.stamps_ns, trajectory.planar(), relations, tolerance_ns=tolerance_ns)
+    try:
+        return relations_error(trajectory.stamps_ns, trajectory.planar(), relations,
+                               tolerance_ns=tolerance_ns)
+    except EvaluationError as error:
+        raise EvaluationError(f"{trajectory_path} against {relations_path}: {error}") from None

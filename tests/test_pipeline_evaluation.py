@@ -283,7 +283,8 @@ def test_cli_tolerance_option(tmp_path: Path) -> None:
     relations.write_text(relations_text())
     refused = CliRunner().invoke(app, ["evaluate", str(trajectory), str(relations)])
     assert refused.exit_code == 2
-    assert refused.stderr.startswith("replay: error: none of the 15 relations")
+    assert refused.stderr.startswith(
+        f"replay: error: {trajectory} against {relations}: none of the 15 relations")
     accepted = CliRunner().invoke(app, ["evaluate", str(trajectory), str(relations), "--json",
                                         "--tolerance-ms", "2.5"])
     assert accepted.exit_code == 0, accepted.stderr
