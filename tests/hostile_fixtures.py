@@ -10,7 +10,7 @@ import os
 import random
 import sqlite3
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -290,8 +290,10 @@ def scan_log(
     beams: int = 360,
     odometry: Callable[[int], tuple[float, float, float]] | None = None,
     stamp: Callable[[int], int] = lambda i: 10**18 + i * 100_000_000,
+    tf_static: Sequence[tuple[str, str]] = (),
 ) -> Path:
-    """An MCAP of `count` LaserScans (ranges(i) for scan i) and, optionally, odometry poses odometry(i)."""
+    """An MCAP of `count` LaserScans (ranges(i) for scan i, in frame base_link) and, optionally, odometry
+    poses odometry(i) and static tf edges (parent, child), identities."""
     messages = RosMessages(ros1=False)
     types = messages.types
     with path.open("wb") as stream:
@@ -306,6 +308,11 @@ def scan_log(
                 schemas[topic] = writer.register_channel(topic, "cdr", schema)
             return schemas[topic]
 
+        if tf_static:
+            edges = [messages.transform_stamped(stamp(0), parent, child, (0.0, 0.0, 0.0), 0.0)
+                     for parent, child in tf_static]
+            data = messages.serialize(messages.tf_message(edges), "tf2_msgs/msg/TFMessage")
+            writer.add_message(channel("/tf_static", "tf2_msgs/msg/TFMessage"), stamp(0), data, stamp(0))
         for i in range(count):
             values = np.asarray(ranges(i), dtype=np.float32)
             scan = types["sensor_msgs/msg/LaserScan"](

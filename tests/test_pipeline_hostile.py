@@ -76,3 +76,15 @@ def test_a_fifo_without_a_writer_does_not_block(tmp_path: Path) -> None:
     assert finished.wait(timeout=30), "reading a FIFO blocked"
     result = outcome[0]
     assert result.exit_code == 2 and str(fifo) in result.stderr  # type: ignore[attr-defined]
+
+
+def test_a_tf_cycle_is_one_line_naming_the_log(tmp_path: Path) -> None:
+    """/tf_static says base_link hangs off mount and mount off base_link: no base frame can be found."""
+    from tests.hostile_fixtures import scan_log, walls
+
+    cycle = [("mount", "base_link"), ("base_link", "mount")]
+    path = scan_log(tmp_path / "cycle.mcap", walls, tf_static=cycle)
+    result = CliRunner().invoke(app, [str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [
+        f"replay: error: {path}: the transform tree has a cycle through 'base_link'"]

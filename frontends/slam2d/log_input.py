@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from frontends.errors import UnusableLogError
+from frontends.errors import FrontendError, LogFileError, UnusableLogError
 from frontends.logs import rotations
 from frontends.logs.log import LogReader
 from frontends.logs.transforms import TransformTree
@@ -232,7 +232,10 @@ def scans_in_base_frame(
             continue
         if scan.frame_id != looked_up_for:
             looked_up_for = scan.frame_id
-            base_frame = base_frame or default_base_frame(tree, scan.frame_id)
+            try:
+                base_frame = base_frame or default_base_frame(tree, scan.frame_id)
+            except FrontendError as error:  # a cycle in tf
+                raise LogFileError(log.path, str(error)) from None
             mount = tree.sensor_mount(base_frame, scan.frame_id, scan.stamp_ns)
             mounted = None if mount is None else _Mount(mount)
         yield (mounted.apply(scan) if mounted is not None else scan), mount

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.errors import FrontendError
+from frontends.errors import FrontendError, LogFileError
 from frontends.logs import Cloud3D, LogReader, TransformTree
 from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, SessionArrays
 from frontends.slam3d.config import Slam3DConfig
@@ -60,7 +60,10 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         if self._slam is None:
             self.sensor_frame = measurement.frame_id
             requested = self.base_frame
-            mount = lidar_mount(self._tree, measurement.frame_id, measurement.stamp_ns, requested)
+            try:
+                mount = lidar_mount(self._tree, measurement.frame_id, measurement.stamp_ns, requested)
+            except FrontendError as error:  # a cycle in tf
+                raise LogFileError(self._log.path, str(error)) from None
             if mount is None:
                 raise self._unlinked_base_frame(measurement.frame_id, "LiDAR")
             self.base_frame = mount.base_frame if mount.from_tf or requested is not None else None
