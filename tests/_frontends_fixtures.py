@@ -28,6 +28,8 @@ from rosbags.rosbag2 import Writer as Rosbag2Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from frontends.logs import Scan2D
+
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
 
@@ -616,3 +618,15 @@ def write_mcap_foxglove(path: Path, encoding: str = "protobuf") -> Path:
             writer.add_message(channels[topic], log_time, serialize(schema, values), log_time)
         writer.finish()
     return path
+
+
+class ScanListLog:
+    """The part of a `LogReader` that `scans_in_base_frame` reads: the scans of a topic, and a path."""
+
+    path = Path("list.log")
+
+    def __init__(self, scans: list[Scan2D]) -> None:
+        self._scans = scans
+
+    def scans(self, topic: str) -> list[Scan2D]:
+        return self._scans

@@ -24,6 +24,15 @@ LOOP_POSES = 30
 LOOP_INFORMATION = (50.0, 0.0, 0.0, 50.0, 0.0, 200.0)  # g2o upper triangle: xx xy xθ yy yθ θθ
 
 
+def one_error_line(result: object) -> str:
+    """The one line a refused command printed (exit code 2, `replay: error: …`), for the caller to check."""
+    assert result.exit_code == 2, result.stderr  # type: ignore[attr-defined]
+    lines = result.stderr.splitlines()  # type: ignore[attr-defined]
+    assert len(lines) == 1, result.stderr  # type: ignore[attr-defined]
+    assert lines[0].startswith("replay: error: ")
+    return str(lines[0])
+
+
 def loop_graph_text(poses: int = LOOP_POSES, seed: int = 3) -> str:
     """g2o text of a robot driving once around a circle: noisy odometry, two loop closures, and an initial
     estimate that drifts (a steady heading bias), so χ² starts high and the optimum is near zero."""

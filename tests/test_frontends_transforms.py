@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from frontends.errors import LogWarning, TransformLookupError
 from frontends.logs import OdometryPose, Scan2D, Transform, TransformTree, rotations
 from frontends.logs.ordering import by_stamp
+from tests._frontends_fixtures import ScanListLog
 
 
 def planar(
@@ -202,18 +203,6 @@ def test_ordering_keeps_each_sources_own_pace() -> None:
     assert sum(getattr(item, "is_static", False) for item in out) == 1
 
 
-class _ScanLog:
-    """The part of a `LogReader` `scans_in_base_frame` reads: scans of one topic, and a path."""
-
-    path = Path("drive.mcap")
-
-    def __init__(self, scans: list[Scan2D]) -> None:
-        self._scans = scans
-
-    def scans(self, topic: str) -> list[Scan2D]:
-        return self._scans
-
-
 def test_laser_scans_default_to_the_frame_that_moves_as_clouds_do() -> None:
     """One rule for both sensors (`frontends.protocol.default_base_frame`): up the laser's static tf chain to
     the frame whose edge moves, here base_footprint under odom, not the laser's parent base_link."""
@@ -227,7 +216,7 @@ def test_laser_scans_default_to_the_frame_that_moves_as_clouds_do() -> None:
     ])
     points = np.array([[1.0, 0.0], [0.0, 2.0]])
     scan = Scan2D(0, 0, "laser", points, np.array([1.0, 2.0]), np.array([0.0, math.pi / 2]), 2)
-    [(moved, mount)] = list(scans_in_base_frame(_ScanLog([scan]), "/scan", tree, None,  # type: ignore[arg-type]
+    [(moved, mount)] = list(scans_in_base_frame(ScanListLog([scan]), "/scan", tree, None,  # type: ignore[arg-type]
                                                  min_points=1))
     assert mount is not None and mount.parent_frame == "base_footprint"
     assert moved.frame_id == "base_footprint"

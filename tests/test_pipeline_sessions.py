@@ -29,7 +29,7 @@ from pipeline.errors import PipelineError
 from pipeline.session_file import SESSION_VERSION, SessionError, write_session
 from pipeline.trajectory_io import read_tum
 from tests.laser_world import between
-from tests.pipeline_fixtures import read_recording, write_drive, write_loop_graph
+from tests.pipeline_fixtures import one_error_line, read_recording, write_drive, write_loop_graph
 
 HOUR_NS = 3600 * 10**9
 MAP_TOLERANCE = 0.07
@@ -224,14 +224,6 @@ def test_continue_maps_both_logs_into_one_trajectory_and_a_larger_session(logs: 
 
 
 # ----------------------------------------------------------------------------------------- refusals
-
-
-def one_error_line(result: object) -> str:
-    assert result.exit_code == 2, result.stderr
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("replay: error: ")
-    return lines[0]
 
 
 def test_both_options_or_an_initial_pose_without_map_are_refused(logs: Logs, tmp_path: Path) -> None:

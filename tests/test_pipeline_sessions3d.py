@@ -33,7 +33,7 @@ from pipeline.errors import PipelineError
 from pipeline.session_file import SESSION_VERSION, SessionError, write_session
 from pipeline.trajectory_io import read_kitti_poses, read_tum
 from tests.lidar_world import Drive, Lidar, drive, planar_to_matrix, town_loop, write_cloud_log
-from tests.pipeline_fixtures import read_recording, write_drive
+from tests.pipeline_fixtures import one_error_line, read_recording, write_drive
 
 HOUR_NS = 3600 * 10**9
 STEP = 0.8
@@ -106,14 +106,6 @@ def run_replay(*args: object) -> object:
 
 def file_names(folder: Path) -> set[str]:
     return {path.name for path in folder.iterdir()} if folder.exists() else set()
-
-
-def one_error_line(result: object) -> str:
-    assert result.exit_code == 2, result.stderr
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("replay: error: ")
-    return lines[0]
 
 
 # ------------------------------------------------------------------------------------------- --map

@@ -6,7 +6,6 @@ matcher without odometry the optimum of the window the motion needs, a grid's ca
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -38,6 +37,7 @@ from frontends.slam2d.slam import (
 )
 from frontends.slam2d.stage_times import StageTimes
 from optimizer.solve import optimize
+from tests._frontends_fixtures import ScanListLog
 from tests.laser_world import align_to_first, between, simulate_run, simulate_scan, square_loop
 
 RESOLUTION = 0.05
@@ -314,16 +314,6 @@ def test_one_stamp_is_interpolated_exactly_as_in_a_batch() -> None:
         assert one_interval[0] == interval
 
 
-class ListLog:
-    path = Path("list.log")
-
-    def __init__(self, scans: list[Scan2D]) -> None:
-        self._scans = scans
-
-    def scans(self, topic: str) -> list[Scan2D]:
-        return self._scans
-
-
 class MountTree:
     def __init__(self, mount: Transform) -> None:
         self.mount = mount
@@ -343,7 +333,7 @@ def test_scans_are_moved_into_the_base_frame_as_by_their_own_transform() -> None
         bearings = np.linspace(-1.5, 1.5, 40)
         points = np.stack([ranges * np.cos(bearings), ranges * np.sin(bearings)], axis=1)
         scans.append(Scan2D(k * 1000, k * 1000, "laser", points, ranges, bearings, 40))
-    log, tree = ListLog(scans), MountTree(mount)
+    log, tree = ScanListLog(scans), MountTree(mount)
     moved = list(scans_in_base_frame(log, "/scan", tree, "base_link"))  # type: ignore[arg-type]
     assert len(moved) == len(scans)
     for scan, (result, has_mount) in zip(scans, moved, strict=True):
