@@ -31,16 +31,16 @@ from frontends.logs.types import Cloud3D, LogInfo, OdometryPose, Scan2D, Transfo
 
 SCAN_TOPIC_OPTION = "--scan-topic"
 ODOMETRY_TOPIC_OPTION = "--odom-topic"
-def _article(word: str) -> str:
-    return "an" if word[:1].lower() in "aeiou" else "a"
-
-
 _KIND_NAMES = {
     "scan": "LaserScan",
     "cloud": "PointCloud",
     "odometry": "odometry",
     "transform": "transform",
 }
+
+
+def _article(word: str) -> str:
+    return "an" if word[:1].lower() in "aeiou" else "a"
 
 
 def open_log(path: str | Path) -> LogReader:
