@@ -10,7 +10,7 @@ the keyframe graph, every measurement's final pose and the map follow from optim
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar
 
@@ -255,11 +255,6 @@ class _SlamResult(Protocol):
 
 ConfigT = TypeVar("ConfigT")
 ResultT = TypeVar("ResultT", bound=_SlamResult)
-FinishedT = TypeVar("FinishedT", covariant=True)
-
-
-class _Finishing(Protocol[FinishedT]):
-    def finish(self) -> FinishedT: ...
 
 
 class LogFrontendBase(Generic[ConfigT, ResultT]):
@@ -279,11 +274,11 @@ class LogFrontendBase(Generic[ConfigT, ResultT]):
         self._requested_base_frame = options.base_frame
         self._result: ResultT | None = None
 
-    def _finished(self, slam: _Finishing[ResultT]) -> ResultT:
-        """`slam.finish()`, its `MapPlacementError` (a continued run that never matched the saved map)
-        naming the log."""
+    def _finished(self, finish: Callable[[], ResultT]) -> ResultT:
+        """`finish()` (the SLAM's), its `MapPlacementError` (a continued run that never matched the saved
+        map) naming the log."""
         try:
-            return slam.finish()
+            return finish()
         except MapPlacementError as error:
             raise MapPlacementError(f"{self._log.path}: {error}") from None
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 from rerun.chunk import RrdReader
+from typer.testing import Result
 
 from optimizer import se2
 from tests._frontends_fixtures import quaternion_from_yaw, ros2_mcap
@@ -24,13 +25,13 @@ LOOP_POSES = 30
 LOOP_INFORMATION = (50.0, 0.0, 0.0, 50.0, 0.0, 200.0)  # g2o upper triangle: xx xy xθ yy yθ θθ
 
 
-def one_error_line(result: object) -> str:
+def one_error_line(result: Result) -> str:
     """The one line a refused command printed (exit code 2, `replay: error: …`), for the caller to check."""
-    assert result.exit_code == 2, result.stderr  # type: ignore[attr-defined]
-    lines = result.stderr.splitlines()  # type: ignore[attr-defined]
-    assert len(lines) == 1, result.stderr  # type: ignore[attr-defined]
+    assert result.exit_code == 2, result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
     assert lines[0].startswith("replay: error: ")
-    return str(lines[0])
+    return lines[0]
 
 
 def loop_graph_text(poses: int = LOOP_POSES, seed: int = 3) -> str:

@@ -89,7 +89,7 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
         if self._counts["scans"] == 0:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
         self._unmounted_means_sensor_poses()
-        self._result = self._finished(self._slam)
+        self._result = self._finished(self._slam.finish)
 
     def _unmounted_means_sensor_poses(self) -> None:
         """No scan placed on a base by tf, and no base named by the user: the poses are the laser's, and

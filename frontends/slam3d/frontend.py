@@ -102,7 +102,7 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
     def finish(self) -> None:
         if self._slam is None:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no point clouds")
-        self._result = self._finished(self._slam)
+        self._result = self._finished(self._slam.finish)
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         return self.result.planar_graph(planar_poses)
