@@ -125,14 +125,15 @@ def test_point_cloud_data_shorter_than_declared_is_refused() -> None:
 
 
 def laser_scan_message(
-    store: Any, ranges: list[float], angle_min: float, increment: float, range_max: float
+    store: Any, ranges: list[float], angle_min: float, increment: float, range_max: float,
+    time_increment: float = 0.0,
 ) -> Any:
     return store.types["sensor_msgs/msg/LaserScan"](
         header=header(store, 1_234_567_890_123_456_789, "base_scan"),
         angle_min=angle_min,
         angle_max=angle_min + increment * (len(ranges) - 1),
         angle_increment=increment,
-        time_increment=0.0,
+        time_increment=time_increment,
         scan_time=0.0,
         range_min=0.1,
         range_max=range_max,
@@ -199,6 +200,33 @@ def test_laser_scan_with_unbounded_range_max_drops_only_non_finite() -> None:
     payload = bytes(STORE2.serialize_cdr(message, "sensor_msgs/msg/LaserScan"))
     scan = converters.ros_laser_scan(ros_wire.laser_scan(payload, True), 0, NO_LIMITS, BearingTable())
     np.testing.assert_array_equal(scan.ranges, [1.0, 500.0])
+
+
+@pytest.mark.parametrize("store", [STORE2, STORE1], ids=["cdr", "ros1"])
+@pytest.mark.parametrize("increment", [0.25, -0.25], ids=["anticlockwise", "clockwise"])
+def test_laser_scan_time_increment_gives_each_kept_beam_its_time(store: Any, increment: float) -> None:
+    # Beam i is taken i·time_increment after the stamp (sensor_msgs/LaserScan); dropped beams (NaN, out of
+    # range) leave gaps in the kept beams' times, not a renumbering.
+    ranges = [1.0, float("nan"), 2.0, 30.0, 3.0, 0.01, 4.0]
+    message = laser_scan_message(store, ranges, 0.5, increment, 20.0, time_increment=0.001)
+    if store is STORE1:
+        fields = ros_wire.laser_scan(bytes(store.serialize_ros1(message, "sensor_msgs/msg/LaserScan")), False)
+    else:
+        fields = ros_wire.laser_scan(bytes(store.serialize_cdr(message, "sensor_msgs/msg/LaserScan")), True)
+    scan = converters.ros_laser_scan(fields, 0, NO_LIMITS, BearingTable())
+    assert scan.point_times is not None
+    np.testing.assert_allclose(scan.point_times, [0.0, 0.002, 0.004, 0.006], rtol=1e-6)
+    np.testing.assert_allclose(scan.bearings, 0.5 + increment * np.array([0, 2, 4, 6]))
+
+
+@pytest.mark.parametrize("time_increment", [0.0, float("nan"), float("inf"), 0.5, -0.5])
+def test_laser_scan_without_usable_beam_times_has_none(time_increment: float) -> None:
+    # 0 is "not given"; NaN, infinite, or a sweep of 3 s over 7 beams is no laser's (MAX_SWEEP_SECONDS).
+    message = laser_scan_message(STORE2, [1.0] * 7, 0.0, 0.1, 5.0, time_increment=time_increment)
+    payload = bytes(STORE2.serialize_cdr(message, "sensor_msgs/msg/LaserScan"))
+    scan = converters.ros_laser_scan(ros_wire.laser_scan(payload, True), 0, NO_LIMITS, BearingTable())
+    assert scan.point_times is None
+    assert len(scan.ranges) == 7
 
 
 @pytest.mark.parametrize("cut", [0, 3, 10, 40])

@@ -6,6 +6,7 @@ Foxglove messages as protobuf messages or JSON objects read through `decoding.fo
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -51,6 +52,10 @@ MAX_CLOUD_COORDINATE = 10_000.0
 """Cloud points farther than this along any axis (m) are dropped: no lidar sees them, and such values
 would overflow the voxel keys of the 3D matching."""
 _FULL_TURN = 2.0 * math.pi * (1.0 + 1e-3)
+MAX_SWEEP_SECONDS = 1.0
+"""A LaserScan whose beams would take longer than this (s) from first to last is read without beam times:
+planar lasers sweep 5–50 times a second, so such a `time_increment` is a unit or driver error, and
+motion-compensating with it would bend the scan instead of straightening it."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -168,7 +173,14 @@ def ros_laser_scan(
     table = bearings.get(count, message.angle_min, message.angle_increment)
     low = max(range_min, limits.minimum, 0.0)
     high = min(range_max, limits.maximum)
-    return _scan(message.stamp_ns, log_time_ns, message.frame_id, message.ranges, table, low, high)
+    scan = _scan(message.stamp_ns, log_time_ns, message.frame_id, message.ranges, table, low, high)
+    time_increment = message.time_increment
+    if time_increment == 0.0 or not abs(time_increment) * (count - 1) <= MAX_SWEEP_SECONDS:
+        return scan  # no beam times given (0), or none a laser could have (NaN, infinite, too slow)
+    # Beam i was taken i·time_increment after the stamp (the first beam's time, by the message's
+    # definition); the kept beams' bearings say which i they were.
+    beam_index = np.rint((scan.bearings - message.angle_min) / message.angle_increment)
+    return dataclasses.replace(scan, point_times=beam_index * time_increment)
 
 
 def foxglove_laser_scan(

@@ -30,7 +30,9 @@ class Scan2D:
     small (hundreds of beams) and everything downstream (scan matching, SE(2) poses) works in float64.
     `ranges` and `bearings` (N,) are the sensor's polar measurements of the same beams (bearing 0 along the
     sensor's x axis). Beams that were non-finite or outside [range_min, range_max] are dropped;
-    `beam_count` is how many beams the message had before that.
+    `beam_count` is how many beams the message had before that. `point_times` (N,) are each beam's time in
+    seconds after `stamp_ns` when the message said when its beams were taken (a LaserScan's
+    `time_increment`), else None: a laser sweeps its beams one after the other while the robot moves.
     """
 
     stamp_ns: int
@@ -40,17 +42,21 @@ class Scan2D:
     ranges: NDArray[np.float64]
     bearings: NDArray[np.float64]
     beam_count: int
+    point_times: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         n = self.ranges.shape[0]
-        if self.points.shape != (n, 2) or self.bearings.shape != (n,):
+        times_shape = (n,) if self.point_times is None else self.point_times.shape
+        if self.points.shape != (n, 2) or self.bearings.shape != (n,) or times_shape != (n,):
             raise ValueError(
                 f"Scan2D arrays disagree: points {self.points.shape}, ranges {self.ranges.shape}, "
-                f"bearings {self.bearings.shape}"
+                f"bearings {self.bearings.shape}, point_times {times_shape}"
             )
         _frozen(self.points)
         _frozen(self.ranges)
         _frozen(self.bearings)
+        if self.point_times is not None:
+            _frozen(self.point_times)
 
     @property
     def stamp(self) -> float:
@@ -78,6 +84,7 @@ class Scan2D:
             self.ranges,
             self.bearings,
             self.beam_count,
+            self.point_times,
         )
 
 

@@ -263,4 +263,4 @@ class _Mount:
         xyz[:, :2] = scan.points
         points = np.ascontiguousarray((xyz @ self._rotation_t + self._mount.translation)[:, :2])
         return Scan2D(scan.stamp_ns, scan.log_time_ns, self._mount.parent_frame, points, scan.ranges,
-                      scan.bearings, scan.beam_count)
+                      scan.bearings, scan.beam_count, scan.point_times)

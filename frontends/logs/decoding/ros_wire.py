@@ -124,6 +124,8 @@ class LaserScanFields(NamedTuple):
     frame_id: str
     angle_min: float
     angle_increment: float
+    time_increment: float
+    """Seconds between two beams (0: not given)."""
     range_min: float
     range_max: float
     ranges: NDArray[np.float32]
@@ -194,16 +196,17 @@ def laser_scan(data: bytes | memoryview, cdr: bool) -> LaserScanFields:
     """sensor_msgs/LaserScan (intensities are not read)."""
     endian, stamp_ns, frame_id, pos = _header(data, cdr)
     try:
-        angle_min, _, increment, _, _, range_min, range_max, count = _STRUCTS[endian]["scan"].unpack_from(
-            data, pos
-        )
+        angle_min, _, increment, time_increment, _, range_min, range_max, count = _STRUCTS[endian][
+            "scan"
+        ].unpack_from(data, pos)
     except struct.error:
         raise WireError("payload ends early") from None
     pos += 32
     if pos + 4 * count > len(data):
         raise WireError("ranges run past the payload")
     ranges = np.frombuffer(data, dtype=endian + "f4", count=count, offset=pos)
-    return LaserScanFields(stamp_ns, frame_id, angle_min, increment, range_min, range_max, ranges)
+    return LaserScanFields(stamp_ns, frame_id, angle_min, increment, time_increment, range_min, range_max,
+                           ranges)
 
 
 def point_cloud2(data: bytes | memoryview, cdr: bool) -> PointCloud2Fields:
