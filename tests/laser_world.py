@@ -194,13 +194,31 @@ def simulate_scan(segments: FloatArray, pose: FloatArray, *, beams: int = 360, f
     Beams are spread over `fov` centred on the heading (a full circle: `beams` bearings from −π, the
     last one short of +π).
     """
+    points, _ = simulate_swept_scan(segments, np.broadcast_to(np.asarray(pose, dtype=np.float64), (beams, 3)),
+                                    fov=fov, max_range=max_range, range_noise=range_noise, rng=rng)
+    return points
+
+
+def beam_bearings(beams: int, fov: float) -> FloatArray:
+    """The bearings of `simulate_scan`'s beams, in the order the laser takes them."""
+    if fov >= 2.0 * math.pi - 1e-12:
+        return -0.5 * fov + fov * np.arange(beams) / beams
+    return np.linspace(-0.5 * fov, 0.5 * fov, beams)
+
+
+def simulate_swept_scan(segments: FloatArray, beam_poses: FloatArray, *, fov: float = 2.0 * math.pi,
+                        max_range: float = 20.0, range_noise: float = 0.0,
+                        rng: np.random.Generator | None = None) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """A laser that takes beam i from `beam_poses[i]` (B, 3), as a real one does while the robot moves:
+    (the points (N, 2), each in the sensor frame of its own beam, as the laser reports them; which of the
+    B beams returned)."""
     if rng is None:
         rng = np.random.default_rng(0)
-    full_circle = fov >= 2.0 * math.pi - 1e-12
-    bearings = (-0.5 * fov + fov * np.arange(beams) / beams if full_circle
-                else np.linspace(-0.5 * fov, 0.5 * fov, beams))
-    direction = np.column_stack([np.cos(pose[2] + bearings), np.sin(pose[2] + bearings)])  # (B, 2)
-    start = segments[:, :2] - np.asarray(pose[:2], dtype=np.float64)  # (M, 2) from the sensor
+    beams = beam_poses.shape[0]
+    bearings = beam_bearings(beams, fov)
+    angles = beam_poses[:, 2] + bearings
+    direction = np.column_stack([np.cos(angles), np.sin(angles)])  # (B, 2)
+    start = segments[None, :, :2] - beam_poses[:, None, :2]  # (B, M, 2) from the sensor
     edge = segments[:, 2:] - segments[:, :2]  # (M, 2)
 
     # Solve origin + r·d = start + u·edge for every beam × segment: r along the beam, u along the wall.
@@ -209,13 +227,24 @@ def simulate_scan(segments: FloatArray, pose: FloatArray, *, beams: int = 360, f
 
     denominator = cross(direction[:, None, :], edge[None, :, :])  # (B, M)
     with np.errstate(divide="ignore", invalid="ignore"):
-        distance = cross(start[None, :, :], edge[None, :, :]) / denominator
-        along = cross(start[None, :, :], direction[:, None, :]) / denominator
+        distance = cross(start, edge[None, :, :]) / denominator
+        along = cross(start, direction[:, None, :]) / denominator
     hits = (np.abs(denominator) > 1e-12) & (distance > 1e-9) & (along >= 0.0) & (along <= 1.0)
     ranges = np.where(hits, distance, np.inf).min(axis=1)
     ranges = ranges + range_noise * rng.standard_normal(beams)
     valid = np.isfinite(ranges) & (ranges > 0.0) & (ranges <= max_range)
-    return np.column_stack([ranges[valid] * np.cos(bearings[valid]), ranges[valid] * np.sin(bearings[valid])])
+    kept, kept_bearings = ranges[valid], bearings[valid]
+    return np.column_stack([kept * np.cos(kept_bearings), kept * np.sin(kept_bearings)]), valid
+
+
+def wall_distances(points_in_world: FloatArray, segments: FloatArray) -> FloatArray:
+    """Each point's distance to the nearest wall."""
+    start, end = segments[None, :, :2], segments[None, :, 2:]
+    edge = end - start
+    along = np.clip(np.sum((points_in_world[:, None, :] - start) * edge, axis=2)
+                    / np.maximum(np.sum(edge * edge, axis=2), 1e-12), 0.0, 1.0)
+    nearest = start + along[..., None] * edge
+    return np.min(np.linalg.norm(points_in_world[:, None, :] - nearest, axis=2), axis=1)
 
 
 # ------------------------------------------------------------------------------------------- driving
@@ -252,10 +281,18 @@ def _rounded_route(route: FloatArray, radius: float) -> list[tuple[str, FloatArr
 
 def drive(world: World, step: float) -> FloatArray:
     """Ground-truth poses (K, 3) every `step` metres of arc length along the world's rounded route."""
+    return route_poses(world, np.arange(0.0, route_length(world) + 1e-9, step))
+
+
+def route_length(world: World) -> float:
+    return float(sum(p[3] for p in _rounded_route(world.route, world.turn_radius)))
+
+
+def route_poses(world: World, arc_length: FloatArray) -> FloatArray:
+    """Poses (K, 3) at the given arc lengths (m, within [0, `route_length`]) along the rounded route."""
     primitives = _rounded_route(world.route, world.turn_radius)
     lengths = np.array([p[3] for p in primitives])
     starts = np.concatenate([[0.0], np.cumsum(lengths)])
-    arc_length = np.arange(0.0, starts[-1] + 1e-9, step)
     which = np.clip(np.searchsorted(starts, arc_length, side="right") - 1, 0, len(primitives) - 1)
     poses = np.empty((len(arc_length), 3))
     radius = world.turn_radius
@@ -306,6 +343,9 @@ class Run:
     """(K, 3) wheel-odometry poses (drifting)."""
     scans: tuple[FloatArray, ...]
     """Each scan's points (N, 2) in the robot frame."""
+    point_times: tuple[FloatArray, ...] | None = None
+    """Each scan's points' times (N,) in seconds after its stamp (`simulate_swept_run`); None: every point
+    taken at the stamp."""
 
 
 def simulate_run(world: World, *, step: float = 0.2, speed: float = 0.5, seed: int = 0,
@@ -319,3 +359,26 @@ def simulate_run(world: World, *, step: float = 0.2, speed: float = 0.5, seed: i
                                 range_noise=range_noise, rng=rng) for pose in truth)
     stamps = 1_700_000_000_000_000_000 + np.arange(len(truth), dtype=np.int64) * round(step / speed * 1e9)
     return Run(stamps, truth, odometry, scans)
+
+
+def simulate_swept_run(world: World, *, speed: float = 1.0, scan_rate: float = 10.0, sweep: float = 0.1,
+                       seed: int = 0, beams: int = 360, fov: float = 2.0 * math.pi, max_range: float = 20.0,
+                       range_noise: float = 0.01, **odometry_noise: float) -> Run:
+    """Drive the route at `speed` (m/s) with a laser that scans `scan_rate` times a second and takes its
+    beams one after the other over `sweep` seconds, each from where the robot is then. `truth` is the pose
+    at each scan's stamp, its first beam's time (as in a LaserScan), and `point_times` the beams' times."""
+    rng = np.random.default_rng(seed)
+    duration = route_length(world) / speed - sweep
+    scan_times = np.arange(0.0, duration, 1.0 / scan_rate)
+    beam_offsets = np.arange(beams) * (sweep / beams)
+    truth = route_poses(world, speed * scan_times)
+    scans, times = [], []
+    for start in scan_times:
+        beam_poses = route_poses(world, speed * (start + beam_offsets))
+        points, valid = simulate_swept_scan(world.segments, beam_poses, fov=fov, max_range=max_range,
+                                            range_noise=range_noise, rng=rng)
+        scans.append(points)
+        times.append(beam_offsets[valid])
+    odometry = wheel_odometry(truth, rng, **odometry_noise)
+    stamps = 1_700_000_000_000_000_000 + np.round(scan_times * 1e9).astype(np.int64)
+    return Run(stamps, truth, odometry, tuple(scans), tuple(times))

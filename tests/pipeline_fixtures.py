@@ -17,7 +17,14 @@ from typer.testing import Result
 
 from optimizer import se2
 from tests._frontends_fixtures import quaternion_from_yaw, ros2_mcap
-from tests.laser_world import drive, simulate_scan, square_loop, wheel_odometry
+from tests.laser_world import (
+    drive,
+    route_poses,
+    simulate_scan,
+    simulate_swept_scan,
+    square_loop,
+    wheel_odometry,
+)
 
 LOOP_POSES = 30
 
@@ -122,6 +129,9 @@ BEAMS = 360
 
 
 SCAN_PERIOD_NS = 400_000_000
+DRIVE_STEP = 0.4
+"""Metres between two scans of `write_drive`."""
+DRIVE_SPEED = DRIVE_STEP / (SCAN_PERIOD_NS * 1e-9)
 
 
 START_NS = 1_700_000_000_000_000_000
@@ -137,12 +147,15 @@ def laser_ranges(points: np.ndarray) -> np.ndarray:
 
 
 def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = None,
-                part: slice | None = None, later_ns: int = 0, seed: int = 7) -> np.ndarray:
-    """Drive the simulated building's loop, writing /scan, /odom, /tf and /tf_static; returns the truth
-    (base poses) per scan. `part`: only these scans of the drive, as a log recorded `later_ns` later whose
-    wheel odometry starts at its own origin (a second recording of the same building)."""
+                part: slice | None = None, later_ns: int = 0, seed: int = 7,
+                sweep: float = 0.0) -> np.ndarray:
+    """Drive the simulated building's loop at 1 m/s, writing /scan, /odom, /tf and /tf_static; returns the
+    truth (base poses) per scan. `part`: only these scans of the drive, as a log recorded `later_ns` later
+    whose wheel odometry starts at its own origin (a second recording of the same building). `sweep`: the
+    laser takes its beams one after the other over this many seconds from the stamp (time_increment set),
+    each from where the robot is then; 0: all at the stamp (time_increment 0)."""
     rng = np.random.default_rng(seed)
-    truth = drive(square_loop(), 0.4)[:scans]
+    truth = drive(square_loop(), DRIVE_STEP)[:scans]
     odometry = wheel_odometry(truth, rng)
     if part is not None:
         truth, odometry = truth[part], odometry[part]
@@ -203,16 +216,17 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                         transforms=[transform(stamp, "odom", "base_link", odometry[k])]
                     ),
                 )
-            laser_pose = se2.compose(pose, LASER_MOUNT)
-            points = simulate_scan(
-                square_loop().segments, laser_pose, beams=BEAMS, max_range=20.0, range_noise=0.01, rng=rng
-            )
+            if sweep:
+                points = _swept_points(k if part is None else k + (part.start or 0), sweep, rng)
+            else:
+                points = simulate_scan(square_loop().segments, se2.compose(pose, LASER_MOUNT), beams=BEAMS,
+                                       max_range=20.0, range_noise=0.01, rng=rng)
             scan = types["sensor_msgs/msg/LaserScan"](
                 header=messages.header(stamp, "laser"),
                 angle_min=0.0,
                 angle_max=float(2 * math.pi * (BEAMS - 1) / BEAMS),
                 angle_increment=float(2 * math.pi / BEAMS),
-                time_increment=0.0,
+                time_increment=sweep / BEAMS,
                 scan_time=0.1,
                 range_min=0.05,
                 range_max=20.0,
@@ -221,6 +235,18 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
             )
             add("/scan", "sensor_msgs/msg/LaserScan", stamp, scan)
     return truth
+
+
+def _swept_points(scan: int, sweep: float, rng: np.random.Generator) -> np.ndarray:
+    """The laser's points of `write_drive`'s scan `scan`, beam j (bearing j·2π/BEAMS) taken j·sweep/BEAMS
+    seconds after the stamp from where the laser then is."""
+    beam_times = np.arange(BEAMS) * (sweep / BEAMS)
+    # `simulate_swept_scan` numbers its beams from bearing −π: its beam i is the LaserScan's beam i + π.
+    in_scan_order = beam_times[(np.arange(BEAMS) + BEAMS // 2) % BEAMS]
+    robot = route_poses(square_loop(), DRIVE_STEP * scan + DRIVE_SPEED * in_scan_order)
+    lasers = se2.compose(robot, np.broadcast_to(LASER_MOUNT, robot.shape))
+    points, _ = simulate_swept_scan(square_loop().segments, lasers, max_range=20.0, range_noise=0.01, rng=rng)
+    return points
 
 
 BROKEN_GRAPH = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0\n"  # the edge lacks values

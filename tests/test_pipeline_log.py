@@ -15,13 +15,17 @@ from mcap.writer import Writer as McapWriter
 from PIL import Image
 from typer.testing import CliRunner
 
+from frontends.logs import open_log
+from frontends.slam2d import ScanEstimate
+from frontends.slam2d.log_input import scans_in_base_frame
 from optimizer import se2
 from optimizer.graph_files import read_graph
+from pipeline.api import replay
 from pipeline.cli import app
 from pipeline.session_file import read_session
 from pipeline.trajectory_io import read_tum
 from tests._frontends_fixtures import RosMessages
-from tests.laser_world import wheel_odometry
+from tests.laser_world import square_loop, transform_points, wall_distances, wheel_odometry
 from tests.pipeline_fixtures import (
     SCAN_PERIOD_NS,
     START_NS,
@@ -141,6 +145,58 @@ def test_replay_without_odometry_still_tracks(tmp_path: Path) -> None:
     trajectory = read_tum(tmp_path / "out" / "no_odometry.tum")
     assert _max_position_error(trajectory.planar(), truth) < 0.15
     assert json.loads((tmp_path / "out" / "no_odometry.json").read_text())["odometry_topic"] is None
+
+
+def _mean_relative_error(poses: np.ndarray, truth: np.ndarray, span: int) -> float:
+    estimated, expected = se2.relative(poses[:-span], poses[span:]), se2.relative(truth[:-span], truth[span:])
+    return float(np.mean(np.hypot(*(estimated[:, :2] - expected[:, :2]).T)))
+
+
+@pytest.mark.parametrize("with_odometry", [True, False], ids=["odometry", "lidar-only"])
+def test_replay_deskews_a_swept_laser_by_its_time_increment(tmp_path: Path, with_odometry: bool) -> None:
+    # The laser takes its 360 beams over 0.1 s at 1 m/s (1 rad/s in the corners) and says so in
+    # time_increment. Deskewing is on by default; `deskew = false` reads the same log as if it were not.
+    # Through the container, the decoder, the frontend (the odometry over each sweep) and the SLAM.
+    path = tmp_path / "swept.mcap"
+    truth = write_drive(path, with_odometry=with_odometry, sweep=0.1)
+    settings = tmp_path / "no_deskew.toml"
+    settings.write_text("[slam2d.matching]\ndeskew = false\n")
+    errors = {}
+    for name, options in (("deskewed", []), ("as_if_instant", ["--config", str(settings)])):
+        out = tmp_path / name
+        result = CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet", *options])
+        assert result.exit_code == 0, result.output
+        assert json.loads((out / "swept.json").read_text())["counts"]["scans_with_beam_times"] == len(truth)
+        errors[name] = _mean_relative_error(read_tum(out / "swept.tum").planar(), truth, span=10)
+    if with_odometry:  # the odometry read over each sweep
+        assert errors["deskewed"] < 0.6 * errors["as_if_instant"], errors
+    else:
+        # Scans 0.4 s apart: the motion of the last two (0.8 s) is too late for the corners to gain much
+        # (tests/test_slam2d_deskew.py: at 10 scans a second, it does), but it must not feed back either.
+        assert errors["deskewed"] < 1.2 * errors["as_if_instant"], errors
+
+
+@pytest.mark.parametrize("with_odometry", [True, False], ids=["odometry", "lidar-only"])
+def test_the_scans_a_swept_replay_hands_on_are_deskewed(tmp_path: Path, with_odometry: bool) -> None:
+    # The scans the recording plays back (each estimate's points, else the measured ones): placed at the
+    # true base poses they lie on the walls, where the measured scans do not.
+    path = tmp_path / "swept.mcap"
+    truth = write_drive(path, with_odometry=with_odometry, scans=60, sweep=0.1)
+    estimates: list[ScanEstimate] = []
+    replay(path, out_dir=tmp_path / "out", on_scan=estimates.append)
+    with open_log(path) as log:
+        measured = [scan.points for scan, _ in
+                    scans_in_base_frame(log, "/scan", log.transform_tree(), "base_link")]
+    assert len(estimates) == len(measured) == len(truth)
+    # Without odometry the first scan has no motion known: shown as measured.
+    assert (estimates[0].points is None) != with_odometry
+    walls = square_loop().segments
+    shown_off, measured_off = [], []
+    for estimate, raw, pose in zip(estimates[1:], measured[1:], truth[1:], strict=True):
+        assert estimate.points is not None and estimate.points.shape == raw.shape
+        shown_off.append(np.percentile(wall_distances(transform_points(estimate.points, pose), walls), 90))
+        measured_off.append(np.percentile(wall_distances(transform_points(raw, pose), walls), 90))
+    assert np.median(shown_off) < 0.5 * np.median(measured_off), (shown_off, measured_off)
 
 
 def test_evaluate_scores_the_replayed_trajectory_against_true_relations(

@@ -65,6 +65,10 @@ class MatchingConfig:
     information_scale: float = 0.05
     """The ICP Hessian treats point errors as independent; they are not (one wall, one bias). The edge
     information is the Hessian scaled by this, which the loop-closure χ² tests rely on."""
+    deskew: bool = True
+    """Motion-compensate scans whose messages say when each beam was taken (LaserScan `time_increment`
+    not 0), under the motion predicted for the scan (`frontends.slam2d.deskew`). Off: every beam is taken
+    as if at the stamp, as for scans without beam times."""
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,7 @@ odometry in, the keyframe graph, every scan's pose and an occupancy map out."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from typing import Any
 
@@ -19,13 +20,32 @@ from frontends.protocol import (
     default_base_frame,
 )
 from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d.deskew import MAX_DESKEW_INTERVAL, deskewed, velocity
 from frontends.slam2d.log_input import OdometryTrack, read_odometry, scans_in_base_frame
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
+from optimizer import se2
 from optimizer.graph import PoseGraph
 
 ScanInBase = tuple[Scan2D, Transform | None]
 """A scan with its points in the base frame, and the mount tf gave (None: left in the sensor frame)."""
+
+
+def deskewed_by_odometry(points: FloatArray, times: FloatArray, stamp_ns: int, odometry: OdometryTrack,
+                         at_stamp: FloatArray, interval_ns: int) -> tuple[FloatArray, FloatArray | None]:
+    """The scan's points deskewed under the wheel odometry read over the sweep itself, and None for their
+    times; as given (points, times) when the odometry does not reach the sweep's end or is too sparse to
+    tell the motion in it (messages over `MAX_DESKEW_INTERVAL` apart): the SLAM then estimates the
+    motion (`frontends.slam2d.deskew.ScanDeskewer`), a whole scan period late.
+
+    `at_stamp` is the odometry at the stamp, interpolated in an interval of `interval_ns`."""
+    sweep = float(times[np.argmax(np.abs(times))]) if len(times) else 0.0  # the beam farthest from the stamp
+    if sweep == 0.0:
+        return points, times
+    end, end_interval = odometry.interpolate(np.array([stamp_ns + round(sweep * 1e9)]))
+    if not np.all(np.isfinite(end)) or max(interval_ns, int(end_interval[0])) > MAX_DESKEW_INTERVAL * 1e9:
+        return points, times
+    return deskewed(points, times, velocity(se2.relative(at_stamp, end[0]), sweep)), None
 
 
 class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
@@ -44,7 +64,10 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
         if self.base_frame is None and self.odometry is not None:  # the odometry's poses are of that frame
             self.base_frame = self.odometry.child_frame
         self._slam = LaserSlam2D(self.config)
-        self._counts = {"scans": 0, "scans_with_tf_mount": 0, "scans_with_odometry": 0}
+        self._counts = {"scans": 0, "scans_with_tf_mount": 0, "scans_with_odometry": 0,
+                        "scans_with_beam_times": 0}
+        self._last_estimate: tuple[int, FloatArray] | None = None
+        """The stamp and pose given to the last scan."""
         self.odometry_poses: list[FloatArray] = []
         """The wheel-odometry pose at every scan that had one (for the recording; empty when the
         odometry's first pose is not the map's origin, see `odometry_starts_at_map_origin`)."""
@@ -64,23 +87,47 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
     def add(self, measurement: ScanInBase) -> ScanEstimate:
         scan, mount = measurement
         prediction, interval = None, 0.0
+        points, times = scan.points, scan.point_times if self.config.matching.deskew else None
         if self.odometry is not None:
             at, intervals = self.odometry.interpolate(np.array([scan.stamp_ns]))
             prediction = None if np.isnan(at[0, 0]) else at[0]
             interval = float(intervals[0]) * 1e-9
-        estimate = self._process(scan.stamp_ns, scan.points, prediction, interval)
+            if prediction is not None and times is not None:
+                points, times = deskewed_by_odometry(points, times, scan.stamp_ns, self.odometry,
+                                                     prediction, int(intervals[0]))
+        estimate = self._process(scan.stamp_ns, points, prediction, interval, times)
+        if times is not None:
+            # The SLAM deskewed the scan under the motions of the scans before it, all it knew then; the
+            # scan handed on (the recording's playback) is deskewed under its own matched motion.
+            points = self._deskewed_for_display(scan.stamp_ns, points, times, estimate.pose)
+        self._last_estimate = (scan.stamp_ns, estimate.pose)
+        if points is not scan.points:
+            estimate = dataclasses.replace(estimate, points=points)
         self._counts["scans"] += 1
         self._counts["scans_with_tf_mount"] += mount is not None
+        self._counts["scans_with_beam_times"] += scan.point_times is not None
         if prediction is not None:
             self._counts["scans_with_odometry"] += 1
             if self.odometry_starts_at_map_origin:
                 self.odometry_poses.append(prediction)
         return estimate
 
+    def _deskewed_for_display(self, stamp_ns: int, points: FloatArray, times: FloatArray,
+                              pose: FloatArray) -> FloatArray:
+        if self._last_estimate is None:
+            return points
+        last_stamp, last_pose = self._last_estimate
+        elapsed = (stamp_ns - last_stamp) * 1e-9
+        motion = se2.relative(last_pose, pose)
+        if not (0.0 < elapsed <= MAX_DESKEW_INTERVAL and np.all(np.isfinite(motion))):
+            return points
+        return deskewed(points, times, velocity(motion, elapsed))
+
     def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
-                 odometry_interval: float) -> ScanEstimate:
-        """One scan (base-frame points, its interpolated wheel-odometry pose) through the SLAM."""
-        return self._slam.add_scan(stamp_ns, points, odometry, odometry_interval)
+                 odometry_interval: float, point_times: FloatArray | None) -> ScanEstimate:
+        """One scan (base-frame points, its interpolated wheel-odometry pose, its beams' times) through the
+        SLAM."""
+        return self._slam.add_scan(stamp_ns, points, odometry, odometry_interval, point_times)
 
     def keyframe_position(self, keyframe: int) -> FloatArray:
         return self._slam.keyframe_position(keyframe)

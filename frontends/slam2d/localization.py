@@ -54,6 +54,7 @@ from frontends.slam2d.config import (
     Slam2DConfig,
 )
 from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
+from frontends.slam2d.deskew import ScanDeskewer
 from frontends.slam2d.global_match import VerifiedMatch, match_unambiguous, thinned_query
 from frontends.slam2d.grid import build_likelihood_grid
 from frontends.slam2d.held_odometry import OdometryHold
@@ -214,6 +215,7 @@ class MapLocalizer:
             self.settings.global_angular_step,
         )
         self._count = 0
+        self._deskewer = ScanDeskewer()
         self._pose: FloatArray | None = None if initial_pose is None else np.array(initial_pose, dtype=float)
         self._covariance = self._fix_covariance()
         self._last_odometry: FloatArray | None = None
@@ -254,22 +256,31 @@ class MapLocalizer:
         points: FloatArray,
         odometry: FloatArray | None = None,
         odometry_interval: float = 0.0,
+        point_times: FloatArray | None = None,
     ) -> LocalizedScan:
-        """Place one scan (`points` (N, 2) in the robot base frame) in the map; `odometry` is its wheel
-        odometry pose (any origin: only the motion between scans is used), interpolated between messages
-        `odometry_interval` seconds apart."""
+        """Place one scan (`points` (N, 2) in the robot base frame, taken at `point_times` (N,) s after
+        `stamp_ns`, None: at the stamp) in the map; `odometry` is its wheel odometry pose (any origin: only
+        the motion between scans is used), interpolated between messages `odometry_interval` seconds
+        apart."""
         matching = self.config.matching
         points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        points = np.ascontiguousarray(points[np.einsum("ij,ij->i", points, points) <= matching.max_range**2])
+        in_range = np.einsum("ij,ij->i", points, points) <= matching.max_range**2
+        points = np.ascontiguousarray(points[in_range])
+        times = None if point_times is None or not matching.deskew else np.asarray(point_times)[in_range]
         index = self._count
         self._count += 1
         odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
         if self._pose is None:
+            self._deskewer.moved(int(stamp_ns), None)  # the lost stretch's tracker deskews its scans
             with self.stage_times.stage("global"):
-                return self._search(index, int(stamp_ns), points, odometry, odometry_interval)
+                return self._search(index, int(stamp_ns), points, odometry, odometry_interval, times)
         has_odometry = odometry is not None and self._last_odometry is not None
         with self.stage_times.stage("tracking"):
-            result = self._track(index, int(stamp_ns), points, odometry, odometry_interval)
+            prediction = self._predict(odometry, odometry_interval <= RELIABLE_ODOMETRY_INTERVAL)
+            odometry_motion = se2.relative(self._pose, prediction[0]) if has_odometry else None
+            points = self._deskewer.deskewed(points, times, int(stamp_ns), odometry_motion)
+            result = self._track(index, int(stamp_ns), points, odometry, odometry_interval, prediction)
+            self._deskewer.moved(int(stamp_ns), self._last_motion)
         self._last_odometry = odometry
         moved = float(np.hypot(self._last_motion[0], self._last_motion[1]))
         self._since_attempt += moved
@@ -313,13 +324,15 @@ class MapLocalizer:
         return result
 
     def _track(self, index: int, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
-               odometry_interval: float) -> LocalizedScan:
+               odometry_interval: float,
+               prediction: tuple[FloatArray, FloatArray, FloatArray]) -> LocalizedScan:
+        """Match a scan around `prediction` (`_predict`'s)."""
         assert self._pose is not None
         matching = self.config.matching
         reliable = odometry_interval <= RELIABLE_ODOMETRY_INTERVAL
         has_odometry = odometry is not None and self._last_odometry is not None
         previous = self._pose
-        prior, covariance, noise = self._predict(odometry, reliable)
+        prior, covariance, noise = prediction
         motion, motion_information = se2.relative(previous, prior), np.linalg.inv(noise)
         map_information = np.zeros((3, 3))
         # ICP weighs its points as independent, which the match's information undoes by
@@ -548,7 +561,7 @@ class MapLocalizer:
         self._tracker = None
 
     def _search(self, index: int, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
-                odometry_interval: float) -> LocalizedScan:
+                odometry_interval: float, times: FloatArray | None) -> LocalizedScan:
         """Track the scan in the lost stretch's own frame; at a new keyframe, look for it in the map."""
         if self._tracker is None or len(self._tracker.keyframe_poses()) > self.settings.max_lost_keyframes:
             disabled = replace(self.config.loop_closure, enabled=False)
@@ -556,7 +569,7 @@ class MapLocalizer:
             self._tracked = []
             self._last_tracker_keyframe = -1
             self._next_attempt = self.settings.min_query_keyframes
-        estimate = self._tracker.add_scan(stamp_ns, points, odometry, odometry_interval)
+        estimate = self._tracker.add_scan(stamp_ns, points, odometry, odometry_interval, times)
         self._tracked.append(index)
         nothing = LocalizedScan(index, stamp_ns, np.full(3, np.nan), False, False, math.nan, 0.0, math.inf,
                                 np.zeros((3, 3)))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -72,6 +73,16 @@ class SavedScans:
         return cls(result.scan_stamps_ns, result.scan_keyframes, result.scan_offsets)
 
 
+class _WaitingScan(NamedTuple):
+    """A new scan kept until the run is placed: `LaserSlam2D.add_scan`'s arguments."""
+
+    stamp_ns: int
+    points: FloatArray
+    odometry: FloatArray | None
+    odometry_interval: float
+    point_times: FloatArray | None
+
+
 class ResumedSlam2D(LaserSlam2D):
     """`LaserSlam2D` started from a saved keyframe graph (see the module's docstring); use
     `LaserSlam2D.resume` to make one."""
@@ -108,7 +119,7 @@ class ResumedSlam2D(LaserSlam2D):
             self._scan_stamps = [int(s) for s in scans.stamps_ns]
             self._scan_keyframes = [int(k) for k in scans.keyframes]
             self._scan_offsets = [np.asarray(o, dtype=np.float64) for o in scans.offsets]
-        self._waiting: list[tuple[int, FloatArray, FloatArray | None, float]] = []
+        self._waiting: list[_WaitingScan] = []
         self._local_map = None
         self.scans_unplaced = 0
         """New scans seen before the stretch that was placed, left out of the graph."""
@@ -125,16 +136,17 @@ class ResumedSlam2D(LaserSlam2D):
         points: FloatArray,
         odometry: FloatArray | None = None,
         odometry_interval: float = 0.0,
+        point_times: FloatArray | None = None,
     ) -> ScanEstimate:
         """As `LaserSlam2D.add_scan`. Until the run is placed in the old map the scan waits: its estimate
         has a NaN pose, `matched` False and keyframe −1 (`finish` gives it its pose)."""
         if self._placer is None:
-            return super().add_scan(stamp_ns, points, odometry, odometry_interval)
+            return super().add_scan(stamp_ns, points, odometry, odometry_interval, point_times)
         odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
         points = np.asarray(points, dtype=np.float64)
-        self._waiting.append((int(stamp_ns), points, odometry, odometry_interval))
+        self._waiting.append(_WaitingScan(int(stamp_ns), points, odometry, odometry_interval, point_times))
         index = len(self._scan_stamps) + len(self._waiting) - 1
-        found = self._placer.localize(stamp_ns, points, odometry, odometry_interval)
+        found = self._placer.localize(stamp_ns, points, odometry, odometry_interval, point_times)
         if not found.localized:
             return ScanEstimate(index, int(stamp_ns), np.full(3, np.nan), False, -1, ())
         self.placement = found
@@ -149,16 +161,15 @@ class ResumedSlam2D(LaserSlam2D):
         self.scans_unplaced = first
         self._start_new_run(waiting[0], placed[first], found.information)
         estimate = None
-        for stamp, scan, scan_odometry, interval in waiting[1:]:
-            estimate = super().add_scan(stamp, scan, scan_odometry, interval)
+        for scan in waiting[1:]:
+            estimate = super().add_scan(*scan)
         if estimate is None:
             keyframe = len(self._keyframe_poses) - 1
             estimate = ScanEstimate(index, int(stamp_ns), self._last_pose.copy(), True, keyframe, ())
         return estimate
 
-    def _start_new_run(self, scan: tuple[int, FloatArray, FloatArray | None, float], pose: FloatArray,
-                       information: FloatArray) -> None:
-        stamp, points, odometry, _ = scan
+    def _start_new_run(self, scan: _WaitingScan, pose: FloatArray, information: FloatArray) -> None:
+        stamp, points, odometry = scan.stamp_ns, scan.points, scan.odometry
         max_range = self.config.matching.max_range
         points = points[np.einsum("ij,ij->i", points, points) <= max_range**2]
         old = np.array(self._keyframe_poses[: self._old_count])

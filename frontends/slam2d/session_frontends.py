@@ -76,8 +76,8 @@ class ContinuingLaserFrontend(LaserFrontend):
         self._slam = self._resumed
 
     def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
-                 odometry_interval: float) -> ScanEstimate:
-        estimate = super()._process(stamp_ns, points, odometry, odometry_interval)
+                 odometry_interval: float, point_times: FloatArray | None) -> ScanEstimate:
+        estimate = super()._process(stamp_ns, points, odometry, odometry_interval, point_times)
         # The resumed SLAM counts the session's scans too: the estimate is of this log's next scan.
         return dataclasses.replace(estimate, index=self._counts["scans"])
 
@@ -131,8 +131,8 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self._smoothing: SmoothedTrajectory | None = None
 
     def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
-                 odometry_interval: float) -> ScanEstimate:
-        found = self._localizer.localize(stamp_ns, points, odometry, odometry_interval)
+                 odometry_interval: float, point_times: FloatArray | None) -> ScanEstimate:
+        found = self._localizer.localize(stamp_ns, points, odometry, odometry_interval, point_times)
         self._found.append(found)
         self._poses.append(found.pose.copy())
         if found.global_fix:

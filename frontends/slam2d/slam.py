@@ -38,6 +38,7 @@ from frontends.slam2d.config import (
     Slam2DConfig,
 )
 from frontends.slam2d.correlative import Match, SearchWindow, match_branch_and_bound, match_exhaustive
+from frontends.slam2d.deskew import ScanDeskewer
 from frontends.slam2d.global_match import match_unambiguous
 from frontends.slam2d.grid import LikelihoodGrid
 from frontends.slam2d.held_odometry import OdometryHold
@@ -86,6 +87,8 @@ class ScanEstimate:
     keyframe: int
     new_loop_closures: tuple[tuple[int, int], ...]
     """Loop closures (older keyframe, this keyframe) accepted while processing this scan."""
+    points: FloatArray | None = None
+    """The scan's points (N, 2) in the base frame, deskewed (`LaserFrontend.add`); None: as measured."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,6 +197,7 @@ class LaserSlam2D:
         self._last_motion = np.zeros(3)
         self._odometry_hold = OdometryHold()
         """While the wheel odometry repeats its last value: the motion tracked since it last changed."""
+        self._deskewer = ScanDeskewer()
         self._local_map: Submap | None = None
         self._local_map_first = 0
         """The oldest keyframe in the local map (the map holds it and every later one)."""
@@ -232,12 +236,16 @@ class LaserSlam2D:
         points: FloatArray,
         odometry: FloatArray | None = None,
         odometry_interval: float = 0.0,
+        point_times: FloatArray | None = None,
     ) -> ScanEstimate:
         """Process one scan: `points` (N, 2) in the robot base frame, `odometry` its wheel-odometry pose,
-        interpolated between messages `odometry_interval` seconds apart (0: a message at the scan's stamp)."""
+        interpolated between messages `odometry_interval` seconds apart (0: a message at the scan's stamp),
+        `point_times` (N,) when each point was taken (s after `stamp_ns`; None: all at the stamp)."""
         matching = self.config.matching
         points = np.asarray(points, dtype=np.float64)
-        points = points[np.einsum("ij,ij->i", points, points) <= matching.max_range**2]
+        in_range = np.einsum("ij,ij->i", points, points) <= matching.max_range**2
+        points = points[in_range]
+        times = None if point_times is None or not matching.deskew else np.asarray(point_times)[in_range]
         index = len(self._scan_stamps)
         new_loops: tuple[tuple[int, int], ...] = ()
         if not self._keyframe_poses:
@@ -248,6 +256,9 @@ class LaserSlam2D:
             reliable = odometry_interval <= RELIABLE_ODOMETRY_INTERVAL
             with self.stage_times.stage("matching"):
                 prior, prior_information = self._predict(odometry, reliable)
+                odometry_motion = (None if odometry is None or self._last_odometry is None
+                                   else se2.relative(self._last_pose, prior))
+                points = self._deskewer.deskewed(points, times, int(stamp_ns), odometry_motion)
                 pose, matched, information = self._match(
                     points, prior, prior_information,
                     1.0 if reliable else UNRELIABLE_ODOMETRY_SCALE,
@@ -269,6 +280,7 @@ class LaserSlam2D:
                     new_loops = self._close_loops()
                 pose = self._last_pose  # the loop closures may have moved it
         self._last_odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
+        self._deskewer.moved(int(stamp_ns), self._last_motion if index else None)
         keyframe = len(self._keyframe_poses) - 1
         self._scan_stamps.append(int(stamp_ns))
         self._scan_keyframes.append(keyframe)

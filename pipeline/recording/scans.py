@@ -185,7 +185,8 @@ class ScanReplayRecording:
         x, y, theta = (float(value) for value in estimate.pose)
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(theta)):
             return  # not placed yet (a run joining a saved map): no pose
-        self._scans.add(estimate.index, estimate.stamp_ns, scan.points, estimate.pose)
+        points = scan.points if estimate.points is None else estimate.points
+        self._scans.add(estimate.index, estimate.stamp_ns, points, estimate.pose)
         if estimate.new_loop_closures:
             position = self._frontend.keyframe_position
             segments = np.array([[position(a), position(b)] for a, b in estimate.new_loop_closures])

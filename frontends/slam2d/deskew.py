@@ -1,0 +1,102 @@
+"""Motion compensation of a planar laser scan: each beam moved to where the robot was at the scan's stamp.
+
+A laser takes its beams one after the other: a 10 Hz laser spends up to 0.1 s on a scan, and a robot
+turning at 1 rad/s meanwhile turns by up to 6°, which bends straight walls and, on a 360° laser, puts the
+last beams beside the first ones a few centimetres off. Under constant velocity across the scan (the
+motion predicted since the previous scan, spread evenly over that time) the beam taken t seconds after the
+stamp is moved by exp(t·ξ), ξ the robot's velocity twist in its own frame.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+from numpy.typing import NDArray
+
+from optimizer import se2
+
+FloatArray = NDArray[np.float64]
+
+MAX_DESKEW_INTERVAL = 1.0
+"""A scan more than this many seconds after the previous one is not deskewed: the motion averaged over a
+gap in the log says little about the motion during the scan's sweep."""
+VELOCITY_MOTIONS = 2
+"""Without wheel odometry the velocity is that of this many matched motions, the last ones. The last one
+alone feeds each match's error back into the next scan's deskewing, which bends that scan the other way:
+on simulated lidar-only drives the poses then swung from scan to scan until the track was lost. Over two
+the feedback dies out; over more, the velocity lags further behind the robot's, which costs more at turns
+than it gains (`benchmarks/deskew2d_bench.py`)."""
+
+
+class ScanDeskewer:
+    """Deskews the scans of one run in time order: under the wheel odometry's motion since the previous
+    scan when there is one, else under the velocity of the last matched motions (`VELOCITY_MOTIONS`).
+
+    It keeps motions, not poses: a loop closure or an optimization moves the poses of the recent scans,
+    not the motions between them."""
+
+    def __init__(self) -> None:
+        self._recent: deque[tuple[float, FloatArray]] = deque(maxlen=VELOCITY_MOTIONS)
+        """(seconds, matched motion from the previous scan) of the last scans, oldest first."""
+        self._last_stamp: int | None = None
+
+    def deskewed(self, points: FloatArray, times: FloatArray | None, stamp_ns: int,
+                 odometry_motion: FloatArray | None) -> FloatArray:
+        """`points` (N, 2) taken at `times` (N,) (s after `stamp_ns`) in the robot frame at the stamp, under
+        `odometry_motion`, the wheel odometry's motion since the previous scan (None: no odometry), else
+        under the recent matched motions. As given without times, for a first scan, or after a gap
+        (`MAX_DESKEW_INTERVAL`)."""
+        if times is None or self._last_stamp is None:
+            return points
+        elapsed = (stamp_ns - self._last_stamp) * 1e-9
+        if not 0.0 < elapsed <= MAX_DESKEW_INTERVAL:
+            return points
+        if odometry_motion is not None:
+            return deskewed(points, times, velocity(odometry_motion, elapsed))
+        if not self._recent:
+            return points
+        motion = se2.compose_chain(np.array([step for _, step in self._recent]))[-1]
+        return deskewed(points, times, velocity(motion, sum(seconds for seconds, _ in self._recent)))
+
+    def moved(self, stamp_ns: int, motion: FloatArray | None) -> None:
+        """The scan at `stamp_ns` was matched `motion` (x, y, θ) from the previous one (None: the first
+        scan, or the first after the track was lost)."""
+        elapsed = math.inf if self._last_stamp is None else (stamp_ns - self._last_stamp) * 1e-9
+        if motion is None or not 0.0 < elapsed <= MAX_DESKEW_INTERVAL:
+            self._recent.clear()  # after a gap the velocity before it is not the velocity now
+        else:
+            self._recent.append((elapsed, np.array(motion, dtype=np.float64)))
+        self._last_stamp = int(stamp_ns)
+
+
+def velocity(motion: FloatArray, elapsed: float) -> FloatArray:
+    """The constant twist (vx, vy, ω) per second, in the robot's frame, that moves it by `motion` (x, y, θ)
+    in `elapsed` seconds: the SE(2) logarithm of the motion, divided by the time."""
+    x, y, theta = (float(value) for value in motion)
+    along, across = _arc_factors(theta)
+    scale = along * along + across * across  # V(θ) = [[along, −across], [across, along]], inverted below
+    vx = (along * x + across * y) / scale
+    vy = (-across * x + along * y) / scale
+    return np.array([vx, vy, theta]) / elapsed
+
+
+def deskewed(points: FloatArray, times: FloatArray, twist: FloatArray) -> FloatArray:
+    """`points` (N, 2) in the robot frame at their own `times` (N,) (s after the stamp) → in the robot frame
+    at the stamp: exp(t·`twist`) applied to each."""
+    turn = times * twist[2]
+    along = np.sinc(turn / math.pi)  # sin θ / θ, 1 at θ = 0
+    across = np.sin(0.5 * turn) * np.sinc(turn / (2.0 * math.pi))  # (1 − cos θ) / θ, 0 at θ = 0
+    tx = times * (along * twist[0] - across * twist[1])
+    ty = times * (across * twist[0] + along * twist[1])
+    cos, sin = np.cos(turn), np.sin(turn)
+    x, y = points[:, 0], points[:, 1]
+    return np.column_stack([cos * x - sin * y + tx, sin * x + cos * y + ty])
+
+
+def _arc_factors(theta: float) -> tuple[float, float]:
+    """(sin θ / θ, (1 − cos θ) / θ), exact near θ = 0."""
+    if abs(theta) < 1e-9:
+        return 1.0, 0.5 * theta
+    return math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta
