@@ -205,8 +205,7 @@ def kiss_icp_alone(frames: list[np.ndarray], times: list[np.ndarray]) -> tuple[n
 
 
 OUR_IMPORTS = (
-    "import pipeline.replay_log, frontends.slam3d.session_frontends, pipeline.recording.clouds, "
-    "pipeline.recording.localization3d"
+    "import pipeline.replay_log, frontends.slam3d.session_frontends, pipeline.recording.clouds"
 )
 """What `replay_log` imports for a log of clouds: the 3D modules are imported once the log turns out to
 hold clouds (`pipeline.replay_log._cloud_sensor`), inside the run's time but for its first log only."""

@@ -81,10 +81,8 @@ if TYPE_CHECKING:  # loaded by the first log of their sensor kind only (`_scan_s
     from frontends.slam2d.session_frontends import LocalizingLaserFrontend
     from frontends.slam3d import Slam3DConfig
     from frontends.slam3d.session_frontends import LocalizingLidarFrontend
-    from pipeline.recording.clouds import CloudReplayRecording
-    from pipeline.recording.localization import MapLocalizationRecording
-    from pipeline.recording.localization3d import CloudLocalizationRecording
-    from pipeline.recording.scans import ScanReplayRecording
+    from pipeline.recording.clouds import CloudLocalizationRecording, CloudReplayRecording
+    from pipeline.recording.scans import MapLocalizationRecording, ScanReplayRecording
 
 FloatArray = NDArray[np.float64]
 EstimateCallback = Callable[[Estimate], None]
@@ -206,8 +204,7 @@ def _scan_sensor() -> _Sensor:
     # frontend's compiled kernels (0.3 s of start-up), nor a laser replay the 3D one.
     from frontends.slam2d import LaserFrontend
     from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
-    from pipeline.recording.localization import MapLocalizationRecording
-    from pipeline.recording.scans import ScanReplayRecording
+    from pipeline.recording.scans import MapLocalizationRecording, ScanReplayRecording
 
     return _Sensor(LaserFrontend, ScanReplayRecording, (
         _MapFile("map_png", "_map.png", lambda path, grid: write_png(path, picture_with_scale_bar(grid))),
@@ -223,8 +220,7 @@ def _scan_sensor() -> _Sensor:
 def _cloud_sensor() -> _Sensor:
     from frontends.slam3d import LidarFrontend
     from frontends.slam3d.session_frontends import ContinuingLidarFrontend, LocalizingLidarFrontend
-    from pipeline.recording.clouds import CloudReplayRecording
-    from pipeline.recording.localization3d import CloudLocalizationRecording
+    from pipeline.recording.clouds import CloudLocalizationRecording, CloudReplayRecording
 
     return _Sensor(LidarFrontend, CloudReplayRecording, (_MapFile("ply", ".ply", write_ply),
                                                          _MapFile("pcd", ".pcd", write_map_pcd)),

@@ -7,6 +7,9 @@ with a visible time range from the start to the cursor, so the scans build up th
 a trail and the loop closures found stay drawn. Static: the wheel-odometry trajectory and the final
 trajectory of every scan (both off by default in the map view). Per-scan data is buffered and sent in
 column batches, which keeps the cost of recording a small part of a replay.
+
+`MapLocalizationRecording` is the recording of a localization in a saved 2D map (`replay LOG --map
+SESSION`): the scans as above, under the saved map (see its docstring).
 """
 
 from __future__ import annotations
@@ -19,10 +22,15 @@ import rerun as rr
 import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
-from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, one_per_cell_each
+from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, one_per_cell_each, place
+from frontends.slam2d.session_frontends import LocalizingLaserFrontend
 from optimizer import se2
 from pipeline.recording import (
     LINE_WIDTH,
+    MAP_COLOR,
+    MAP_DRAW_ORDER,
+    MAP_POINT_RADIUS,
+    MATCH_QUALITY_ENTITY,
     SCAN_TIMELINE,
     TIME_TIMELINE,
     VIEWER_BACKGROUND,
@@ -30,7 +38,10 @@ from pipeline.recording import (
     FloatArray,
     IterationSink,
     default_blueprint,
+    log_legend,
     map2d,
+    send_blueprint,
+    send_match_quality,
     visual_bounds,
 )
 
@@ -210,3 +221,60 @@ class ScanReplayRecording:
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
         log_final_trajectory(self._recording, estimates)
         map2d.log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)
+
+
+SAVED_MAP_ENTITY = "world/saved_map"
+LOCALIZATION_LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
+    "saved map": (MAP_COLOR, "the saved keyframe scans at their saved poses, over its occupancy grid"),
+    "trajectory": (FINAL_TRAJECTORY_COLOR, "every localized scan's pose in the map"),
+    "scan playback": (SCAN_COLOR, "tab: the new scans up to the cursor on `scan`/`time` at "
+                                  "their poses when processed, robot trail (green)"),
+}
+
+
+def log_saved_map(recording: rr.RecordingStream, keyframe_scans: Sequence[FloatArray],
+                  keyframe_poses: FloatArray) -> None:
+    """Every saved keyframe scan at its saved pose, one static point cloud (thinned per keyframe)."""
+    placed = [place(map2d.thin_scan(scan).astype(np.float64), pose)
+              for scan, pose in zip(keyframe_scans, keyframe_poses, strict=True) if len(scan)]
+    points = np.concatenate(placed) if placed else np.zeros((0, 2))
+    recording.log(SAVED_MAP_ENTITY, rr.Points2D(points.astype(np.float32), colors=[MAP_COLOR],
+                                                radii=[MAP_POINT_RADIUS], draw_order=MAP_DRAW_ORDER),
+                  static=True)
+
+
+MATCH_SERIES_2D = ("score", "inlier_fraction")
+"""A laser match has two measures: the correlative score and the ICP inlier fraction."""
+
+
+class MapLocalizationRecording(ScanReplayRecording):
+    """`ScanReplayRecording` for a localization in a saved 2D map (`replay LOG --map SESSION`);
+    `final(saved keyframe poses, localized poses, saved occupancy grid)`.
+
+    Beside what `ScanReplayRecording` records of every scan as it is processed (the scan placed at its
+    pose, the robot's trail, on the `scan` and `time` timelines):
+    - `world/saved_map` (static): the saved keyframe scans at their saved poses, thinned, over
+    - `world/occupancy/grid` (static): the saved map's occupancy grid (`pipeline.recording.map2d`);
+    - `world/final_trajectory` (static): every localized scan's pose, drawn by default here.
+    - `localization/score` and `localization/inlier_fraction` on `scan`: how well each matched scan fit the
+      saved map (nothing for a scan whose pose is only the odometry's prediction).
+    The blueprint frames the saved map and the new trajectory and plots the match quality where a log
+    replay plots χ²; nothing is optimized, so there is no `iteration` timeline.
+    """
+
+    def __init__(self, recording: rr.RecordingStream, frontend: LocalizingLaserFrontend) -> None:
+        super().__init__(recording, frontend)
+        self._saved_scans = frontend.saved.keyframe_scans
+        self._localizer = frontend
+
+    def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
+        log_saved_map(self._recording, self._saved_scans, planar_poses)
+        map2d.log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)
+        log_final_trajectory(self._recording, estimates)
+        log_legend(self._recording, rows=LOCALIZATION_LEGEND_ROWS, note="")
+        bounds = map2d.placed_bounds(self._saved_scans, planar_poses, estimates)
+        send_match_quality(self._recording, self._localizer.localizations, MATCH_SERIES_2D)
+        send_blueprint(self._recording, default_blueprint(
+            bounds=bounds, extra_tabs=playback_views(bounds), excluded=PLAYBACK_ENTITIES,
+            timeline=SCAN_TIMELINE,
+            side=[rrb.TimeSeriesView(origin=MATCH_QUALITY_ENTITY, name="match quality per scan")]))
