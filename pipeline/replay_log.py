@@ -145,14 +145,10 @@ class SessionStart:
     def load(cls, path: str | Path, mode: Literal["continue", "map"],
              initial_pose: Sequence[float] | None = None) -> SessionStart:
         """Read the session file (`SessionError` naming it when it is damaged or from a newer version)."""
-        if mode not in ("continue", "map"):
-            raise PipelineError(f"unknown session mode {mode!r}; choose continue or map")
+        # `pipeline.api.replay`, the one caller, has refused an initial pose without "map" already.
         pose = None if initial_pose is None else tuple(float(value) for value in initial_pose)
-        if pose is not None:
-            if mode != "map":
-                raise PipelineError("an initial pose applies to localization in a map (--map) only")
-            if len(pose) != 3 or not all(np.isfinite(pose)):
-                raise PipelineError(f"the initial pose must be three finite numbers x, y, yaw; got {pose}")
+        if pose is not None and (len(pose) != 3 or not all(np.isfinite(pose))):
+            raise PipelineError(f"the initial pose must be three finite numbers x, y, yaw; got {pose}")
         return cls(Path(path), mode, read_session(Path(path)), pose)
 
     def frontend_for(self, sensor: _Sensor, kind: str, log: LogReader, topic: str, config: Any,
@@ -163,7 +159,10 @@ class SessionStart:
             raise PipelineError(f"{self.path} is a map of {SENSOR_WORDS[saved_kind]} and {log.path} has "
                                 f"{SENSOR_WORDS[kind]} ({topic}): a session continues or localizes logs of "
                                 "its own kind")
-        return sensor.from_session(log, topic, config, options, self)
+        saved = sensor.saved_map(self.path, self.content)
+        if self.mode == "continue":
+            return sensor.continuing(log, topic, saved, config, options)
+        return sensor.localizing(log, topic, saved, config, options, initial_pose=self.initial_pose)
 
 
 @dataclass(frozen=True)
@@ -174,28 +173,15 @@ class _Sensor:
     recording: type[ScanReplayRecording] | type[CloudReplayRecording]
     """A `FrontendRecording` of the frontend (`recording(stream, frontend)`)."""
     map_files: tuple[_MapFile, ...]
-    from_session: Callable[[LogReader, str, Any, FrontendOptions, SessionStart], Any]
-    """The frontend of a replay that starts from a saved session: continuing it (a `LogFrontend`) or
-    localizing in it (a `LocalizingFrontend`)."""
+    saved_map: Callable[[Path, SessionContent], Any]
+    """The saved map of a session (`SessionError` when it is damaged), which the two frontends below
+    start from: continuing it (a `LogFrontend`) or localizing in it (a `LocalizingFrontend`)."""
+    continuing: Callable[..., LogFrontend]
+    localizing: Callable[..., LocalizingFrontend]
     localization_recording: type[MapLocalizationRecording] | type[CloudLocalizationRecording]
     """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
     kitti_poses: bool = False
     """Also write the trajectory as KITTI poses (`<stem>.kitti`: 3×4 matrices, one line per measurement)."""
-
-
-def _session_frontends(saved_map: Callable[[Path, Any], Any], continuing: Callable[..., Any],
-                       localizing: Callable[..., Any]) -> Callable[..., Any]:
-    """A sensor's `from_session`: its saved map read from the session, then the frontend continuing it or
-    localizing in it."""
-
-    def frontend(log: LogReader, topic: str, config: Any, options: FrontendOptions,
-                 session: SessionStart) -> Any:
-        saved = saved_map(session.path, session.content)
-        if session.mode == "continue":
-            return continuing(log, topic, saved, config, options)
-        return localizing(log, topic, saved, config, options, initial_pose=session.initial_pose)
-
-    return frontend
 
 
 @functools.cache
@@ -212,8 +198,7 @@ def _scan_sensor() -> _Sensor:
         # The YAML names the PGM beside it, which only its suffix tells apart.
         _MapFile("map_yaml", "_map.yaml",
                  lambda path, grid: write_text(path, map_server_yaml(grid, path.with_suffix(".pgm").name))),
-    ), _session_frontends(saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend),
-        MapLocalizationRecording)
+    ), saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend, MapLocalizationRecording)
 
 
 @functools.cache
@@ -224,8 +209,8 @@ def _cloud_sensor() -> _Sensor:
 
     return _Sensor(LidarFrontend, CloudReplayRecording, (_MapFile("ply", ".ply", write_ply),
                                                          _MapFile("pcd", ".pcd", write_map_pcd)),
-                   _session_frontends(saved_map_3d, ContinuingLidarFrontend, LocalizingLidarFrontend),
-                   CloudLocalizationRecording, kitti_poses=True)
+                   saved_map_3d, ContinuingLidarFrontend, LocalizingLidarFrontend, CloudLocalizationRecording,
+                   kitti_poses=True)
 
 
 _SENSORS: dict[str, Callable[[], _Sensor]] = {"scan": _scan_sensor, "cloud": _cloud_sensor}
