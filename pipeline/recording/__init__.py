@@ -391,16 +391,29 @@ def log_styles(recording: rr.RecordingStream) -> None:
 
 def log_initial_trajectory(recording: rr.RecordingStream, poses: FloatArray) -> None:
     """The starting estimate, static, drawn faintly under the optimised one."""
-    recording.log(
-        INITIAL_TRAJECTORY_ENTITY,
-        rr.LineStrips2D(
-            [np.asarray(poses[:, :2], dtype=np.float32)],
-            colors=[INITIAL_TRAJECTORY_COLOR],
-            radii=[LINE_WIDTH],
-            draw_order=INITIAL_TRAJECTORY_DRAW_ORDER,
-        ),
-        static=True,
-    )
+    log_static_trajectory(recording, INITIAL_TRAJECTORY_ENTITY, poses, INITIAL_TRAJECTORY_COLOR,
+                          draw_order=INITIAL_TRAJECTORY_DRAW_ORDER)
+
+
+def log_static_trajectory(recording: rr.RecordingStream, entity: str, poses: FloatArray,
+                          color: tuple[int, ...], *, draw_order: float | None = None) -> None:
+    """A static trajectory beside the animated estimate: the starting estimate, what wheel odometry alone
+    believed, the final poses."""
+    recording.log(entity, rr.LineStrips2D([poses[:, :2].astype(np.float32)], colors=[color],
+                                          radii=[LINE_WIDTH], draw_order=draw_order), static=True)
+
+
+def transform3d_columns(translations: NDArray[np.float32],
+                        quaternions: NDArray[np.float32]) -> list[rr.ComponentColumn]:
+    """`Transform3D` columns of (T, 3) translations and (T, 4) quaternions (x, y, z, w), the component
+    columns built directly: `Transform3D.columns` validates every field of the archetype, many times the
+    cost, and the recordings call this once per keyframe."""
+    return [
+        rr.ComponentColumn(rr.Transform3D.descriptor_translation(),
+                           rr.components.Translation3DBatch(translations)),
+        rr.ComponentColumn(rr.Transform3D.descriptor_quaternion(),
+                           rr.components.RotationQuatBatch(quaternions)),
+    ]
 
 
 def send_trajectories(recording: rr.RecordingStream, steps: IntArray, positions: NDArray[np.float32]) -> None:

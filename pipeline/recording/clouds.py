@@ -47,6 +47,7 @@ from pipeline.recording import (
     map_view,
     send_blueprint,
     send_match_quality,
+    transform3d_columns,
     world_bounds,
 )
 
@@ -106,15 +107,7 @@ def log_keyframe_clouds(recording: rr.RecordingStream, clouds: Sequence[NDArray[
 
 def log_initial_trajectory3d(recording: rr.RecordingStream, poses: FloatArray) -> None:
     """The starting 3D keyframe trajectory, static and faint; `poses` (K, 4, 4)."""
-    recording.log(
-        INITIAL_TRAJECTORY3D_ENTITY,
-        rr.LineStrips3D(
-            [np.asarray(poses[:, :3, 3], dtype=np.float32)],
-            colors=[INITIAL_TRAJECTORY_COLOR],
-            radii=[LINE_WIDTH],
-        ),
-        static=True,
-    )
+    log_static_trajectory3d(recording, INITIAL_TRAJECTORY3D_ENTITY, poses, INITIAL_TRAJECTORY_COLOR)
     recording.log(
         TRAJECTORY3D_ENTITY,
         rr.LineStrips3D.from_fields(colors=[TRAJECTORY_COLOR], radii=[LINE_WIDTH]),
@@ -122,13 +115,18 @@ def log_initial_trajectory3d(recording: rr.RecordingStream, poses: FloatArray) -
     )
 
 
-def log_map(recording: rr.RecordingStream, points: NDArray[np.floating]) -> None:
-    """The final map, static."""
-    recording.log(
-        MAP3D_ENTITY,
-        rr.Points3D(np.asarray(points, dtype=np.float32), colors=[MAP3D_COLOR], radii=[POINT_RADIUS]),
-        static=True,
-    )
+def log_static_trajectory3d(recording: rr.RecordingStream, entity: str, poses: FloatArray,
+                            color: tuple[int, ...]) -> None:
+    """A static line through the positions of (K, 4, 4) `poses`."""
+    recording.log(entity, rr.LineStrips3D([np.asarray(poses[:, :3, 3], dtype=np.float32)], colors=[color],
+                                          radii=[LINE_WIDTH]), static=True)
+
+
+def log_map(recording: rr.RecordingStream, points: NDArray[np.floating], *, entity: str = MAP3D_ENTITY,
+            color: tuple[int, ...] = MAP3D_COLOR) -> None:
+    """A map, static: by default the final one."""
+    recording.log(entity, rr.Points3D(np.asarray(points, dtype=np.float32), colors=[color],
+                                      radii=[POINT_RADIUS]), static=True)
 
 
 def transform_columns(poses: FloatArray) -> list[rr.ComponentColumn]:
@@ -150,15 +148,7 @@ def keyframe_transform_columns(poses: NDArray[np.floating]) -> list[list[rr.Comp
     quaternions = Rotation.from_matrix(rotations, assume_valid=True).as_quat().astype(np.float32)  # x,y,z,w
     quaternions = quaternions.reshape(count, keyframes, 4)
     translations = np.asarray(poses[..., :3, 3], dtype=np.float32)
-    return [
-        [
-            rr.ComponentColumn(rr.Transform3D.descriptor_translation(),
-                               rr.components.Translation3DBatch(translations[:, k])),
-            rr.ComponentColumn(rr.Transform3D.descriptor_quaternion(),
-                               rr.components.RotationQuatBatch(quaternions[:, k])),
-        ]
-        for k in range(keyframes)
-    ]
+    return [transform3d_columns(translations[:, k], quaternions[:, k]) for k in range(keyframes)]
 
 
 class KeyframePoseRecorder(PoseBatches):
@@ -266,11 +256,7 @@ class CloudLocalizationRecording(CloudReplayRecording):
             columns=transform_columns(found.poses[placed]))
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: NDArray[Any]) -> None:
-        self._recording.log(SAVED_MAP3D_ENTITY, rr.Points3D(np.asarray(map_export, dtype=np.float32),
-                                                            colors=[MAP_COLOR], radii=[POINT_RADIUS]),
-                            static=True)
-        self._recording.log(FINAL_TRAJECTORY3D_ENTITY,
-                            rr.LineStrips3D([np.asarray(estimates[:, :3, 3], dtype=np.float32)],
-                                            colors=[TRAJECTORY_COLOR], radii=[LINE_WIDTH]), static=True)
+        log_map(self._recording, map_export, entity=SAVED_MAP3D_ENTITY, color=MAP_COLOR)
+        log_static_trajectory3d(self._recording, FINAL_TRAJECTORY3D_ENTITY, estimates, TRAJECTORY_COLOR)
         log_legend(self._recording, rows=LOCALIZATION_LEGEND_ROWS, note="")
         send_match_quality(self._recording, self._frontend.localizations, ("inlier_fraction",))

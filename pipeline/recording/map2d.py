@@ -38,6 +38,7 @@ from pipeline.recording import (
     FloatArray,
     IntArray,
     PoseBatches,
+    transform3d_columns,
     world_bounds,
 )
 
@@ -163,17 +164,10 @@ class KeyframeMapRecorder(PoseBatches):
         starts = np.searchsorted(keyframes, np.arange(poses.shape[1] + 1))
         for index in np.flatnonzero(np.diff(starts)):
             block = slice(starts[index], starts[index + 1])
-            # The component columns directly: `Transform3D.columns` validates every field of the archetype,
-            # fifteen times the cost, once per keyframe.
             self._recording.send_columns(
                 keyframe_entity(int(index)),
                 indexes=[rr.TimeColumn(ITERATION_TIMELINE, sequence=steps[rows[block]])],
-                columns=[
-                    rr.ComponentColumn(rr.Transform3D.descriptor_translation(),
-                                       rr.components.Translation3DBatch(translations[block])),
-                    rr.ComponentColumn(rr.Transform3D.descriptor_quaternion(),
-                                       rr.components.RotationQuatBatch(quaternions[block])),
-                ],
+                columns=transform3d_columns(translations[block], quaternions[block]),
             )
 
 

@@ -26,7 +26,6 @@ from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInB
 from frontends.slam2d.session_frontends import LocalizingLaserFrontend
 from optimizer import se2
 from pipeline.recording import (
-    LINE_WIDTH,
     MAP_COLOR,
     MAP_DRAW_ORDER,
     MAP_POINT_RADIUS,
@@ -39,6 +38,7 @@ from pipeline.recording import (
     IterationSink,
     default_blueprint,
     log_legend,
+    log_static_trajectory,
     map2d,
     send_blueprint,
     send_match_quality,
@@ -102,13 +102,6 @@ def log_scan_styles(recording: rr.RecordingStream) -> None:
                                               (ROBOT_ENTITY, (90, 230, 120, 255), 2.0, 40.0)):
         recording.log(entity, rr.Points2D.from_fields(colors=[color], radii=[rr.Radius.ui_points(radius)],
                                                       draw_order=draw_order), static=True)
-
-
-def log_static_trajectory(recording: rr.RecordingStream, entity: str, poses: FloatArray,
-                          color: tuple[int, ...]) -> None:
-    """A trajectory beside the SLAM estimate: what wheel odometry alone believed, the final poses."""
-    recording.log(entity, rr.LineStrips2D([poses[:, :2].astype(np.float32)], colors=[color],
-                                          radii=[LINE_WIDTH]), static=True)
 
 
 def log_final_trajectory(recording: rr.RecordingStream, poses: FloatArray) -> None:
