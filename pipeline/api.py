@@ -29,7 +29,6 @@ from frontends.errors import FrontendError
 from optimizer.errors import OptimizerError
 from pipeline.config import ReplayConfig, load_config
 from pipeline.errors import PipelineError
-from pipeline.outputs import output_stem as output_stem  # the batch modules name outputs by it
 
 if TYPE_CHECKING:
     from frontends.protocol import Estimate

@@ -36,12 +36,11 @@ from pipeline.api import (
     ReplayStats,
     ScanCallback,
     input_kind,
-    output_stem,
     replay,
 )
 from pipeline.config import ReplayConfig
 from pipeline.errors import PipelineError
-from pipeline.outputs import install_stop_signals, recover_outputs, stop_signals_held
+from pipeline.outputs import install_stop_signals, output_stem, recover_outputs, stop_signals_held
 
 if TYPE_CHECKING:  # multiprocessing and the process pool are imported only by a run of several inputs
     from concurrent.futures import Future, ProcessPoolExecutor

@@ -301,8 +301,7 @@ def run(
     summary_path, summary_error = _write_batch_summary(out, outcomes) if batch else (None, None)
     _report(outcomes, quiet=quiet, as_json=as_json, summary_path=summary_path)
     if summary_error is not None:
-        typer.echo(f"{PROGRAM}: error: {summary_error}", err=True)
-        raise typer.Exit(EXIT_ERROR)
+        _fail(summary_error)
     _exit_for(outcomes, quiet=quiet, allow_unconverged=allow_unconverged)
 
 
@@ -404,14 +403,15 @@ def _listed_inputs(source: Path, out: Path) -> list[Path]:
     return listed
 
 
-def _write_batch_summary(out: Path, outcomes: Sequence[BatchOutcome]) -> tuple[Path | None, str | None]:
-    """Write `batch_summary.parquet` in `out`: its path, or None and the error."""
+def _write_batch_summary(out: Path, outcomes: Sequence[BatchOutcome]) -> tuple[Path | None, Exception | None]:
+    """Write `batch_summary.parquet` in `out`: its path, or None and the error (reported after the
+    outcomes)."""
     from pipeline.batch_summary import BATCH_SUMMARY_NAME, write_batch_summary
 
     try:
         return write_batch_summary(out / BATCH_SUMMARY_NAME, outcomes), None
     except KNOWN_ERRORS as error:
-        return None, " ".join(str(error).split())
+        return None, error
 
 
 def _fail(error: BaseException) -> NoReturn:

@@ -18,11 +18,11 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from pipeline.api import input_kind, output_stem
+from pipeline.api import input_kind
 from pipeline.batch import BatchOutcome, RayOptions, one_line, remove_partial_outputs, run_one_on_this_host
 from pipeline.config import ReplayConfig
 from pipeline.errors import PipelineError
-from pipeline.outputs import prepare_output_dir
+from pipeline.outputs import output_stem, prepare_output_dir
 
 RAY_INSTALL_HINT = "pip install 'sgdslam[ray]' (from a checkout: pip install '.[ray]')"
 LOCAL_ADDRESS = "local"

@@ -17,7 +17,8 @@ from optimizer.errors import GraphFileError
 from optimizer.graph_files import read_graph
 from optimizer.iteration import Iteration
 from pipeline import ReplayConfig, replay
-from pipeline.api import input_kind, output_stem
+from pipeline.api import input_kind
+from pipeline.outputs import output_stem
 from pipeline.trajectory_io import read_tum
 from tests.pipeline_fixtures import LOOP_POSES, loop_graph_text, write_drive, write_loop_graph
 
