@@ -91,18 +91,16 @@ IterationCallback = Callable[[Iteration], None]
 SUMMARY_SCHEMA = "sgdslam.replay-log/3"
 
 
-class MeasurementRecording(Protocol):
-    """What records a run's measurements and its final map (a localization: nothing is optimized)."""
+class FrontendRecording(Protocol):
+    """A frontend's part of the recording, beside the optimization's (`pipeline.recording`): its
+    measurements, its final map and what it adds to the optimization's iterations. A localization's
+    recording (nothing is optimized) is only told of the measurements and the final map."""
 
     def measurement(self, measurement: Any, estimate: Any) -> None: ...
 
     def frontend_done(self) -> None: ...
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: Any) -> None: ...
-
-
-class FrontendRecording(MeasurementRecording, Protocol):
-    """A frontend's part of the recording, beside the optimization's (`pipeline.recording`)."""
 
     with_map: bool
     """Whether the recording's layout has the 2D map view."""
@@ -423,7 +421,7 @@ class _Run:
                                         "continued_from": earlier.get("continued_from")}
         write_session_file(staged["session"], header, arrays, keyframe_points)
 
-    def stream(self, frontend: LogFrontend | LocalizingFrontend, recorder: MeasurementRecording,
+    def stream(self, frontend: LogFrontend | LocalizingFrontend, recorder: FrontendRecording,
                timings: dict[str, float]) -> int:
         """Stream the measurements through the frontend and the recording; how many there were."""
         started = time.perf_counter()
@@ -445,7 +443,7 @@ class _Run:
         timings["record_scans"] = record_seconds
         return count
 
-    def through(self, frontend: Any, topic: str, recorder: MeasurementRecording, stream: Any,
+    def through(self, frontend: Any, topic: str, recorder: FrontendRecording, stream: Any,
                 timings: dict[str, float]) -> _Optimized:
         """Stream the measurements through the frontend and the recording, then optimize its keyframe graph
         (localizing in a saved map: nothing is optimized, the map's keyframe poses stand), make the map and
@@ -458,8 +456,7 @@ class _Run:
                                                   "session": str(self.session.path), "measurements": count,
                                                   "map_keyframes": len(keyframe_poses)})
         else:
-            optimized = self.optimize(frontend, topic, count, cast(FrontendRecording, recorder), stream,
-                                      timings)
+            optimized = self.optimize(frontend, topic, count, recorder, stream, timings)
             keyframe_poses, trace, optimization = optimized.poses, optimized.trace, optimized.result
         map_started = time.perf_counter()
         map_export = frontend.map_export(keyframe_poses)

@@ -228,7 +228,7 @@ def localization3d_blueprint() -> rrb.Blueprint:
 
 class CloudLocalizationRecording(CloudReplayRecording):
     """`CloudReplayRecording` for a localization in a saved 3D map (a `pipeline.replay_log.
-    MeasurementRecording`): the saved map under the new run; `final(saved planar keyframe poses, localized
+    FrontendRecording`): the saved map under the new run; `final(saved planar keyframe poses, localized
     4×4 poses, saved map points)`.
 
     - `world3d/saved_map` (static): the saved keyframe clouds at their saved poses, one point per voxel;
