@@ -120,12 +120,11 @@ class IterationSink(Protocol):
 
 class PoseBatches:
     """An `IterationSink` that buffers every iteration's keyframe poses (as float32) and sends them in
-    column batches of about `batch_bytes`: `_send_batch(steps, poses (T, K, …), final)`, `final` once the
-    run is over."""
+    column batches of about `DEFAULT_BATCH_BYTES`: `_send_batch(steps, poses (T, K, …), final)`, `final`
+    once the run is over."""
 
-    def __init__(self, recording: rr.RecordingStream, *, batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
+    def __init__(self, recording: rr.RecordingStream) -> None:
         self._recording = recording
-        self._batch_bytes = batch_bytes
         self._steps: list[int] = []
         self._poses: list[NDArray[np.float32]] = []
         self._buffered_bytes = 0
@@ -135,7 +134,7 @@ class PoseBatches:
         self._steps.append(step)
         self._poses.append(np.asarray(self._keyframe_poses(iteration), dtype=np.float32))
         self._buffered_bytes += self._poses[-1].nbytes
-        if self._buffered_bytes >= self._batch_bytes:
+        if self._buffered_bytes >= DEFAULT_BATCH_BYTES:
             self._send(final=False)
 
     def flush(self) -> None:

@@ -26,7 +26,6 @@ from numpy.typing import NDArray
 from frontends.slam2d import one_per_cell
 from optimizer.iteration import Iteration
 from pipeline.recording import (
-    DEFAULT_BATCH_BYTES,
     ITERATION_TIMELINE,
     KEYFRAMES_ENTITY,
     MAP_COLOR,
@@ -123,9 +122,8 @@ class KeyframeMapRecorder(PoseBatches):
 
     Used as the `IterationSink` of `pipeline.keyframe_optimization.optimize_keyframes`."""
 
-    def __init__(self, recording: rr.RecordingStream, scans: Sequence[FloatArray], *,
-                 batch_bytes: int = DEFAULT_BATCH_BYTES) -> None:
-        super().__init__(recording, batch_bytes=batch_bytes)
+    def __init__(self, recording: rr.RecordingStream, scans: Sequence[FloatArray]) -> None:
+        super().__init__(recording)
         self._scans = scans
         self._scans_logged = False
         self._last_sent: NDArray[np.float64] = np.full((len(scans), 3), np.nan)
