@@ -547,9 +547,9 @@ class IterationRecorder:
         self._still_move = still_move
         self._still_fraction = still_fraction
         self._last_drawn: NDArray[np.float64] | None = None
-        # None where an iteration's geometry is not sent (see `still_move`).
-        self._trajectories: list[NDArray[np.float32] | None] = []
-        self._loop_segments: list[NDArray[np.float32] | None] = []
+        # Per buffered iteration its trajectory and loop-closure segments, None where its geometry is not
+        # sent (see `still_move`).
+        self._geometry_rows: list[tuple[NDArray[np.float32], NDArray[np.float32]] | None] = []
         self._stages: list[str | None] = []
         """Per buffered iteration its stage-log line, None for a repeat (same stage, same χ² shown)."""
         self._chi2: list[float] = []
@@ -576,7 +576,7 @@ class IterationRecorder:
         self._previous_line = shown
         self._chi2.append(chi2)
         if self._buffered_bytes >= self._batch_bytes:
-            self._send(len(self._trajectories))
+            self._send(len(self._geometry_rows))
         return step
 
     def flush(self) -> None:
@@ -584,20 +584,18 @@ class IterationRecorder:
         if self._latest_poses is not None:
             self._buffer_geometry(self._latest_poses, thin=False)
             self._latest_poses = None
-        self._send(len(self._trajectories))
+        self._send(len(self._geometry_rows))
 
     def _buffer_geometry(self, poses: NDArray[np.float64], *, thin: bool) -> None:
         still = self._still_distance(poses)
         if (thin and still is not None and self._last_drawn is not None
                 and moved_within(poses, self._last_drawn, still)):
-            self._trajectories.append(None)
-            self._loop_segments.append(None)
+            self._geometry_rows.append(None)
             return
         if still is not None:
             self._last_drawn = np.array(poses[:, :2])
         trajectory, segments = self._geometry(poses, thin=thin)
-        self._trajectories.append(trajectory)
-        self._loop_segments.append(segments)
+        self._geometry_rows.append((trajectory, segments))
         self._buffered_bytes += trajectory.nbytes + segments.nbytes
 
     def _still_distance(self, poses: NDArray[np.float64]) -> float | None:
@@ -627,19 +625,16 @@ class IterationRecorder:
         lines = self._stages[:count]
         shown = np.array([line is not None for line in lines], dtype=bool)
         send_stages(self._recording, steps[shown], [line for line in lines if line is not None])
-        drawn = [(k, trajectory, segments) for k, (trajectory, segments)
-                 in enumerate(zip(self._trajectories[:count], self._loop_segments[:count], strict=True))
-                 if trajectory is not None and segments is not None]
+        drawn = [(k, *row) for k, row in enumerate(self._geometry_rows[:count]) if row is not None]
         for _, group in itertools.groupby(drawn, key=lambda row: (row[1].shape, row[2].shape)):
             ks, trajectories, segments = zip(*group, strict=True)
             send_trajectories(self._recording, steps[list(ks)], np.stack(trajectories))
             send_loop_segments(self._recording, steps[list(ks)], np.stack(segments))
         self._first_step += count
-        for buffer in (self._trajectories, self._loop_segments, self._stages, self._chi2):
+        for buffer in (self._geometry_rows, self._stages, self._chi2):
             del buffer[:count]
-        self._buffered_bytes = sum(trajectory.nbytes + segments.nbytes for trajectory, segments
-                                   in zip(self._trajectories, self._loop_segments, strict=True)
-                                   if trajectory is not None and segments is not None)
+        self._buffered_bytes = sum(row[0].nbytes + row[1].nbytes for row in self._geometry_rows
+                                   if row is not None)
 
 
 def _every_kth(count: int, limit: int, *, keep_last: bool) -> IntArray | None:
