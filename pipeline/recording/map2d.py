@@ -23,7 +23,7 @@ import rerun as rr
 from numba import njit
 from numpy.typing import NDArray
 
-from frontends.slam2d import one_per_cell
+from frontends.slam2d import one_per_cell, place
 from optimizer.iteration import Iteration
 from pipeline.recording import (
     ITERATION_TIMELINE,
@@ -74,15 +74,8 @@ def thin_scan(points: NDArray[np.floating], cell: float = SCAN_CELL) -> NDArray[
 
 def placed_bounds(scans: Sequence[FloatArray], poses: FloatArray, *more: FloatArray) -> Bounds:
     """The extent of all `scans` (keyframe-frame points) placed at `poses`, of the poses and of `more`."""
-    placed = [np.asarray(scan).reshape(-1, 2) @ _rotation(float(pose[2])) + pose[:2]
-              for scan, pose in zip(scans, poses, strict=True)]
+    placed = [place(np.asarray(scan).reshape(-1, 2), pose) for scan, pose in zip(scans, poses, strict=True)]
     return world_bounds(poses, *placed, *more)
-
-
-def _rotation(theta: float) -> FloatArray:
-    """The matrix R with `points @ R` rotating row vectors by `theta`."""
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, s], [-s, c]])
 
 
 def yaw_quaternions(theta: NDArray[np.floating]) -> NDArray[np.float32]:
