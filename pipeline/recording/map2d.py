@@ -23,6 +23,7 @@ import rerun as rr
 from numba import njit
 from numpy.typing import NDArray
 
+from frontends.logs.rotations import from_yaw
 from frontends.slam2d import one_per_cell, place
 from optimizer.iteration import Iteration
 from pipeline.recording import (
@@ -76,13 +77,6 @@ def placed_bounds(scans: Sequence[FloatArray], poses: FloatArray, *more: FloatAr
     """The extent of all `scans` (keyframe-frame points) placed at `poses`, of the poses and of `more`."""
     placed = [place(np.asarray(scan).reshape(-1, 2), pose) for scan, pose in zip(scans, poses, strict=True)]
     return world_bounds(poses, *placed, *more)
-
-
-def yaw_quaternions(theta: NDArray[np.floating]) -> NDArray[np.float32]:
-    """(…, 4) quaternions (x, y, z, w) of rotations by `theta` about z."""
-    half = 0.5 * np.asarray(theta, dtype=np.float64)
-    zeros = np.zeros_like(half)
-    return np.stack([zeros, zeros, np.sin(half), np.cos(half)], axis=-1).astype(np.float32)
 
 
 def log_occupancy(recording: rr.RecordingStream, image: NDArray[np.uint8], origin: FloatArray,
@@ -151,7 +145,7 @@ class KeyframeMapRecorder(PoseBatches):
         chosen = poses[rows, keyframes]
         translations = np.zeros((len(chosen), 3), dtype=np.float32)
         translations[:, :2] = chosen[:, :2]
-        quaternions = yaw_quaternions(chosen[:, 2])
+        quaternions = from_yaw(chosen[:, 2]).astype(np.float32)
         starts = np.searchsorted(keyframes, np.arange(poses.shape[1] + 1))
         for index in np.flatnonzero(np.diff(starts)):
             block = slice(starts[index], starts[index + 1])
