@@ -162,10 +162,12 @@ def test_replay_deskews_a_swept_laser_by_its_time_increment(tmp_path: Path, with
     settings = tmp_path / "no_deskew.toml"
     settings.write_text("[slam2d.matching]\ndeskew = false\n")
     errors = {}
-    for name, options in (("deskewed", []), ("as_if_instant", ["--config", str(settings)])):
+    for name, options, said in (("deskewed", [], "deskewed"),
+                                ("as_if_instant", ["--config", str(settings)], "not deskewed")):
         out = tmp_path / name
-        result = CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet", *options])
+        result = CliRunner().invoke(app, [str(path), "--out", str(out), *options])
         assert result.exit_code == 0, result.output
+        assert f"  {len(truth)} scans with beam times (time_increment): {said}" in result.output
         assert json.loads((out / "swept.json").read_text())["counts"]["scans_with_beam_times"] == len(truth)
         errors[name] = _mean_relative_error(read_tum(out / "swept.tum").planar(), truth, span=10)
     if with_odometry:  # the odometry read over each sweep
