@@ -170,12 +170,9 @@ def test_replay_deskews_a_swept_laser_by_its_time_increment(tmp_path: Path, with
         assert f"  {len(truth)} scans with beam times (time_increment): {said}" in result.output
         assert json.loads((out / "swept.json").read_text())["counts"]["scans_with_beam_times"] == len(truth)
         errors[name] = _mean_relative_error(read_tum(out / "swept.tum").planar(), truth, span=10)
-    if with_odometry:  # the odometry read over each sweep
-        assert errors["deskewed"] < 0.6 * errors["as_if_instant"], errors
-    else:
-        # Scans 0.4 s apart: the motion of the last two (0.8 s) is too late for the corners to gain much
-        # (tests/test_slam2d_deskew.py: at 10 scans a second, it does), but it must not feed back either.
-        assert errors["deskewed"] < 1.2 * errors["as_if_instant"], errors
+    # With odometry read over each sweep 0.008 against 0.023 m when this was written; without, from the
+    # matched motions of scans 0.4 s apart (late at every corner), 0.017 against 0.024.
+    assert errors["deskewed"] < (0.6 if with_odometry else 0.85) * errors["as_if_instant"], errors
 
 
 @pytest.mark.parametrize("with_odometry", [True, False], ids=["odometry", "lidar-only"])

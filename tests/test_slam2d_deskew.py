@@ -84,6 +84,9 @@ def test_deskewer_without_odometry_uses_the_last_motions_and_forgets_them_after_
     # Odometry, when given, says the motion instead: 0.2 m since the last scan, 0.1 s ago.
     np.testing.assert_allclose(deskewer.deskewed(probe, at_end, 400_000_000, np.array([0.2, 0.0, 0.0])),
                                [[1.2, 0.0]])
+    # Matched, the scan's own motion (0.3 m) replaces the oldest one: (0.1 + 0.3) m in 0.2 s.
+    np.testing.assert_allclose(deskewer.deskewed(probe, at_end, 400_000_000, None, np.array([0.3, 0.0, 0.0])),
+                               [[1.2, 0.0]])
     deskewer.moved(5_000_000_000, np.array([3.0, 0.0, 0.0]))  # after 4.7 s without scans
     assert deskewer.deskewed(probe, at_end, 5_100_000_000, None) is probe
 

@@ -23,16 +23,19 @@ MAX_DESKEW_INTERVAL = 1.0
 """A scan more than this many seconds after the previous one is not deskewed: the motion averaged over a
 gap in the log says little about the motion during the scan's sweep."""
 VELOCITY_MOTIONS = 2
-"""Without wheel odometry the velocity is that of this many matched motions, the last ones. The last one
+"""Without wheel odometry the velocity is the mean of this many matched motions, the last ones. The last one
 alone feeds each match's error back into the next scan's deskewing, which bends that scan the other way:
 on simulated lidar-only drives the poses then swung from scan to scan until the track was lost. Over two
 the feedback dies out; over more, the velocity lags further behind the robot's, which costs more at turns
-than it gains (`benchmarks/deskew2d_bench.py`)."""
+than it gains. The SLAM deskews a scan twice (`LaserSlam2D.add_scan`): under the last two motions before
+it, then, matched, under the last one and its own, one scan period less late
+(`benchmarks/deskew2d_bench.py`)."""
 
 
 class ScanDeskewer:
     """Deskews the scans of one run in time order: under the wheel odometry's motion since the previous
-    scan when there is one, else under the velocity of the last matched motions (`VELOCITY_MOTIONS`).
+    scan when there is one, else under the velocity of the last matched motions (`VELOCITY_MOTIONS`), the
+    scan's own among them once it is matched.
 
     It keeps motions, not poses: a loop closure or an optimization moves the poses of the recent scans,
     not the motions between them."""
@@ -43,11 +46,11 @@ class ScanDeskewer:
         self._last_stamp: int | None = None
 
     def deskewed(self, points: FloatArray, times: FloatArray | None, stamp_ns: int,
-                 odometry_motion: FloatArray | None) -> FloatArray:
+                 odometry_motion: FloatArray | None, own_motion: FloatArray | None = None) -> FloatArray:
         """`points` (N, 2) taken at `times` (N,) (s after `stamp_ns`) in the robot frame at the stamp, under
         `odometry_motion`, the wheel odometry's motion since the previous scan (None: no odometry), else
-        under the recent matched motions. As given without times, for a first scan, or after a gap
-        (`MAX_DESKEW_INTERVAL`)."""
+        under the recent matched motions, and `own_motion` when given: the scan's own, matched from the
+        previous scan. As given without times, for a first scan, or after a gap (`MAX_DESKEW_INTERVAL`)."""
         if times is None or self._last_stamp is None:
             return points
         elapsed = (stamp_ns - self._last_stamp) * 1e-9
@@ -55,10 +58,14 @@ class ScanDeskewer:
             return points
         if odometry_motion is not None:
             return deskewed(points, times, velocity(odometry_motion, elapsed))
-        if not self._recent:
+        recent = list(self._recent)
+        if own_motion is not None:
+            recent = [*recent[max(0, len(recent) - VELOCITY_MOTIONS + 1):],
+                      (elapsed, np.asarray(own_motion, dtype=np.float64))]
+        if not recent:
             return points
-        motion = se2.compose_chain(np.array([step for _, step in self._recent]))[-1]
-        return deskewed(points, times, velocity(motion, sum(seconds for seconds, _ in self._recent)))
+        motion = se2.compose_chain(np.array([step for _, step in recent]))[-1]
+        return deskewed(points, times, velocity(motion, sum(seconds for seconds, _ in recent)))
 
     def moved(self, stamp_ns: int, motion: FloatArray | None) -> None:
         """The scan at `stamp_ns` was matched `motion` (x, y, θ) from the previous one (None: the first

@@ -258,11 +258,18 @@ class LaserSlam2D:
                 prior, prior_information = self._predict(odometry, reliable)
                 odometry_motion = (None if odometry is None or self._last_odometry is None
                                    else se2.relative(self._last_pose, prior))
-                points = self._deskewer.deskewed(points, times, int(stamp_ns), odometry_motion)
-                pose, matched, information = self._match(
-                    points, prior, prior_information,
-                    1.0 if reliable else UNRELIABLE_ODOMETRY_SCALE,
-                )
+                window_scale = 1.0 if reliable else UNRELIABLE_ODOMETRY_SCALE
+                deskewed = self._deskewer.deskewed(points, times, int(stamp_ns), odometry_motion)
+                pose, matched, information = self._match(deskewed, prior, prior_information, window_scale)
+                if matched and times is not None and odometry_motion is None:
+                    # Deskewed under the motions before the scan, a scan period late at every change of
+                    # pace; matched, the scan's own motion is known: deskewed again with it, and matched.
+                    own_motion = se2.relative(self._last_pose, pose)
+                    deskewed = self._deskewer.deskewed(points, times, int(stamp_ns), None, own_motion)
+                    pose, matched, information = self._match(deskewed, prior, prior_information, window_scale)
+                points = deskewed
+                self._last_motion = se2.relative(self._last_pose, pose)
+                self._last_pose = pose
             last_keyframe = self._keyframe_poses[-1]
             step = se2.relative(last_keyframe, pose)
             keyframes = self.config.keyframes
@@ -342,8 +349,6 @@ class LaserSlam2D:
                 # Along a look-alike stretch the prediction decides (`match_covariance`).
                 pose, information = slide_to_prior(pose, information, prior, prior_information,
                                                    score_plateau(points, local.grid, pose))
-        self._last_motion = se2.relative(self._last_pose, pose)
-        self._last_pose = pose
         return pose, matched, information
 
     def _step_information(self, information: FloatArray, odometry: FloatArray | None,
