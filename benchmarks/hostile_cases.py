@@ -97,6 +97,8 @@ def cases() -> list[Case]:
     battery += [Case("scan angles", f"angle-increment-{increment}", _scan_case(ranges=walls,
                                                                               angle_increment=increment))
                 for increment in (math.nan, math.inf, -math.inf, 0.0, 1.0, -0.01)]
+    battery += [Case("beam times", f"time-increment-{value}", _scan_case(ranges=walls, time_increment=value))
+                for value in (math.nan, math.inf, -math.inf, 1.0, -1e-4, 1e-30)]
     battery += [
         Case("huge values", "two-million-beams", _scan_case(ranges=lambda i: np.full(2_000_000, 5.0), count=1,
                                                             angle_increment=1e-6)),

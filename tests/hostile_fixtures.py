@@ -291,9 +291,10 @@ def scan_log(
     odometry: Callable[[int], tuple[float, float, float]] | None = None,
     stamp: Callable[[int], int] = lambda i: 10**18 + i * 100_000_000,
     tf_static: Sequence[tuple[str, str]] = (),
+    time_increment: float = 0.0,
 ) -> Path:
-    """An MCAP of `count` LaserScans (ranges(i) for scan i, in frame base_link) and, optionally, odometry
-    poses odometry(i) and static tf edges (parent, child), identities."""
+    """An MCAP of `count` LaserScans (ranges(i) for scan i, in frame base_link, `time_increment` between
+    beams) and, optionally, odometry poses odometry(i) and static tf edges (parent, child), identities."""
     messages = RosMessages(ros1=False)
     types = messages.types
     with path.open("wb") as stream:
@@ -320,7 +321,7 @@ def scan_log(
                 angle_min=-1.5,
                 angle_max=-1.5 + angle_increment * max(len(values) - 1, 0),
                 angle_increment=angle_increment,
-                time_increment=0.0,
+                time_increment=time_increment,
                 scan_time=0.1,
                 range_min=0.1,
                 range_max=30.0,

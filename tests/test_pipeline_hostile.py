@@ -3,6 +3,7 @@ one line on stderr naming the option or file, quickly, with nothing written."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -88,3 +89,20 @@ def test_a_tf_cycle_is_one_line_naming_the_log(tmp_path: Path) -> None:
     assert result.exit_code == 2
     assert result.stderr.splitlines() == [
         f"replay: error: {path}: the transform tree has a cycle through 'base_link'"]
+
+
+@pytest.mark.parametrize(("time_increment", "timed"), [
+    (float("nan"), False), (float("inf"), False), (-float("inf"), False), (1.0, False), (-1.0, False),
+    (1e-30, True), (-1e-4, True), (1e-4, True),
+])
+def test_any_time_increment_replays(tmp_path: Path, time_increment: float, timed: bool) -> None:
+    """Beam times a laser could not have (NaN, infinite, 1 s per beam) are read as none; tiny, negative
+    (the stamp at the last beam) or plausible ones are used. Either way the replay runs."""
+    from tests.hostile_fixtures import scan_log, walls
+
+    path = scan_log(tmp_path / "timed.mcap", walls, time_increment=time_increment,
+                    odometry=lambda i: (0.05 * i, 0.0, 0.0))
+    result = CliRunner().invoke(app, [str(path), "--out", str(tmp_path / "out"), "--json", "--quiet"])
+    assert result.exit_code == 0, result.output
+    counts = json.loads(result.stdout)["counts"]
+    assert counts["scans_with_beam_times"] == (counts["scans"] if timed else 0)
