@@ -278,8 +278,15 @@ class MapLocalizer:
         with self.stage_times.stage("tracking"):
             prediction = self._predict(odometry, odometry_interval <= RELIABLE_ODOMETRY_INTERVAL)
             odometry_motion = se2.relative(self._pose, prediction[0]) if has_odometry else None
-            points = self._deskewer.deskewed(points, times, int(stamp_ns), odometry_motion)
-            result = self._track(index, int(stamp_ns), points, odometry, odometry_interval, prediction)
+            deskewed = self._deskewer.deskewed(points, times, int(stamp_ns), odometry_motion)
+            before = (self._pose, self._covariance, self._map_matched)
+            result = self._track(index, int(stamp_ns), deskewed, odometry, odometry_interval, prediction)
+            if times is not None and odometry_motion is None and (result.matched or result.tracked):
+                # As the SLAM does (`LaserSlam2D.add_scan`): again under the scan's own motion, now known.
+                deskewed = self._deskewer.deskewed(points, times, int(stamp_ns), None, self._last_motion)
+                self._pose, self._covariance, self._map_matched = before
+                result = self._track(index, int(stamp_ns), deskewed, odometry, odometry_interval, prediction)
+            points = deskewed
             self._deskewer.moved(int(stamp_ns), self._last_motion)
         self._last_odometry = odometry
         moved = float(np.hypot(self._last_motion[0], self._last_motion[1]))
