@@ -604,11 +604,6 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
                  f"{summary['odometry_topic'] or 'none'}, base frame {summary['base_frame'] or 'none'}; "
                  f"{stats.poses} keyframes, {stats.loop_closures} loop closures "
                  f"({stats.loop_closures_rejected} rejected)"]
-    timed = summary.get("counts", {}).get("scans_with_beam_times", 0)
-    if timed:
-        deskewed = summary.get("config", {}).get("matching", {}).get("deskew", True)
-        lines.append(f"  {timed} scans with beam times (time_increment): "
-                     + ("deskewed" if deskewed else "not deskewed ([slam2d.matching] deskew = false)"))
     else:
         lines = [f"{name}: {stats.poses} poses, {stats.constraints} constraints ({stats.loop_closures} loop "
                  f"closures), method {summary['method']}"]
@@ -619,6 +614,11 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
         repaired = summary.get("repaired_information_lines") or []
         if repaired:
             lines.append(f"  repaired the information of {len(repaired)} constraints")
+    timed = summary.get("counts", {}).get("scans_with_beam_times", 0)
+    if timed:
+        deskewed = summary.get("config", {}).get("matching", {}).get("deskew", True)
+        lines.append(f"  {timed} scans with beam times (time_increment): "
+                     + ("deskewed" if deskewed else "not deskewed ([slam2d.matching] deskew = false)"))
     if summary.get("mode") == "continue":
         counts, placement = summary["counts"], summary["session"]["placement"]
         lines.append(f"  continued {summary['session']['continued_from']}: {counts['session_keyframes']} "

@@ -137,6 +137,19 @@ def test_a_laser_replay_never_imports_the_3d_frontend(tmp_path: Path) -> None:
     assert loaded == ["frontends.slam3d.config"]
 
 
+@pytest.mark.parametrize("sweep", [0.0, 0.1], ids=["instant", "swept"])
+def test_the_closing_summary_of_a_log_replay(tmp_path: Path, sweep: float) -> None:
+    path = tmp_path / "drive.mcap"
+    write_drive(path, scans=20, sweep=sweep)
+    result = CliRunner().invoke(app, [str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    lines = result.stderr.splitlines()
+    assert lines[0].startswith("drive.mcap: 20 scans on /scan, odometry /odom, base frame base_link; ")
+    timed = [line for line in lines if "beam times" in line]
+    assert timed == (["  20 scans with beam times (time_increment): deskewed"] if sweep else [])
+    assert lines[-2].startswith("  time ") and lines[-1].startswith("  wrote ")
+
+
 def test_replay_without_odometry_still_tracks(tmp_path: Path) -> None:
     path = tmp_path / "no_odometry.mcap"
     truth = write_drive(path, with_odometry=False, scans=60)
