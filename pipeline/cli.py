@@ -614,11 +614,16 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
         repaired = summary.get("repaired_information_lines") or []
         if repaired:
             lines.append(f"  repaired the information of {len(repaired)} constraints")
-    timed = summary.get("counts", {}).get("scans_with_beam_times", 0)
+    counts = summary.get("counts", {})
+    timed, ignored = counts.get("scans_with_beam_times", 0), counts.get("scans_beam_times_ignored", 0)
     if timed:
-        deskewed = summary.get("config", {}).get("matching", {}).get("deskew", True)
-        lines.append(f"  {timed} scans with beam times (time_increment): "
-                     + ("deskewed" if deskewed else "not deskewed ([slam2d.matching] deskew = false)"))
+        if not summary.get("config", {}).get("matching", {}).get("deskew", True):
+            deskewing = "not deskewed ([slam2d.matching] deskew = false)"
+        elif ignored:
+            deskewing = f"{timed - ignored} deskewed, {ignored} read as instant (see the warning)"
+        else:
+            deskewing = "deskewed"
+        lines.append(f"  {timed} scans with beam times (time_increment): {deskewing}")
     if summary.get("mode") == "continue":
         counts, placement = summary["counts"], summary["session"]["placement"]
         lines.append(f"  continued {summary['session']['continued_from']}: {counts['session_keyframes']} "

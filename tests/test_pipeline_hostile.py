@@ -106,3 +106,27 @@ def test_any_time_increment_replays(tmp_path: Path, time_increment: float, timed
     assert result.exit_code == 0, result.output
     counts = json.loads(result.stdout)["counts"]
     assert counts["scans_with_beam_times"] == (counts["scans"] if timed else 0)
+
+
+def test_beam_times_longer_than_the_time_between_scans_are_ignored_with_a_warning(tmp_path: Path) -> None:
+    """Scans 0.1 s apart whose time_increment says 360 beams take 0.18 s: no laser sweeps longer than it
+    takes to scan again (a driver's wrong value): read as instant, counted, and said once."""
+    from tests.hostile_fixtures import scan_log, walls
+
+    path = scan_log(tmp_path / "slow_beams.mcap", walls, time_increment=0.0005,
+                    odometry=lambda i: (0.05 * i, 0.0, 0.0))
+    result = CliRunner().invoke(app, [str(path), "--out", str(tmp_path / "out"), "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    counts = summary["counts"]
+    assert counts["scans_with_beam_times"] == counts["scans"] == 40
+    assert counts["scans_beam_times_ignored"] == 39  # all but the first, which has no interval to judge by
+    assert summary["warnings"] == [{"message": "39 scans on /scan said their beams took up to 0.18 s "
+                                                "(time_increment), longer than the time between scans: they "
+                                                "were read as if every beam were taken at the stamp",
+                                    "count": 1}]
+    lines = result.stderr.splitlines()
+    assert [line for line in lines if line.startswith("replay: warning: ")] == [
+        f"replay: warning: {path}: {summary['warnings'][0]['message']}"]
+    assert "  40 scans with beam times (time_increment): 1 deskewed, 39 read as instant (see the warning)" \
+        in lines

@@ -4,12 +4,13 @@ odometry in, the keyframe graph, every scan's pose and an occupancy map out."""
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 
-from frontends.errors import FrontendError
+from frontends.errors import FrontendError, LogWarning
 from frontends.logs import LogReader, Scan2D, Transform
 from frontends.protocol import (
     FloatArray,
@@ -26,6 +27,11 @@ from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
 from optimizer import se2
 from optimizer.graph import PoseGraph
+
+SWEEP_OVER_PERIOD = 1.5
+"""A scan's beam times are used when its sweep lasts at most this many times the interval since the previous
+scan: a laser taking its beams over the whole period (a 360° scanner) fits, with room for the stamps'
+jitter."""
 
 ScanInBase = tuple[Scan2D, Transform | None]
 """A scan with its points in the base frame, and the mount tf gave (None: left in the sensor frame)."""
@@ -65,7 +71,8 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
             self.base_frame = self.odometry.child_frame
         self._slam = LaserSlam2D(self.config)
         self._counts = {"scans": 0, "scans_with_tf_mount": 0, "scans_with_odometry": 0,
-                        "scans_with_beam_times": 0}
+                        "scans_with_beam_times": 0, "scans_beam_times_ignored": 0}
+        self._longest_ignored_sweep = 0.0
         self._last_estimate: tuple[int, FloatArray] | None = None
         """The stamp and pose given to the last scan."""
         self.odometry_poses: list[FloatArray] = []
@@ -87,7 +94,7 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
     def add(self, measurement: ScanInBase) -> ScanEstimate:
         scan, mount = measurement
         prediction, interval = None, 0.0
-        points, times = scan.points, scan.point_times if self.config.matching.deskew else None
+        points, times = scan.points, self._beam_times(scan)
         if self.odometry is not None:
             at, intervals = self.odometry.interpolate(np.array([scan.stamp_ns]))
             prediction = None if np.isnan(at[0, 0]) else at[0]
@@ -112,6 +119,21 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
                 self.odometry_poses.append(prediction)
         return estimate
 
+    def _beam_times(self, scan: Scan2D) -> FloatArray | None:
+        """The scan's beam times, if deskewing is on and they fit: a laser ends a sweep before it starts the
+        next, so a sweep longer than `SWEEP_OVER_PERIOD` times the time since the previous scan is a
+        driver's wrong time_increment (counted, and said once the log is read)."""
+        times = scan.point_times
+        if times is None or not self.config.matching.deskew or not len(times):
+            return None
+        sweep = float(np.max(np.abs(times)))
+        if self._last_estimate is not None and sweep > SWEEP_OVER_PERIOD * (
+                (scan.stamp_ns - self._last_estimate[0]) * 1e-9):
+            self._counts["scans_beam_times_ignored"] += 1
+            self._longest_ignored_sweep = max(self._longest_ignored_sweep, sweep)
+            return None
+        return times
+
     def _deskewed_for_display(self, stamp_ns: int, points: FloatArray, times: FloatArray,
                               pose: FloatArray) -> FloatArray:
         if self._last_estimate is None:
@@ -135,14 +157,21 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
     def finish(self) -> None:
         if self._counts["scans"] == 0:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
-        self._unmounted_means_sensor_poses()
+        self._after_reading()
         self._result = self._finished(self._slam.finish)
 
-    def _unmounted_means_sensor_poses(self) -> None:
-        """No scan placed on a base by tf, and no base named by the user: the poses are the laser's, and
-        the result says so (`base_frame` None), as the LiDAR frontend's does."""
+    def _after_reading(self) -> None:
+        """What the whole log says. No scan placed on a base by tf, and no base named by the user: the poses
+        are the laser's, and the result says so (`base_frame` None), as the LiDAR frontend's does. Beam
+        times ignored (`_beam_times`): a warning."""
         if not self._counts["scans_with_tf_mount"] and self._requested_base_frame is None:
             self.base_frame = None
+        ignored = self._counts["scans_beam_times_ignored"]
+        if ignored:
+            warnings.warn(f"{self._log.path}: {ignored} scans on {self._topic} said their beams took up to "
+                          f"{self._longest_ignored_sweep:.3g} s (time_increment), longer than the time "
+                          "between scans: they were read as if every beam were taken at the stamp",
+                          LogWarning, stacklevel=2)
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         graph = self.result.graph

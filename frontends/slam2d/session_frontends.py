@@ -146,7 +146,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         """Raises `MapPlacementError` when no scan could be placed in the saved map."""
         if self._counts["scans"] == 0:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
-        self._unmounted_means_sensor_poses()
+        self._after_reading()
         fields = ("stamp_ns", "localized", "matched", "score", "inlier_fraction", "rms", "tracked")
         columns = (np.array([getattr(found, name) for found in self._found]) for name in fields)
         stamps, localized, matched, score, inliers, rms, tracked = columns
