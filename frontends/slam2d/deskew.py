@@ -82,7 +82,7 @@ def velocity(motion: FloatArray, elapsed: float) -> FloatArray:
     """The constant twist (vx, vy, ω) per second, in the robot's frame, that moves it by `motion` (x, y, θ)
     in `elapsed` seconds: the SE(2) logarithm of the motion, divided by the time."""
     x, y, theta = (float(value) for value in motion)
-    along, across = _arc_factors(theta)
+    along, across = (float(factor) for factor in _arc_factors(np.float64(theta)))
     scale = along * along + across * across  # V(θ) = [[along, −across], [across, along]], inverted below
     vx = (along * x + across * y) / scale
     vy = (-across * x + along * y) / scale
@@ -93,8 +93,7 @@ def deskewed(points: FloatArray, times: FloatArray, twist: FloatArray) -> FloatA
     """`points` (N, 2) in the robot frame at their own `times` (N,) (s after the stamp) → in the robot frame
     at the stamp: exp(t·`twist`) applied to each."""
     turn = times * twist[2]
-    along = np.sinc(turn / math.pi)  # sin θ / θ, 1 at θ = 0
-    across = np.sin(0.5 * turn) * np.sinc(turn / (2.0 * math.pi))  # (1 − cos θ) / θ, 0 at θ = 0
+    along, across = _arc_factors(turn)
     tx = times * (along * twist[0] - across * twist[1])
     ty = times * (across * twist[0] + along * twist[1])
     cos, sin = np.cos(turn), np.sin(turn)
@@ -102,8 +101,6 @@ def deskewed(points: FloatArray, times: FloatArray, twist: FloatArray) -> FloatA
     return np.column_stack([cos * x - sin * y + tx, sin * x + cos * y + ty])
 
 
-def _arc_factors(theta: float) -> tuple[float, float]:
-    """(sin θ / θ, (1 − cos θ) / θ), exact near θ = 0."""
-    if abs(theta) < 1e-9:
-        return 1.0, 0.5 * theta
-    return math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta
+def _arc_factors(theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(sin θ / θ, (1 − cos θ) / θ) of the SE(2) exponential's V(θ), exact at and near θ = 0."""
+    return np.sinc(theta / math.pi), np.sin(0.5 * theta) * np.sinc(theta / (2.0 * math.pi))
