@@ -77,6 +77,8 @@ class LogFrontend(Protocol):
     base_frame: str | None
     """The frame poses are of; None when tf does not mount the sensor on it (poses of the sensor)."""
     odometry_topic: str | None
+    """The odometry topic read, `tf <odom> -> <child>` when the odometry came from tf's odom edge, None
+    without odometry."""
 
     def measurements(self) -> Iterator[Any]:
         """The log's measurements, in sensor-time order, as `add` takes them."""
@@ -273,6 +275,12 @@ class LogFrontendBase(Generic[ConfigT, ResultT]):
         self.base_frame: str | None = options.base_frame
         self._requested_base_frame = options.base_frame
         self._result: ResultT | None = None
+
+    def _odometry_read(self, parent_frame: str, child_frame: str) -> None:
+        """The log's odometry was read: from tf's `parent_frame` → `child_frame` edge when the log has no
+        odometry topic (`LogReader.odometry`), which `odometry_topic` then says."""
+        if self.odometry_topic is None:
+            self.odometry_topic = f"tf {parent_frame} -> {child_frame}"
 
     def _finished(self, finish: Callable[[], ResultT]) -> ResultT:
         """`finish()` (the SLAM's), its `MapPlacementError` (a continued run that never matched the saved

@@ -148,14 +148,17 @@ def laser_ranges(points: np.ndarray) -> np.ndarray:
 
 def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = None,
                 part: slice | None = None, later_ns: int = 0, seed: int = 7,
-                sweep: float = 0.0) -> np.ndarray:
+                sweep: float = 0.0, scan_period_ns: int = SCAN_PERIOD_NS,
+                odometry_topic: bool = True) -> np.ndarray:
     """Drive the simulated building's loop at 1 m/s, writing /scan, /odom, /tf and /tf_static; returns the
     truth (base poses) per scan. `part`: only these scans of the drive, as a log recorded `later_ns` later
     whose wheel odometry starts at its own origin (a second recording of the same building). `sweep`: the
     laser takes its beams one after the other over this many seconds from the stamp (time_increment set),
-    each from where the robot is then; 0: all at the stamp (time_increment 0)."""
+    each from where the robot is then; 0: all at the stamp (time_increment 0). `scan_period_ns`: a faster
+    laser, the robot as fast (`DRIVE_SPEED`; not with `sweep`). `odometry_topic` False: the odometry only
+    in /tf."""
     rng = np.random.default_rng(seed)
-    truth = drive(square_loop(), DRIVE_STEP)[:scans]
+    truth = drive(square_loop(), DRIVE_SPEED * scan_period_ns * 1e-9)[:scans]
     odometry = wheel_odometry(truth, rng)
     if part is not None:
         truth, odometry = truth[part], odometry[part]
@@ -183,7 +186,7 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
             ),
         )
         for k, pose in enumerate(truth):
-            stamp = START_NS + later_ns + k * SCAN_PERIOD_NS
+            stamp = START_NS + later_ns + k * scan_period_ns
             if with_odometry:
                 q = quaternion_from_yaw(float(odometry[k, 2]))
                 covariance = np.zeros(36)
@@ -207,7 +210,8 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                         covariance=covariance,
                     ),
                 )
-                add("/odom", "nav_msgs/msg/Odometry", stamp, odom)
+                if odometry_topic:
+                    add("/odom", "nav_msgs/msg/Odometry", stamp, odom)
                 add(
                     "/tf",
                     "tf2_msgs/msg/TFMessage",

@@ -150,6 +150,20 @@ def test_the_closing_summary_of_a_log_replay(tmp_path: Path, sweep: float) -> No
     assert lines[-2].startswith("  time ") and lines[-1].startswith("  wrote ")
 
 
+def test_odometry_read_from_tf_is_named_as_such(tmp_path: Path) -> None:
+    path = tmp_path / "tf_odometry.mcap"
+    truth = write_drive(path, scans=20, odometry_topic=False)
+    result = CliRunner().invoke(app, [str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    assert result.stderr.startswith("tf_odometry.mcap: 20 scans on /scan, odometry tf odom -> base_link, "
+                                    "base frame base_link; ")
+    summary = json.loads((tmp_path / "out" / "tf_odometry.json").read_text())
+    assert summary["odometry_topic"] == "tf odom -> base_link"
+    assert summary["counts"]["scans_with_odometry"] == 20
+    trajectory = read_tum(tmp_path / "out" / "tf_odometry.tum")
+    assert _max_position_error(trajectory.planar(), truth) < 0.15
+
+
 def test_replay_without_odometry_still_tracks(tmp_path: Path) -> None:
     path = tmp_path / "no_odometry.mcap"
     truth = write_drive(path, with_odometry=False, scans=60)

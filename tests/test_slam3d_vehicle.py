@@ -235,9 +235,12 @@ def test_odometry_comes_from_tf_only_when_tf_has_a_moving_edge() -> None:
     static_only = _TfOnlyLog(mount)
     assert LidarFrontend(static_only, "/points")._prior is None  # type: ignore[arg-type]
     assert static_only.odometry_reads == 0  # the tf already read has no moving edge: not read again
+    assert LidarFrontend(static_only, "/points").odometry_topic is None  # type: ignore[arg-type]
     moving = [Transform("odom", "base_link", stamp, 0, np.array([0.5 * k, 0.0, 0.0]), IDENTITY_Q, False)
               for k, stamp in enumerate((0, 100, 200))]
     with_odometry = _TfOnlyLog(mount, *moving)
-    prior = LidarFrontend(with_odometry, "/points")._prior  # type: ignore[arg-type]
+    frontend = LidarFrontend(with_odometry, "/points")  # type: ignore[arg-type]
+    prior = frontend._prior
     assert with_odometry.odometry_reads == 1 and prior is not None and len(prior) == 3
+    assert frontend.odometry_topic == "tf odom -> base_link"  # what the summary names
     np.testing.assert_allclose(prior.at(150)[:3, 3], [0.75, 0.0, 0.0])

@@ -10,9 +10,9 @@ Layers, bottom up: `containers/` find and unpack messages, `decoding/` turns pay
 streams by sensor time, `guard` bounds what one message may claim.
 """
 
-from frontends.logs.log import LogReader, open_log
+from frontends.logs.log import ODOMETRY_FRAME, LogReader, open_log
 from frontends.logs.transforms import TransformTree
 from frontends.logs.types import Cloud3D, LogInfo, OdometryPose, Scan2D, TopicInfo, Transform
 
-__all__ = ["Cloud3D", "LogInfo", "LogReader", "OdometryPose", "Scan2D", "TopicInfo", "Transform",
-           "TransformTree", "open_log"]
+__all__ = ["ODOMETRY_FRAME", "Cloud3D", "LogInfo", "LogReader", "OdometryPose", "Scan2D", "TopicInfo",
+           "Transform", "TransformTree", "open_log"]

@@ -29,6 +29,9 @@ from frontends.logs.ordering import DEFAULT_MAX_ITEMS, DEFAULT_WINDOW_NS, by_sta
 from frontends.logs.transforms import TransformTree
 from frontends.logs.types import Cloud3D, LogInfo, OdometryPose, Scan2D, Transform
 
+ODOMETRY_FRAME = "odom"
+"""Without an odometry topic, the odometry is tf's dynamic edge out of this frame (REP 105's odom → base)."""
+
 SCAN_TOPIC_OPTION = "--scan-topic"
 ODOMETRY_TOPIC_OPTION = "--odom-topic"
 _KIND_NAMES = {
@@ -195,7 +198,7 @@ class LogReader:
         self,
         topic: str | None = None,
         *,
-        odom_frame: str = "odom",
+        odom_frame: str = ODOMETRY_FRAME,
         window_ns: int = DEFAULT_WINDOW_NS,
         max_items: int = DEFAULT_MAX_ITEMS,
     ) -> Iterator[OdometryPose]:

@@ -67,8 +67,10 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
         self._input_counts: dict[str, int] = {}  # what the input checks dropped, skipped or reordered
         self.odometry: OdometryTrack | None = read_odometry(log, self.odometry_topic,
                                                             counts=self._input_counts)
-        if self.base_frame is None and self.odometry is not None:  # the odometry's poses are of that frame
-            self.base_frame = self.odometry.child_frame
+        if self.odometry is not None:
+            self._odometry_read(self.odometry.frame, self.odometry.child_frame)
+            if self.base_frame is None:  # the odometry's poses are of that frame
+                self.base_frame = self.odometry.child_frame
         self._slam = LaserSlam2D(self.config)
         self._counts = {"scans": 0, "scans_with_tf_mount": 0, "scans_with_odometry": 0,
                         "scans_with_beam_times": 0, "scans_beam_times_ignored": 0}

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError, LogFileError
-from frontends.logs import Cloud3D, LogReader, TransformTree
+from frontends.logs import ODOMETRY_FRAME, Cloud3D, LogReader, TransformTree
 from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, SessionArrays
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.pose_graph3d import PolishResult
@@ -48,6 +48,8 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         self._points = 0
         self._map_points: int | None = None
         self._prior = _odometry_prior(log, self.odometry_topic, self._tree)
+        if self._prior is not None:
+            self._odometry_read(ODOMETRY_FRAME, self._prior.child_frame)
         self.sensor_to_base = np.eye(4)
         """The LiDAR's mount on the base (from tf at the first cloud; identity without one)."""
         self.polish: PolishResult | None = None
