@@ -40,7 +40,6 @@ from benchmarks.sessions_bench import optimized  # noqa: E402
 from frontends.slam2d.frontend import deskewed_by_odometry  # noqa: E402
 from frontends.slam2d.log_input import OdometryTrack  # noqa: E402
 from frontends.slam2d.slam import LaserSlam2D  # noqa: E402
-from optimizer import se2  # noqa: E402
 
 RELATIVE_DISTANCE = 10.0
 """The relative error is taken between scans this far apart along the drive (m)."""
@@ -76,18 +75,7 @@ def errors(run: laser_world.Run, times: tuple[np.ndarray, ...] | None,
             points, point_times = deskewed_by_odometry(points, point_times, int(stamp), track, odometry, 0)
         slam.add_scan(int(stamp), points, odometry, 0.0, point_times)
     graph = slam.finish()
-    poses = graph.scan_poses(optimized(graph))
-    aligned = laser_world.align_to_first(poses, run.truth)
-    ate = float(np.sqrt(np.mean(np.sum((aligned[:, :2] - run.truth[:, :2]) ** 2, axis=1))))
-    steps = np.hypot(*np.diff(run.truth[:, :2], axis=0).T)
-    span = max(1, int(round(RELATIVE_DISTANCE / max(float(np.mean(steps)), 1e-9))))
-    estimated = se2.relative(poses[:-span], poses[span:])
-    true = laser_world.between(run.truth[:-span], run.truth[span:])
-    return {
-        "ate": ate,
-        "relative_m": float(np.mean(np.hypot(*(estimated[:, :2] - true[:, :2]).T))),
-        "relative_deg": float(np.degrees(np.mean(np.abs(laser_world.wrap(estimated[:, 2] - true[:, 2]))))),
-    }
+    return laser_world.drive_errors(graph.scan_poses(optimized(graph)), run.truth, RELATIVE_DISTANCE)
 
 
 def _cell(table: dict[str, list[dict[str, float]]], key: str, digits: int) -> str:

@@ -2,7 +2,7 @@
 
     NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 \\
         python benchmarks/speed2d_bench.py [--shared ../shared] [--out benchmarks/results] [--logs ACES CSAIL]
-        [--json speed2d.json] [--repeats 3]
+        [--extra LOG ...] [--json speed2d.json] [--repeats 3]
 
 Runs `pipeline.replay_log.replay_log` (what `replay LOG` runs) on every 2D log of the shared data and
 prints, per log: the log's duration (first to last scan), the wall and process CPU time of the replay,
@@ -251,6 +251,8 @@ def main() -> None:
     parser.add_argument("--shared", type=Path, default=REPO.parent / "shared")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "speed2d")
     parser.add_argument("--logs", nargs="*", default=None, help=f"a subset of: {', '.join(LOGS)}")
+    parser.add_argument("--extra", type=Path, nargs="*", default=[],
+                        help="other 2D logs to replay too (e.g. `fast_laser_log.py write`'s), named by file")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
     parser.add_argument("--repeats", type=int, default=1,
                         help="replay every log this many times, round after round; the tables show each "
@@ -259,6 +261,7 @@ def main() -> None:
                         help="also time `replay` on the shortest log in a fresh process, start-up included")
     args = parser.parse_args()
     chosen = {name: relative for name, relative in LOGS.items() if args.logs is None or name in args.logs}
+    chosen.update({path.name: str(path.resolve()) for path in args.extra})  # absolute: `shared /` keeps it
     aces: dict[str, float] | None = None
     with threadpool_limits(limits=1, user_api="blas"):
         # Compile (or load) the numba kernels: the sample has odometry, mumble's straight run has none

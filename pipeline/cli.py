@@ -615,6 +615,10 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
         if repaired:
             lines.append(f"  repaired the information of {len(repaired)} constraints")
     counts = summary.get("counts", {})
+    if counts.get("scans_between"):
+        interval = summary.get("config", {}).get("matching", {}).get("min_match_interval")
+        lines.append(f"  {counts['scans_between']} scans posed between matched ones (the laser scans more "
+                     f"often than every {interval:g} s: [slam2d.matching] min_match_interval)")
     timed, ignored = counts.get("scans_with_beam_times", 0), counts.get("scans_beam_times_ignored", 0)
     if timed:
         if not summary.get("config", {}).get("matching", {}).get("deskew", True):

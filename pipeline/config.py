@@ -92,7 +92,8 @@ beyond any use."""
 _RANGE_CEILING: dict[str, float] = {"gt": 0, "le": 1000}
 
 _BOUNDS: dict[str, dict[str, dict[str, float]]] = {
-    "slam2d.matching": {"resolution": {"ge": 0.005}, "max_range": _RANGE_CEILING},
+    "slam2d.matching": {"resolution": {"ge": 0.005}, "max_range": _RANGE_CEILING,
+                        "min_match_interval": {"ge": 0, "le": 1}},
     "slam2d.odometry": {"odometry_sigma_per_metre": _NON_NEGATIVE, "odometry_sigma_per_radian": _NON_NEGATIVE,
                         "min_inlier_fraction": _FRACTION, "angular_step": _STEP_FLOOR},
     "slam2d.keyframes": {"max_turn_rate": {"gt": 0, "le": 3600}},

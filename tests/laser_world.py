@@ -60,6 +60,21 @@ def align_to_first(poses: FloatArray, truth: FloatArray) -> FloatArray:
     return compose(truth[0], between(poses[0], poses))
 
 
+def drive_errors(poses: FloatArray, truth: FloatArray, distance: float = 10.0) -> dict[str, float]:
+    """A drive's estimated poses scored against the truth: the absolute trajectory error (RMSE of the
+    positions, the first pose aligned), and the mean relative error between poses `distance` metres apart
+    along the drive (translation m, rotation deg)."""
+    aligned = align_to_first(poses, truth)
+    steps = np.hypot(*np.diff(truth[:, :2], axis=0).T)
+    span = max(1, int(round(distance / max(float(np.mean(steps)), 1e-9))))
+    estimated, true = between(poses[:-span], poses[span:]), between(truth[:-span], truth[span:])
+    return {
+        "ate": float(np.sqrt(np.mean(np.sum((aligned[:, :2] - truth[:, :2]) ** 2, axis=1)))),
+        "relative_m": float(np.mean(np.hypot(*(estimated[:, :2] - true[:, :2]).T))),
+        "relative_deg": float(np.degrees(np.mean(np.abs(wrap(estimated[:, 2] - true[:, 2]))))),
+    }
+
+
 # -------------------------------------------------------------------------------------------- walls
 
 

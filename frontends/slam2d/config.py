@@ -69,6 +69,10 @@ class MatchingConfig:
     """Motion-compensate scans whose messages say when each beam was taken (LaserScan `time_increment`
     not 0), under the motion predicted for the scan (`frontends.slam2d.deskew`). Off: every beam is taken
     as if at the stamp, as for scans without beam times."""
+    min_match_interval: float = 0.1
+    """A fast laser's scans are matched this many seconds apart (s), in whole strides of its scans; the
+    scans between are posed between the matched ones on either side (`frontends.slam2d.cadence`). 0:
+    every scan is matched."""
 
 
 @dataclass(frozen=True)

@@ -92,13 +92,24 @@ def velocity(motion: FloatArray, elapsed: float) -> FloatArray:
 def deskewed(points: FloatArray, times: FloatArray, twist: FloatArray) -> FloatArray:
     """`points` (N, 2) in the robot frame at their own `times` (N,) (s after the stamp) → in the robot frame
     at the stamp: exp(t·`twist`) applied to each."""
-    turn = times * twist[2]
-    along, across = _arc_factors(turn)
-    tx = times * (along * twist[0] - across * twist[1])
-    ty = times * (across * twist[0] + along * twist[1])
+    tx, ty, turn = _exp(times, twist)
     cos, sin = np.cos(turn), np.sin(turn)
     x, y = points[:, 0], points[:, 1]
     return np.column_stack([cos * x - sin * y + tx, sin * x + cos * y + ty])
+
+
+def along_motion(motion: FloatArray, fractions: FloatArray) -> FloatArray:
+    """(F, 3) the poses a fraction of the way through `motion` (x, y, θ) at constant velocity: exp(f·log
+    `motion`) for each of `fractions` (0: none of it, 1: all of it)."""
+    return np.column_stack(_exp(np.asarray(fractions, dtype=np.float64), velocity(motion, 1.0)))
+
+
+def _exp(times: FloatArray, twist: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """x, y, θ of exp(t·`twist`) for each of `times`."""
+    turn = times * twist[2]
+    along, across = _arc_factors(turn)
+    return (times * (along * twist[0] - across * twist[1]), times * (across * twist[0] + along * twist[1]),
+            turn)
 
 
 def _arc_factors(theta: FloatArray) -> tuple[FloatArray, FloatArray]:

@@ -208,7 +208,8 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
     def counts(self) -> dict[str, int]:
         result = self.result
         return {**self._counts, **self._input_counts, **self._log.counts, "keyframes": result.graph.num_poses,
-                "constraints": result.graph.num_edges, "scans_unmatched": result.scans_unmatched}
+                "constraints": result.graph.num_edges, "scans_unmatched": result.scans_unmatched,
+                "scans_between": result.scans_between}
 
     def loop_closures(self) -> dict[str, Any]:
         result = self.result

@@ -187,9 +187,8 @@ class ResumedSlam2D(LaserSlam2D):
         self._last_odometry = odometry
         self._keyframe_odometry = odometry
         self._last_motion = np.zeros(3)
-        self._scan_stamps.append(stamp)
-        self._scan_keyframes.append(new)
-        self._scan_offsets.append(np.zeros(3))
+        self._append_scan(stamp, new, pose)
+        self._pose_between(pose)
 
     def _extend_local_map(self) -> None:
         """Built again at every keyframe: which old keyframes it holds changes as the robot moves."""

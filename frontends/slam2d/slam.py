@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune, path_lengths
+from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import (
     HYPOTHESIS_KEYFRAMES,
     LOOP_CANDIDATES_PER_KEYFRAME,
@@ -38,7 +39,7 @@ from frontends.slam2d.config import (
     Slam2DConfig,
 )
 from frontends.slam2d.correlative import Match, SearchWindow, match_branch_and_bound, match_exhaustive
-from frontends.slam2d.deskew import ScanDeskewer
+from frontends.slam2d.deskew import ScanDeskewer, along_motion
 from frontends.slam2d.global_match import match_unambiguous
 from frontends.slam2d.grid import LikelihoodGrid
 from frontends.slam2d.held_odometry import OdometryHold
@@ -89,6 +90,10 @@ class ScanEstimate:
     """Loop closures (older keyframe, this keyframe) accepted while processing this scan."""
     points: FloatArray | None = None
     """The scan's points (N, 2) in the base frame, deskewed (`LaserFrontend.add`); None: as measured."""
+    between: bool = False
+    """Not matched by design: a fast laser's scan between two matched ones (`frontends.slam2d.cadence`).
+    Its `pose` is predicted from the last matched scan; the graph's is interpolated once the next one is
+    matched."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,6 +114,8 @@ class Slam2DGraph:
     loop_closures_rejected: int
     scans_unmatched: int
     loop_closures_unconfirmed: int = 0
+    scans_between: int = 0
+    """Scans not matched by design, posed between matched ones (`ScanEstimate.between`)."""
     """Loop closures that waited for a second, agreeing one in vain (expired, or void after the map moved)."""
     stage_times: StageTimes = field(default_factory=StageTimes)
     """Where the frontend spent its time (matching, keyframes, loop search, verification, online
@@ -195,6 +202,14 @@ class LaserSlam2D:
         self._keyframe_odometry: FloatArray | None = None
         """The wheel odometry at the last keyframe (None: that scan had none)."""
         self._last_motion = np.zeros(3)
+        self._cadence = MatchCadence(self.config.matching.min_match_interval)
+        self._last_matched: tuple[int, int] | None = None
+        """The index and stamp of the last matched scan (or of the first scan)."""
+        self._matched_interval_ns = 0
+        """The time between the last two matched scans: the span of `_last_motion`."""
+        self._between: list[int] = []
+        """The scans since the last matched one, posed by interpolation when the next one is matched."""
+        self._scans_between = 0
         self._odometry_hold = OdometryHold()
         """While the wheel odometry repeats its last value: the motion tracked since it last changed."""
         self._deskewer = ScanDeskewer()
@@ -247,6 +262,9 @@ class LaserSlam2D:
         points = points[in_range]
         times = None if point_times is None or not matching.deskew else np.asarray(point_times)[in_range]
         index = len(self._scan_stamps)
+        due = self._cadence.due(int(stamp_ns))
+        if not due and self._local_map is not None and self._last_matched is not None:
+            return self._add_scan_between(int(stamp_ns), self._motion_since_matched(int(stamp_ns), odometry))
         new_loops: tuple[tuple[int, int], ...] = ()
         if not self._keyframe_poses:
             pose, matched, information = np.zeros(3), True, np.eye(3)
@@ -273,7 +291,7 @@ class LaserSlam2D:
             last_keyframe = self._keyframe_poses[-1]
             step = se2.relative(last_keyframe, pose)
             keyframes = self.config.keyframes
-            elapsed = (int(stamp_ns) - self._scan_stamps[-1]) * 1e-9
+            elapsed = (int(stamp_ns) - self._last_matched[1]) * 1e-9 if self._last_matched else 0.0
             turning_fast = abs(self._last_motion[2]) > keyframes.max_turn_rate * max(elapsed, 1e-3)
             moved = np.hypot(step[0], step[1]) >= keyframes.distance or abs(step[2]) >= keyframes.angle
             # Without a usable local map (the first scans were empty) any scan with points starts one.
@@ -288,12 +306,59 @@ class LaserSlam2D:
                 pose = self._last_pose  # the loop closures may have moved it
         self._last_odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
         self._deskewer.moved(int(stamp_ns), self._last_motion if index else None)
+        self._append_scan(int(stamp_ns), len(self._keyframe_poses) - 1, pose)
+        self._pose_between(pose)
         keyframe = len(self._keyframe_poses) - 1
-        self._scan_stamps.append(int(stamp_ns))
-        self._scan_keyframes.append(keyframe)
-        self._scan_offsets.append(se2.relative(self._keyframe_poses[keyframe], pose))
         self._unmatched += not matched
         return ScanEstimate(index, int(stamp_ns), pose.copy(), matched, keyframe, new_loops)
+
+    def _append_scan(self, stamp_ns: int, keyframe: int, pose: FloatArray) -> None:
+        """A scan at `pose`, hung off `keyframe`."""
+        self._scan_stamps.append(stamp_ns)
+        self._scan_keyframes.append(keyframe)
+        self._scan_offsets.append(se2.relative(self._keyframe_poses[keyframe], pose))
+
+    def _motion_since_matched(self, stamp_ns: int, odometry: FloatArray | None) -> FloatArray:
+        """The motion predicted from the last matched scan to the scan at `stamp_ns`: the odometry's, or the
+        last matched motion at constant velocity."""
+        assert self._last_matched is not None
+        if odometry is not None and self._last_odometry is not None:
+            return se2.relative(self._last_odometry, np.asarray(odometry, dtype=np.float64))
+        elapsed = stamp_ns - self._last_matched[1]
+        fraction = elapsed / self._matched_interval_ns if self._matched_interval_ns > 0 else 0.0
+        return along_motion(self._last_motion, np.array([fraction]))[0]
+
+    def _add_scan_between(self, stamp_ns: int, motion: FloatArray) -> ScanEstimate:
+        """A scan the cadence skips, posed for now by the `motion` predicted since the last matched scan."""
+        pose = se2.compose(self._last_pose, motion)
+        index, keyframe = len(self._scan_stamps), len(self._keyframe_poses) - 1
+        self._append_scan(stamp_ns, keyframe, pose)
+        self._between.append(index)
+        self._scans_between += 1
+        return ScanEstimate(index, stamp_ns, pose.copy(), False, keyframe, (), between=True)
+
+    def _pose_between(self, pose: FloatArray) -> None:
+        """The newest scan was matched at `pose` (or is the first, or starts a run in a saved map): the scans
+        since the one matched before are placed between the two at constant velocity (over a tenth of a
+        second). Then it is the last matched scan."""
+        index = len(self._scan_stamps) - 1
+        stamp = self._scan_stamps[index]
+        self._cadence.matched(stamp)
+        if self._between and self._last_matched is not None:
+            last_index, last_stamp = self._last_matched
+            last_keyframe = self._scan_keyframes[last_index]
+            start = se2.compose(self._keyframe_poses[last_keyframe], self._scan_offsets[last_index])
+            stamps = np.array([self._scan_stamps[k] for k in self._between], dtype=np.int64)
+            span = stamp - last_stamp
+            fractions = (stamps - last_stamp) / span if span > 0 else np.zeros(len(stamps))
+            poses = se2.compose(start, along_motion(se2.relative(start, pose), fractions))
+            # No keyframe is made between matched scans: they all hang off the one the last matched did.
+            keyframe = self._keyframe_poses[self._scan_keyframes[self._between[0]]]
+            for k, offset in zip(self._between, se2.relative(keyframe, poses), strict=True):
+                self._scan_offsets[k] = offset
+        self._between.clear()
+        self._matched_interval_ns = 0 if self._last_matched is None else stamp - self._last_matched[1]
+        self._last_matched = (index, stamp)
 
     def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
         """The prior of the scan's match: the last pose moved by the odometry (`predicted_motion`).
@@ -605,6 +670,7 @@ class LaserSlam2D:
             loop_closures_rejected=self._rejected,
             scans_unmatched=self._unmatched,
             loop_closures_unconfirmed=self._hypotheses.dropped,
+            scans_between=self._scans_between,
             stage_times=self.stage_times,
         )
 

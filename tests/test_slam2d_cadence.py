@@ -1,0 +1,128 @@
+"""Fast lasers: which scans the 2D SLAM matches (`frontends.slam2d.cadence`), and how the scans between the
+matched ones are posed (`LaserSlam2D`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from frontends.slam2d.cadence import MatchCadence
+from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d.deskew import along_motion
+from frontends.slam2d.slam import LaserSlam2D
+from optimizer import se2
+from pipeline.cli import app
+from pipeline.trajectory_io import read_tum
+from tests.laser_world import align_to_first, simulate_swept_run, square_loop, wrap
+from tests.pipeline_fixtures import START_NS, write_drive
+
+FAST_PERIOD_NS = 25_000_000
+"""A 40 Hz laser."""
+
+
+def jittered_stamps(rate: float, count: int, seed: int = 0) -> list[int]:
+    """`count` stamps of a laser at `rate` Hz, each off its slot by up to 5 % of the interval."""
+    rng = np.random.default_rng(seed)
+    slots = np.arange(count) / rate + rng.uniform(-0.05, 0.05, count) / rate
+    return [START_NS + round(t * 1e9) for t in slots]
+
+
+def due_indices(cadence: MatchCadence, stamps: list[int]) -> list[int]:
+    due = []
+    for index, stamp in enumerate(stamps):
+        if cadence.due(stamp):
+            cadence.matched(stamp)
+            due.append(index)
+    return due
+
+
+# The stride the module documents for 0.1 s: n = ⌊0.1 s × rate + ¼⌋, at least 1.
+@pytest.mark.parametrize(("rate", "stride"), [(40, 4), (30, 3), (25, 2), (20, 2), (15, 1), (10, 1), (5, 1)])
+def test_a_steady_laser_is_matched_every_nth_scan_whatever_its_jitter(rate: int, stride: int) -> None:
+    assert due_indices(MatchCadence(0.1), jittered_stamps(rate, 200)) == list(range(0, 200, stride))
+
+
+def test_the_scan_after_a_gap_is_matched_and_the_stride_starts_again_from_it() -> None:
+    stamps = jittered_stamps(40, 30)
+    stamps = stamps[:10] + [s + 300_000_000 for s in stamps[10:]]  # 0.3 s without scans after scan 9
+    due = due_indices(MatchCadence(0.1), stamps)
+    assert due == [0, 4, 8, 10, 14, 18, 22, 26]
+
+
+def test_no_interval_matches_every_scan() -> None:
+    stamps = jittered_stamps(40, 50)
+    assert due_indices(MatchCadence(0.0), stamps) == list(range(50))
+
+
+def test_a_fraction_of_a_motion_lies_on_its_arc() -> None:
+    # A quarter turn on a circle of radius 2 about (0, 2): a third of the way is the point at 30°.
+    motion = np.array([2.0, 2.0, math.pi / 2])
+    third = along_motion(motion, np.array([0.0, 1 / 3, 1.0]))
+    np.testing.assert_allclose(third[0], 0.0, atol=1e-12)
+    thirty = math.pi / 6
+    np.testing.assert_allclose(third[1], [2 * math.sin(thirty), 2 - 2 * math.cos(thirty), thirty])
+    np.testing.assert_allclose(third[2], motion, atol=1e-12)
+
+
+def fast_run(with_odometry: bool, interval: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The first 400 scans (10 s, 10 m and a corner) of a 40 Hz, 270° laser driving the square loop at 1 m/s:
+    every scan's error against the truth (m), the online estimates' errors, which scans were between, and
+    the graph's count of them."""
+    run = simulate_swept_run(square_loop(), speed=1.0, scan_rate=40.0, sweep=0.0, beams=541,
+                             fov=math.radians(270.0), max_range=30.0, seed=3)
+    count = 400
+    base = Slam2DConfig()
+    slam = LaserSlam2D(dataclasses.replace(
+        base, matching=dataclasses.replace(base.matching, min_match_interval=interval)))
+    estimates = [slam.add_scan(int(run.stamps_ns[k]), run.scans[k],
+                               run.odometry[k] if with_odometry else None, 0.0) for k in range(count)]
+    graph = slam.finish()
+    truth = run.truth[:count]
+    final = align_to_first(graph.scan_poses(graph.graph.poses), truth)
+    online = align_to_first(np.array([e.pose for e in estimates]), truth)
+    errors = np.hypot(*(final[:, :2] - truth[:, :2]).T)
+    online_errors = np.hypot(*(online[:, :2] - truth[:, :2]).T)
+    between = np.array([e.between for e in estimates])
+    assert not np.any(between & np.array([e.matched for e in estimates]))
+    assert np.all(np.abs(wrap(final[:, 2] - truth[:, 2])) < math.radians(1.0))
+    return errors, online_errors, between, graph.scans_between
+
+
+@pytest.mark.parametrize("with_odometry", [True, False], ids=["odometry", "lidar-only"])
+def test_a_fast_laser_has_every_fourth_scan_matched_and_the_others_posed_as_well(with_odometry: bool) -> None:
+    errors, online_errors, between, counted = fast_run(with_odometry, 0.1)
+    assert counted == between.sum() == 300  # every 4th of 400 scans matched
+    assert not between[::4].any() and between[np.arange(400) % 4 != 0].all()
+    # The scans between lie on the track as closely as the matched ones around them.
+    assert np.median(errors[between]) <= np.median(errors[~between]) + 0.003
+    assert errors.max() < 0.05
+    # Online, before the next match, a scan between is the prediction from the last matched one (lidar-only,
+    # the velocity is known from the second matched scan on).
+    assert np.max(online_errors[4:][between[4:]]) < 0.02
+    # Matching every scan instead does no better.
+    every_scan, _, none_between, none_counted = fast_run(with_odometry, 0.0)
+    assert none_counted == 0 and not none_between.any()
+    assert np.median(errors) <= np.median(every_scan) + 0.005
+
+
+def test_a_fast_log_replays_with_every_scan_in_the_trajectory(tmp_path: Path) -> None:
+    log = tmp_path / "fast.mcap"
+    truth = write_drive(log, scans=320, scan_period_ns=FAST_PERIOD_NS)  # 8 s of a 40 Hz laser
+    result = CliRunner().invoke(app, [str(log), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "out" / "fast.json").read_text())
+    assert summary["counts"]["scans_between"] == 240
+    assert summary["odometry_topic"] == "/odom"
+    assert "  240 scans posed between matched ones" in result.stderr.splitlines()[1]
+    trajectory = read_tum(tmp_path / "out" / "fast.tum")
+    np.testing.assert_array_equal(trajectory.stamps_ns, START_NS + np.arange(320) * FAST_PERIOD_NS)
+    poses = trajectory.planar()
+    aligned = align_to_first(poses, truth)
+    assert np.max(np.hypot(*(aligned[:, :2] - truth[:, :2]).T)) < 0.05
+    assert se2.relative(poses[0], poses[-1])[0] == pytest.approx(7.975, abs=0.05)  # 319 × 2.5 cm ahead
