@@ -20,7 +20,7 @@ from optimizer import se2
 from pipeline.cli import app
 from pipeline.trajectory_io import read_tum
 from tests.laser_world import align_to_first, simulate_swept_run, square_loop, wrap
-from tests.pipeline_fixtures import START_NS, write_drive
+from tests.pipeline_fixtures import START_NS, read_recording, write_drive
 
 FAST_PERIOD_NS = 25_000_000
 """A 40 Hz laser."""
@@ -126,3 +126,6 @@ def test_a_fast_log_replays_with_every_scan_in_the_trajectory(tmp_path: Path) ->
     aligned = align_to_first(poses, truth)
     assert np.max(np.hypot(*(aligned[:, :2] - truth[:, :2]).T)) < 0.05
     assert se2.relative(poses[0], poses[-1])[0] == pytest.approx(7.975, abs=0.05)  # 319 × 2.5 cm ahead
+    # The playback plays the matched scans only: the recording of a 40 Hz laser is a 10 Hz one's size.
+    played = read_recording(tmp_path / "out" / "fast.rrd", timeline="scan")
+    assert played["/world/scan"].steps == played["/world/robot"].steps == list(range(0, 320, 4))

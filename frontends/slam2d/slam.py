@@ -256,15 +256,15 @@ class LaserSlam2D:
         """Process one scan: `points` (N, 2) in the robot base frame, `odometry` its wheel-odometry pose,
         interpolated between messages `odometry_interval` seconds apart (0: a message at the scan's stamp),
         `point_times` (N,) when each point was taken (s after `stamp_ns`; None: all at the stamp)."""
+        due = self._cadence.due(int(stamp_ns))
+        if not due and self._local_map is not None and self._last_matched is not None:
+            return self._add_scan_between(int(stamp_ns), self._motion_since_matched(int(stamp_ns), odometry))
         matching = self.config.matching
         points = np.asarray(points, dtype=np.float64)
         in_range = np.einsum("ij,ij->i", points, points) <= matching.max_range**2
         points = points[in_range]
         times = None if point_times is None or not matching.deskew else np.asarray(point_times)[in_range]
         index = len(self._scan_stamps)
-        due = self._cadence.due(int(stamp_ns))
-        if not due and self._local_map is not None and self._last_matched is not None:
-            return self._add_scan_between(int(stamp_ns), self._motion_since_matched(int(stamp_ns), odometry))
         new_loops: tuple[tuple[int, int], ...] = ()
         if not self._keyframe_poses:
             pose, matched, information = np.zeros(3), True, np.eye(3)

@@ -4,9 +4,11 @@ Timelines: `scan` (the scan's index) and `time` (its sensor stamp) carry, per sc
 the pose estimated when it was processed (`world/scan`) and that pose (`world/robot`); loop closures are
 logged when they are found (`world/loop_closures_found`). The blueprint's "scan playback" tab shows them
 with a visible time range from the start to the cursor, so the scans build up the map, the robot leaves
-a trail and the loop closures found stay drawn. Static: the wheel-odometry trajectory and the final
-trajectory of every scan (both off by default in the map view). Per-scan data is buffered and sent in
-column batches, which keeps the cost of recording a small part of a replay.
+a trail and the loop closures found stay drawn. A fast laser's scans between matched ones
+(`ScanEstimate.between`) are left out of the playback: it plays the matched scans, at most one a
+`min_match_interval`, and the recording stays the size a slower laser's would. Static: the wheel-odometry
+trajectory and the final trajectory of every scan (both off by default in the map view). Per-scan data is
+buffered and sent in column batches, which keeps the cost of recording a small part of a replay.
 
 `MapLocalizationRecording` is the recording of a localization in a saved 2D map (`replay LOG --map
 SESSION`): the scans as above, under the saved map (see its docstring).
@@ -187,8 +189,8 @@ class ScanReplayRecording:
     def measurement(self, measurement: ScanInBase, estimate: ScanEstimate) -> None:
         scan, _ = measurement
         x, y, theta = (float(value) for value in estimate.pose)
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(theta)):
-            return  # not placed yet (a run joining a saved map): no pose
+        if estimate.between or not (math.isfinite(x) and math.isfinite(y) and math.isfinite(theta)):
+            return  # between matched scans, or not placed yet (a run joining a saved map): no pose
         points = scan.points if estimate.points is None else estimate.points
         self._scans.add(estimate.index, estimate.stamp_ns, points, estimate.pose)
         if estimate.new_loop_closures:
