@@ -186,6 +186,13 @@ class ScanLocalizations:
     `poses`; None: `poses` are those."""
     smoothed: BoolArray | None = None
     """The scans whose pose the smoothing gave (None: none)."""
+    between: BoolArray | None = None
+    """A fast laser's scans between two the localizer was given (`frontends.slam2d.cadence`): posed between
+    them, not matched themselves (`localized` True). None: all False."""
+
+    @property
+    def posed_between(self) -> BoolArray:
+        return np.zeros(len(self.stamps_ns), dtype=bool) if self.between is None else self.between
 
     @property
     def tracked_outside(self) -> BoolArray:
@@ -211,6 +218,7 @@ class ScanLocalizations:
                 "scans_localized_when_processed": int(self.localized.sum()),
                 "scans_matched": int(self.matched.sum()),
                 "scans_tracked_outside_map": int(self.tracked_outside.sum()),
+                "scans_between": int(self.posed_between.sum()),
                 "scans_recovered": int(self.recovered.sum()),
                 "scans_never_localized": int((~self.has_pose).sum()),
                 "global_fixes": len(self.global_fixes)}

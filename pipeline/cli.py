@@ -591,7 +591,9 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
             f"{name}: {found['scans']} scans on {summary['topic']} localized in "
             f"{summary['session']} ({stats.poses} keyframes, not changed): {found['with_pose']} with a pose "
             f"({found['matched']} matched, {found['tracked_outside_map']} tracked outside the map, "
-            f"{found['recovered_by_a_global_fix']} recovered by a global fix), "
+            + (f"{found['between_localized_scans']} between localized ones, "
+               if found.get("between_localized_scans") else "")
+            + f"{found['recovered_by_a_global_fix']} recovered by a global fix), "
             f"{found['never_localized']} never localized (not in the .tum)",
             f"  {len(found['global_fixes'])} global fixes"
             + ("" if first_fix is None else f", the first {first_fix:.1f} s after the first scan")

@@ -526,7 +526,8 @@ def _run_fields(result: LogReplayResult) -> dict[str, Any]:
 
 MAX_PER_SCAN_ROWS = 20_000
 """A localization summary lists at most this many scans one by one (every k-th of a longer log)."""
-SCAN_STATES = {"matched": "m", "tracked": "t", "predicted": "p", "recovered": "r", "never": "-"}
+SCAN_STATES = {"matched": "m", "tracked": "t", "predicted": "p", "between": "b", "recovered": "r",
+               "never": "-"}
 """One character per scan in a localization summary's `per_scan.state`."""
 
 
@@ -553,6 +554,7 @@ def localization_summary(result: LogReplayResult) -> dict[str, Any]:
             "localized_when_processed": int(found.localized.sum()),
             "matched": int(found.matched.sum()),
             "tracked_outside_map": int(found.tracked_outside.sum()),
+            "between_localized_scans": int(found.posed_between.sum()),
             "recovered_by_a_global_fix": int(found.recovered.sum()),
             "never_localized": int((~found.has_pose).sum()),
             "never_localized_note": "scans never placed in the map have no pose and are not in the TUM file",
@@ -569,8 +571,9 @@ def localization_summary(result: LogReplayResult) -> dict[str, Any]:
 def localization_summary_text(result: LogReplayResult) -> str:
     """`localization_summary` as JSON text, with `per_scan`: one row of compact arrays per quantity
     (the scan's stamp, state — m matched, t tracked outside the saved map on the rolling local map of the
-    recent scans, p predicted by odometry without a match, r pose recovered by a later global fix, - never
-    localized — score, inlier fraction, ICP rms), each on one line."""
+    recent scans, p predicted by odometry without a match, b a fast laser's scan posed between two localized
+    ones, r pose recovered by a later global fix, - never localized — score, inlier fraction, ICP rms), each
+    on one line."""
     assert result.mode == "map"
     found = cast(LocalizingFrontend, result.frontend).localizations
     stride = -(-len(found.stamps_ns) // MAX_PER_SCAN_ROWS)
@@ -579,6 +582,7 @@ def localization_summary_text(result: LogReplayResult) -> str:
     state[found.recovered] = SCAN_STATES["recovered"]
     state[found.localized] = SCAN_STATES["predicted"]
     state[found.tracked_outside] = SCAN_STATES["tracked"]
+    state[found.posed_between] = SCAN_STATES["between"]
     state[found.matched] = SCAN_STATES["matched"]
     per_scan = {
         "stride": int(stride),

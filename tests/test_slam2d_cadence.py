@@ -129,3 +129,28 @@ def test_a_fast_log_replays_with_every_scan_in_the_trajectory(tmp_path: Path) ->
     # The playback plays the matched scans only: the recording of a 40 Hz laser is a 10 Hz one's size.
     played = read_recording(tmp_path / "out" / "fast.rrd", timeline="scan")
     assert played["/world/scan"].steps == played["/world/robot"].steps == list(range(0, 320, 4))
+
+
+def test_a_fast_log_localized_in_a_saved_map_has_every_scan_placed(tmp_path: Path) -> None:
+    mapped = tmp_path / "mapped.mcap"
+    write_drive(mapped, scans=320, scan_period_ns=FAST_PERIOD_NS)
+    runner = CliRunner()
+    assert runner.invoke(app, [str(mapped), "--out", str(tmp_path / "map"), "--quiet"]).exit_code == 0
+    log = tmp_path / "again.mcap"
+    truth = write_drive(log, scans=320, scan_period_ns=FAST_PERIOD_NS, seed=11)  # other noise, same drive
+    result = runner.invoke(app, [str(log), "--map", str(tmp_path / "map" / "mapped.session"),
+                                 "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "out" / "again.json").read_text())
+    found = summary["localization"]
+    assert found["with_pose"] == 320 and found["never_localized"] == 0
+    states = summary["per_scan"]["state"]
+    # Once placed, every 4th scan goes to the localizer and the three after it are posed between.
+    placed = states.index("m")
+    assert set(states[placed + 1:]) <= {"m", "b"} and found["between_localized_scans"] == states.count("b")
+    assert all(states[k] == "b" for k in range(placed + 1, 316) if (k - placed) % 4)
+    trajectory = read_tum(tmp_path / "out" / "again.tum")
+    np.testing.assert_array_equal(trajectory.stamps_ns, START_NS + np.arange(320) * FAST_PERIOD_NS)
+    # The map's frame is the first log's first pose, where this log starts too.
+    errors = np.hypot(*(trajectory.planar()[:, :2] - se2.relative(truth[0], truth)[:, :2]).T)
+    assert errors[placed:].max() < 0.05

@@ -8,7 +8,9 @@
   is never changed. Scans never placed in the map have no pose: they are counted (`ScanLocalizations`),
   never given a made-up one. Once the log is read, the stretches tracked or predicted between map matches
   are smoothed (`frontends.slam2d.localization_smoothing`): the trajectory given is the smoothed one, the
-  per-scan states and match quality stay as measured online.
+  per-scan states and match quality stay as measured online. A fast laser's scans are localized at the
+  mapping's cadence (`frontends.slam2d.cadence`) while the run is placed; the scans between are posed
+  between the localized ones around them, after the smoothing.
 
 In both, the new log's wheel odometry starts anywhere: it is used for the motion between scans only.
 """
@@ -25,18 +27,23 @@ import numpy as np
 from frontends.errors import FrontendError, MapPlacementError
 from frontends.logs import LogReader
 from frontends.protocol import (
+    BoolArray,
     FloatArray,
     FrontendOptions,
+    IntArray,
     SavedMapLocalization,
     ScanLocalizations,
 )
+from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d.deskew import along_motion
 from frontends.slam2d.frontend import LaserFrontend
 from frontends.slam2d.localization import LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
 from frontends.slam2d.resume import ResumedSlam2D, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate
+from optimizer import se2
 from optimizer.graph import PoseGraph
 
 
@@ -123,6 +130,15 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self._localizer = MapLocalizer(saved.keyframe_scans, saved.keyframe_poses, self.config,
                                        initial_pose=self.initial_pose)
         self._found: list[LocalizedScan] = []
+        """What the localizer said of each scan it was given (every scan but those between)."""
+        self._localized_scans: list[int] = []
+        """The scan index of each of `_found` (the localizer counts the scans it was given)."""
+        self._odometry: list[FloatArray | None] = []
+        """The wheel odometry at each of `_found`."""
+        self._cadence = MatchCadence(self.config.matching.min_match_interval)
+        self._between: list[int] = []
+        """The scans a fast laser took between two given to the localizer (`frontends.slam2d.cadence`)."""
+        self._stamps: list[int] = []
         self._poses: list[FloatArray] = []
         """Each scan's pose as given when processed, or as a later global fix recovered it."""
         self._recovered: list[int] = []
@@ -132,39 +148,90 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
 
     def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
                  odometry_interval: float, point_times: FloatArray | None) -> ScanEstimate:
+        index = len(self._stamps)
+        self._stamps.append(stamp_ns)
+        due = self._cadence.due(stamp_ns)
+        last = self._found[-1] if self._found else None
+        if not due and last is not None and last.localized and (last.matched or last.tracked):
+            pose = self._predicted(stamp_ns, odometry)
+            self._poses.append(pose)
+            self._between.append(index)
+            return ScanEstimate(index, stamp_ns, pose.copy(), False, -1, (), between=True)
         found = self._localizer.localize(stamp_ns, points, odometry, odometry_interval, point_times)
+        self._cadence.matched(stamp_ns)
         self._found.append(found)
+        self._localized_scans.append(index)
+        self._odometry.append(None if odometry is None else np.asarray(odometry, dtype=np.float64))
         self._poses.append(found.pose.copy())
         if found.global_fix:
-            self._fixes.append(found.index)
-            for index, pose in zip(found.recovered_indices.tolist(), found.recovered_poses, strict=True):
-                self._poses[index] = pose.copy()
-                self._recovered.append(index)
-        return ScanEstimate(found.index, found.stamp_ns, found.pose.copy(), found.matched, -1, ())
+            self._fixes.append(index)
+            for given, pose in zip(found.recovered_indices.tolist(), found.recovered_poses, strict=True):
+                scan = self._localized_scans[given]
+                self._poses[scan] = pose.copy()
+                self._recovered.append(scan)
+        return ScanEstimate(index, found.stamp_ns, found.pose.copy(), found.matched, -1, ())
+
+    def _predicted(self, stamp_ns: int, odometry: FloatArray | None) -> FloatArray:
+        """A scan between: the last localized scan's pose moved by the odometry since, or by the motion
+        between the last two localized scans at constant velocity (the localizer's own predictions)."""
+        last, last_odometry = self._found[-1], self._odometry[-1]
+        if odometry is not None and last_odometry is not None:
+            return se2.compose(last.pose, se2.relative(last_odometry, np.asarray(odometry, dtype=np.float64)))
+        if len(self._found) < 2 or not self._found[-2].localized:
+            return last.pose.copy()
+        before = self._found[-2]
+        span = last.stamp_ns - before.stamp_ns
+        fraction = (stamp_ns - last.stamp_ns) / span if span > 0 else 0.0
+        motion = se2.relative(before.pose, last.pose)
+        return se2.compose(last.pose, along_motion(motion, np.array([fraction]))[0])
 
     def finish(self) -> None:
         """Raises `MapPlacementError` when no scan could be placed in the saved map."""
         if self._counts["scans"] == 0:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
         self._after_reading()
-        fields = ("stamp_ns", "localized", "matched", "score", "inlier_fraction", "rms", "tracked")
-        columns = (np.array([getattr(found, name) for found in self._found]) for name in fields)
-        stamps, localized, matched, score, inliers, rms, tracked = columns
-        recovered = np.zeros(len(stamps), dtype=bool)
+        count, given = len(self._stamps), np.array(self._localized_scans, dtype=np.int64)
+        between = np.zeros(count, dtype=bool)
+        between[self._between] = True
+        columns = {"localized": between.copy(), "matched": np.zeros(count, dtype=bool),
+                   "tracked": np.zeros(count, dtype=bool), "score": np.full(count, np.nan),
+                   "inlier_fraction": np.zeros(count), "rms": np.full(count, np.inf)}
+        for name, column in columns.items():
+            column[given] = [getattr(found, name) for found in self._found]
+        recovered = np.zeros(count, dtype=bool)
         recovered[self._recovered] = True
-        recovered &= ~localized
+        recovered &= ~columns["localized"]
         online = np.array(self._poses).reshape(-1, 3)
-        self._smoothing = smooth_scans(self._found, online)
+        self._smoothing = smooth_scans(self._found, online[given])
+        poses, smoothed = online.copy(), np.zeros(count, dtype=bool)
+        poses[given], smoothed[given] = self._smoothing.poses, self._smoothing.smoothed
+        self._pose_between(poses, smoothed, given)
         self._localizations = ScanLocalizations(
-            stamps.astype(np.int64), self._smoothing.poses, localized.astype(bool),
-            matched.astype(bool), recovered, score.astype(np.float64), inliers.astype(np.float64),
-            rms.astype(np.float64), np.array(self._fixes, dtype=np.int64), tracked.astype(bool),
-            online_poses=online, smoothed=self._smoothing.smoothed)
+            np.array(self._stamps, dtype=np.int64), poses, columns["localized"], columns["matched"],
+            recovered, columns["score"], columns["inlier_fraction"], columns["rms"],
+            np.array(self._fixes, dtype=np.int64), columns["tracked"], online_poses=online,
+            smoothed=smoothed, between=between)
         if not self._localizations.has_pose.any():
             raise MapPlacementError(
-                f"none of the {len(stamps)} scans of {self._log.path} could be placed in the saved map of "
+                f"none of the {count} scans of {self._log.path} could be placed in the saved map of "
                 f"{len(self.saved.keyframe_poses)} keyframes: no unambiguous match"
                 + ("" if self.initial_pose is not None else " (an --initial-pose x,y,yaw may help)"))
+
+    def _pose_between(self, poses: FloatArray, smoothed: BoolArray, given: IntArray) -> None:
+        """The scans between two given to the localizer, in place: between the two (smoothed) poses around
+        them at constant velocity; left at their prediction after the last one."""
+        stamps = np.array(self._stamps, dtype=np.int64)
+        for scan in self._between:
+            after = int(np.searchsorted(given, scan))
+            if after >= len(given):
+                continue
+            start, end = given[after - 1], given[after]
+            if not np.all(np.isfinite(poses[[start, end]])):
+                continue
+            fraction = (stamps[scan] - stamps[start]) / (stamps[end] - stamps[start])
+            poses[scan] = se2.compose(poses[start], along_motion(se2.relative(poses[start], poses[end]),
+                                                                 np.array([fraction]))[0])
+            smoothed[scan] = smoothed[start] and smoothed[end]
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         graph = self.saved.graph()
@@ -183,7 +250,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         assert self._smoothing is not None
         return {**self._counts, **self._input_counts, **self._log.counts,
                 "map_keyframes": len(self.saved.keyframe_poses), **found.counts(),
-                "scans_smoothed": int(self._smoothing.smoothed.sum()),
+                "scans_smoothed": int(np.sum(found.smoothed)),
                 "smoothing_converged": int(self._smoothing.converged)}
 
     def loop_closures(self) -> dict[str, Any]:
