@@ -28,6 +28,7 @@ from pipeline.cli import app
 from pipeline.errors import PipelineError
 from pipeline.session_file import SESSION_VERSION, SessionError, write_session
 from pipeline.trajectory_io import read_tum
+from tests.conftest import shared_file
 from tests.laser_world import between
 from tests.pipeline_fixtures import (
     SCAN_PERIOD_NS,
@@ -336,3 +337,17 @@ def test_the_api_refuses_what_the_command_refuses(logs: Logs, tmp_path: Path) ->
         pipeline.replay(logs.inside, out_dir=tmp_path, map=logs.session, initial_pose=(0.0, math.nan, 0.0))
     assert file_names(tmp_path) == set()
     assert issubclass(MapPlacementError, FrontendError)
+
+
+def test_a_log_placed_in_the_map_of_another_building_is_warned_of(tmp_path: Path) -> None:
+    # Real logs: the CSAIL map, the CSAIL log of another container (the same run), and ACES (Austin).
+    mapped = pipeline.replay(shared_file("logs/csail/csail.mcap"), out_dir=tmp_path / "map")
+    session = mapped.outputs["session"]
+    own = run_replay(shared_file("logs/csail/csail.bag"), "--map", session, "--out", tmp_path / "own")
+    assert own.exit_code == 0, own.output
+    assert "did not match the saved map" not in own.stderr
+    counts = json.loads((tmp_path / "own" / "csail.json").read_text())["counts"]
+    assert counts["scans_on_saved_path"] > 1000 and counts["scans_on_saved_path_unmatched"] == 0
+    other = run_replay(shared_file("logs/aces/aces.mcap"), "--map", session, "--out", tmp_path / "other")
+    # Refused (no unambiguous match anywhere), or placed by a look-alike corridor and then said to be off.
+    assert other.exit_code == 2 or "did not match the saved map" in other.stderr, other.output

@@ -20,6 +20,7 @@ from frontends.slam2d.local_map import place
 from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import smooth_localized, smooth_scans, tracking_drift
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
+from frontends.slam2d.session_frontends import unmatched_on_saved_path
 from frontends.slam2d.slam import LaserSlam2D, _LoopHypothesis
 from optimizer import se2
 from optimizer.solve import optimize
@@ -481,3 +482,15 @@ def test_where_the_map_matches_weakly_poor_wheel_odometry_does_not_steer_the_pos
     poses = np.array([r.pose for r in results])
     assert heading_errors(poses[gap], new_run.truth[gap]).max() < math.radians(1.0)
     assert position_errors(poses, new_run.truth).max() < 0.05
+
+
+def test_scans_placed_on_the_saved_path_that_match_nothing_are_counted() -> None:
+    keyframes = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
+    poses = np.array([[0.5, 0.2, 0.0],  # 0.54 m from a keyframe: on the path, matched
+                      [2.9, 0.0, 1.0],  # 0.9 m: on the path, not matched
+                      [4.0, 0.99, 0.0],  # 0.99 m: on the path, not matched
+                      [1.0, 1.5, 0.0],  # 1.8 m: off the path
+                      [10.0, 0.0, 0.0],  # far off
+                      [np.nan, np.nan, np.nan]])  # no pose
+    matched = np.array([True, False, False, True, False, False])
+    assert unmatched_on_saved_path(poses, matched, keyframes) == (3, 2)
