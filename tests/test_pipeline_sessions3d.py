@@ -142,6 +142,10 @@ def test_map_localizes_a_log_inside_the_saved_map_without_an_initial_pose(logs: 
     assert per_scan["state"].count("m") >= clouds - 2
     assert found["inlier_fraction"]["median"] > 0.8 and found["rms_m"]["median"] < 0.1
     assert summary["counts"]["map_keyframes"] == result.stats.poses
+    # Placed where the mapping run drove, the clouds match the map there: no warning of another place.
+    counts = summary["counts"]
+    assert counts["scans_on_saved_path"] > 0 and counts["scans_on_saved_path_unmatched"] == 0
+    assert summary["warnings"] == []
 
     entities = read_recording(tmp_path / "inside.rrd", timeline="scan")
     assert entities["/world3d/saved_map"].static_rows == 1

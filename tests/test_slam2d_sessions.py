@@ -7,10 +7,13 @@ so the map frame is the world frame and every localized pose is compared with th
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
 
+from frontends.errors import LogWarning
+from frontends.protocol import checked_on_saved_path, unmatched_on_saved_path
 from frontends.slam2d.config import (
     OPTIMIZE_EVERY_LOOP_CLOSURES,
     SMALL_CORRECTION_ANGULAR,
@@ -20,7 +23,6 @@ from frontends.slam2d.local_map import place
 from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import smooth_localized, smooth_scans, tracking_drift
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
-from frontends.slam2d.session_frontends import unmatched_on_saved_path
 from frontends.slam2d.slam import LaserSlam2D, _LoopHypothesis
 from optimizer import se2
 from optimizer.solve import optimize
@@ -493,4 +495,18 @@ def test_scans_placed_on_the_saved_path_that_match_nothing_are_counted() -> None
                       [10.0, 0.0, 0.0],  # far off
                       [np.nan, np.nan, np.nan]])  # no pose
     matched = np.array([True, False, False, True, False, False])
-    assert unmatched_on_saved_path(poses, matched, keyframes) == (3, 2)
+    assert unmatched_on_saved_path(poses[:, :2], matched, keyframes[:, :2]) == (3, 2)
+
+
+def test_most_measurements_on_the_saved_path_matching_nothing_are_warned_of() -> None:
+    keyframes = np.column_stack([np.arange(30.0), np.zeros(30)])
+    positions = keyframes + 0.5
+    half = np.arange(30) < 15
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert checked_on_saved_path("a.mcap", "scans", positions, half, keyframes) == (30, 15)  # half: no
+    with pytest.warns(LogWarning, match=r"a\.mcap: 16 of the 30 scans placed on the saved run's path"):
+        checked_on_saved_path("a.mcap", "scans", positions, np.arange(30) < 14, keyframes)
+    with warnings.catch_warnings():  # too few on the path to say
+        warnings.simplefilter("error")
+        checked_on_saved_path("a.mcap", "scans", positions[:19], np.zeros(19, dtype=bool), keyframes)

@@ -18,14 +18,13 @@ In both, the new log's wheel odometry starts anywhere: it is used for the motion
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from frontends.errors import FrontendError, LogWarning, MapPlacementError
+from frontends.errors import FrontendError, MapPlacementError
 from frontends.logs import LogReader
 from frontends.protocol import (
     BoolArray,
@@ -34,6 +33,7 @@ from frontends.protocol import (
     IntArray,
     SavedMapLocalization,
     ScanLocalizations,
+    checked_on_saved_path,
 )
 from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import Slam2DConfig
@@ -46,30 +46,6 @@ from frontends.slam2d.resume import ResumedSlam2D, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate
 from optimizer import se2
 from optimizer.graph import PoseGraph
-
-ON_SAVED_PATH = 1.0
-"""A scan placed within this distance (m) of a saved keyframe is where the mapping robot was: the saved map
-saw its walls from there and should match it."""
-ON_PATH_MIN_SCANS = 20
-OFF_MAP_ON_PATH = 0.5
-"""When more than this share of the scans placed on the saved path (at least `ON_PATH_MIN_SCANS`) did not
-match the saved map, the placement is suspect: a log of another building can match one corridor of the map
-well enough for a global fix, then drives "through" the map's walls, tracked on its own scans. On the shared
-logs, correct localizations leave none of them unmatched (the second halves of ACES and CSAIL in their
-first halves' maps: 0 of 1 168 and 0 of 300; CSAIL's other container in its map: 0 of 1 923); ACES placed
-in CSAIL's map: 1 094 of 1 492 (73 %)."""
-
-
-def unmatched_on_saved_path(poses: FloatArray, matched: BoolArray,
-                            keyframe_poses: FloatArray) -> tuple[int, int]:
-    """How many of the scans at `poses` (S, 3; NaN rows skipped) lie within `ON_SAVED_PATH` of a saved
-    keyframe, and how many of those were not `matched` to the saved map."""
-    from scipy.spatial import cKDTree  # here: scipy.spatial costs every laser replay's start-up otherwise
-
-    placed = np.all(np.isfinite(poses), axis=1)
-    distance, _ = cKDTree(np.asarray(keyframe_poses)[:, :2]).query(poses[placed, :2], k=1)
-    on_path = distance <= ON_SAVED_PATH
-    return int(on_path.sum()), int((on_path & ~np.asarray(matched, dtype=bool)[placed]).sum())
 
 
 @dataclass(frozen=True, eq=False)
@@ -246,14 +222,8 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         # Scans given to the localizer and placed then: a scan between was not matched by design, one
         # recovered by a later fix was not placed when it was matched.
         examined = columns["localized"] & ~between
-        self._on_path = unmatched_on_saved_path(poses[examined], columns["matched"][examined],
-                                                self.saved.keyframe_poses)
-        on_path, unmatched = self._on_path
-        if on_path >= ON_PATH_MIN_SCANS and unmatched > OFF_MAP_ON_PATH * on_path:
-            warnings.warn(f"{self._log.path}: {unmatched} of the {on_path} scans placed on the saved run's "
-                          f"path (within {ON_SAVED_PATH:g} m of a keyframe) did not match the saved map: the "
-                          "log may be of another place than the map, or the place changed (see the "
-                          "recording)", LogWarning, stacklevel=2)
+        self._on_path = checked_on_saved_path(self._log.path, "scans", poses[examined, :2],
+                                              columns["matched"][examined], self.saved.keyframe_poses[:, :2])
 
     def _pose_between(self, poses: FloatArray, smoothed: BoolArray, given: IntArray) -> None:
         """The scans between two given to the localizer, in place: between the two (smoothed) poses around

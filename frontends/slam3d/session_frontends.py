@@ -21,7 +21,13 @@ from numpy.typing import NDArray
 
 from frontends.errors import FrontendError, MapPlacementError
 from frontends.logs import LogReader
-from frontends.protocol import FloatArray, FrontendOptions, SavedMapLocalization, ScanLocalizations
+from frontends.protocol import (
+    FloatArray,
+    FrontendOptions,
+    SavedMapLocalization,
+    ScanLocalizations,
+    checked_on_saved_path,
+)
 from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.frontend import MAP_VOXEL, LidarFrontend
@@ -142,6 +148,8 @@ class LocalizingLidarFrontend(SavedMapLocalization[CloudLocalizations], LidarFro
                                          localization, initial_pose=self.initial_pose)
         self._tracker: _LocalizingSlam3D | None = None
         self._localizations: CloudLocalizations | None = None
+        self._on_path = (0, 0)
+        """Clouds placed on the saved run's path, and how many of them did not match the saved map."""
 
     def _make_slam(self, sensor_to_base: FloatArray) -> LidarSlam3D:
         self._tracker = _LocalizingSlam3D(self._localizer, self.config, sensor_to_base)
@@ -161,9 +169,10 @@ class LocalizingLidarFrontend(SavedMapLocalization[CloudLocalizations], LidarFro
                 poses[found.recovered_indices] = found.recovered_poses
                 recovered[found.recovered_indices] = True
         localized = np.array([found.localized for found in rows], dtype=bool)
+        matched = np.array([found.matched for found in rows], dtype=bool)
         self._localizations = CloudLocalizations(
-            np.array([found.stamp_ns for found in rows], dtype=np.int64), poses, localized,
-            np.array([found.matched for found in rows], dtype=bool), recovered & ~localized,
+            np.array([found.stamp_ns for found in rows], dtype=np.int64), poses, localized, matched,
+            recovered & ~localized,
             np.array([found.score for found in rows], dtype=np.float64),
             np.array([found.inlier_fraction for found in rows], dtype=np.float64),
             np.array([found.rms for found in rows], dtype=np.float64), np.array(fixes, dtype=np.int64))
@@ -172,6 +181,8 @@ class LocalizingLidarFrontend(SavedMapLocalization[CloudLocalizations], LidarFro
                 f"none of the {len(rows)} clouds of {self._log.path} could be placed in the saved map of "
                 f"{len(self.saved.graph.keyframe_poses)} keyframes: no unambiguous match"
                 + ("" if self.initial_pose is not None else " (an --initial-pose x,y,yaw may help)"))
+        self._on_path = checked_on_saved_path(self._log.path, "clouds", poses[localized, :2, 3],
+                                              matched[localized], self.saved.graph.keyframe_poses[:, :2, 3])
 
     @property
     def result(self) -> Slam3DGraph:
@@ -186,7 +197,8 @@ class LocalizingLidarFrontend(SavedMapLocalization[CloudLocalizations], LidarFro
     def counts(self) -> dict[str, int]:
         found = self.localizations
         return {"clouds": len(found.stamps_ns), **self._log.counts,
-                "map_keyframes": len(self.saved.graph.keyframe_poses), **found.counts()}
+                "map_keyframes": len(self.saved.graph.keyframe_poses), **found.counts(),
+                "scans_on_saved_path": self._on_path[0], "scans_on_saved_path_unmatched": self._on_path[1]}
 
     def loop_closures(self) -> dict[str, Any]:
         return {"accepted": 0, "rejected": 0, "candidates": {"accepted": 0, "unconfirmed": 0}}
