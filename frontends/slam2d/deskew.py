@@ -104,6 +104,12 @@ def along_motion(motion: FloatArray, fractions: FloatArray) -> FloatArray:
     return np.column_stack(_exp(np.asarray(fractions, dtype=np.float64), velocity(motion, 1.0)))
 
 
+def interpolated(start: FloatArray, end: FloatArray, fractions: FloatArray) -> FloatArray:
+    """(F, 3) poses between `start` and `end` (x, y, θ in one frame), each a fraction of the way along the
+    constant-velocity arc from one to the other."""
+    return se2.compose(start, along_motion(se2.relative(start, end), fractions))
+
+
 def _exp(times: FloatArray, twist: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """x, y, θ of exp(t·`twist`) for each of `times`."""
     turn = times * twist[2]

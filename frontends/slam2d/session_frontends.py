@@ -37,7 +37,7 @@ from frontends.protocol import (
 )
 from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import Slam2DConfig
-from frontends.slam2d.deskew import along_motion
+from frontends.slam2d.deskew import along_motion, interpolated
 from frontends.slam2d.frontend import LaserFrontend
 from frontends.slam2d.localization import LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans
@@ -237,8 +237,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
             if not np.all(np.isfinite(poses[[start, end]])):
                 continue
             fraction = (stamps[scan] - stamps[start]) / (stamps[end] - stamps[start])
-            poses[scan] = se2.compose(poses[start], along_motion(se2.relative(poses[start], poses[end]),
-                                                                 np.array([fraction]))[0])
+            poses[scan] = interpolated(poses[start], poses[end], np.array([fraction]))[0]
             smoothed[scan] = smoothed[start] and smoothed[end]
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:

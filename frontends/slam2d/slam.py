@@ -39,7 +39,7 @@ from frontends.slam2d.config import (
     Slam2DConfig,
 )
 from frontends.slam2d.correlative import Match, SearchWindow, match_branch_and_bound, match_exhaustive
-from frontends.slam2d.deskew import ScanDeskewer, along_motion
+from frontends.slam2d.deskew import ScanDeskewer, along_motion, interpolated
 from frontends.slam2d.global_match import match_unambiguous
 from frontends.slam2d.grid import LikelihoodGrid
 from frontends.slam2d.held_odometry import OdometryHold
@@ -114,9 +114,9 @@ class Slam2DGraph:
     loop_closures_rejected: int
     scans_unmatched: int
     loop_closures_unconfirmed: int = 0
+    """Loop closures that waited for a second, agreeing one in vain (expired, or void after the map moved)."""
     scans_between: int = 0
     """Scans not matched by design, posed between matched ones (`ScanEstimate.between`)."""
-    """Loop closures that waited for a second, agreeing one in vain (expired, or void after the map moved)."""
     stage_times: StageTimes = field(default_factory=StageTimes)
     """Where the frontend spent its time (matching, keyframes, loop search, verification, online
     optimization)."""
@@ -351,7 +351,7 @@ class LaserSlam2D:
             stamps = np.array([self._scan_stamps[k] for k in self._between], dtype=np.int64)
             span = stamp - last_stamp
             fractions = (stamps - last_stamp) / span if span > 0 else np.zeros(len(stamps))
-            poses = se2.compose(start, along_motion(se2.relative(start, pose), fractions))
+            poses = interpolated(start, pose, fractions)
             # No keyframe is made between matched scans: they all hang off the one the last matched did.
             keyframe = self._keyframe_poses[self._scan_keyframes[self._between[0]]]
             for k, offset in zip(self._between, se2.relative(keyframe, poses), strict=True):
