@@ -39,7 +39,9 @@
     keyframe's pose in the map: where the map's own walls put the scan), how far that lies from the
     rigidly aligned reference (the map's disagreement with the full run there: a floor under the error
     against the full run, whatever the localizer does), and the smoothed error against it (the localizer's
-    error in the map it was given). For the "full-run poses" row the two references are one.
+    error in the map it was given). For the "full-run poses" row the two references are one. Last, the
+    scans placed within 1 m of a map keyframe (the saved run's path) and how many of them did not match the
+    map (`frontends.protocol.unmatched_on_saved_path`; the replay warns when most of them did not).
 (b) Continue. The second half goes to `LaserSlam2D.resume` on the first half's saved graph (odometry
     origin dropped); the joint graph is optimized once. ACES: every scan of both halves is scored against
     aces.relations; the single run's figure is the reference (target: within 10 %). CSAIL (no ground
@@ -63,6 +65,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from frontends.logs import open_log  # noqa: E402
+from frontends.protocol import unmatched_on_saved_path  # noqa: E402
 from frontends.slam2d import read_odometry, scans_in_base_frame  # noqa: E402
 from frontends.slam2d.grid import LikelihoodGrid  # noqa: E402
 from frontends.slam2d.local_map import place  # noqa: E402
@@ -256,7 +259,9 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
             f"{sum(r.relocalized for r in results)}", f"{len(second) / cpu_seconds:.0f}",
             f"{len(second) / seconds:.0f}", f"{np.median(residual):.3f} / {residual.max():.3f}",
             f"{reference_slips(reference, second)}", f"{100 * near.sum() / scored.sum():.0f}",
-            error_figures(disagreement), error_figures(against_carried))
+            error_figures(disagreement), error_figures(against_carried),
+            "{1} / {0}".format(*unmatched_on_saved_path(poses[localized, :2], states["matched"][localized],
+                                                        map_poses[:, :2])))
 
 
 def carried_into_map(reference: FloatArray, full_map: FloatArray,
@@ -289,7 +294,8 @@ LOCALIZATION_HEADER = (
     "| local re-acquisitions | scans/s (CPU) | scans/s (wall) "
     "| alignment residual, median / max (m) | reference slips "
     "| scans within 3 m of a map keyframe (%) | there: map against the full run (m) "
-    "| there: smoothed error against the full run carried into the map (m) |"
+    "| there: smoothed error against the full run carried into the map (m) "
+    "| on the saved path (1 m): scans unmatched / placed |"
 )
 
 
