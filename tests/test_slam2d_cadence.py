@@ -154,3 +154,24 @@ def test_a_fast_log_localized_in_a_saved_map_has_every_scan_placed(tmp_path: Pat
     # The map's frame is the first log's first pose, where this log starts too.
     errors = np.hypot(*(trajectory.planar()[:, :2] - se2.relative(truth[0], truth)[:, :2]).T)
     assert errors[placed:].max() < 0.05
+
+
+def test_a_fast_log_continued_from_a_session_has_every_scan_of_both_runs(tmp_path: Path) -> None:
+    first, second = tmp_path / "first.mcap", tmp_path / "second.mcap"
+    first_truth = write_drive(first, scans=240, scan_period_ns=FAST_PERIOD_NS)
+    # An hour later, from 2 m before where the first stopped, its odometry from its own origin.
+    second_truth = write_drive(second, scans=480, part=slice(160, 480), later_ns=3_600_000_000_000,
+                               scan_period_ns=FAST_PERIOD_NS)
+    runner = CliRunner()
+    assert runner.invoke(app, [str(first), "--out", str(tmp_path / "a"), "--quiet"]).exit_code == 0
+    result = runner.invoke(app, [str(second), "--continue", str(tmp_path / "a" / "first.session"),
+                                 "--out", str(tmp_path / "b"), "--quiet", "--allow-unconverged"])
+    assert result.exit_code == 0, result.output
+    counts = json.loads((tmp_path / "b" / "second.json").read_text())["counts"]
+    # The new run is matched every 4th scan once placed in the saved map (the scans before wait for it).
+    assert counts["scans"] == 320 and counts["scans_between"] >= 0.7 * 320
+    trajectory = read_tum(tmp_path / "b" / "second.tum")
+    assert len(trajectory.stamps_ns) == 240 + 320 - counts["scans_unplaced"]
+    truth = np.concatenate([first_truth, second_truth[-(320 - counts["scans_unplaced"]):]])
+    errors = np.hypot(*(trajectory.planar()[:, :2] - se2.relative(first_truth[0], truth)[:, :2]).T)
+    assert errors.max() < 0.05
