@@ -219,6 +219,7 @@ def test_continue_maps_both_logs_into_one_trajectory_and_a_larger_session(logs: 
     assert counts["session_keyframes"] == len(before.keyframe_points)
     assert counts["session_scans"] == old and counts["scans"] == new and counts["scans_unplaced"] == 0
     assert counts["loop_closures_old_new"] >= 2, "the return to the south corridor closes loops on the map"
+    assert counts["keyframes_on_saved_path"] > 0 and "loops with the saved keyframes" not in result.stderr
     assert summary["chi2_per_iteration"][0]["stage"] == "initial"
     assert len(summary["chi2_per_iteration"]) > 2
 
@@ -351,3 +352,7 @@ def test_a_log_placed_in_the_map_of_another_building_is_warned_of(tmp_path: Path
     other = run_replay(shared_file("logs/aces/aces.mcap"), "--map", session, "--out", tmp_path / "other")
     # Refused (no unambiguous match anywhere), or placed by a look-alike corridor and then said to be off.
     assert other.exit_code == 2 or "did not match the saved map" in other.stderr, other.output
+    # Mapping ACES on from CSAIL's session: refused, or said to close no loop where it overlays the map.
+    merged = run_replay(shared_file("logs/aces/aces.mcap"), "--continue", session,
+                        "--out", tmp_path / "merged", "--allow-unconverged")
+    assert merged.exit_code == 2 or "closed 0 loops with the saved keyframes" in merged.stderr, merged.output

@@ -18,15 +18,18 @@ In both, the new log's wheel odometry starts anywhere: it is used for the motion
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from frontends.errors import FrontendError, MapPlacementError
+from frontends.errors import FrontendError, LogWarning, MapPlacementError
 from frontends.logs import LogReader
 from frontends.protocol import (
+    ON_PATH_MIN_MEASUREMENTS,
+    ON_SAVED_PATH,
     BoolArray,
     FloatArray,
     FrontendOptions,
@@ -34,6 +37,7 @@ from frontends.protocol import (
     SavedMapLocalization,
     ScanLocalizations,
     checked_on_saved_path,
+    unmatched_on_saved_path,
 )
 from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import Slam2DConfig
@@ -70,6 +74,14 @@ class SavedMap2D:
         return occupancy_grid(self.keyframe_scans, self.keyframe_poses)
 
 
+OLD_NEW_CLOSURES_ON_PATH = 0.05
+"""A continued run should close loops with the saved keyframes where it drives their path: one for at most
+every 20 of its keyframes there, or its placement is suspect (another building's log, placed by a look-alike
+corridor, is mapped over the saved one). The second halves of ACES and CSAIL continued on their first halves
+(`benchmarks/cut_log.py`): 26 and 35 loop closures with the old keyframes (the placement's match not counted)
+for 127 and 105 new keyframes on their path; ACES continued on CSAIL's session: none for 160."""
+
+
 class ContinuingLaserFrontend(LaserFrontend):
     """Mapping continued from a saved map: see the module docstring and `frontends.slam2d.resume`."""
 
@@ -82,6 +94,8 @@ class ContinuingLaserFrontend(LaserFrontend):
         self._resumed: ResumedSlam2D = LaserSlam2D.resume(saved.keyframe_scans, saved.keyframe_poses,
                                                           saved.constraints, self.config, scans=saved.scans)
         self._slam = self._resumed
+        self._on_path = 0
+        """New keyframes on the saved run's path (within `ON_SAVED_PATH` of a saved keyframe)."""
 
     def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
                  odometry_interval: float, point_times: FloatArray | None) -> ScanEstimate:
@@ -92,17 +106,37 @@ class ContinuingLaserFrontend(LaserFrontend):
     def keyframe_wheel_odometry(self) -> FloatArray | None:
         return None  # the saved keyframes were driven with another log's odometry
 
+    def finish(self) -> None:
+        """`LaserFrontend.finish`, then a warning when the new keyframes on the saved run's path closed
+        (almost) no loop with the saved ones (`OLD_NEW_CLOSURES_ON_PATH`)."""
+        super().finish()
+        graph, old = self.result.graph, len(self.saved.keyframe_poses)
+        new = graph.poses[old:, :2]
+        on_path, _ = unmatched_on_saved_path(new, np.ones(len(new), dtype=bool), graph.poses[:old, :2])
+        # Loop closures between old and new keyframes, the placement's own match (to the first new one) not.
+        closures = int(np.sum(self._crossing() & (np.maximum(graph.edge_from, graph.edge_to) != old)))
+        self._on_path = on_path
+        if on_path >= ON_PATH_MIN_MEASUREMENTS and closures < OLD_NEW_CLOSURES_ON_PATH * on_path:
+            warnings.warn(f"{self._log.path}: {on_path} of its keyframes lie on the saved run's path "
+                          f"(within {ON_SAVED_PATH:g} m of a saved keyframe) but closed {closures} loops "
+                          "with the saved keyframes: the log may be of another place than the session, or "
+                          "the place changed (see the recording)", LogWarning, stacklevel=2)
+
+    def _crossing(self) -> BoolArray:
+        """The loop-closure constraints between an old keyframe and a new one."""
+        graph, old = self.result.graph, len(self.saved.keyframe_poses)
+        return ((graph.edge_from < old) != (graph.edge_to < old)) & ~graph.is_odometry
+
     def counts(self) -> dict[str, int]:
         """`LaserFrontend.counts` (its keyframes, constraints and loop closures those of the joint graph),
         and what the session added: its keyframes and scans, the new scans left out because they came
         before the stretch placed in the map, and the constraints tying new keyframes to old ones (the
         placement's included)."""
-        graph = self.result.graph
-        old = len(self.saved.keyframe_poses)
-        crossing = ((graph.edge_from < old) != (graph.edge_to < old)) & ~graph.is_odometry
-        return {**super().counts(), "session_keyframes": old,
+        return {**super().counts(), "session_keyframes": len(self.saved.keyframe_poses),
                 "session_scans": 0 if self.saved.scans is None else len(self.saved.scans.stamps_ns),
-                "scans_unplaced": self._resumed.scans_unplaced, "loop_closures_old_new": int(crossing.sum())}
+                "scans_unplaced": self._resumed.scans_unplaced,
+                "loop_closures_old_new": int(self._crossing().sum()),
+                "keyframes_on_saved_path": self._on_path}
 
     def placement(self) -> dict[str, Any]:
         """Where the new run joined the saved map: the new log's scan (index, stamp) placed by global
