@@ -99,6 +99,15 @@ def cases() -> list[Case]:
                 for increment in (math.nan, math.inf, -math.inf, 0.0, 1.0, -0.01)]
     battery += [Case("beam times", f"time-increment-{value}", _scan_case(ranges=walls, time_increment=value))
                 for value in (math.nan, math.inf, -math.inf, 1.0, -1e-4, 1e-30)]
+    stamps: dict[str, Callable[[int], int]] = {  # what the fast-laser cadence counts its strides from
+        "1-kHz-laser": lambda i: 10**18 + i * 1_000_000,
+        "pairs-of-equal-stamps": lambda i: 10**18 + (i // 2) * 25_000_000,
+        "bursts-of-ten-in-1-ms-a-second-apart": lambda i: 10**18 + (i // 10) * 10**9 + (i % 10) * 100_000,
+        "40-Hz-jittered-by-half-an-interval": lambda i: 10**18 + i * 25_000_000 + (i * 7919 % 25) * 500_000,
+    }
+    battery += [Case("scan stamps", name, _scan_case(ranges=walls, count=200, stamp=stamp,
+                                                     odometry=lambda i: (0.01 * i, 0.0, 0.0)))
+                for name, stamp in stamps.items()]
     battery += [
         Case("huge values", "two-million-beams", _scan_case(ranges=lambda i: np.full(2_000_000, 5.0), count=1,
                                                             angle_increment=1e-6)),
