@@ -105,7 +105,7 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
                 points, times = deskewed_by_odometry(points, times, scan.stamp_ns, self.odometry,
                                                      prediction, int(intervals[0]))
         estimate = self._process(scan.stamp_ns, points, prediction, interval, times)
-        if times is not None:
+        if times is not None and not estimate.between:  # a scan between is not played back
             # The SLAM deskewed the scan under the motions of the scans before it, all it knew then; the
             # scan handed on (the recording's playback) is deskewed under its own matched motion.
             points = self._deskewed_for_display(scan.stamp_ns, points, times, estimate.pose)
