@@ -149,14 +149,14 @@ def laser_ranges(points: np.ndarray) -> np.ndarray:
 def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = None,
                 part: slice | None = None, later_ns: int = 0, seed: int = 7,
                 sweep: float = 0.0, scan_period_ns: int = SCAN_PERIOD_NS,
-                odometry_topic: bool = True) -> np.ndarray:
+                odometry_topic: bool = True, multi_echo: bool = False) -> np.ndarray:
     """Drive the simulated building's loop at 1 m/s, writing /scan, /odom, /tf and /tf_static; returns the
     truth (base poses) per scan. `part`: only these scans of the drive, as a log recorded `later_ns` later
     whose wheel odometry starts at its own origin (a second recording of the same building). `sweep`: the
     laser takes its beams one after the other over this many seconds from the stamp (time_increment set),
     each from where the robot is then; 0: all at the stamp (time_increment 0). `scan_period_ns`: a faster
     laser, the robot as fast (`DRIVE_SPEED`; not with `sweep`). `odometry_topic` False: the odometry only
-    in /tf."""
+    in /tf. `multi_echo`: the scans as sensor_msgs/MultiEchoLaserScan, each return its beam's first echo."""
     rng = np.random.default_rng(seed)
     truth = drive(square_loop(), DRIVE_SPEED * scan_period_ns * 1e-9)[:scans]
     odometry = wheel_odometry(truth, rng)
@@ -225,7 +225,14 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
             else:
                 points = simulate_scan(square_loop().segments, se2.compose(pose, LASER_MOUNT), beams=BEAMS,
                                        max_range=20.0, range_noise=0.01, rng=rng)
-            scan = types["sensor_msgs/msg/LaserScan"](
+            ranges: object = laser_ranges(points)
+            scan_type = "sensor_msgs/msg/LaserScan"
+            if multi_echo:  # each return the first of its echoes, a weaker one 1.5 m behind it second
+                scan_type = "sensor_msgs/msg/MultiEchoLaserScan"
+                echo = types["sensor_msgs/msg/LaserEcho"]
+                ranges = [echo(echoes=np.array([r, r + 1.5] if np.isfinite(r) else [], np.float32))
+                          for r in laser_ranges(points)]
+            scan = types[scan_type](
                 header=messages.header(stamp, "laser"),
                 angle_min=0.0,
                 angle_max=float(2 * math.pi * (BEAMS - 1) / BEAMS),
@@ -234,10 +241,10 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                 scan_time=0.1,
                 range_min=0.05,
                 range_max=20.0,
-                ranges=laser_ranges(points),
-                intensities=np.zeros(0, dtype=np.float32),
+                ranges=ranges,
+                intensities=[] if multi_echo else np.zeros(0, dtype=np.float32),
             )
-            add("/scan", "sensor_msgs/msg/LaserScan", stamp, scan)
+            add("/scan", scan_type, stamp, scan)
     return truth
 
 

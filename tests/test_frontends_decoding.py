@@ -326,3 +326,63 @@ def test_foxglove_point_cloud_from_json_with_base64_data() -> None:
     }
     cloud = converters.foxglove_point_cloud(message, 0)
     np.testing.assert_array_equal(cloud.points, [[1.0, 2.0, 3.0]])
+
+
+def multi_echo_message(store: Any, echoes: list[list[float]], angle_min: float, increment: float) -> Any:
+    types = store.types
+    return types["sensor_msgs/msg/MultiEchoLaserScan"](
+        header=header(store, 1_234_567_890_123_456_789, "horizontal_laser_link"),
+        angle_min=angle_min, angle_max=angle_min + increment * (len(echoes) - 1), angle_increment=increment,
+        time_increment=0.0, scan_time=0.025, range_min=0.1, range_max=30.0,
+        ranges=[types["sensor_msgs/msg/LaserEcho"](echoes=np.array(e, np.float32)) for e in echoes],
+        intensities=[types["sensor_msgs/msg/LaserEcho"](echoes=np.array([7.0] * len(e), np.float32))
+                     for e in echoes])
+
+
+# Beams with one, three, no and two echoes: the first of each is read, a beam without any has no return.
+ECHOES = [[1.0], [2.0, 2.5, 9.0], [], [4.0, 6.0], [0.05], [3.0]]
+
+
+def big_endian_cdr_multi_echo(echoes: list[list[float]], floats: list[float]) -> bytes:
+    """A MultiEchoLaserScan in big-endian CDR (encapsulation 00 00), written field by field."""
+    out = b"\x00\x00\x00\x00" + struct.pack(">iI", 1_234_567_890, 123_456_789)
+    name = b"horizontal_laser_link\x00"
+    out += struct.pack(">I", len(name)) + name
+    out += b"\x00" * (-(len(out) - 4) % 4)
+    out += struct.pack(">7f", *floats) + struct.pack(">I", len(echoes))
+    for beam in echoes:
+        out += struct.pack(">I", len(beam)) + struct.pack(f">{len(beam)}f", *beam)
+    return out + struct.pack(">I", 0)
+
+
+def test_a_multi_echo_scan_is_read_as_the_scan_of_its_first_echoes() -> None:
+    little = bytes(STORE2.serialize_cdr(multi_echo_message(STORE2, ECHOES, -0.5, 0.25),
+                                        "sensor_msgs/msg/MultiEchoLaserScan"))
+    ros1 = bytes(STORE1.serialize_ros1(multi_echo_message(STORE1, ECHOES, -0.5, 0.25),
+                                       "sensor_msgs/msg/MultiEchoLaserScan"))
+    big = big_endian_cdr_multi_echo(ECHOES, [-0.5, 0.75, 0.25, 0.0, 0.025, 0.1, 30.0])
+    for payload, cdr in ((little, True), (big, True), (ros1, False)):
+        fields = ros_wire.multi_echo_laser_scan(payload, cdr)
+        np.testing.assert_array_equal(fields.ranges, np.array([1.0, 2.0, np.inf, 4.0, 0.05, 3.0], np.float32))
+        scan = converters.ros_laser_scan(fields, 42, NO_LIMITS, BearingTable())
+        assert scan.stamp_ns == 1_234_567_890_123_456_789 and scan.frame_id == "horizontal_laser_link"
+        np.testing.assert_array_equal(scan.ranges, [1.0, 2.0, 4.0, 3.0])  # inf and below range_min dropped
+        np.testing.assert_allclose(scan.bearings, [-0.5, -0.25, 0.25, 0.75])
+
+
+@pytest.mark.parametrize("cut", [4, 40, 80])
+def test_a_truncated_multi_echo_scan_raises_wire_error(cut: int) -> None:
+    payload = bytes(STORE2.serialize_cdr(multi_echo_message(STORE2, ECHOES, -0.5, 0.25),
+                                         "sensor_msgs/msg/MultiEchoLaserScan"))
+    ranges_end = len(payload) - 4 - sum(4 + 4 * len(e) for e in ECHOES)  # the intensities follow the ranges
+    with pytest.raises(WireError):
+        ros_wire.multi_echo_laser_scan(payload[: min(cut, ranges_end - 2)], True)
+
+
+def test_a_multi_echo_scan_claiming_four_billion_beams_is_refused_without_allocating() -> None:
+    payload = bytearray(STORE2.serialize_cdr(multi_echo_message(STORE2, ECHOES, -0.5, 0.25),
+                                             "sensor_msgs/msg/MultiEchoLaserScan"))
+    count_at = payload.index(struct.pack("<I", len(ECHOES)) + struct.pack("<I", 1) + struct.pack("<f", 1.0))
+    payload[count_at:count_at + 4] = struct.pack("<I", 2**32 - 1)
+    with pytest.raises(WireError, match="run past the payload"):
+        ros_wire.multi_echo_laser_scan(bytes(payload), True)

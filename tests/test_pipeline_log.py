@@ -164,6 +164,19 @@ def test_odometry_read_from_tf_is_named_as_such(tmp_path: Path) -> None:
     assert _max_position_error(trajectory.planar(), truth) < 0.15
 
 
+def test_a_multi_echo_log_replays_as_the_log_of_its_first_echoes(tmp_path: Path) -> None:
+    # The same drive, once as LaserScans and once as MultiEchoLaserScans whose first echoes are those ranges.
+    single, multi = tmp_path / "single.mcap", tmp_path / "multi.mcap"
+    write_drive(single, scans=30)
+    write_drive(multi, scans=30, multi_echo=True)
+    for path in (single, multi):
+        result = CliRunner().invoke(app, [str(path), "--out", str(tmp_path / "out"), "--quiet"])
+        assert result.exit_code == 0, result.output
+    assert (tmp_path / "out" / "multi.tum").read_bytes() == (tmp_path / "out" / "single.tum").read_bytes()
+    summary = json.loads((tmp_path / "out" / "multi.json").read_text())
+    assert summary["topic"] == "/scan" and summary["counts"]["scans"] == 30
+
+
 def test_replay_without_odometry_still_tracks(tmp_path: Path) -> None:
     path = tmp_path / "no_odometry.mcap"
     truth = write_drive(path, with_odometry=False, scans=60)

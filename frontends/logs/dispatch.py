@@ -26,6 +26,7 @@ Decoder = Callable[[bytes | memoryview, int], list[Item]]
 
 ROS_TYPES: dict[str, Kind] = {
     "sensor_msgs/msg/LaserScan": "scan",
+    "sensor_msgs/msg/MultiEchoLaserScan": "scan",  # its beams' first echoes (Cartographer's 2D bags)
     "sensor_msgs/msg/PointCloud2": "cloud",
     "nav_msgs/msg/Odometry": "odometry",
     "tf2_msgs/msg/TFMessage": "transform",
@@ -76,11 +77,11 @@ def make_decoder(channel: Channel, options: DecodeOptions) -> Decoder:
         if kind == "scan":
             bearings = BearingTable()
             limits = options.range_limits
+            fields = (ros_wire.multi_echo_laser_scan if channel.type.endswith("MultiEchoLaserScan")
+                      else ros_wire.laser_scan)
 
             def scan(data: bytes | memoryview, log_time_ns: int) -> list[Item]:
-                return [
-                    converters.ros_laser_scan(ros_wire.laser_scan(data, cdr), log_time_ns, limits, bearings)
-                ]
+                return [converters.ros_laser_scan(fields(data, cdr), log_time_ns, limits, bearings)]
 
             return scan
         if kind == "cloud":

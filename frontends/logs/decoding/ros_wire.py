@@ -16,6 +16,7 @@ import struct
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 
@@ -207,6 +208,54 @@ def laser_scan(data: bytes | memoryview, cdr: bool) -> LaserScanFields:
     ranges = np.frombuffer(data, dtype=endian + "f4", count=count, offset=pos)
     return LaserScanFields(stamp_ns, frame_id, angle_min, increment, time_increment, range_min, range_max,
                            ranges)
+
+
+def multi_echo_laser_scan(data: bytes | memoryview, cdr: bool) -> LaserScanFields:
+    """sensor_msgs/MultiEchoLaserScan read as the LaserScan of each beam's first echo, the one Cartographer
+    reads (a beam without echoes has no return: inf); intensities are not read. Its fields are a
+    LaserScan's up to the ranges, which are a sequence of LaserEcho (a sequence of float32 each); every
+    item is 4 bytes, so CDR adds no padding inside them."""
+    endian, stamp_ns, frame_id, pos = _header(data, cdr)
+    try:
+        angle_min, _, increment, time_increment, _, range_min, range_max, count = _STRUCTS[endian][
+            "scan"
+        ].unpack_from(data, pos)
+    except struct.error:
+        raise WireError("payload ends early") from None
+    pos += 32
+    words = np.frombuffer(data, dtype=endian + "u4", count=(len(data) - pos) // 4, offset=pos)
+    if count > len(words):  # every beam takes a word at least: a count no payload holds allocates nothing
+        raise WireError("ranges run past the payload")
+    words = words.astype(np.uint32, copy=False)  # native order for the kernel (a copy if big-endian)
+    first = _first_echoes(words, count)
+    if len(first) and first[0] == _RUNS_PAST:
+        raise WireError("ranges run past the payload")
+    ranges = np.full(count, np.inf, dtype=np.float32)
+    has_echo = first >= 0
+    ranges[has_echo] = words.view(np.float32)[first[has_echo]]
+    return LaserScanFields(stamp_ns, frame_id, angle_min, increment, time_increment, range_min, range_max,
+                           ranges)
+
+
+_RUNS_PAST = -2
+
+
+@njit(cache=True)
+def _first_echoes(words: NDArray[np.uint32], beams: int) -> NDArray[np.int64]:
+    """Index in `words` of each beam's first echo (−1: none), walking the LaserEcho sequence (each a count
+    then that many floats); [`_RUNS_PAST`] when it runs past the payload."""
+    first = np.full(beams, -1, dtype=np.int64)
+    position = 0
+    for beam in range(beams):
+        if position >= len(words):
+            return np.full(1, _RUNS_PAST, dtype=np.int64)
+        echoes = np.int64(words[position])
+        if echoes > len(words) - position - 1:
+            return np.full(1, _RUNS_PAST, dtype=np.int64)
+        if echoes > 0:
+            first[beam] = position + 1
+        position += 1 + echoes
+    return first
 
 
 def point_cloud2(data: bytes | memoryview, cdr: bool) -> PointCloud2Fields:
