@@ -195,19 +195,10 @@ def _header(data: bytes | memoryview, cdr: bool) -> tuple[str, int, str, int]:
 
 def laser_scan(data: bytes | memoryview, cdr: bool) -> LaserScanFields:
     """sensor_msgs/LaserScan (intensities are not read)."""
-    endian, stamp_ns, frame_id, pos = _header(data, cdr)
-    try:
-        angle_min, _, increment, time_increment, _, range_min, range_max, count = _STRUCTS[endian][
-            "scan"
-        ].unpack_from(data, pos)
-    except struct.error:
-        raise WireError("payload ends early") from None
-    pos += 32
+    fields, endian, pos, count = _laser_scan_head(data, cdr)
     if pos + 4 * count > len(data):
         raise WireError("ranges run past the payload")
-    ranges = np.frombuffer(data, dtype=endian + "f4", count=count, offset=pos)
-    return LaserScanFields(stamp_ns, frame_id, angle_min, increment, time_increment, range_min, range_max,
-                           ranges)
+    return fields._replace(ranges=np.frombuffer(data, dtype=endian + "f4", count=count, offset=pos))
 
 
 def multi_echo_laser_scan(data: bytes | memoryview, cdr: bool) -> LaserScanFields:
@@ -215,14 +206,7 @@ def multi_echo_laser_scan(data: bytes | memoryview, cdr: bool) -> LaserScanField
     reads (a beam without echoes has no return: inf); intensities are not read. Its fields are a
     LaserScan's up to the ranges, which are a sequence of LaserEcho (a sequence of float32 each); every
     item is 4 bytes, so CDR adds no padding inside them."""
-    endian, stamp_ns, frame_id, pos = _header(data, cdr)
-    try:
-        angle_min, _, increment, time_increment, _, range_min, range_max, count = _STRUCTS[endian][
-            "scan"
-        ].unpack_from(data, pos)
-    except struct.error:
-        raise WireError("payload ends early") from None
-    pos += 32
+    fields, endian, pos, count = _laser_scan_head(data, cdr)
     words = np.frombuffer(data, dtype=endian + "u4", count=(len(data) - pos) // 4, offset=pos)
     if count > len(words):  # every beam takes a word at least: a count no payload holds allocates nothing
         raise WireError("ranges run past the payload")
@@ -233,8 +217,22 @@ def multi_echo_laser_scan(data: bytes | memoryview, cdr: bool) -> LaserScanField
     ranges = np.full(count, np.inf, dtype=np.float32)
     has_echo = first >= 0
     ranges[has_echo] = words.view(np.float32)[first[has_echo]]
-    return LaserScanFields(stamp_ns, frame_id, angle_min, increment, time_increment, range_min, range_max,
-                           ranges)
+    return fields._replace(ranges=ranges)
+
+
+def _laser_scan_head(data: bytes | memoryview, cdr: bool) -> tuple[LaserScanFields, str, int, int]:
+    """A LaserScan's (or MultiEchoLaserScan's) fields before its ranges (`ranges` left empty), the byte
+    order, where the ranges' sequence starts (past its length) and that length."""
+    endian, stamp_ns, frame_id, pos = _header(data, cdr)
+    try:
+        angle_min, _, increment, time_increment, _, range_min, range_max, count = _STRUCTS[endian][
+            "scan"
+        ].unpack_from(data, pos)
+    except struct.error:
+        raise WireError("payload ends early") from None
+    fields = LaserScanFields(stamp_ns, frame_id, angle_min, increment, time_increment, range_min, range_max,
+                             np.zeros(0, dtype=np.float32))
+    return fields, endian, pos + 32, count
 
 
 _RUNS_PAST = -2
