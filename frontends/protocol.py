@@ -150,17 +150,25 @@ second halves of ACES and CSAIL in their first halves' maps: 0 of 1 168 and 0 of
 container in its map: 0 of 1 923); ACES placed in CSAIL's map: 1 094 of 1 492 (73 %)."""
 
 
-def unmatched_on_saved_path(positions: FloatArray, matched: BoolArray,
-                            keyframe_positions: FloatArray) -> tuple[int, int]:
-    """How many of the measurements at `positions` (S, 2; NaN rows skipped) lie within `ON_SAVED_PATH` of a
-    saved keyframe's position (K, 2), and how many of those were not `matched` to the saved map."""
+def on_saved_path(positions: FloatArray, keyframe_positions: FloatArray) -> BoolArray:
+    """Which of `positions` (S, 2) lie within `ON_SAVED_PATH` of a saved keyframe's position (K, 2); NaN
+    rows (no pose) do not."""
     from scipy.spatial import cKDTree  # here: scipy.spatial costs every laser replay's start-up otherwise
 
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
     placed = np.all(np.isfinite(positions), axis=1)
     distance, _ = cKDTree(np.asarray(keyframe_positions, dtype=np.float64)).query(positions[placed], k=1)
-    on_path = distance <= ON_SAVED_PATH
-    return int(on_path.sum()), int((on_path & ~np.asarray(matched, dtype=bool)[placed]).sum())
+    near = np.zeros(len(positions), dtype=bool)
+    near[placed] = distance <= ON_SAVED_PATH
+    return near
+
+
+def unmatched_on_saved_path(positions: FloatArray, matched: BoolArray,
+                            keyframe_positions: FloatArray) -> tuple[int, int]:
+    """How many of the measurements at `positions` (S, 2; NaN rows skipped) lie on the saved path
+    (`on_saved_path`), and how many of those were not `matched` to the saved map."""
+    on_path = on_saved_path(positions, keyframe_positions)
+    return int(on_path.sum()), int((on_path & ~np.asarray(matched, dtype=bool)).sum())
 
 
 def checked_on_saved_path(log_path: object, what: str, positions: FloatArray, matched: BoolArray,

@@ -37,7 +37,7 @@ from frontends.protocol import (
     SavedMapLocalization,
     ScanLocalizations,
     checked_on_saved_path,
-    unmatched_on_saved_path,
+    on_saved_path,
 )
 from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import Slam2DConfig
@@ -111,8 +111,7 @@ class ContinuingLaserFrontend(LaserFrontend):
         (almost) no loop with the saved ones (`OLD_NEW_CLOSURES_ON_PATH`)."""
         super().finish()
         graph, old = self.result.graph, len(self.saved.keyframe_poses)
-        new = graph.poses[old:, :2]
-        on_path, _ = unmatched_on_saved_path(new, np.ones(len(new), dtype=bool), graph.poses[:old, :2])
+        on_path = int(on_saved_path(graph.poses[old:, :2], graph.poses[:old, :2]).sum())
         # Loop closures between old and new keyframes, the placement's own match (to the first new one) not.
         closures = int(np.sum(self._crossing() & (np.maximum(graph.edge_from, graph.edge_to) != old)))
         self._on_path = on_path

@@ -339,8 +339,8 @@ class LaserSlam2D:
 
     def _pose_between(self, pose: FloatArray) -> None:
         """The newest scan was matched at `pose` (or is the first, or starts a run in a saved map): the scans
-        since the one matched before are placed between the two at constant velocity (over a tenth of a
-        second). Then it is the last matched scan."""
+        since the one matched before are placed between the two at constant velocity (they are at most a
+        `min_match_interval` apart). Then it is the last matched scan."""
         index = len(self._scan_stamps) - 1
         stamp = self._scan_stamps[index]
         self._cadence.matched(stamp)
