@@ -208,6 +208,19 @@ def test_one_odometry_glitch_far_away_is_dropped_and_counted(distance: float, tm
     assert counts.get("odometry_dropped_jumps", 0) + counts.get("odometry_dropped_out_of_world", 0) == 1
 
 
+def test_odometry_with_jittering_stamps_is_kept(tmp_path: Path) -> None:
+    # A logger stamping messages when it gets round to them (the Intel Research Lab log: stamps up to 0.6 s
+    # out of order): sorted by stamp, poses taken 0.3 s apart may be stamped 1 ms apart. Not glitches.
+    jitter = np.random.default_rng(5).uniform(-0.3, 0.3, 40)
+    path = scan_log(tmp_path / "jitter.mcap", walls, odometry=lambda i: (0.05 * i, 0.0, 0.02 * i),
+                    stamp=lambda i: 10**18 + round((0.1 * i + jitter[i]) * 1e9))
+    counts: dict[str, int] = {}
+    with open_log(path) as log:
+        track = read_odometry(log, counts=counts)
+    assert track is not None and len(track.stamps_ns) == 40
+    assert counts.get("odometry_dropped_jumps", 0) == 0
+
+
 def test_glitch_in_the_first_odometry_message_is_the_one_dropped(tmp_path: Path) -> None:
     path = scan_log(
         tmp_path / "first.mcap", walls, odometry=lambda i: (5e3, 0.0, 0.0) if i == 0 else (0.05 * i, 0.0, 0.0)

@@ -45,14 +45,26 @@ def due_indices(cadence: MatchCadence, stamps: list[int]) -> list[int]:
 # The stride the module documents for 0.1 s: n = ⌊0.1 s × rate + ¼⌋, at least 1.
 @pytest.mark.parametrize(("rate", "stride"), [(40, 4), (30, 3), (25, 2), (20, 2), (15, 1), (10, 1), (5, 1)])
 def test_a_steady_laser_is_matched_every_nth_scan_whatever_its_jitter(rate: int, stride: int) -> None:
-    assert due_indices(MatchCadence(0.1), jittered_stamps(rate, 200)) == list(range(0, 200, stride))
+    # The first 15 scans, before 15 intervals tell the laser's rate, are all matched.
+    expected = list(range(15)) + list(range(14 + stride, 200, stride))
+    assert due_indices(MatchCadence(0.1), jittered_stamps(rate, 200)) == expected
 
 
 def test_the_scan_after_a_gap_is_matched_and_the_stride_starts_again_from_it() -> None:
-    stamps = jittered_stamps(40, 30)
-    stamps = stamps[:10] + [s + 300_000_000 for s in stamps[10:]]  # 0.3 s without scans after scan 9
+    stamps = jittered_stamps(40, 60)
+    stamps = stamps[:30] + [s + 300_000_000 for s in stamps[30:]]  # 0.3 s without scans after scan 29
     due = due_indices(MatchCadence(0.1), stamps)
-    assert due == [0, 4, 8, 10, 14, 18, 22, 26]
+    # The first 15 scans, then every 4th. Scan 30 comes 0.3 s after scan 29: matched at once. While the gap
+    # is one of the 15 recent intervals (up to scan 44) the laser's mean interval is (14 × 25 + 325) / 15 =
+    # 45 ms, a stride of ⌊100 / 45 + ¼⌋ = 2: matched more often, never less. Then every 4th again.
+    assert due == [*range(15), 18, 22, 26, 30, 32, 34, 36, 38, 40, 42, 44, 48, 52, 56]
+
+
+def test_a_slow_laser_stamped_in_bursts_has_every_scan_matched() -> None:
+    # A logger that stamps a 5 Hz laser's scans in pairs 1 ms apart, 0.4 s between pairs (the Intel
+    # Research Lab log): half the intervals are 1 ms, but the laser scans 5 times a second.
+    stamps = [START_NS + pair * 400_000_000 + second * 1_000_000 for pair in range(50) for second in (0, 1)]
+    assert due_indices(MatchCadence(0.1), stamps) == list(range(100))
 
 
 def test_no_interval_matches_every_scan() -> None:
@@ -97,8 +109,10 @@ def fast_run(with_odometry: bool, interval: float) -> tuple[np.ndarray, np.ndarr
 @pytest.mark.parametrize("with_odometry", [True, False], ids=["odometry", "lidar-only"])
 def test_a_fast_laser_has_every_fourth_scan_matched_and_the_others_posed_as_well(with_odometry: bool) -> None:
     errors, online_errors, between, counted = fast_run(with_odometry, 0.1)
-    assert counted == between.sum() == 300  # every 4th of 400 scans matched
-    assert not between[::4].any() and between[np.arange(400) % 4 != 0].all()
+    # The first 15 of 400 scans matched (the laser's rate is not known yet), then every 4th: 289 between.
+    matched = np.r_[np.arange(15), np.arange(18, 400, 4)]
+    assert counted == between.sum() == 400 - len(matched) == 289
+    assert not between[matched].any() and np.delete(between, matched).all()
     # The scans between lie on the track as closely as the matched ones around them.
     assert np.median(errors[between]) <= np.median(errors[~between]) + 0.003
     assert errors.max() < 0.05
@@ -117,9 +131,9 @@ def test_a_fast_log_replays_with_every_scan_in_the_trajectory(tmp_path: Path) ->
     result = CliRunner().invoke(app, [str(log), "--out", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
     summary = json.loads((tmp_path / "out" / "fast.json").read_text())
-    assert summary["counts"]["scans_between"] == 240
+    assert summary["counts"]["scans_between"] == 320 - 15 - len(range(18, 320, 4)) == 229
     assert summary["odometry_topic"] == "/odom"
-    assert "  240 scans posed between matched ones" in result.stderr.splitlines()[1]
+    assert "  229 scans posed between matched ones" in result.stderr.splitlines()[1]
     trajectory = read_tum(tmp_path / "out" / "fast.tum")
     np.testing.assert_array_equal(trajectory.stamps_ns, START_NS + np.arange(320) * FAST_PERIOD_NS)
     poses = trajectory.planar()
@@ -128,7 +142,7 @@ def test_a_fast_log_replays_with_every_scan_in_the_trajectory(tmp_path: Path) ->
     assert se2.relative(poses[0], poses[-1])[0] == pytest.approx(7.975, abs=0.05)  # 319 × 2.5 cm ahead
     # The playback plays the matched scans only: the recording of a 40 Hz laser is a 10 Hz one's size.
     played = read_recording(tmp_path / "out" / "fast.rrd", timeline="scan")
-    assert played["/world/scan"].steps == played["/world/robot"].steps == list(range(0, 320, 4))
+    assert played["/world/scan"].steps == played["/world/robot"].steps == [*range(15), *range(18, 320, 4)]
 
 
 def test_a_fast_log_localized_in_a_saved_map_has_every_scan_placed(tmp_path: Path) -> None:

@@ -5,9 +5,12 @@ costs four times the work of matching every fourth, and on simulated 40 Hz drive
 maps and trajectories came out as accurate matched at 10 or 5 Hz as at 40 (`benchmarks/fast_laser_bench.py`).
 So a scan is matched once `min_match_interval` has passed since the last matched one; the scans between
 are posed from the two matched scans around them (`LaserSlam2D`). The stride is counted in scans, from the
-laser's typical interval (the median of the recent ones), so that the stamps' jitter does not make a
-steady laser's matched scans come at a wavering rate: every n-th scan, n = ⌊`min_match_interval` /
-interval + ¼⌋ (40 Hz and 0.1 s: every 4th; 25 Hz: every 2nd; 15 Hz or slower: every scan).
+laser's typical interval, so that the stamps' jitter does not make a steady laser's matched scans come at
+a wavering rate: every n-th scan, n = ⌊`min_match_interval` / interval + ¼⌋ (40 Hz and 0.1 s: every 4th;
+25 Hz: every 2nd; 15 Hz or slower: every scan). The typical interval is the mean of the recent ones (their
+span over their count), not their median: a logger that stamps scans in bursts (the Intel Research Lab
+log: a 5 Hz laser, half its intervals under 0.1 s, many of 1 ms) has a median interval far below its
+rate, and its scans were skipped as if it were fast.
 """
 
 from __future__ import annotations
@@ -15,10 +18,8 @@ from __future__ import annotations
 import math
 from collections import deque
 
-import numpy as np
-
 RECENT_INTERVALS = 15
-"""The typical interval between scans is the median of this many recent ones."""
+"""The typical interval between scans is the mean of this many recent ones."""
 STRIDE_ROUNDING = 0.25
 """A stride of n scans is taken once n − ¼ intervals fit in the matching interval: a 15 Hz laser (1.5
 intervals in 0.1 s) has every scan matched, not every other one, and an 18 Hz laser every other one."""
@@ -30,23 +31,24 @@ class MatchCadence:
 
     def __init__(self, min_interval: float) -> None:
         self._min_interval_ns = round(min_interval * 1e9)
-        self._intervals: deque[int] = deque(maxlen=RECENT_INTERVALS)
-        self._last_stamp: int | None = None
+        self._recent: deque[int] = deque(maxlen=RECENT_INTERVALS + 1)
+        """Stamps of the recent scans, increasing (a stamp not after the last one is not added)."""
         self._last_matched: int | None = None
         self._since_matched = 0
 
     def due(self, stamp_ns: int) -> bool:
         """Whether the scan at `stamp_ns` is to be matched: `min_interval` since the last matched scan, in
-        whole strides of the typical interval, or after a gap; always the first scan."""
-        if self._last_stamp is not None and stamp_ns > self._last_stamp:
-            self._intervals.append(stamp_ns - self._last_stamp)
-        self._last_stamp = stamp_ns
+        whole strides of the typical interval, or after a gap; always the first `RECENT_INTERVALS` scans."""
+        if not self._recent or stamp_ns > self._recent[-1]:
+            self._recent.append(stamp_ns)
         self._since_matched += 1
-        if self._last_matched is None or self._min_interval_ns <= 0 or not self._intervals:
+        # Until the laser's rate is known from a whole window of intervals, every scan is matched: the first
+        # two stamps of a bursty logger are 1 ms apart, whatever the rate.
+        if self._last_matched is None or self._min_interval_ns <= 0 or len(self._recent) <= RECENT_INTERVALS:
             return True
         if stamp_ns - self._last_matched >= self._min_interval_ns:
             return True
-        typical = float(np.median(self._intervals))
+        typical = (self._recent[-1] - self._recent[0]) / (len(self._recent) - 1)
         return self._since_matched >= max(1, math.floor(self._min_interval_ns / typical + STRIDE_ROUNDING))
 
     def matched(self, stamp_ns: int) -> None:
