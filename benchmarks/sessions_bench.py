@@ -1,6 +1,7 @@
 """Benchmark of sessions (issue 13): localization in a saved map, and mapping continued from one.
 
-    python benchmarks/sessions_bench.py [--shared ../shared] [--logs ACES CSAIL] [--skip-continue]
+    python benchmarks/sessions_bench.py [--shared ../shared] [--logs ACES CSAIL] [--extra LOG ...]
+        [--skip-continue]
 
 (a) Localization. Each log is cut in two at its middle scan. The first half is mapped (LaserSlam2D, then
     the default optimizer from the odometry and the online estimates, as `replay` does); the second half is
@@ -365,12 +366,15 @@ def print_continue_agreement(name: str, mapped: Mapped) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shared", type=Path, default=REPO.parent / "shared")
-    parser.add_argument("--logs", nargs="+", default=list(LOGS))
+    parser.add_argument("--logs", nargs="*", default=list(LOGS), help="shared logs (none: --extra only)")
+    parser.add_argument("--extra", nargs="+", type=Path, default=[],
+                        help="other 2D logs, benchmarked as CSAIL is (named by their file stem)")
     parser.add_argument("--skip-continue", action="store_true")
     args = parser.parse_args()
+    paths = {name: args.shared / LOGS[name] for name in args.logs} | {path.stem: path for path in args.extra}
     with threadpool_limits(limits=1, user_api="blas"):
-        for name in args.logs:  # ACES first: both of its tables print before CSAIL is mapped
-            mapped = Mapped.of(read_scans(args.shared / LOGS[name]))
+        for name, path in paths.items():  # ACES first: both of its tables print before CSAIL is mapped
+            mapped = Mapped.of(read_scans(path))
             print(f"## {name} (a) Localization: second half in the first half's map, no initial pose, "
                   "odometry origin dropped\n")
             print(LOCALIZATION_HEADER)
