@@ -127,7 +127,7 @@ def test_a_scan_does_not_slide_along_a_corridor_to_a_misplaced_feature() -> None
     prior = np.array([true_x, 0.0, 0.0])
     sigma = OdometryConfig().odometry_sigma_linear
     prior_information = np.diag([sigma**-2, sigma**-2, math.radians(2.0) ** -2])
-    pose, matched, information = slam._match(scan, prior, prior_information, 1.0)
+    pose, matched, information = slam._match(0, scan, prior, prior_information, 1.0)
     assert matched
     assert abs(pose[0] - true_x) < 0.05  # without the plateau: 0.2 m short, the pillar matched
     assert abs(pose[1]) < 0.02

@@ -62,6 +62,20 @@ COARSE_THINNING = 0.05
 NARROW_WINDOW_LINEAR = 0.2
 NARROW_WINDOW_ANGULAR = math.radians(10.0)
 """Without odometry the window searched first around the constant-velocity prediction (± m, ± rad)."""
+GAP_SPEED = 2.0
+GAP_TURN_RATE = math.radians(120.0)
+"""Without odometry, the search window and the prediction's σ grow with the time since the last matched
+scan: to cover this speed (m/s) and turn rate (rad/s) over it, when that is more than the configured window
+(0.5 m and 35° cover them over 0.25–0.3 s). ACES without its odometry has a 3 s gap in which the robot
+turned 83° in place: searched ±35° around the last motion, the scan matched 80° off, and half the building
+was mapped rotated against the other half."""
+GAP_WIDENING = 2.0
+"""A window widened this many times or more is a gap's: the prediction says little, and the wide window is
+searched at once, not a narrow one around the prediction first."""
+MAX_VELOCITY_EXTRAPOLATION = 3.0
+"""The constant-velocity prediction carries the last matched motion over the time since (its velocity), for
+at most this many times the time that motion took: over a gap the velocity says little, and the widened
+window does the work."""
 BRANCH_AND_BOUND_LEVELS = 4
 """Coarsest candidates span 2⁴ cells (0.8 m at 5 cm). The optimum does not depend on it; the work does:
 a 3.2 m block bounds every pose inside it by nearly the best score anywhere (some wall is always that
@@ -157,7 +171,8 @@ def predicted_motion(settings: OdometryConfig, last_odometry: FloatArray | None,
 
 
 def _match_without_odometry(
-    points: FloatArray, grid: LikelihoodGrid, prior: FloatArray, window: SearchWindow
+    points: FloatArray, grid: LikelihoodGrid, prior: FloatArray, window: SearchWindow, *,
+    narrow_first: bool = True
 ) -> Match | None:
     """The correlative start for ICP when only constant velocity predicts the motion.
 
@@ -166,8 +181,12 @@ def _match_without_odometry(
     prediction is usually close, and an optimum inside the narrow window is taken (the wide window's
     optimum may lie elsewhere: a look-alike pose farther from the prediction, which the old search would
     have taken). Only an optimum in the narrow window's outer half (the motion changed more than usual) calls
-    for the wide window, by branch and bound, which then only has to beat the narrow optimum."""
+    for the wide window, by branch and bound, which then only has to beat the narrow optimum. Without
+    `narrow_first` (after a gap, `GAP_WIDENING`) the wide window is searched at once."""
     coarse_points = np.ascontiguousarray(points[one_per_cell(points, COARSE_THINNING)])
+    if not narrow_first:
+        return match_branch_and_bound(coarse_points, grid, prior, window, 0.0,
+                                      levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS)
     narrow_window = SearchWindow(min(NARROW_WINDOW_LINEAR, window.linear),
                                  min(NARROW_WINDOW_ANGULAR, window.angular), window.angular_step)
     narrow = match_exhaustive(coarse_points, grid, prior, narrow_window)
@@ -273,18 +292,20 @@ class LaserSlam2D:
         else:
             reliable = odometry_interval <= RELIABLE_ODOMETRY_INTERVAL
             with self.stage_times.stage("matching"):
-                prior, prior_information = self._predict(odometry, reliable)
+                prior, prior_information = self._predict(int(stamp_ns), odometry, reliable)
                 odometry_motion = (None if odometry is None or self._last_odometry is None
                                    else se2.relative(self._last_pose, prior))
                 window_scale = 1.0 if reliable else UNRELIABLE_ODOMETRY_SCALE
                 deskewed = self._deskewer.deskewed(points, times, int(stamp_ns), odometry_motion)
-                pose, matched, information = self._match(deskewed, prior, prior_information, window_scale)
+                pose, matched, information = self._match(int(stamp_ns), deskewed, prior, prior_information,
+                                                         window_scale)
                 if matched and times is not None and odometry_motion is None:
                     # Deskewed under the motions before the scan, a scan period late at every change of
                     # pace; matched, the scan's own motion is known: deskewed again with it, and matched.
                     own_motion = se2.relative(self._last_pose, pose)
                     deskewed = self._deskewer.deskewed(points, times, int(stamp_ns), None, own_motion)
-                    pose, matched, information = self._match(deskewed, prior, prior_information, window_scale)
+                    pose, matched, information = self._match(int(stamp_ns), deskewed, prior,
+                                                             prior_information, window_scale)
                 points = deskewed
                 self._last_motion = se2.relative(self._last_pose, pose)
                 self._last_pose = pose
@@ -360,21 +381,48 @@ class LaserSlam2D:
         self._matched_interval_ns = 0 if self._last_matched is None else stamp - self._last_matched[1]
         self._last_matched = (index, stamp)
 
-    def _predict(self, odometry: FloatArray | None, reliable: bool) -> tuple[FloatArray, FloatArray]:
-        """The prior of the scan's match: the last pose moved by the odometry (`predicted_motion`).
+    def _predict(self, stamp_ns: int, odometry: FloatArray | None,
+                 reliable: bool) -> tuple[FloatArray, FloatArray]:
+        """The prior of the scan's match: the last pose moved by the odometry (`predicted_motion`), or
+        without it by the last matched motion carried over the time since (`_carried_motion`), its σ
+        widened after a gap (`_gap_widening`).
 
         A jump that ends a hold of the odometry is applied from where the hold began (`OdometryHold`):
         else the match lands on a wrong wall around a prior a whole turn off, and the keyframe step
         carries it into the graph."""
         settings = self.config.odometry
         motion, information = predicted_motion(settings, self._last_odometry, odometry, reliable,
-                                               self._last_motion)
+                                               self._carried_motion(stamp_ns))
+        if odometry is None or self._last_odometry is None:
+            linear, angular = self._gap_widening(stamp_ns)
+            information = information / np.array([linear, linear, angular]) ** 2
         motion = self._odometry_hold.corrected(motion, self._last_odometry, odometry, self._last_motion,
                                                settings.window_linear, settings.window_angular)
         return se2.compose(self._last_pose, motion), information
 
+    def _carried_motion(self, stamp_ns: int) -> FloatArray:
+        """The last matched motion at its velocity over the time since the last matched scan (at most
+        `MAX_VELOCITY_EXTRAPOLATION` times its own span): scan intervals vary (ACES: 0.11 to 0.37 s), and
+        a turn's worth of one is not the next one's."""
+        if self._last_matched is None or self._matched_interval_ns <= 0:
+            return self._last_motion
+        fraction = (stamp_ns - self._last_matched[1]) / self._matched_interval_ns
+        return along_motion(self._last_motion, np.array([min(fraction, MAX_VELOCITY_EXTRAPOLATION)]))[0]
+
+    def _gap_widening(self, stamp_ns: int) -> tuple[float, float]:
+        """How many times the configured window without odometry (linear, angular) the motion since the last
+        matched scan may span at `GAP_SPEED` and `GAP_TURN_RATE` (at least 1; the angle at most π)."""
+        if self._last_matched is None:
+            return 1.0, 1.0
+        settings = self.config.odometry
+        elapsed = max(stamp_ns - self._last_matched[1], 0) * 1e-9
+        angular = min(max(GAP_TURN_RATE * elapsed, settings.window_angular_without_odometry), math.pi)
+        return (max(GAP_SPEED * elapsed / settings.window_linear_without_odometry, 1.0),
+                angular / settings.window_angular_without_odometry)
+
     def _match(
-        self, points: FloatArray, prior: FloatArray, prior_information: FloatArray, window_scale: float
+        self, stamp_ns: int, points: FloatArray, prior: FloatArray, prior_information: FloatArray,
+        window_scale: float
     ) -> tuple[FloatArray, bool, FloatArray]:
         matching = self.config.matching
         settings = self.config.odometry
@@ -382,19 +430,17 @@ class LaserSlam2D:
         matched = False
         pose, information = prior, prior_information
         if len(points) >= matching.min_points and self._local_map is not None:
-            window = SearchWindow(
-                settings.window_linear * window_scale
-                if has_odometry
-                else settings.window_linear_without_odometry,
-                settings.window_angular * window_scale
-                if has_odometry
-                else settings.window_angular_without_odometry,
-                settings.angular_step,
-            )
             if has_odometry:
+                window = SearchWindow(settings.window_linear * window_scale,
+                                      settings.window_angular * window_scale, settings.angular_step)
                 coarse = match_exhaustive(points, self._local_map.grid, prior, window)
             else:
-                coarse = _match_without_odometry(points, self._local_map.grid, prior, window)
+                linear, angular = self._gap_widening(stamp_ns)
+                window = SearchWindow(settings.window_linear_without_odometry * linear,
+                                      settings.window_angular_without_odometry * angular,
+                                      settings.angular_step)
+                coarse = _match_without_odometry(points, self._local_map.grid, prior, window,
+                                                 narrow_first=max(linear, angular) < GAP_WIDENING)
             local = self._local_map
             start = prior if coarse is None else coarse.pose
             refined = refine_point_to_line(
