@@ -1,0 +1,152 @@
+"""A CARMEN laser log (Radish: FLASER or ROBOTLASER1 scans, ODOM lines) as a ROS 2 MCAP, converted as
+../shared's ACES and CSAIL were, to measure the 2D path on logs outside ../shared.
+
+    python benchmarks/carmen_log.py IN.clf OUT.mcap [--odometry odom|scans|none] [--drop F] [--jitter S]
+
+The Radish logs are in MOLAorg/mola_test_datasets (`datasets/radish/*.clf.bz2`, CC-BY-3.0): fr079.clf
+(the Freiburg building-079 log issue 12 names), intel.clf (the Intel Research Lab), fr-clinic_robotlaser.clf.
+
+- Scans: `/scan` LaserScans in frame `laser`, stamped with the line's ipc timestamp. FLASER: N beams from
+  −90° every 180° / (N − N mod 2) (ACES's 180 beams every 1°, CSAIL's 361 every 0.5°); ROBOTLASER1: the
+  line's own start angle and resolution (fr-clinic interlaces four layouts 0.25° apart). range_max just
+  below the log's largest range (its no-return value).
+- Odometry: `/tf` odom → base_link. `odom` (default): from the ODOM lines at their own stamps, a line
+  repeating its predecessor dropped; `scans`: each scan's own odometry fields, at its stamp (ROBOTLASER1
+  logs have no ODOM lines); `none`: no odometry.
+- `/tf_static` base_link → laser: identity for FLASER, ROBOTLASER1's laser pose in the robot's frame.
+- Messages are written in stamp order. The Intel log's stamps go up to 0.6 s back and come in bursts
+  1 ms apart; they are kept as they are, as a bag converted from it has them.
+- `--drop F` leaves out a random share F of the scans (seed 1); `--jitter S` moves each scan's stamp by
+  up to ±S seconds (seed 0): perturbed copies of a real log.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from tests._frontends_fixtures import quaternion_from_yaw, ros2_mcap  # noqa: E402
+
+
+@dataclass(frozen=True)
+class Scan:
+    stamp_ns: int
+    ranges: np.ndarray
+    first_angle: float
+    increment: float
+    odometry: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class CarmenLog:
+    scans: list[Scan]
+    odometry: list[tuple[int, tuple[float, float, float]]]
+    """(stamp ns, (x, y, yaw)) of every ODOM line."""
+    mount: tuple[float, float, float]
+    """The laser's pose (x, y, yaw) in the robot's frame."""
+
+
+def _stamp(value: str) -> int:
+    return round(float(value) * 1e9)
+
+
+def read_carmen(path: Path) -> CarmenLog:
+    scans: list[Scan] = []
+    odometry: list[tuple[int, tuple[float, float, float]]] = []
+    mount = (0.0, 0.0, 0.0)
+    for line in path.read_text().splitlines():
+        fields = line.split()
+        if not fields:
+            continue
+        if fields[0] == "FLASER":  # FLASER n r1..rn x y θ odom_x odom_y odom_θ ipc_stamp host logger_stamp
+            count = int(fields[1])
+            rest = fields[2 + count:]
+            ranges = np.array(fields[2:2 + count], dtype=np.float32)
+            pose = (float(rest[3]), float(rest[4]), float(rest[5]))
+            scans.append(Scan(_stamp(rest[6]), ranges, -math.pi / 2, math.pi / (count - count % 2), pose))
+        elif fields[0] == "ROBOTLASER1":
+            # type start fov resolution max accuracy remission_mode n r1..rn m e1..em laser_x laser_y laser_θ
+            # robot_x robot_y robot_θ tv rv forward_safety side_safety turn_axis ipc_stamp host logger_stamp
+            count = int(fields[8])
+            rest = fields[9 + count:]
+            rest = rest[1 + int(rest[0]):]
+            laser = [float(value) for value in rest[0:3]]
+            robot = (float(rest[3]), float(rest[4]), float(rest[5]))
+            c, s = math.cos(robot[2]), math.sin(robot[2])
+            dx, dy = laser[0] - robot[0], laser[1] - robot[1]
+            mount = (c * dx + s * dy, -s * dx + c * dy, laser[2] - robot[2])
+            ranges = np.array(fields[9:9 + count], dtype=np.float32)
+            scans.append(Scan(_stamp(rest[11]), ranges, float(fields[2]), float(fields[4]), robot))
+        elif fields[0] == "ODOM":  # ODOM x y θ tv rv accel ipc_stamp host logger_stamp
+            pose = (float(fields[1]), float(fields[2]), float(fields[3]))
+            if not odometry or odometry[-1][1] != pose:
+                odometry.append((_stamp(fields[7]), pose))
+    return CarmenLog(scans, odometry, mount)
+
+
+def write_mcap(log: CarmenLog, out: Path, odometry: str, drop: float, jitter: float) -> None:
+    scans = log.scans
+    offsets = np.round(np.random.default_rng(0).uniform(-jitter, jitter, len(scans)) * 1e9).astype(np.int64)
+    kept = np.random.default_rng(1).uniform(size=len(scans)) >= drop
+    events: list[tuple[int, int, str, object]] = [
+        (scan.stamp_ns + int(offset), 1, "scan", scan)
+        for scan, offset, keep in zip(scans, offsets, kept, strict=True) if keep]
+    if odometry == "odom":
+        events += [(stamp, 0, "odometry", pose) for stamp, pose in log.odometry]
+    elif odometry == "scans":
+        events += [(stamp, 0, "odometry", scan.odometry) for stamp, _, _, scan in events]
+    events.sort(key=lambda event: (event[0], event[1]))
+    top = float(max(scan.ranges.max() for scan in scans))
+    with ros2_mcap(out) as (messages, add):
+        types = messages.types
+
+        def transform(stamp: int, parent: str, child: str, pose: tuple[float, float, float]) -> object:
+            q = quaternion_from_yaw(pose[2])
+            return types["geometry_msgs/msg/TransformStamped"](
+                header=messages.header(stamp, parent), child_frame_id=child,
+                transform=types["geometry_msgs/msg/Transform"](
+                    translation=types["geometry_msgs/msg/Vector3"](x=pose[0], y=pose[1], z=0.0),
+                    rotation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
+
+        first = events[0][0]
+        add("/tf_static", "tf2_msgs/msg/TFMessage", first,
+            types["tf2_msgs/msg/TFMessage"](transforms=[transform(first, "base_link", "laser", log.mount)]))
+        for stamp, _, kind, item in events:
+            if kind == "odometry":
+                add("/tf", "tf2_msgs/msg/TFMessage", stamp,
+                    types["tf2_msgs/msg/TFMessage"](transforms=[transform(stamp, "odom", "base_link", item)]))
+                continue
+            assert isinstance(item, Scan)
+            count = len(item.ranges)
+            add("/scan", "sensor_msgs/msg/LaserScan", stamp, types["sensor_msgs/msg/LaserScan"](
+                header=messages.header(stamp, "laser"), angle_min=item.first_angle,
+                angle_max=item.first_angle + item.increment * (count - 1), angle_increment=item.increment,
+                time_increment=0.0, scan_time=0.0, range_min=0.0,
+                range_max=float(np.nextafter(np.float32(top), np.float32(0.0))),
+                ranges=item.ranges, intensities=np.zeros(0, dtype=np.float32)))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("log", type=Path)
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--odometry", choices=("odom", "scans", "none"), default="odom")
+    parser.add_argument("--drop", type=float, default=0.0, help="share of the scans left out")
+    parser.add_argument("--jitter", type=float, default=0.0, help="± seconds added to each scan's stamp")
+    args = parser.parse_args()
+    log = read_carmen(args.log)
+    odometry = "scans" if args.odometry == "odom" and not log.odometry else args.odometry
+    write_mcap(log, args.out, odometry, args.drop, args.jitter)
+    print(f"{args.out}: {len(log.scans)} scans, odometry from {odometry}")
+
+
+if __name__ == "__main__":
+    main()
