@@ -1,0 +1,91 @@
+"""Benchmark of the 2D path without wheel odometry on real logs: each Radish log replayed with its odometry
+and without, the latter also with scans dropped and with jittered stamps.
+
+    NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 \\
+        python benchmarks/lidar_only_bench.py --radish DIR [--logs aces mit-csail fr079] [--out DIR]
+        [--relations ../shared/data/logs/aces/aces.relations]
+
+DIR holds the logs of MOLAorg/mola_test_datasets `datasets/radish/` (`<name>.clf`, unpacked from
+`.clf.bz2`). Each is converted by `carmen_log.py` and replayed in process (`replay_log`, what `replay`
+runs): with its odometry (the reference: no ground truth but ACES's relations), and lidar-only as
+recorded, with 15 % of its scans left out (seed 1) and with every stamp moved by up to ±30 ms (seed 0).
+Printed per run: the median / 95 % / largest distance (m) of every scan from the reference's estimate of
+it after a rigid fit of the two trajectories (Umeyama, no scale), loop closures, and for ACES the
+relations error (translation m, rotation deg).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from benchmarks.carmen_log import read_carmen, write_mcap  # noqa: E402
+from pipeline.evaluation import evaluate_files  # noqa: E402
+from pipeline.replay_log import replay_log  # noqa: E402
+from pipeline.trajectory_io import read_tum  # noqa: E402
+
+VARIANTS = {"with odometry": ("odom", 0.0, 0.0), "lidar-only": ("none", 0.0, 0.0),
+            "lidar-only, 15 % dropped": ("none", 0.15, 0.0), "lidar-only, ±30 ms": ("none", 0.0, 0.03)}
+"""Name → (odometry, share of scans dropped, stamp jitter s) of `carmen_log.write_mcap`."""
+
+
+def rigid_distances(positions: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Each row of `positions` (N, 2) from the same row of `reference` after the least-squares rigid fit."""
+    mean, reference_mean = positions.mean(axis=0), reference.mean(axis=0)
+    u, _, vt = np.linalg.svd((positions - mean).T @ (reference - reference_mean))
+    flip = np.diag([1.0, np.sign(np.linalg.det(vt.T @ u.T))])
+    rotation = vt.T @ flip @ u.T
+    return np.hypot(*((positions - mean) @ rotation.T + reference_mean - reference).T)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--radish", type=Path, required=True)
+    parser.add_argument("--logs", nargs="+", default=["aces", "mit-csail", "fr079"])
+    parser.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "lidar_only_bench")
+    parser.add_argument("--relations", type=Path,
+                        default=REPO.parent / "shared" / "data" / "logs" / "aces" / "aces.relations")
+    args = parser.parse_args()
+    print("| log | run | scans | vs with odometry: median / 95 % / max (m) | loop closures "
+          "| relations (m, deg) |")
+    print("|---|---|---|---|---|---|")
+    for name in args.logs:
+        log = read_carmen(args.radish / f"{name}.clf")
+        reference: dict[int, np.ndarray] = {}
+        for variant, (odometry, drop, jitter) in VARIANTS.items():
+            if odometry == "odom" and not log.odometry:
+                odometry = "scans"
+            path = args.out / f"{name}_{variant.replace(' ', '_').replace(',', '').replace('%', 'pc')}.mcap"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_mcap(log, path, odometry, drop, jitter)
+            result = replay_log(path, out_dir=args.out / "replays")
+            trajectory = read_tum(result.outputs.tum)
+            # Each scan by its stamp as recorded (the jittered run's stamps moved by the same draws).
+            offsets = np.round(np.random.default_rng(0).uniform(-jitter, jitter, len(log.scans)) * 1e9)
+            recorded = {int(scan.stamp_ns + offset): scan.stamp_ns
+                        for scan, offset in zip(log.scans, offsets.astype(np.int64), strict=True)}
+            stamps = [recorded[int(stamp)] for stamp in trajectory.stamps_ns]
+            positions = trajectory.planar()[:, :2]
+            if not reference:
+                reference = dict(zip(stamps, positions, strict=True))
+            both = [k for k, stamp in enumerate(stamps) if stamp in reference]
+            distances = rigid_distances(positions[both], np.array([reference[stamps[k]] for k in both]))
+            relations = "-"
+            if name == "aces" and drop == 0.0 and jitter == 0.0 and args.relations.exists():
+                scored = evaluate_files(result.outputs.tum, args.relations)
+                relations = f"{scored.translation_mean:.4f} ± {scored.translation_std:.4f}, " \
+                            f"{scored.rotation_mean_deg:.3f} ± {scored.rotation_std_deg:.3f}"
+            print(f"| {name} | {variant} | {len(stamps)} | {np.median(distances):.3f} / "
+                  f"{np.percentile(distances, 95):.2f} / {distances.max():.2f} | "
+                  f"{result.loop_closures.get('accepted')} | {relations} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
