@@ -510,3 +510,19 @@ def test_most_measurements_on_the_saved_path_matching_nothing_are_warned_of() ->
     with warnings.catch_warnings():  # too few on the path to say
         warnings.simplefilter("error")
         checked_on_saved_path("a.mcap", "scans", positions[:19], np.zeros(19, dtype=bool), keyframes)
+
+
+def test_without_odometry_a_gap_through_a_corner_is_tracked_across(
+        localizer_map: tuple[list[np.ndarray], np.ndarray], new_run: Run) -> None:
+    # 2.4 s without scans while the robot drives round a corner (about half its 90°): the last scan's motion
+    # carried over the gap, searched ±35° around, left the next scan unmatched and the robot lost; the
+    # motion carried at its velocity, searched as far as the robot could have gone, keeps it tracked.
+    turn = np.abs(np.diff(np.unwrap(new_run.truth[:, 2])))
+    corner = int(np.argmax(turn > math.radians(2.0)))
+    kept = [k for k in range(corner + 40) if not corner - 2 <= k < corner + 6]
+    localizer = MapLocalizer(*localizer_map, initial_pose=new_run.truth[0])
+    results = [localizer.localize(int(new_run.stamps_ns[k]), new_run.scans[k], None) for k in kept]
+    assert all(r.matched and not r.relocalized and not r.global_fix for r in results)
+    poses, truth = np.array([r.pose for r in results]), new_run.truth[kept]
+    assert position_errors(poses, truth).max() < 0.05
+    assert heading_errors(poses, truth).max() < math.radians(1.0)

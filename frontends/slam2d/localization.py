@@ -61,6 +61,7 @@ from frontends.slam2d.held_odometry import OdometryHold
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from frontends.slam2d.localization_config import LocalizationConfig
+from frontends.slam2d.motion_prior import carried_motion, gap_widening
 from frontends.slam2d.slam import ODOMETRY_BRANCH_AND_BOUND_LEVELS, LaserSlam2D, predicted_motion
 from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
@@ -220,6 +221,10 @@ class MapLocalizer:
         self._covariance = self._fix_covariance()
         self._last_odometry: FloatArray | None = None
         self._last_motion = np.zeros(3)
+        self._last_stamp: int | None = None
+        """The stamp of the last scan tracked or placed (the end of `_last_motion`)."""
+        self._motion_span_ns = 0
+        """The time `_last_motion` took (0: unknown)."""
         self._odometry_hold = OdometryHold()
         self._misses = 0
         self._since_good = 0.0
@@ -276,7 +281,8 @@ class MapLocalizer:
                 return self._search(index, int(stamp_ns), points, odometry, odometry_interval, times)
         has_odometry = odometry is not None and self._last_odometry is not None
         with self.stage_times.stage("tracking"):
-            prediction = self._predict(odometry, odometry_interval <= RELIABLE_ODOMETRY_INTERVAL)
+            reliable = odometry_interval <= RELIABLE_ODOMETRY_INTERVAL
+            prediction = self._predict(odometry, reliable, int(stamp_ns))
             odometry_motion = se2.relative(self._pose, prediction[0]) if has_odometry else None
             deskewed = self._deskewer.deskewed(points, times, int(stamp_ns), odometry_motion)
             before = (self._pose, self._covariance, self._map_matched)
@@ -288,6 +294,8 @@ class MapLocalizer:
                 result = self._track(index, int(stamp_ns), deskewed, odometry, odometry_interval, prediction)
             points = deskewed
             self._deskewer.moved(int(stamp_ns), self._last_motion)
+            self._motion_span_ns = 0 if self._last_stamp is None else int(stamp_ns) - self._last_stamp
+            self._last_stamp = int(stamp_ns)
         self._last_odometry = odometry
         moved = float(np.hypot(self._last_motion[0], self._last_motion[1]))
         self._since_attempt += moved
@@ -332,14 +340,13 @@ class MapLocalizer:
 
     def _track(self, index: int, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
                odometry_interval: float,
-               prediction: tuple[FloatArray, FloatArray, FloatArray]) -> LocalizedScan:
+               prediction: tuple[FloatArray, FloatArray, FloatArray, SearchWindow]) -> LocalizedScan:
         """Match a scan around `prediction` (`_predict`'s)."""
         assert self._pose is not None
         matching = self.config.matching
-        reliable = odometry_interval <= RELIABLE_ODOMETRY_INTERVAL
         has_odometry = odometry is not None and self._last_odometry is not None
         previous = self._pose
-        prior, covariance, noise = prediction
+        prior, covariance, noise, window = prediction
         motion, motion_information = se2.relative(previous, prior), np.linalg.inv(noise)
         map_information = np.zeros((3, 3))
         # ICP weighs its points as independent, which the match's information undoes by
@@ -350,7 +357,6 @@ class MapLocalizer:
         information = np.zeros((3, 3))
         inliers, rms = 0.0, math.inf
         if len(points) >= matching.min_points:
-            window = self._tracking_window(has_odometry, reliable)
             found = self._match(points, self.map, prior, prior_information, window, has_odometry,
                                 weigh_weak=True)
             if not found.strong(self.settings.min_tracking_score) and self._rolling:
@@ -394,14 +400,15 @@ class MapLocalizer:
                              information, tracked=tracked, motion=motion,
                              motion_information=motion_information, map_information=map_information)
 
-    def _tracking_window(self, has_odometry: bool, reliable: bool) -> SearchWindow:
+    def _tracking_window(self, has_odometry: bool, reliable: bool,
+                         widening: tuple[float, float] = (1.0, 1.0)) -> SearchWindow:
         settings = self.config.odometry
         if has_odometry:
             scale = 1.0 if reliable else UNRELIABLE_ODOMETRY_SCALE
             return SearchWindow(settings.window_linear * scale, settings.window_angular * scale,
                                 settings.angular_step)
-        return SearchWindow(settings.window_linear_without_odometry, settings.window_angular_without_odometry,
-                            settings.angular_step)
+        return SearchWindow(settings.window_linear_without_odometry * widening[0],
+                            settings.window_angular_without_odometry * widening[1], settings.angular_step)
 
     def _match(self, points: FloatArray, submap: Submap, prior: FloatArray, prior_information: FloatArray,
                window: SearchWindow, has_odometry: bool, *, weigh_weak: bool) -> _TrackingMatch:
@@ -522,16 +529,20 @@ class MapLocalizer:
             motion_information=tracked.motion_information, map_information=information,
         )
 
-    def _predict(self, odometry: FloatArray | None,
-                 reliable: bool) -> tuple[FloatArray, FloatArray, FloatArray]:
+    def _predict(self, odometry: FloatArray | None, reliable: bool,
+                 stamp_ns: int) -> tuple[FloatArray, FloatArray, FloatArray, SearchWindow]:
         """The predicted pose, its covariance (the pose's own, carried along the motion, plus the motion's
-        noise) and that noise (robot frame): wheel odometry's as `LocalizationConfig` models it; without
-        odometry, the SLAM's loose constant-velocity prior."""
+        noise), that noise (robot frame) and the window to search: wheel odometry's as `LocalizationConfig`
+        models it; without odometry, the SLAM's loose constant-velocity prior, the last motion carried
+        over the time since (`motion_prior`), its σ and window widened after a gap."""
         assert self._pose is not None
         has_odometry = odometry is not None and self._last_odometry is not None
+        elapsed = 0 if self._last_stamp is None else stamp_ns - self._last_stamp
+        carried = carried_motion(self._last_motion, self._motion_span_ns, elapsed)
         motion, information = predicted_motion(self.config.odometry, self._last_odometry, odometry, reliable,
-                                               self._last_motion)
-        window = self._tracking_window(has_odometry, reliable)
+                                               carried)
+        widening = (1.0, 1.0) if has_odometry else gap_widening(self.config.odometry, elapsed)
+        window = self._tracking_window(has_odometry, reliable, widening)
         motion = self._odometry_hold.corrected(motion, self._last_odometry, odometry, self._last_motion,
                                                window.linear, window.angular)
         if self._odometry_hold.holding:
@@ -547,8 +558,9 @@ class MapLocalizer:
             scale = 1.0 if reliable else UNRELIABLE_ODOMETRY_SCALE
             noise = np.diag([(scale * linear) ** 2, (scale * linear) ** 2, (scale * angular) ** 2])
         else:
-            noise = np.linalg.inv(information)
-        return se2.compose(self._pose, motion), _propagate(self._covariance, self._pose, motion, noise), noise
+            noise = np.linalg.inv(information / np.array([widening[0], widening[0], widening[1]]) ** 2)
+        covariance = _propagate(self._covariance, self._pose, motion, noise)
+        return se2.compose(self._pose, motion), covariance, noise, window
 
     def _fix_covariance(self) -> FloatArray:
         settings = self.settings
@@ -605,6 +617,7 @@ class MapLocalizer:
         self._map_matched = True
         self._last_odometry = odometry
         self._last_motion = np.zeros(3)
+        self._last_stamp, self._motion_span_ns = stamp_ns, 0
         self._odometry_hold.reset()
         self._tracker = None
         self._recent.clear()

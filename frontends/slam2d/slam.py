@@ -46,6 +46,7 @@ from frontends.slam2d.held_odometry import OdometryHold
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.match_covariance import score_plateau, slide_to_prior, widened
+from frontends.slam2d.motion_prior import GAP_WIDENING, carried_motion, gap_widening
 from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
 from optimizer.graph import PoseGraph
@@ -62,20 +63,6 @@ COARSE_THINNING = 0.05
 NARROW_WINDOW_LINEAR = 0.2
 NARROW_WINDOW_ANGULAR = math.radians(10.0)
 """Without odometry the window searched first around the constant-velocity prediction (± m, ± rad)."""
-GAP_SPEED = 2.0
-GAP_TURN_RATE = math.radians(120.0)
-"""Without odometry, the search window and the prediction's σ grow with the time since the last matched
-scan: to cover this speed (m/s) and turn rate (rad/s) over it, when that is more than the configured window
-(0.5 m and 35° cover them over 0.25–0.3 s). ACES without its odometry has a 3 s gap in which the robot
-turned 83° in place: searched ±35° around the last motion, the scan matched 80° off, and half the building
-was mapped rotated against the other half."""
-GAP_WIDENING = 2.0
-"""A window widened this many times or more is a gap's: the prediction says little, and the wide window is
-searched at once, not a narrow one around the prediction first."""
-MAX_VELOCITY_EXTRAPOLATION = 3.0
-"""The constant-velocity prediction carries the last matched motion over the time since (its velocity), for
-at most this many times the time that motion took: over a gap the velocity says little, and the widened
-window does the work."""
 BRANCH_AND_BOUND_LEVELS = 4
 """Coarsest candidates span 2⁴ cells (0.8 m at 5 cm). The optimum does not depend on it; the work does:
 a 3.2 m block bounds every pose inside it by nearly the best score anywhere (some wall is always that
@@ -401,24 +388,16 @@ class LaserSlam2D:
         return se2.compose(self._last_pose, motion), information
 
     def _carried_motion(self, stamp_ns: int) -> FloatArray:
-        """The last matched motion at its velocity over the time since the last matched scan (at most
-        `MAX_VELOCITY_EXTRAPOLATION` times its own span): scan intervals vary (ACES: 0.11 to 0.37 s), and
-        a turn's worth of one is not the next one's."""
-        if self._last_matched is None or self._matched_interval_ns <= 0:
+        """The last matched motion carried over the time since the last matched scan (`carried_motion`)."""
+        if self._last_matched is None:
             return self._last_motion
-        fraction = (stamp_ns - self._last_matched[1]) / self._matched_interval_ns
-        return along_motion(self._last_motion, np.array([min(fraction, MAX_VELOCITY_EXTRAPOLATION)]))[0]
+        return carried_motion(self._last_motion, self._matched_interval_ns, stamp_ns - self._last_matched[1])
 
     def _gap_widening(self, stamp_ns: int) -> tuple[float, float]:
-        """How many times the configured window without odometry (linear, angular) the motion since the last
-        matched scan may span at `GAP_SPEED` and `GAP_TURN_RATE` (at least 1; the angle at most π)."""
+        """`gap_widening` over the time since the last matched scan."""
         if self._last_matched is None:
             return 1.0, 1.0
-        settings = self.config.odometry
-        elapsed = max(stamp_ns - self._last_matched[1], 0) * 1e-9
-        angular = min(max(GAP_TURN_RATE * elapsed, settings.window_angular_without_odometry), math.pi)
-        return (max(GAP_SPEED * elapsed / settings.window_linear_without_odometry, 1.0),
-                angular / settings.window_angular_without_odometry)
+        return gap_widening(self.config.odometry, stamp_ns - self._last_matched[1])
 
     def _match(
         self, stamp_ns: int, points: FloatArray, prior: FloatArray, prior_information: FloatArray,
