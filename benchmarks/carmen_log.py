@@ -33,7 +33,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from tests._frontends_fixtures import quaternion_from_yaw, ros2_mcap  # noqa: E402
+from tests._frontends_fixtures import ros2_mcap  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -108,21 +108,16 @@ def write_mcap(log: CarmenLog, out: Path, odometry: str, drop: float, jitter: fl
     with ros2_mcap(out) as (messages, add):
         types = messages.types
 
-        def transform(stamp: int, parent: str, child: str, pose: tuple[float, float, float]) -> object:
-            q = quaternion_from_yaw(pose[2])
-            return types["geometry_msgs/msg/TransformStamped"](
-                header=messages.header(stamp, parent), child_frame_id=child,
-                transform=types["geometry_msgs/msg/Transform"](
-                    translation=types["geometry_msgs/msg/Vector3"](x=pose[0], y=pose[1], z=0.0),
-                    rotation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
+        def transforms(stamp: int, parent: str, child: str, pose: tuple[float, float, float]) -> object:
+            """A TFMessage of the one planar edge parent → child."""
+            return messages.tf_message([messages.transform_stamped(stamp, parent, child, (*pose[:2], 0.0),
+                                                                   pose[2])])
 
         first = events[0][0]
-        add("/tf_static", "tf2_msgs/msg/TFMessage", first,
-            types["tf2_msgs/msg/TFMessage"](transforms=[transform(first, "base_link", "laser", log.mount)]))
+        add("/tf_static", "tf2_msgs/msg/TFMessage", first, transforms(first, "base_link", "laser", log.mount))
         for stamp, _, kind, item in events:
             if kind == "odometry":
-                add("/tf", "tf2_msgs/msg/TFMessage", stamp,
-                    types["tf2_msgs/msg/TFMessage"](transforms=[transform(stamp, "odom", "base_link", item)]))
+                add("/tf", "tf2_msgs/msg/TFMessage", stamp, transforms(stamp, "odom", "base_link", item))
                 continue
             assert isinstance(item, Scan)
             count = len(item.ranges)

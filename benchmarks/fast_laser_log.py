@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from pipeline.trajectory_io import read_tum, write_tum  # noqa: E402
-from tests._frontends_fixtures import quaternion_from_yaw, ros2_mcap  # noqa: E402
+from tests._frontends_fixtures import ros2_mcap  # noqa: E402
 from tests.laser_world import beam_bearings, drive_errors, simulate_swept_run, square_loop  # noqa: E402
 
 
@@ -40,14 +40,8 @@ def write(out: Path, rate: float, beams: int, fov: float, speed: float, odometry
             stamp = int(stamp)
             if odometry:
                 x, y, yaw = (float(value) for value in run.odometry[k])
-                q = quaternion_from_yaw(yaw)
-                edge = types["geometry_msgs/msg/TransformStamped"](
-                    header=messages.header(stamp, "odom"), child_frame_id="base_link",
-                    transform=types["geometry_msgs/msg/Transform"](
-                        translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=0.0),
-                        rotation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
-                tf = types["tf2_msgs/msg/TFMessage"](transforms=[edge])
-                add("/tf", "tf2_msgs/msg/TFMessage", stamp, tf)
+                edge = messages.transform_stamped(stamp, "odom", "base_link", (x, y, 0.0), yaw)
+                add("/tf", "tf2_msgs/msg/TFMessage", stamp, messages.tf_message([edge]))
             ranges = np.full(beams, np.inf, dtype=np.float32)
             index = np.round((np.arctan2(points[:, 1], points[:, 0]) - bearings[0]) / increment).astype(int)
             inside = (index >= 0) & (index < beams)

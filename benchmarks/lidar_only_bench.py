@@ -10,8 +10,8 @@ DIR holds the logs of MOLAorg/mola_test_datasets `datasets/radish/` (`<name>.clf
 runs): with its odometry (the reference: no ground truth but ACES's relations), and lidar-only as
 recorded, with 15 % of its scans left out (seed 1) and with every stamp moved by up to ±30 ms (seed 0).
 Printed per run: the median / 95 % / largest distance (m) of every scan from the reference's estimate of
-it after a rigid fit of the two trajectories (Umeyama, no scale), loop closures, and for ACES the
-relations error (translation m, rotation deg).
+it after a rigid fit of the two trajectories (`sessions_bench.rigid_alignment`), loop closures, and for
+ACES the relations error (translation m, rotation deg).
 """
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.carmen_log import read_carmen, write_mcap  # noqa: E402
+from benchmarks.sessions_bench import rigid_alignment  # noqa: E402
+from optimizer import se2  # noqa: E402
 from pipeline.evaluation import evaluate_files  # noqa: E402
 from pipeline.replay_log import replay_log  # noqa: E402
 from pipeline.trajectory_io import read_tum  # noqa: E402
@@ -34,15 +36,6 @@ from pipeline.trajectory_io import read_tum  # noqa: E402
 VARIANTS = {"with odometry": ("odom", 0.0, 0.0), "lidar-only": ("none", 0.0, 0.0),
             "lidar-only, 15 % dropped": ("none", 0.15, 0.0), "lidar-only, ±30 ms": ("none", 0.0, 0.03)}
 """Name → (odometry, share of scans dropped, stamp jitter s) of `carmen_log.write_mcap`."""
-
-
-def rigid_distances(positions: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """Each row of `positions` (N, 2) from the same row of `reference` after the least-squares rigid fit."""
-    mean, reference_mean = positions.mean(axis=0), reference.mean(axis=0)
-    u, _, vt = np.linalg.svd((positions - mean).T @ (reference - reference_mean))
-    flip = np.diag([1.0, np.sign(np.linalg.det(vt.T @ u.T))])
-    rotation = vt.T @ flip @ u.T
-    return np.hypot(*((positions - mean) @ rotation.T + reference_mean - reference).T)
 
 
 def main() -> None:
@@ -72,11 +65,13 @@ def main() -> None:
             recorded = {int(scan.stamp_ns + offset): scan.stamp_ns
                         for scan, offset in zip(log.scans, offsets.astype(np.int64), strict=True)}
             stamps = [recorded[int(stamp)] for stamp in trajectory.stamps_ns]
-            positions = trajectory.planar()[:, :2]
+            poses = trajectory.planar()
             if not reference:
-                reference = dict(zip(stamps, positions, strict=True))
+                reference = dict(zip(stamps, poses, strict=True))
             both = [k for k, stamp in enumerate(stamps) if stamp in reference]
-            distances = rigid_distances(positions[both], np.array([reference[stamps[k]] for k in both]))
+            mine, theirs = poses[both], np.array([reference[stamps[k]] for k in both])
+            moved = se2.compose(rigid_alignment(mine, theirs), mine)
+            distances = np.hypot(*(moved[:, :2] - theirs[:, :2]).T)
             relations = "-"
             if name == "aces" and drop == 0.0 and jitter == 0.0 and args.relations.exists():
                 scored = evaluate_files(result.outputs.tum, args.relations)

@@ -538,9 +538,10 @@ class MapLocalizer:
         assert self._pose is not None
         has_odometry = odometry is not None and self._last_odometry is not None
         elapsed = 0 if self._last_stamp is None else stamp_ns - self._last_stamp
-        carried = carried_motion(self._last_motion, self._motion_span_ns, elapsed)
+        last_motion = (self._last_motion if has_odometry
+                       else carried_motion(self._last_motion, self._motion_span_ns, elapsed))
         motion, information = predicted_motion(self.config.odometry, self._last_odometry, odometry, reliable,
-                                               carried)
+                                               last_motion)
         widening = (1.0, 1.0) if has_odometry else gap_widening(self.config.odometry, elapsed)
         window = self._tracking_window(has_odometry, reliable, widening)
         motion = self._odometry_hold.corrected(motion, self._last_odometry, odometry, self._last_motion,

@@ -378,9 +378,10 @@ class LaserSlam2D:
         else the match lands on a wrong wall around a prior a whole turn off, and the keyframe step
         carries it into the graph."""
         settings = self.config.odometry
-        motion, information = predicted_motion(settings, self._last_odometry, odometry, reliable,
-                                               self._carried_motion(stamp_ns))
-        if odometry is None or self._last_odometry is None:
+        constant_velocity = odometry is None or self._last_odometry is None  # `predicted_motion`'s branch
+        last_motion = self._carried_motion(stamp_ns) if constant_velocity else self._last_motion
+        motion, information = predicted_motion(settings, self._last_odometry, odometry, reliable, last_motion)
+        if constant_velocity:
             linear, angular = self._gap_widening(stamp_ns)
             information = information / np.array([linear, linear, angular]) ** 2
         motion = self._odometry_hold.corrected(motion, self._last_odometry, odometry, self._last_motion,
