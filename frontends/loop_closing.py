@@ -5,7 +5,9 @@
 - `HypothesisPool`: a loop closure that would move the map by more than a small correction is only a
   hypothesis until another one agrees with it (a false match seldom finds an agreeing second one).
 - `optimize_and_prune`: re-optimize the keyframe graph and remove the loop closures whose error stays large
-  at the optimum (inconsistent with the rest), one at a time, worst first.
+  at the optimum (inconsistent with the rest), one at a time, worst first; then the new loop closures that
+  strain the chain (two agreeing matches of a look-alike place, pinned to it while true closures pin the
+  keyframes around: their own error stays small, one odometry step takes it all).
 - `path_lengths`: the length of the shortest path between keyframes through the constraints, which the
   loop-closure search radius grows with (drift accumulates along the path that links two places).
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import combinations
 from typing import Protocol
 
 import numpy as np
@@ -56,10 +59,17 @@ class Constraints:
         planar = self.measurement_shape == (3,)
         self.planar_length.append(float(np.hypot(measurement[0], measurement[1])) if planar else math.nan)
 
-    def remove(self, index: int) -> None:
-        for column in (self.first, self.second, self.measurement, self.information, self.is_loop,
-                       self.planar_length):
-            del column[index]
+    def _columns(self) -> tuple[list, ...]:
+        return (self.first, self.second, self.measurement, self.information, self.is_loop, self.planar_length)
+
+    def remove(self, index: int) -> tuple[object, ...]:
+        """Remove constraint `index`; returns its row, for `restore`."""
+        return tuple(column.pop(index) for column in self._columns())
+
+    def restore(self, index: int, row: tuple[object, ...]) -> None:
+        """Put a row `remove` returned back at `index`."""
+        for column, value in zip(self._columns(), row, strict=True):
+            column.insert(index, value)
 
     def arrays(self) -> tuple[IntArray, IntArray, FloatArray, FloatArray, NDArray[np.bool_]]:
         """(first, second, measurements, informations, is_loop) as arrays."""
@@ -146,27 +156,81 @@ def path_lengths(
     return dijkstra(adjacency, directed=True, indices=source)
 
 
+MAX_SUSPECTS = 6
+"""At most this many of the newest loop closures are suspected (every subset of them may be tried)."""
+STRAIN_CHI2 = 16.27
+"""A chain constraint (odometry, scan matching) whose χ² (3 dof: x, y, θ) exceeds this at the optimum is
+strained: p = 0.001 if the constraints were right. The chain is not wrong, the loop closures that bend it
+are. On the logs we have, every chain constraint stays under 1.5 (lidar-only as with wheel odometry) until a
+false loop closure, where it reached 21 at once and 75–135 as later closures pinned the map around it."""
+
+
 def optimize_and_prune(
     edges: Constraints,
     graph_at: Callable[[FloatArray], PoseGraph],
     poses: FloatArray,
     chi2_threshold: float,
     iterations: int,
+    new_loops: int = 0,
 ) -> tuple[FloatArray, int]:
     """Gauss–Newton from `poses` on `graph_at(poses)` (the SE(2) graph of `edges`); while the worst loop
-    closure's χ² at the optimum exceeds `chi2_threshold`, remove it from `edges` and optimize again.
+    closure's χ² at the optimum exceeds `chi2_threshold`, remove it from `edges` and optimize again. Then,
+    when a chain constraint is strained (`STRAIN_CHI2`), remove the fewest of the `new_loops` newest loop
+    closures (at most `MAX_SUSPECTS`) whose removal relieves it, if any do; if none do, the strain is not
+    theirs and they stay.
     Returns the optimized poses and how many loop closures were removed."""
     removed = 0
+    newest = min(new_loops, MAX_SUSPECTS)
+    suspects = [int(k) for k in np.flatnonzero(edges.is_loop)[-newest:]] if newest > 0 else []
     while True:
-        graph = graph_at(poses)
-        for step in gauss_newton(graph, poses, max_iterations=iterations):
-            poses = step.poses
+        graph, poses = _optimized(graph_at, poses, iterations)
         loops = np.flatnonzero(edges.is_loop)
         if len(loops) == 0:
             return poses, removed
         errors = edge_chi2(graph, poses)[loops]
-        worst = int(np.argmax(errors))
-        if errors[worst] <= chi2_threshold:
-            return poses, removed
-        edges.remove(int(loops[worst]))
+        worst = int(loops[np.argmax(errors)])
+        if errors.max() <= chi2_threshold:
+            break
+        edges.remove(worst)
         removed += 1
+        suspects = [k - (k > worst) for k in suspects if k != worst]
+    if not suspects or _chain_strain(edges, graph, poses) <= STRAIN_CHI2:
+        return poses, removed
+    # False closures come in agreeing groups (a look-alike place matches again from the next keyframes):
+    # the fewest of the new closures whose removal relieves the strain, the least strained of those.
+    for size in range(1, len(suspects) + 1):
+        trials = [_strain_without(edges, graph_at, poses, iterations, culprits)
+                  for culprits in combinations(suspects, size)]
+        relieved = [trial for trial in trials if trial[0] <= STRAIN_CHI2]
+        if relieved:
+            _, culprits, poses = min(relieved, key=lambda trial: trial[0])
+            for index in sorted(culprits, reverse=True):
+                edges.remove(index)
+            return poses, removed + size
+    return poses, removed
+
+
+def _optimized(graph_at: Callable[[FloatArray], PoseGraph], poses: FloatArray,
+               iterations: int) -> tuple[PoseGraph, FloatArray]:
+    """The graph of the constraints as they are, and its Gauss–Newton optimum from `poses`."""
+    graph = graph_at(poses)
+    for step in gauss_newton(graph, poses, max_iterations=iterations):
+        poses = step.poses
+    return graph, poses
+
+
+def _strain_without(edges: Constraints, graph_at: Callable[[FloatArray], PoseGraph], poses: FloatArray,
+                    iterations: int, culprits: tuple[int, ...]) -> tuple[float, tuple[int, ...], FloatArray]:
+    """The chain's strain at the optimum without the constraints `culprits`, and that optimum."""
+    rows = [(index, edges.remove(index)) for index in sorted(culprits, reverse=True)]
+    graph, optimum = _optimized(graph_at, poses, iterations)
+    strain = _chain_strain(edges, graph, optimum)
+    for index, row in reversed(rows):
+        edges.restore(index, row)
+    return strain, culprits, optimum
+
+
+def _chain_strain(edges: Constraints, graph: PoseGraph, poses: FloatArray) -> float:
+    """The largest χ² of a chain constraint (not a loop closure) of `graph` at `poses`."""
+    chain = ~np.array(edges.is_loop, dtype=bool)
+    return float(edge_chi2(graph, poses)[chain].max()) if chain.any() else 0.0

@@ -647,13 +647,13 @@ class LaserSlam2D:
             self._optimize_online_untimed()
 
     def _optimize_online_untimed(self) -> None:
-        self._pending_loops = 0
+        new_loops, self._pending_loops = self._pending_loops, 0
         settings = self.config.loop_closure
         self._hypotheses.clear()  # a hypothesis' correction is relative to the estimate it was found on
         if len(self._keyframe_poses) < 2 or not any(self._edges.is_loop):
             return
         poses, removed = optimize_and_prune(self._edges, self._graph, np.array(self._keyframe_poses),
-                                            settings.chi2_threshold, REOPTIMIZE_ITERATIONS)
+                                            settings.chi2_threshold, REOPTIMIZE_ITERATIONS, new_loops)
         self._rejected += removed
         self._move_keyframes(poses)
 

@@ -428,14 +428,14 @@ class LidarSlam3D:
     def optimize_online(self) -> None:
         """Re-optimize the planar keyframe graph from the current estimate, dropping inconsistent loop
         closures, and move the keyframes (and the map ← odometry correction) accordingly."""
-        self._pending_loops = 0
+        new_loops, self._pending_loops = self._pending_loops, 0
         # a hypothesis' correction is relative to the estimate it was found on: void once that moves
         self._hypotheses.clear()
         if len(self._keyframe_poses) < 2 or not any(self._edges.is_loop):
             return
         poses, removed = optimize_and_prune(
             self._edges, self._planar_graph, planar.planar(np.array(self._keyframe_poses)),
-            self.config.loop_closure.chi2_threshold, REOPTIMIZE_ITERATIONS,
+            self.config.loop_closure.chi2_threshold, REOPTIMIZE_ITERATIONS, new_loops,
         )
         self._rejected += removed
         lifted = planar.lift(poses, np.array(self._keyframe_odometry))
