@@ -137,6 +137,36 @@ def test_a_scan_does_not_slide_along_a_corridor_to_a_misplaced_feature() -> None
     assert math.sqrt(covariance[1, 1]) < 0.05
 
 
+def lidar_only_match(pillar_shift: float) -> tuple[np.ndarray, bool]:
+    """The scan at x = 0.5 matched without odometry (window ±0.5 m) on a map whose pillar sits
+    `pillar_shift` farther along the corridor than the scanned one."""
+    matching = Slam2DConfig().matching
+    rng = np.random.default_rng(8)
+    reference = simulate_scan(corridor_with_pillar(3.0), np.zeros(3), range_noise=0.01, rng=rng)
+    slam = LaserSlam2D()
+    slam._local_map = Submap.of([Keyframe(reference, scan_normals(reference))], [np.zeros(3)],
+                                resolution=matching.resolution, likelihood_sigma=matching.likelihood_sigma,
+                                margin=2.0, pairing_distance=matching.icp_max_distance)
+    scan = simulate_scan(corridor_with_pillar(3.0 + pillar_shift), np.array([0.5, 0.0, 0.0]), beams=347,
+                         range_noise=0.01, rng=rng)
+    assert OdometryConfig().window_linear_without_odometry == 0.5
+    pose, matched, _ = slam._match(0, scan, np.array([0.5, 0.0, 0.0]), np.diag([4.0, 4.0, 10.0]), 1.0)
+    return pose, matched
+
+
+def test_without_odometry_a_match_that_slid_beyond_the_search_window_is_not_taken() -> None:
+    """ICP follows the pillar along the corridor past the window the correlative search scored (the
+    pillar 0.8 m off: ICP ends 0.8 m back, outside ±0.5 m): the scan keeps its prediction, unmatched,
+    instead of a pose the search never judged (taken before: 0.8 m off)."""
+    pose, matched = lidar_only_match(0.8)
+    assert not matched
+    np.testing.assert_allclose(pose, [0.5, 0.0, 0.0])
+    # Within the window the match is taken (the plateau then hands the along-corridor position to the
+    # prediction, as with odometry).
+    pose, matched = lidar_only_match(0.3)
+    assert matched and abs(pose[1]) < 0.02
+
+
 def test_a_loop_closure_along_a_corridor_is_weak_along_it_only() -> None:
     """A loop closure's match on the same look-alike stretch: its information along the corridor is the
     plateau's (it cannot say where along the corridor the two keyframes are), across it the walls'."""

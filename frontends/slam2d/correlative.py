@@ -38,6 +38,14 @@ class SearchWindow:
     angular: float
     angular_step: float
 
+    def holds(self, pose: FloatArray, center: FloatArray, resolution: float) -> bool:
+        """Whether `pose` lies in the window around `center`, with one cell of `resolution` and one angular
+        step of slack (ICP refining a match that ends beyond it slid along a corridor the search never
+        scored)."""
+        turn = abs(math.remainder(float(pose[2] - center[2]), math.tau))
+        return (max(abs(pose[0] - center[0]), abs(pose[1] - center[1])) <= self.linear + resolution
+                and turn <= self.angular + self.angular_step)
+
 
 @dataclass(frozen=True)
 class Match:

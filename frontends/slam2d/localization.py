@@ -92,13 +92,6 @@ def _in_frame(information: FloatArray, heading: float) -> FloatArray:
     return rotation.T @ information @ rotation
 
 
-def _inside(pose: FloatArray, prior: FloatArray, window: SearchWindow, resolution: float) -> bool:
-    """Whether ICP ended inside the correlative search's window around the prior (one cell and one angular
-    step of slack): beyond it, ICP slid along a degenerate corridor the search never scored."""
-    return (max(abs(pose[0] - prior[0]), abs(pose[1] - prior[1])) <= window.linear + resolution
-            and abs(se2.wrap_angle(float(pose[2] - prior[2]))) <= window.angular + window.angular_step)
-
-
 class EmptyMapError(FrontendError):
     """A saved map to localize in has no keyframe with enough points to match against."""
 
@@ -432,7 +425,7 @@ class MapLocalizer:
         # Not used below `min_match_score` (too few points on the map), with too few points paired, or
         # when ICP left the window (it slid along a corridor the search never scored).
         scored = coarse is not None and coarse.score >= self.settings.min_match_score
-        inside = _inside(refined.pose, prior, window, submap.grid.resolution)
+        inside = window.holds(refined.pose, prior, submap.grid.resolution)
         if scored and has_odometry and not inside:
             # ICP found the walls beyond the odometry's window: the wheels slipped, or the robot turned
             # faster than they tell (CSAIL's turn 7–10° more than its odometry between two scans). Search

@@ -434,7 +434,11 @@ class LaserSlam2D:
                 prior=prior,
                 prior_information=prior_information,
             )
-            if coarse is not None and refined.inlier_fraction >= settings.min_inlier_fraction:
+            # Without odometry the window spans any plausible motion: ICP ending beyond it slid along a
+            # corridor (Intel lidar-only: 2.5 m in one scan). The odometry's window is tight, and ICP rightly
+            # leaves it where the wheels slipped (CSAIL's turns: its map bent when such matches were refused).
+            slid = not has_odometry and not window.holds(refined.pose, prior, local.grid.resolution)
+            if coarse is not None and refined.inlier_fraction >= settings.min_inlier_fraction and not slid:
                 pose, matched = refined.pose, True
                 information = matching.information_scale * refined.information
                 # Along a look-alike stretch the prediction decides (`match_covariance`).
