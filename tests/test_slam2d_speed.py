@@ -33,7 +33,7 @@ from frontends.slam2d.slam import (
     NARROW_WINDOW_ANGULAR,
     NARROW_WINDOW_LINEAR,
     LaserSlam2D,
-    _match_without_odometry,
+    match_without_odometry,
 )
 from frontends.slam2d.stage_times import StageTimes
 from optimizer.solve import optimize
@@ -405,7 +405,7 @@ def test_matching_without_odometry_finds_the_optimum_of_the_window_the_motion_ne
     truth = between(keyframe_pose, scan_pose)
     prior = truth - error
     wide = SearchWindow(0.5, math.radians(35.0), math.radians(0.5))
-    match = _match_without_odometry(scan, grid, prior, wide)
+    match = match_without_odometry(scan, grid, prior, wide)
     assert match is not None
     # The search reads the scan thinned to one point per cell; its optimum is the brute-force optimum of
     # those points over the narrow window when the prediction was close (that optimum in the window's

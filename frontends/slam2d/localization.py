@@ -61,8 +61,13 @@ from frontends.slam2d.held_odometry import OdometryHold
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from frontends.slam2d.localization_config import LocalizationConfig
-from frontends.slam2d.motion_prior import carried_motion, gap_widening
-from frontends.slam2d.slam import ODOMETRY_BRANCH_AND_BOUND_LEVELS, LaserSlam2D, predicted_motion
+from frontends.slam2d.motion_prior import GAP_WIDENING, carried_motion, gap_widening
+from frontends.slam2d.slam import (
+    ODOMETRY_BRANCH_AND_BOUND_LEVELS,
+    LaserSlam2D,
+    match_without_odometry,
+    predicted_motion,
+)
 from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
 
@@ -404,16 +409,24 @@ class MapLocalizer:
                             settings.window_angular_without_odometry * widening[1], settings.angular_step)
 
     def _match(self, points: FloatArray, submap: Submap, prior: FloatArray, prior_information: FloatArray,
-               window: SearchWindow, has_odometry: bool, *, weigh_weak: bool) -> _TrackingMatch:
+               window: SearchWindow, has_odometry: bool, *, weigh_weak: bool,
+               whole_window: bool = False) -> _TrackingMatch:
         """The scan matched on `submap` around the prior: correlative search (exhaustive in the odometry's
-        small window, else branch and bound), then ICP fused with the prior. With `weigh_weak`, a match
-        scoring below `min_tracking_score` weighs only `weak_match_weight` against the prior."""
+        small window; without odometry as the SLAM searches, the narrow window around the constant-velocity
+        prediction first, `match_without_odometry`; the `whole_window` by branch and bound), then ICP fused
+        with the prior. With `weigh_weak`, a match scoring below `min_tracking_score` weighs only
+        `weak_match_weight` against the prior."""
         matching = self.config.matching
+        odometry = self.config.odometry
+        gap = (window.linear >= GAP_WIDENING * odometry.window_linear_without_odometry
+               or window.angular >= GAP_WIDENING * odometry.window_angular_without_odometry)
         if has_odometry:
             coarse = match_exhaustive(points, submap.grid, prior, window)
-        else:
+        elif whole_window:
             coarse = match_branch_and_bound(points, submap.grid, prior, window, 0.0,
                                             levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS)
+        else:
+            coarse = match_without_odometry(points, submap.grid, prior, window, narrow_first=not gap)
         start = prior if coarse is None else coarse.pose
         if weigh_weak and (coarse is None or coarse.score < self.settings.min_tracking_score):
             prior_information = prior_information / self.settings.weak_match_weight
@@ -431,7 +444,8 @@ class MapLocalizer:
             # faster than they tell (CSAIL's turn 7–10° more than its odometry between two scans). Search
             # the window a match without odometry would (branch and bound, so it costs a few matches).
             return self._match(points, submap, prior, prior_information,
-                               self._tracking_window(False, False), False, weigh_weak=weigh_weak)
+                               self._tracking_window(False, False), False, weigh_weak=weigh_weak,
+                               whole_window=True)
         accepted = (scored and refined.inlier_fraction >= self.config.odometry.min_inlier_fraction and inside)
         return _TrackingMatch(math.nan if coarse is None else float(coarse.score), refined, accepted,
                               prior_information)

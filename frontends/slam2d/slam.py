@@ -157,7 +157,7 @@ def predicted_motion(settings: OdometryConfig, last_odometry: FloatArray | None,
     return motion, np.diag([sigma_linear**-2, sigma_linear**-2, sigma_angular**-2])
 
 
-def _match_without_odometry(
+def match_without_odometry(
     points: FloatArray, grid: LikelihoodGrid, prior: FloatArray, window: SearchWindow, *,
     narrow_first: bool = True
 ) -> Match | None:
@@ -419,7 +419,7 @@ class LaserSlam2D:
                 window = SearchWindow(settings.window_linear_without_odometry * linear,
                                       settings.window_angular_without_odometry * angular,
                                       settings.angular_step)
-                coarse = _match_without_odometry(points, self._local_map.grid, prior, window,
+                coarse = match_without_odometry(points, self._local_map.grid, prior, window,
                                                  narrow_first=max(linear, angular) < GAP_WIDENING)
             local = self._local_map
             start = prior if coarse is None else coarse.pose
