@@ -418,14 +418,14 @@ class MapLocalizer:
         `weak_match_weight` against the prior."""
         matching = self.config.matching
         odometry = self.config.odometry
-        gap = (window.linear >= GAP_WIDENING * odometry.window_linear_without_odometry
-               or window.angular >= GAP_WIDENING * odometry.window_angular_without_odometry)
         if has_odometry:
             coarse = match_exhaustive(points, submap.grid, prior, window)
         elif whole_window:
             coarse = match_branch_and_bound(points, submap.grid, prior, window, 0.0,
                                             levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS)
-        else:
+        else:  # after a gap (`GAP_WIDENING`) the wide window at once, as the SLAM searches
+            gap = (window.linear >= GAP_WIDENING * odometry.window_linear_without_odometry
+                   or window.angular >= GAP_WIDENING * odometry.window_angular_without_odometry)
             coarse = match_without_odometry(points, submap.grid, prior, window, narrow_first=not gap)
         start = prior if coarse is None else coarse.pose
         if weigh_weak and (coarse is None or coarse.score < self.settings.min_tracking_score):

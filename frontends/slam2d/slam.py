@@ -420,7 +420,7 @@ class LaserSlam2D:
                                       settings.window_angular_without_odometry * angular,
                                       settings.angular_step)
                 coarse = match_without_odometry(points, self._local_map.grid, prior, window,
-                                                 narrow_first=max(linear, angular) < GAP_WIDENING)
+                                                narrow_first=max(linear, angular) < GAP_WIDENING)
             local = self._local_map
             start = prior if coarse is None else coarse.pose
             refined = refine_point_to_line(
