@@ -98,32 +98,37 @@ def write_part(path: Path, rows: list[Row], rebased: Rebased | None) -> None:
         writer.finish()
 
 
+def cut(log: Path, out: Path) -> tuple[Path, Path, str]:
+    """`log` cut at its middle scan or cloud into `out`/<stem>_first.mcap and <stem>_second.mcap (the
+    second's odometry seen from its first pose); returns both paths and a line describing the cut."""
+    with log.open("rb") as stream:
+        rows = list(make_reader(stream).iter_messages(log_time_order=True))
+    sensor_topic = next(channel.topic for schema, channel, _ in rows if schema.name in SENSOR_SCHEMAS)
+    scan_times = [message.log_time for _, channel, message in rows if channel.topic == sensor_topic]
+    middle = scan_times[len(scan_times) // 2]
+    static = [row for row in rows if row[1].topic == "/tf_static"]
+    moving = [row for row in rows if row[1].topic != "/tf_static"]
+    out.mkdir(parents=True, exist_ok=True)
+    first, second_path = out / f"{log.stem}_first.mcap", out / f"{log.stem}_second.mcap"
+    write_part(first, static + [r for r in moving if r[2].log_time < middle], None)
+    second = [r for r in moving if r[2].log_time >= middle]
+    # /odom and /tf carry the same odometry: both seen from the part's first /odom pose.
+    rebased = Rebased()
+    first_odometry = next((r for r in second if r[1].topic == "/odom"), None)
+    if first_odometry is not None:
+        rebased_data(ros_typestore(False), rebased, first_odometry[0], "/odom", first_odometry[2].data)
+    write_part(second_path, static + second, rebased)
+    described = f"{len(scan_times)} messages on {sensor_topic}; cut at {middle * 1e-9:.3f} s: "
+    return first, second_path, f"{described}{first}, {second_path}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("log", type=Path, help="a ROS 2 MCAP with LaserScan or PointCloud2 messages "
                                                "(and optionally /odom, /tf, /tf_static)")
     parser.add_argument("out", type=Path, help="folder for <stem>_first.mcap and <stem>_second.mcap")
     args = parser.parse_args()
-    with args.log.open("rb") as stream:
-        rows = list(make_reader(stream).iter_messages(log_time_order=True))
-    sensor_topic = next(channel.topic for schema, channel, _ in rows if schema.name in SENSOR_SCHEMAS)
-    scan_times = [message.log_time for _, channel, message in rows if channel.topic == sensor_topic]
-    cut = scan_times[len(scan_times) // 2]
-    static = [row for row in rows if row[1].topic == "/tf_static"]
-    moving = [row for row in rows if row[1].topic != "/tf_static"]
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.log.stem
-    write_part(args.out / f"{stem}_first.mcap", static + [r for r in moving if r[2].log_time < cut], None)
-    second = [r for r in moving if r[2].log_time >= cut]
-    # /odom and /tf carry the same odometry: both seen from the part's first /odom pose.
-    rebased = Rebased()
-    first_odometry = next((r for r in second if r[1].topic == "/odom"), None)
-    if first_odometry is not None:
-        rebased_data(ros_typestore(False), rebased, first_odometry[0], "/odom", first_odometry[2].data)
-    write_part(args.out / f"{stem}_second.mcap", static + second, rebased)
-    print(f"{len(scan_times)} messages on {sensor_topic}; cut at {cut * 1e-9:.3f} s: "
-          f"{args.out}/{stem}_first.mcap, {args.out}/{stem}_second.mcap")
-
+    print(cut(args.log, args.out)[2])
 
 if __name__ == "__main__":
     main()

@@ -12,6 +12,12 @@ recorded, with 15 % of its scans left out (seed 1) and with every stamp moved by
 Printed per run: the median / 95 % / largest distance (m) of every scan from the reference's estimate of
 it after a rigid fit of the two trajectories (`sessions_bench.rigid_alignment`), loop closures, and for
 ACES the relations error (translation m, rotation deg).
+
+With `--sessions`, each lidar-only log as recorded is also cut in two (`cut_log.py`), its first half
+mapped, and its second half localized in that map (`replay(..., map=)`) and mapped on from it
+(`replay(..., continue_from=)`), lidar-only throughout: the same distances from the run with odometry,
+the scans placed (matched / tracked outside the map / recovered by a global fix / never placed) and, for
+ACES continued, the relations error over both halves.
 """
 
 from __future__ import annotations
@@ -27,8 +33,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.carmen_log import read_carmen, write_mcap  # noqa: E402
+from benchmarks.cut_log import cut  # noqa: E402
 from benchmarks.sessions_bench import rigid_alignment  # noqa: E402
 from optimizer import se2  # noqa: E402
+from pipeline.api import replay  # noqa: E402
 from pipeline.evaluation import evaluate_files  # noqa: E402
 from pipeline.replay_log import replay_log  # noqa: E402
 from pipeline.trajectory_io import read_tum  # noqa: E402
@@ -45,7 +53,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "lidar_only_bench")
     parser.add_argument("--relations", type=Path,
                         default=REPO.parent / "shared" / "data" / "logs" / "aces" / "aces.relations")
+    parser.add_argument("--sessions", action="store_true", help="also localize and continue in halves")
     args = parser.parse_args()
+    session_rows: list[str] = []
     print("| log | run | scans | vs with odometry: median / 95 % / max (m) | loop closures "
           "| relations (m, deg) |")
     print("|---|---|---|---|---|---|")
@@ -68,18 +78,58 @@ def main() -> None:
             poses = trajectory.planar()
             if not reference:
                 reference = dict(zip(stamps, poses, strict=True))
-            both = [k for k, stamp in enumerate(stamps) if stamp in reference]
-            mine, theirs = poses[both], np.array([reference[stamps[k]] for k in both])
-            moved = se2.compose(rigid_alignment(mine, theirs), mine)
-            distances = np.hypot(*(moved[:, :2] - theirs[:, :2]).T)
+            distances = distances_from(reference, stamps, poses)
             relations = "-"
             if name == "aces" and drop == 0.0 and jitter == 0.0 and args.relations.exists():
                 scored = evaluate_files(result.outputs.tum, args.relations)
                 relations = f"{scored.translation_mean:.4f} ± {scored.translation_std:.4f}, " \
                             f"{scored.rotation_mean_deg:.3f} ± {scored.rotation_std_deg:.3f}"
-            print(f"| {name} | {variant} | {len(stamps)} | {np.median(distances):.3f} / "
-                  f"{np.percentile(distances, 95):.2f} / {distances.max():.2f} | "
+            print(f"| {name} | {variant} | {len(stamps)} | {figures(distances)} | "
                   f"{result.loop_closures.get('accepted')} | {relations} |", flush=True)
+            if args.sessions and variant == "lidar-only":
+                session_rows += halves(name, path, reference, args)
+    if session_rows:
+        print("\n| log | lidar-only halves | scans | vs with odometry: median / 95 % / max (m) "
+              "| placed: matched / tracked outside / recovered / never | relations (m, deg) |")
+        print("|---|---|---|---|---|---|")
+        print("\n".join(session_rows))
+
+
+def distances_from(reference: dict[int, np.ndarray], stamps: list[int], poses: np.ndarray) -> np.ndarray:
+    """Each scan's distance from the reference's pose of it (by stamp) after a rigid fit of the two."""
+    both = [k for k, stamp in enumerate(stamps) if stamp in reference]
+    mine, theirs = poses[both], np.array([reference[stamps[k]] for k in both])
+    moved = se2.compose(rigid_alignment(mine, theirs), mine)
+    return np.hypot(*(moved[:, :2] - theirs[:, :2]).T)
+
+
+def figures(distances: np.ndarray) -> str:
+    return f"{np.median(distances):.3f} / {np.percentile(distances, 95):.2f} / {distances.max():.2f}"
+
+
+def halves(name: str, log: Path, reference: dict[int, np.ndarray], args: argparse.Namespace) -> list[str]:
+    """The log cut in two, the second half localized in the first half's map and continued from it."""
+    first, second, _ = cut(log, args.out / "halves")
+    mapped = replay(first, out_dir=args.out / "halves" / "first")
+    session = mapped.outputs["session"]
+    rows = []
+    for run, options in (("--map", {"map": session}), ("--continue", {"continue_from": session})):
+        result = replay(second, out_dir=args.out / "halves" / run.strip("-"), **options)
+        assert result.stamps_ns is not None
+        stamps = [int(stamp) for stamp in result.stamps_ns]
+        placed, relations = "", "-"
+        if run == "--map":
+            counts = result.summary["localization"]
+            placed = (f"{counts['matched']} / {counts['tracked_outside_map']} / "
+                      f"{counts['recovered_by_a_global_fix']} / {counts['never_localized']}")
+        elif name == "aces" and args.relations.exists():
+            scored = evaluate_files(result.outputs["tum"], args.relations)
+            relations = f"{scored.translation_mean:.4f} ± {scored.translation_std:.4f}, " \
+                        f"{scored.rotation_mean_deg:.3f} ± {scored.rotation_std_deg:.3f}"
+        distances = distances_from(reference, stamps, result.poses)
+        rows.append(f"| {name} | second {run} first | {len(stamps)} | {figures(distances)} | {placed} "
+                    f"| {relations} |")
+    return rows
 
 
 if __name__ == "__main__":
