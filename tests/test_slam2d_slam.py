@@ -9,7 +9,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from frontends.slam2d.config import Slam2DConfig
+from frontends.slam2d.config import OdometryConfig, Slam2DConfig
+from frontends.slam2d.motion_prior import MAX_GAP_REACH, gap_widening
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
 from optimizer.solve import optimize
 from tests.laser_world import (
@@ -239,3 +240,22 @@ def test_a_gap_through_a_corner_is_bridged_without_odometry(seed: int, lost: tup
     heading = np.abs(np.degrees(np.angle(np.exp(1j * (aligned[first:, 2] - truth[first:, 2])))))
     assert heading.max() < 1.0
     assert np.hypot(*(aligned[first:, :2] - truth[first:, :2]).T).max() < 0.05
+
+
+def test_a_gap_of_an_hour_without_odometry_is_searched_within_reach() -> None:
+    """A log without odometry that stops for an hour (a laser at 1.4 Hz with gaps of minutes, fr-clinic)
+    is searched at most `MAX_GAP_REACH` around the prediction, all headings, not 2 m/s × 3600 s: that
+    window's branch and bound asked for more memory than any machine has (MemoryError, a traceback)."""
+    settings = OdometryConfig()
+    linear, angular = gap_widening(settings, 3600 * 10**9)
+    assert linear * settings.window_linear_without_odometry == MAX_GAP_REACH
+    assert angular * settings.window_angular_without_odometry == pytest.approx(math.pi)
+    run = simulate_swept_run(square_loop(), speed=1.0, scan_rate=10.0, sweep=0.0, seed=2)
+    slam = LaserSlam2D()
+    hour = 3600 * 10**9
+    estimates = [slam.add_scan(int(run.stamps_ns[k]) + (hour if k >= 20 else 0), run.scans[k])
+                 for k in range(40)]
+    # The robot stood still for that hour (the scans after it continue the drive): found again at once.
+    assert all(e.matched for e in estimates[1:])
+    aligned = align_to_first(np.array([e.pose for e in estimates]), run.truth[:40])
+    assert np.hypot(*(aligned[:, :2] - run.truth[:40, :2]).T).max() < 0.05

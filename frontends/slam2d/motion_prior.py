@@ -40,10 +40,20 @@ def carried_motion(last_motion: FloatArray, span_ns: int, elapsed_ns: int) -> Fl
     return along_motion(last_motion, np.array([fraction]))[0]
 
 
+MAX_GAP_REACH = 10.0
+"""However long the gap, the search reaches at most this far (m) from the prediction. The local map a scan
+is matched on holds the last 25 keyframes, 0.3 m apart or more: farther, nothing in it is the place the
+robot is in, and a wider search can only find a look-alike. Unbounded, the fr-clinic log without
+odometry (1.4 Hz, gaps of up to 198 s: ±396 m at 2 m/s) asked the branch and bound for more memory than
+the machine has; at 10 m a search costs ~1.7 s and ~120 MB once (ACES's longest gap, 3 s, needs 6 m)."""
+
+
 def gap_widening(settings: OdometryConfig, elapsed_ns: int) -> tuple[float, float]:
     """How many times the configured window without odometry (linear, angular) a motion over `elapsed_ns`
-    may span at `GAP_SPEED` and `GAP_TURN_RATE` (at least 1; the angle at most π)."""
+    may span at `GAP_SPEED` and `GAP_TURN_RATE` (at least 1; the reach at most `MAX_GAP_REACH` and the
+    angle at most π)."""
     elapsed = max(elapsed_ns, 0) * 1e-9
+    configured = settings.window_linear_without_odometry
+    linear = max(min(GAP_SPEED * elapsed, MAX_GAP_REACH), configured)
     angular = min(max(GAP_TURN_RATE * elapsed, settings.window_angular_without_odometry), math.pi)
-    return (max(GAP_SPEED * elapsed / settings.window_linear_without_odometry, 1.0),
-            angular / settings.window_angular_without_odometry)
+    return linear / configured, angular / settings.window_angular_without_odometry
