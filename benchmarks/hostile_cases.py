@@ -108,6 +108,13 @@ def cases() -> list[Case]:
     battery += [Case("scan stamps", name, _scan_case(ranges=walls, count=200, stamp=stamp,
                                                      odometry=lambda i: (0.01 * i, 0.0, 0.0)))
                 for name, stamp in stamps.items()]
+    without_odometry: dict[str, Callable[[int], int]] = {  # the search after a gap (`MAX_GAP_REACH`)
+        "no-odometry-an-hour-gap": lambda i: 10**18 + i * 100_000_000 + (3600 * 10**9 if i >= 30 else 0),
+        "no-odometry-one-stamp-a-year-ahead": lambda i: 10**18 + i * 100_000_000
+        + (365 * 86_400 * 10**9 if i == 30 else 0),
+    }
+    battery += [Case("scan stamps", name, _scan_case(ranges=walls, count=60, stamp=stamp))
+                for name, stamp in without_odometry.items()]
     battery += [
         Case("huge values", "two-million-beams", _scan_case(ranges=lambda i: np.full(2_000_000, 5.0), count=1,
                                                             angle_increment=1e-6)),
