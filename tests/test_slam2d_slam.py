@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from frontends.slam2d.config import OdometryConfig, Slam2DConfig
-from frontends.slam2d.motion_prior import MAX_GAP_REACH, gap_widening
+from frontends.slam2d.motion_prior import MAX_GAP_REACH, after_gap, gap_widening
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate, Slam2DGraph
 from optimizer.solve import optimize
 from tests.laser_world import (
@@ -259,3 +259,18 @@ def test_a_gap_of_an_hour_without_odometry_is_searched_within_reach() -> None:
     assert all(e.matched for e in estimates[1:])
     aligned = align_to_first(np.array([e.pose for e in estimates]), run.truth[:40])
     assert np.hypot(*(aligned[:, :2] - run.truth[:40, :2]).T).max() < 0.05
+
+
+def test_a_slow_lasers_next_scan_is_no_gap() -> None:
+    """A 1.4 Hz laser's every interval widens the window without odometry past `GAP_WIDENING` (0.7 s at
+    2 m/s is 1.4 m): its next scan is still searched around the prediction first, as a fast laser's is;
+    ten of its intervals without a scan make a gap. Until the laser's rate is known, the widening alone
+    decides."""
+    settings = OdometryConfig()
+    interval = 700_000_000
+    widening = gap_widening(settings, interval)
+    assert max(widening) >= 2.0
+    assert not after_gap(widening, interval, typical_interval_ns=interval)
+    assert after_gap(gap_widening(settings, 10 * interval), 10 * interval, typical_interval_ns=interval)
+    assert after_gap(widening, interval, typical_interval_ns=0.0)
+    assert not after_gap(gap_widening(settings, 100_000_000), 100_000_000, typical_interval_ns=0.0)

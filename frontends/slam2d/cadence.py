@@ -25,30 +25,50 @@ STRIDE_ROUNDING = 0.25
 intervals in 0.1 s) has every scan matched, not every other one, and an 18 Hz laser every other one."""
 
 
+class ScanRate:
+    """The laser's typical interval between scans: the mean of the recent intervals (their span over their
+    count; a stamp not after the last one is not counted)."""
+
+    def __init__(self) -> None:
+        self._recent: deque[int] = deque(maxlen=RECENT_INTERVALS + 1)
+
+    def add(self, stamp_ns: int) -> None:
+        if not self._recent or stamp_ns > self._recent[-1]:
+            self._recent.append(stamp_ns)
+
+    @property
+    def known(self) -> bool:
+        """Whether a whole window of intervals was seen (the first stamps of a bursty logger are 1 ms apart,
+        whatever the rate)."""
+        return len(self._recent) == self._recent.maxlen
+
+    @property
+    def typical_ns(self) -> float:
+        """The mean of the recent intervals (ns); 0 until `known`."""
+        return (self._recent[-1] - self._recent[0]) / (len(self._recent) - 1) if self.known else 0.0
+
+
 class MatchCadence:
     """Tell, scan by scan in time order, whether the scan is due to be matched (`due`), and hear which were
     (`matched`). `min_interval` 0: every scan is due."""
 
     def __init__(self, min_interval: float) -> None:
         self._min_interval_ns = round(min_interval * 1e9)
-        self._recent: deque[int] = deque(maxlen=RECENT_INTERVALS + 1)
-        """Stamps of the recent scans, increasing (a stamp not after the last one is not added)."""
+        self.rate = ScanRate()
         self._last_matched: int | None = None
         self._since_matched = 0
 
     def due(self, stamp_ns: int) -> bool:
         """Whether the scan at `stamp_ns` is to be matched: `min_interval` since the last matched scan, in
         whole strides of the typical interval, or after a gap; always the first `RECENT_INTERVALS` scans."""
-        if not self._recent or stamp_ns > self._recent[-1]:
-            self._recent.append(stamp_ns)
+        self.rate.add(stamp_ns)
         self._since_matched += 1
-        # Until the laser's rate is known from a whole window of intervals, every scan is matched: the first
-        # two stamps of a bursty logger are 1 ms apart, whatever the rate.
-        if self._last_matched is None or self._min_interval_ns <= 0 or len(self._recent) <= RECENT_INTERVALS:
+        # Until the laser's rate is known, every scan is matched.
+        if self._last_matched is None or self._min_interval_ns <= 0 or not self.rate.known:
             return True
         if stamp_ns - self._last_matched >= self._min_interval_ns:
             return True
-        typical = (self._recent[-1] - self._recent[0]) / (len(self._recent) - 1)
+        typical = self.rate.typical_ns
         return self._since_matched >= max(1, math.floor(self._min_interval_ns / typical + STRIDE_ROUNDING))
 
     def matched(self, stamp_ns: int) -> None:

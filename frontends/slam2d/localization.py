@@ -46,6 +46,7 @@ import numpy as np
 
 from frontends.errors import FrontendError
 from frontends.protocol import FloatArray, IntArray, LocalizedMeasurement
+from frontends.slam2d.cadence import ScanRate
 from frontends.slam2d.config import (
     LOOP_QUERY_KEYFRAMES,
     LOOP_QUERY_THINNING,
@@ -61,7 +62,7 @@ from frontends.slam2d.held_odometry import OdometryHold
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from frontends.slam2d.localization_config import LocalizationConfig
-from frontends.slam2d.motion_prior import GAP_WIDENING, carried_motion, gap_widening
+from frontends.slam2d.motion_prior import after_gap, carried_motion, gap_widening
 from frontends.slam2d.slam import (
     ODOMETRY_BRANCH_AND_BOUND_LEVELS,
     LaserSlam2D,
@@ -223,6 +224,7 @@ class MapLocalizer:
         """The stamp of the last scan tracked or placed (the end of `_last_motion`)."""
         self._motion_span_ns = 0
         """The time `_last_motion` took (0: unknown)."""
+        self._rate = ScanRate()
         self._odometry_hold = OdometryHold()
         self._misses = 0
         self._since_good = 0.0
@@ -272,6 +274,7 @@ class MapLocalizer:
         times = None if point_times is None or not matching.deskew else np.asarray(point_times)[in_range]
         index = self._count
         self._count += 1
+        self._rate.add(int(stamp_ns))
         odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
         if self._pose is None:
             self._deskewer.moved(int(stamp_ns), None)  # the lost stretch's tracker deskews its scans
@@ -345,6 +348,11 @@ class MapLocalizer:
         has_odometry = odometry is not None and self._last_odometry is not None
         previous = self._pose
         prior, covariance, noise, window = prediction
+        odometry_settings = self.config.odometry
+        widening = (window.linear / odometry_settings.window_linear_without_odometry,
+                    window.angular / odometry_settings.window_angular_without_odometry)
+        elapsed = 0 if self._last_stamp is None else stamp_ns - self._last_stamp
+        gap = not has_odometry and after_gap(widening, elapsed, self._rate.typical_ns)
         motion, motion_information = se2.relative(previous, prior), np.linalg.inv(noise)
         map_information = np.zeros((3, 3))
         # ICP weighs its points as independent, which the match's information undoes by
@@ -356,7 +364,7 @@ class MapLocalizer:
         inliers, rms = 0.0, math.inf
         if len(points) >= matching.min_points:
             found = self._match(points, self.map, prior, prior_information, window, has_odometry,
-                                weigh_weak=True)
+                                weigh_weak=True, gap=gap)
             if not found.strong(self.settings.min_tracking_score) and self._rolling:
                 # The saved map places the scan poorly or not at all: the rolling local map (the recent
                 # scans at their tracked poses, with the saved keyframes nearby) measures the motion, as
@@ -364,7 +372,7 @@ class MapLocalizer:
                 # ACES, the map at the full run's poses, 0.047 m median, 0.115 m where the map's matches
                 # are weak; CSAIL's heading 5–9° off there.)
                 rolling = self._match(points, self._rolling_map(), prior, prior_information, window,
-                                      has_odometry, weigh_weak=False)
+                                      has_odometry, weigh_weak=False, gap=gap)
                 if rolling.strong(self.settings.min_tracking_score):
                     own = rolling.own_information(matching.information_scale)
                     motion = se2.relative(previous, rolling.refined.pose)
@@ -409,23 +417,20 @@ class MapLocalizer:
                             settings.window_angular_without_odometry * widening[1], settings.angular_step)
 
     def _match(self, points: FloatArray, submap: Submap, prior: FloatArray, prior_information: FloatArray,
-               window: SearchWindow, has_odometry: bool, *, weigh_weak: bool,
+               window: SearchWindow, has_odometry: bool, *, weigh_weak: bool, gap: bool = False,
                whole_window: bool = False) -> _TrackingMatch:
         """The scan matched on `submap` around the prior: correlative search (exhaustive in the odometry's
-        small window; without odometry as the SLAM searches, the narrow window around the constant-velocity
-        prediction first, `match_without_odometry`; the `whole_window` by branch and bound), then ICP fused
-        with the prior. With `weigh_weak`, a match scoring below `min_tracking_score` weighs only
-        `weak_match_weight` against the prior."""
+        small window; without odometry as the SLAM searches, `match_without_odometry`: the narrow window
+        around the constant-velocity prediction first, unless after a `gap`; the `whole_window` by branch
+        and bound), then ICP fused with the prior. With `weigh_weak`, a match scoring below
+        `min_tracking_score` weighs only `weak_match_weight` against the prior."""
         matching = self.config.matching
-        odometry = self.config.odometry
         if has_odometry:
             coarse = match_exhaustive(points, submap.grid, prior, window)
         elif whole_window:
             coarse = match_branch_and_bound(points, submap.grid, prior, window, 0.0,
                                             levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS)
-        else:  # after a gap (`GAP_WIDENING`) the wide window at once, as the SLAM searches
-            gap = (window.linear >= GAP_WIDENING * odometry.window_linear_without_odometry
-                   or window.angular >= GAP_WIDENING * odometry.window_angular_without_odometry)
+        else:  # as the SLAM searches: after a gap the wide window at once
             coarse = match_without_odometry(points, submap.grid, prior, window, narrow_first=not gap)
         start = prior if coarse is None else coarse.pose
         if weigh_weak and (coarse is None or coarse.score < self.settings.min_tracking_score):

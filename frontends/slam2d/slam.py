@@ -46,7 +46,7 @@ from frontends.slam2d.held_odometry import OdometryHold
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.match_covariance import score_plateau, slide_to_prior, widened
-from frontends.slam2d.motion_prior import GAP_WIDENING, carried_motion, gap_widening
+from frontends.slam2d.motion_prior import after_gap, carried_motion, gap_widening
 from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
 from optimizer.graph import PoseGraph
@@ -419,8 +419,10 @@ class LaserSlam2D:
                 window = SearchWindow(settings.window_linear_without_odometry * linear,
                                       settings.window_angular_without_odometry * angular,
                                       settings.angular_step)
+                elapsed = 0 if self._last_matched is None else stamp_ns - self._last_matched[1]
+                gap = after_gap((linear, angular), elapsed, self._cadence.rate.typical_ns)
                 coarse = match_without_odometry(points, self._local_map.grid, prior, window,
-                                                narrow_first=max(linear, angular) < GAP_WIDENING)
+                                                narrow_first=not gap)
             local = self._local_map
             start = prior if coarse is None else coarse.pose
             refined = refine_point_to_line(
