@@ -92,9 +92,14 @@ def read_carmen(path: Path) -> CarmenLog:
     return CarmenLog(scans, odometry, mount)
 
 
+def stamp_offsets(count: int, jitter: float) -> np.ndarray:
+    """The (count,) int64 offsets (ns) `write_mcap` adds to the scans' stamps for `jitter` (seed 0)."""
+    return np.round(np.random.default_rng(0).uniform(-jitter, jitter, count) * 1e9).astype(np.int64)
+
+
 def write_mcap(log: CarmenLog, out: Path, odometry: str, drop: float, jitter: float) -> None:
     scans = log.scans
-    offsets = np.round(np.random.default_rng(0).uniform(-jitter, jitter, len(scans)) * 1e9).astype(np.int64)
+    offsets = stamp_offsets(len(scans), jitter)
     kept = np.random.default_rng(1).uniform(size=len(scans)) >= drop
     events: list[tuple[int, int, str, object]] = [
         (scan.stamp_ns + int(offset), 1, "scan", scan)

@@ -130,5 +130,6 @@ def main() -> None:
     args = parser.parse_args()
     print(cut(args.log, args.out)[2])
 
+
 if __name__ == "__main__":
     main()

@@ -32,7 +32,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.carmen_log import read_carmen, write_mcap  # noqa: E402
+from benchmarks.carmen_log import read_carmen, stamp_offsets, write_mcap  # noqa: E402
 from benchmarks.cut_log import cut  # noqa: E402
 from benchmarks.sessions_bench import rigid_alignment  # noqa: E402
 from frontends.errors import FrontendError  # noqa: E402
@@ -73,9 +73,9 @@ def main() -> None:
             result = replay_log(path, out_dir=args.out / "replays")
             trajectory = read_tum(result.outputs.tum)
             # Each scan by its stamp as recorded (the jittered run's stamps moved by the same draws).
-            offsets = np.round(np.random.default_rng(0).uniform(-jitter, jitter, len(log.scans)) * 1e9)
+            offsets = stamp_offsets(len(log.scans), jitter)
             recorded = {int(scan.stamp_ns + offset): scan.stamp_ns
-                        for scan, offset in zip(log.scans, offsets.astype(np.int64), strict=True)}
+                        for scan, offset in zip(log.scans, offsets, strict=True)}
             stamps = [recorded[int(stamp)] for stamp in trajectory.stamps_ns]
             poses = trajectory.planar()
             if not reference:

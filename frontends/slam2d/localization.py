@@ -341,18 +341,13 @@ class MapLocalizer:
 
     def _track(self, index: int, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
                odometry_interval: float,
-               prediction: tuple[FloatArray, FloatArray, FloatArray, SearchWindow]) -> LocalizedScan:
+               prediction: tuple[FloatArray, FloatArray, FloatArray, SearchWindow, bool]) -> LocalizedScan:
         """Match a scan around `prediction` (`_predict`'s)."""
         assert self._pose is not None
         matching = self.config.matching
         has_odometry = odometry is not None and self._last_odometry is not None
         previous = self._pose
-        prior, covariance, noise, window = prediction
-        odometry_settings = self.config.odometry
-        widening = (window.linear / odometry_settings.window_linear_without_odometry,
-                    window.angular / odometry_settings.window_angular_without_odometry)
-        elapsed = 0 if self._last_stamp is None else stamp_ns - self._last_stamp
-        gap = not has_odometry and after_gap(widening, elapsed, self._rate.typical_ns)
+        prior, covariance, noise, window, gap = prediction
         motion, motion_information = se2.relative(previous, prior), np.linalg.inv(noise)
         map_information = np.zeros((3, 3))
         # ICP weighs its points as independent, which the match's information undoes by
@@ -542,11 +537,12 @@ class MapLocalizer:
         )
 
     def _predict(self, odometry: FloatArray | None, reliable: bool,
-                 stamp_ns: int) -> tuple[FloatArray, FloatArray, FloatArray, SearchWindow]:
+                 stamp_ns: int) -> tuple[FloatArray, FloatArray, FloatArray, SearchWindow, bool]:
         """The predicted pose, its covariance (the pose's own, carried along the motion, plus the motion's
-        noise), that noise (robot frame) and the window to search: wheel odometry's as `LocalizationConfig`
-        models it; without odometry, the SLAM's loose constant-velocity prior, the last motion carried
-        over the time since (`motion_prior`), its σ and window widened after a gap."""
+        noise), that noise (robot frame), the window to search and whether the scan comes after a gap
+        (`after_gap`): wheel odometry's as `LocalizationConfig` models it; without odometry, the SLAM's
+        loose constant-velocity prior, the last motion carried over the time since (`motion_prior`), its σ
+        and window widened after a gap."""
         assert self._pose is not None
         has_odometry = odometry is not None and self._last_odometry is not None
         elapsed = 0 if self._last_stamp is None else stamp_ns - self._last_stamp
@@ -573,7 +569,8 @@ class MapLocalizer:
         else:
             noise = np.linalg.inv(information / np.array([widening[0], widening[0], widening[1]]) ** 2)
         covariance = _propagate(self._covariance, self._pose, motion, noise)
-        return se2.compose(self._pose, motion), covariance, noise, window
+        gap = not has_odometry and after_gap(widening, elapsed, self._rate.typical_ns)
+        return se2.compose(self._pose, motion), covariance, noise, window, gap
 
     def _fix_covariance(self) -> FloatArray:
         settings = self.settings
