@@ -80,13 +80,16 @@ def brute_force_best(points: np.ndarray, values: np.ndarray, origin: np.ndarray,
     shift=st.tuples(st.floats(-0.15, 0.15), st.floats(-0.15, 0.15), st.floats(-0.05, 0.05)),
     linear=st.sampled_from([0.1, 0.2, 0.6]),
     margin=st.sampled_from([0.0, 1.0]),
+    dense=st.booleans(),
 )
 def test_exhaustive_search_finds_the_brute_force_optimum_even_across_the_grid_edge(
-        shift: tuple[float, float, float], linear: float, margin: float) -> None:
+        shift: tuple[float, float, float], linear: float, margin: float, dense: bool) -> None:
     reference = simulate_scan(square_loop().segments, np.array([6.5, 9.0, 0.3]))[:, :2]
     # Without a margin, translations push points off the grid: the edge handling is exercised.
     grid = build_likelihood_grid(reference, RESOLUTION, SIGMA, margin=margin)
-    scan = reference[::3]
+    # Dense: a 1081-beam laser's scan, runs of neighbouring points in one cell (added once, times the run).
+    scan = (simulate_scan(square_loop().segments, np.array([6.5, 9.0, 0.3]), beams=1081)[:, :2] if dense
+            else reference[::3])
     centre = np.array(shift)
     window = SearchWindow(linear, math.radians(2.0), math.radians(0.5))
     match = match_exhaustive(scan, grid, centre, window)
@@ -498,6 +501,9 @@ def test_plateau_scores_are_each_shifts_mean_over_the_points_also_across_the_gri
     grid = build_likelihood_grid(rng.uniform([0.0, 0.0], [2.0, 1.5], size=(15, 2)), 0.05, 0.06, margin=0.0)
     grid.values[:] = rng.random(grid.values.shape, dtype=np.float32)
     points = rng.uniform(-1.2, 1.2, size=(int(rng.integers(1, 40)), 2))
+    # Runs of points in one cell, as a dense laser gives (each run's patch is added once, times its length).
+    points = np.repeat(points, rng.integers(1, 4, size=len(points)), axis=0)
+    points[1::2] += rng.uniform(-0.004, 0.004, size=points[1::2].shape)
     pose = np.array([rng.uniform(0.0, 2.0), rng.uniform(0.0, 1.5), rng.uniform(-math.pi, math.pi)])
     plateau = score_plateau(points, grid, pose, reach=0.3, step_cells=step_cells)
     reach = (plateau.scores.shape[0] - 1) // 2

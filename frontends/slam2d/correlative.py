@@ -123,8 +123,10 @@ def _exhaustive(
     """The best (angle, tx, ty, score) of every translation within ±`reach` cells, as `_score` with span 1.
 
     Point by point, each adding its (2·reach + 1)² patch of the grid to the totals of all translations:
-    rows read contiguously instead of one random cell per point and candidate. Each total sums the points
-    in the same order as `_score`, so the scores, and the first best in (angle, ty, tx) order, are equal.
+    rows read contiguously instead of one random cell per point and candidate. Consecutive points in one
+    cell (a dense laser has several per 5 cm cell) add their patch once, times their count. Each total
+    sums the points in `_score`'s order, so the scores are `_score`'s up to round-off, and the first best
+    is taken in (angle, ty, tx) order.
     """
     height, width = values.shape
     side = 2 * reach + 1
@@ -133,13 +135,20 @@ def _exhaustive(
     best = (0, 0, 0, -1.0)
     for a in range(cells_x.shape[0]):
         totals[:] = 0.0
-        for i in range(count):
+        i = 0
+        while i < count:
+            # A run of consecutive points in one cell adds that cell's patch once, times the run's length.
+            run = 1
+            while (i + run < count and cells_x[a, i + run] == cells_x[a, i]
+                   and cells_y[a, i + run] == cells_y[a, i]):
+                run += 1
             left = cells_x[a, i] - reach
             bottom = cells_y[a, i] - reach
+            i += run
             if left >= 0 and bottom >= 0 and left + side <= width and bottom + side <= height:
                 for j in range(side):
                     for k in range(side):
-                        totals[j, k] += values[bottom + j, left + k]
+                        totals[j, k] += run * values[bottom + j, left + k]
             else:
                 for j in range(side):
                     cy = bottom + j
@@ -148,7 +157,7 @@ def _exhaustive(
                     for k in range(side):
                         cx = left + k
                         if 0 <= cx < width:
-                            totals[j, k] += values[cy, cx]
+                            totals[j, k] += run * values[cy, cx]
         for j in range(side):
             for k in range(side):
                 score = totals[j, k] / max(count, 1)

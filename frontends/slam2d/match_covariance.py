@@ -44,8 +44,8 @@ def _plateau_scores(values: NDArray[np.float32], origin: FloatArray, resolution:
     (2·reach + 1)² scores, rows along y.
 
     Point by point, each adding its patch of samples to every shift's total (as `correlative._exhaustive`):
-    the grid is read a row at a time near the point instead of at scattered cells per shift; each total
-    still sums the points in their order, so the scores are the same floats."""
+    the grid is read a row at a time near the point instead of at scattered cells per shift, and
+    consecutive points in one cell add their patch once, times their count."""
     height, width = values.shape
     count = points.shape[0]
     c = math.cos(pose[2])
@@ -53,16 +53,25 @@ def _plateau_scores(values: NDArray[np.float32], origin: FloatArray, resolution:
     side = 2 * reach + 1
     span = 2 * reach * step
     totals = np.zeros((side, side))
+    cells_x = np.empty(count, dtype=np.int64)
+    cells_y = np.empty(count, dtype=np.int64)
     for k in range(count):
-        left = int(math.floor((pose[0] + c * points[k, 0] - s * points[k, 1] - origin[0]) / resolution))
-        bottom = int(math.floor((pose[1] + s * points[k, 0] + c * points[k, 1] - origin[1]) / resolution))
-        left -= reach * step
-        bottom -= reach * step
+        cells_x[k] = int(math.floor((pose[0] + c * points[k, 0] - s * points[k, 1] - origin[0]) / resolution))
+        cells_y[k] = int(math.floor((pose[1] + s * points[k, 0] + c * points[k, 1] - origin[1]) / resolution))
+    k = 0
+    while k < count:
+        # A run of consecutive points in one cell adds that cell's patch once, times the run's length.
+        run = 1
+        while k + run < count and cells_x[k + run] == cells_x[k] and cells_y[k + run] == cells_y[k]:
+            run += 1
+        left = cells_x[k] - reach * step
+        bottom = cells_y[k] - reach * step
+        k += run
         if left >= 0 and bottom >= 0 and left + span < width and bottom + span < height:
             for j in range(side):
                 row = values[bottom + j * step]
                 for i in range(side):
-                    totals[j, i] += row[left + i * step]
+                    totals[j, i] += run * row[left + i * step]
         else:
             for j in range(side):
                 cy = bottom + j * step
@@ -70,7 +79,7 @@ def _plateau_scores(values: NDArray[np.float32], origin: FloatArray, resolution:
                     for i in range(side):
                         cx = left + i * step
                         if 0 <= cx < width:
-                            totals[j, i] += values[cy, cx]
+                            totals[j, i] += run * values[cy, cx]
     scores = np.empty((side, side))
     for j in range(side):
         for i in range(side):
