@@ -134,4 +134,4 @@ def _error(poses: FloatArray, edge_from: NDArray[np.int64], edge_to: NDArray[np.
     z = measurements[k]
     cz, sz = math.cos(z[2]), math.sin(z[2])
     ex, ey = px - z[0], py - z[1]
-    return cz * ex + sz * ey, -sz * ex + cz * ey, se2.wrap_angle(pt - z[2])
+    return cz * ex + sz * ey, -sz * ex + cz * ey, se2.wrap_scalar(pt - z[2])

@@ -94,7 +94,7 @@ def _sweep(
             dy = poses[b, 1] - poses[a, 1]
             error[0] = c * dx + s * dy - (cz * measurements[edge, 0] + sz * measurements[edge, 1])
             error[1] = -s * dx + c * dy - (-sz * measurements[edge, 0] + cz * measurements[edge, 1])
-            error[2] = se2.wrap_angle(poses[b, 2] - poses[a, 2] - measurements[edge, 2])
+            error[2] = se2.wrap_scalar(poses[b, 2] - poses[a, 2] - measurements[edge, 2])
             # ∂e/∂x_b is the rotation R(θ_a+θ_z)ᵀ; ∂e/∂x_a is its negative plus the θ_a column.
             sign = 1.0 if pose == b else -1.0
             jac[0, 0] = sign * c
@@ -125,7 +125,7 @@ def _sweep(
         if _solve_3x3_spd(hessian, gradient):
             poses[pose, 0] -= gradient[0]
             poses[pose, 1] -= gradient[1]
-            poses[pose, 2] = se2.wrap_angle(poses[pose, 2] - gradient[2])
+            poses[pose, 2] = se2.wrap_scalar(poses[pose, 2] - gradient[2])
 
 
 @njit(cache=True)

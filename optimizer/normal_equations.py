@@ -103,7 +103,7 @@ def edge_linearisation(poses: FloatArray, a: int, b: int, z: FloatArray, e: Floa
     cz, sz = math.cos(z[2]), math.sin(z[2])
     e[0] = c * dx + s * dy - (cz * z[0] + sz * z[1])
     e[1] = -s * dx + c * dy - (-sz * z[0] + cz * z[1])
-    e[2] = se2.wrap_angle(poses[b, 2] - poses[a, 2] - z[2])
+    e[2] = se2.wrap_scalar(poses[b, 2] - poses[a, 2] - z[2])
     jac_b[:] = 0.0
     jac_b[0, 0], jac_b[0, 1], jac_b[1, 0], jac_b[1, 1], jac_b[2, 2] = c, s, -s, c, 1.0
     for i in range(3):

@@ -168,7 +168,7 @@ def _icp(
         c = math.cos(pose[2])
         s = math.sin(pose[2])
         hessian[:] = prior_information
-        offset_theta = se2.wrap_angle(pose[2] - prior[2])
+        offset_theta = se2.wrap_scalar(pose[2] - prior[2])
         for a in range(3):
             gradient[a] = (
                 prior_information[a, 0] * (pose[0] - prior[0])
@@ -223,7 +223,7 @@ def _icp(
             break
         step = np.linalg.solve(hessian + 1e-9 * np.eye(3), -gradient)
         pose += step
-        pose[2] = se2.wrap_angle(pose[2])
+        pose[2] = se2.wrap_scalar(pose[2])
         if abs(step[0]) + abs(step[1]) < tolerance and abs(step[2]) < tolerance:
             break
     rms = math.sqrt(squared_sum / residual_count) if residual_count > 0 else math.inf

@@ -203,7 +203,7 @@ def _reachable(
 ) -> bool:
     seconds = max((stamps_ns[b] - stamps_ns[a]) * 1e-9, ODOMETRY_STAMP_JITTER)
     distance = math.hypot(poses[b, 0] - poses[a, 0], poses[b, 1] - poses[a, 1])
-    turn = abs(se2.wrap_angle(poses[b, 2] - poses[a, 2]))
+    turn = abs(se2.wrap_scalar(poses[b, 2] - poses[a, 2]))
     return distance <= max_speed * seconds and turn <= max_turn_rate * seconds
 
 
