@@ -315,6 +315,9 @@ def _init_worker() -> None:
 
     _worker_limits = threadpool_limits(limits=1, user_api="blas")
     install_stop_signals(_on_worker_stop_signal)
+    from pipeline.launcher import arrow_without_pandas
+
+    arrow_without_pandas()
 
 
 def _on_worker_stop_signal(signum: int, frame: FrameType | None) -> None:

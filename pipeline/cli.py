@@ -429,7 +429,9 @@ def _run_inputs(inputs: Sequence[Path], config: ReplayConfig, out: Path, *, jobs
     progress: then a single input's bug keeps its traceback; among several, it becomes that input's
     failure so the others still run. `replay_options`: a session's (`_session_options`)."""
     from pipeline.batch import run_batch, run_one, with_this_host
+    from pipeline.launcher import arrow_without_pandas
 
+    arrow_without_pandas()
     pooled = ray is not None or (jobs > 1 and len(inputs) > 1)
     bars = len(inputs) if several or pooled else 0
     with _python_warnings_off(), _progress_display(not quiet and sys.stderr.isatty(), bars) as display:
