@@ -1,7 +1,7 @@
 """Benchmark of sessions (issue 13): localization in a saved map, and mapping continued from one.
 
-    python benchmarks/sessions_bench.py [--shared ../shared] [--logs ACES CSAIL] [--extra LOG ...]
-        [--skip-continue]
+    python benchmarks/sessions_bench.py [--shared ../shared] [--logs ACES CSAIL "mumble loop"]
+        [--extra LOG ...] [--skip-continue]
 
 (a) Localization. Each log is cut in two at its middle scan. The first half is mapped (LaserSlam2D, then
     the default optimizer from the odometry and the online estimates, as `replay` does); the second half is
@@ -80,7 +80,9 @@ from pipeline.evaluation import read_relations, relations_error  # noqa: E402
 
 FloatArray = NDArray[np.float64]
 
-LOGS = {"ACES": "data/logs/aces/aces.mcap", "CSAIL": "data/logs/csail/csail.mcap"}
+LOGS = {"ACES": "data/logs/aces/aces.mcap", "CSAIL": "data/logs/csail/csail.mcap",
+        "mumble loop": "data/logs/mumble/hallway_room_loop"}
+"""The shared 2D logs: two with wheel odometry, and a real RPLidar's loop without any (a ROS 2 bag)."""
 ACES_RELATIONS = "data/logs/aces/aces.relations"
 SETTLE_SECONDS = 10.0
 NEAR_MAP = 3.0
