@@ -42,7 +42,7 @@ def wrap_angle(theta: ArrayLike) -> Any:
     sign rule of Python's, to the bit). Scalars and arrays of any shape; compiled kernels call
     `wrap_scalar`, the same bits.
 
-    Not a numba ufunc: building one compiled its loop at every import, 0.65 s of every `replay`'s start."""
+    Not a numba ufunc: numba compiled a ufunc's loop at every import of this module, cache or not."""
     return np.remainder(np.add(theta, math.pi, dtype=np.float64), TWO_PI) - math.pi
 
 
