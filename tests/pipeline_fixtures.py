@@ -18,6 +18,7 @@ from typer.testing import Result
 from optimizer import se2
 from tests._frontends_fixtures import quaternion_from_yaw, ros2_mcap
 from tests.laser_world import (
+    World,
     drive,
     route_poses,
     simulate_scan,
@@ -149,16 +150,19 @@ def laser_ranges(points: np.ndarray) -> np.ndarray:
 def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = None,
                 part: slice | None = None, later_ns: int = 0, seed: int = 7,
                 sweep: float = 0.0, scan_period_ns: int = SCAN_PERIOD_NS,
-                odometry_topic: bool = True, multi_echo: bool = False) -> np.ndarray:
-    """Drive the simulated building's loop at 1 m/s, writing /scan, /odom, /tf and /tf_static; returns the
-    truth (base poses) per scan. `part`: only these scans of the drive, as a log recorded `later_ns` later
-    whose wheel odometry starts at its own origin (a second recording of the same building). `sweep`: the
-    laser takes its beams one after the other over this many seconds from the stamp (time_increment set),
-    each from where the robot is then; 0: all at the stamp (time_increment 0). `scan_period_ns`: a faster
-    laser, the robot as fast (`DRIVE_SPEED`; not with `sweep`). `odometry_topic` False: the odometry only
-    in /tf. `multi_echo`: the scans as sensor_msgs/MultiEchoLaserScan, each return its beam's first echo."""
+                odometry_topic: bool = True, multi_echo: bool = False,
+                world: World | None = None) -> np.ndarray:
+    """Drive the simulated building's loop (or `world`'s route) at 1 m/s, writing /scan, /odom, /tf and
+    /tf_static; returns the truth (base poses) per scan. `part`: only these scans of the drive, as a log
+    recorded `later_ns` later whose wheel odometry starts at its own origin (a second recording of the same
+    building). `sweep`: the laser takes its beams one after the other over this many seconds from the stamp
+    (time_increment set), each from where the robot is then; 0: all at the stamp (time_increment 0).
+    `scan_period_ns`: a faster laser, the robot as fast (`DRIVE_SPEED`; not with `sweep`). `odometry_topic`
+    False: the odometry only in /tf. `multi_echo`: the scans as sensor_msgs/MultiEchoLaserScan, each return
+    its beam's first echo. `world`: another building's route and walls (not with `sweep`)."""
     rng = np.random.default_rng(seed)
-    truth = drive(square_loop(), DRIVE_SPEED * scan_period_ns * 1e-9)[:scans]
+    world = world or square_loop()
+    truth = drive(world, DRIVE_SPEED * scan_period_ns * 1e-9)[:scans]
     odometry = wheel_odometry(truth, rng)
     if part is not None:
         truth, odometry = truth[part], odometry[part]
@@ -223,7 +227,7 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
             if sweep:
                 points = _swept_points(k if part is None else k + (part.start or 0), sweep, rng)
             else:
-                points = simulate_scan(square_loop().segments, se2.compose(pose, LASER_MOUNT), beams=BEAMS,
+                points = simulate_scan(world.segments, se2.compose(pose, LASER_MOUNT), beams=BEAMS,
                                        max_range=20.0, range_noise=0.01, rng=rng)
             ranges: object = laser_ranges(points)
             scan_type = "sensor_msgs/msg/LaserScan"

@@ -178,9 +178,16 @@ class MapLocalizer:
         *,
         settings: LocalizationConfig | None = None,
         initial_pose: Sequence[float] | None = None,
+        first_scan_alone: bool = True,
     ) -> None:
+        """`first_scan_alone`: a global localization tries the first scan of its search alone before the
+        scans of about a metre (`LocalizationConfig.min_query_keyframes`). A continued map is placed only
+        by the longer query: its whole new run hangs off that placement, and a single scan places it less
+        exactly (Intel continued in two halves: 0.010 → 0.018 m median from its single run; ACES without
+        odometry: 0.055 → 0.097 m on the relations)."""
         self.config = config or Slam2DConfig()
         self.settings = settings or LocalizationConfig()
+        self._first_scan_alone = first_scan_alone
         matching = self.config.matching
         poses = np.asarray(map_keyframe_poses, dtype=np.float64).reshape(-1, 3)
         usable = [len(s) >= matching.min_points for s in map_keyframe_scans]
@@ -597,7 +604,8 @@ class MapLocalizer:
             self._tracker = LaserSlam2D(replace(self.config, loop_closure=disabled))
             self._tracked = []
             self._last_tracker_keyframe = -1
-            self._next_attempt = self.settings.min_query_keyframes
+            # The first scan alone is tried at once: a robot standing still makes no keyframe to wait for.
+            self._next_attempt = 1 if self._first_scan_alone else self.settings.min_query_keyframes
         estimate = self._tracker.add_scan(stamp_ns, points, odometry, odometry_interval, times)
         self._tracked.append(index)
         nothing = LocalizedScan(index, stamp_ns, np.full(3, np.nan), False, False, math.nan, 0.0, math.inf,
@@ -609,6 +617,9 @@ class MapLocalizer:
         if len(keyframe_poses) < self._next_attempt:
             return nothing
         found = self._global_match(keyframe_poses)
+        if found is None and len(keyframe_poses) < self.settings.min_query_keyframes:
+            self._next_attempt = self.settings.min_query_keyframes  # one scan is often ambiguous: wait
+            return nothing
         if found is None:
             settings = self.settings
             self._failed_attempts += 1

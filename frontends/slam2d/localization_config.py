@@ -25,7 +25,8 @@ class LocalizationConfig:
     global_max_points: int = 300
     """The whole-map search's query is thinned to at most this many points (evenly along it)."""
     min_query_keyframes: int = 4
-    """Global localization waits until the scans since it started span this many keyframes (~1 m)."""
+    """Global localization tries the first scan alone at once, and if that is ambiguous waits until the
+    scans since it started span this many keyframes (~1 m)."""
     retry_every_keyframes: int = 3
     """After a failed attempt, the next one waits this many keyframes: an attempt over a whole building
     costs tenths of a second to seconds, and the next keyframe mostly sees the same place."""

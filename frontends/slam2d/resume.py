@@ -102,7 +102,7 @@ class ResumedSlam2D(LaserSlam2D):
         if len(keyframe_scans) != len(poses):
             raise MapPlacementError(f"{len(keyframe_scans)} keyframe scans for {len(poses)} keyframe poses")
         self._placer: MapLocalizer | None = MapLocalizer(keyframe_scans, poses, self.config,
-                                                         settings=localization)
+                                                         settings=localization, first_scan_alone=False)
         self._old_count = len(poses)
         self._keyframe_poses = [p.copy() for p in poses]
         self._keyframes = [Keyframe(np.ascontiguousarray(s, dtype=np.float64),
