@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from frontends.slam2d.cadence import MatchCadence
+from frontends.slam2d.cadence import RECENT_INTERVALS, MatchCadence
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.deskew import along_motion
 from frontends.slam2d.slam import LaserSlam2D
@@ -159,10 +159,13 @@ def test_a_fast_log_localized_in_a_saved_map_has_every_scan_placed(tmp_path: Pat
     found = summary["localization"]
     assert found["with_pose"] == 320 and found["never_localized"] == 0
     states = summary["per_scan"]["state"]
-    # Once placed, every 4th scan goes to the localizer and the three after it are posed between.
-    placed = states.index("m")
+    # Once placed (at the first scan, which fits one place only) and the laser's rate known
+    # (`cadence.RECENT_INTERVALS`), every 4th scan goes to the localizer and the three after it are posed
+    # between.
+    placed, strided = states.index("m"), states.index("b") - 1
+    assert placed == 0 and strided <= RECENT_INTERVALS + 1
     assert set(states[placed + 1:]) <= {"m", "b"} and found["between_localized_scans"] == states.count("b")
-    assert all(states[k] == "b" for k in range(placed + 1, 316) if (k - placed) % 4)
+    assert all(states[k] == "b" for k in range(strided + 1, 316) if (k - strided) % 4)
     trajectory = read_tum(tmp_path / "out" / "again.tum")
     np.testing.assert_array_equal(trajectory.stamps_ns, START_NS + np.arange(320) * FAST_PERIOD_NS)
     # The map's frame is the first log's first pose, where this log starts too.
