@@ -35,10 +35,8 @@ sys.path.insert(0, str(REPO))
 from benchmarks.carmen_log import read_carmen, stamp_offsets, write_mcap  # noqa: E402
 from benchmarks.cut_log import cut  # noqa: E402
 from benchmarks.sessions_bench import rigid_alignment  # noqa: E402
-from frontends.errors import FrontendError  # noqa: E402
 from optimizer import se2  # noqa: E402
-from pipeline.api import replay  # noqa: E402
-from pipeline.errors import PipelineError  # noqa: E402
+from pipeline.api import KNOWN_ERRORS, replay  # noqa: E402
 from pipeline.evaluation import evaluate_files  # noqa: E402
 from pipeline.replay_log import replay_log  # noqa: E402
 from pipeline.trajectory_io import read_tum  # noqa: E402
@@ -83,9 +81,7 @@ def main() -> None:
             distances = distances_from(reference, stamps, poses)
             relations = "-"
             if name == "aces" and drop == 0.0 and jitter == 0.0 and args.relations.exists():
-                scored = evaluate_files(result.outputs.tum, args.relations)
-                relations = f"{scored.translation_mean:.4f} ± {scored.translation_std:.4f}, " \
-                            f"{scored.rotation_mean_deg:.3f} ± {scored.rotation_std_deg:.3f}"
+                relations = relations_text(result.outputs.tum, args.relations)
             print(f"| {name} | {variant} | {len(stamps)} | {figures(distances)} | "
                   f"{result.loop_closures.get('accepted')} | {relations} |", flush=True)
             if args.sessions and variant == "lidar-only":
@@ -105,6 +101,13 @@ def distances_from(reference: dict[int, np.ndarray], stamps: list[int], poses: n
     return np.hypot(*(moved[:, :2] - theirs[:, :2]).T)
 
 
+def relations_text(trajectory: Path, relations: Path) -> str:
+    """The trajectory's relations error: translation mean ± std (m), rotation mean ± std (deg)."""
+    scored = evaluate_files(trajectory, relations)
+    return (f"{scored.translation_mean:.4f} ± {scored.translation_std:.4f}, "
+            f"{scored.rotation_mean_deg:.3f} ± {scored.rotation_std_deg:.3f}")
+
+
 def figures(distances: np.ndarray) -> str:
     return f"{np.median(distances):.3f} / {np.percentile(distances, 95):.2f} / {distances.max():.2f}"
 
@@ -118,7 +121,7 @@ def halves(name: str, log: Path, reference: dict[int, np.ndarray], args: argpars
     for run, options in (("--map", {"map": session}), ("--continue", {"continue_from": session})):
         try:
             result = replay(second, out_dir=args.out / "halves" / run.strip("-"), **options)
-        except (PipelineError, FrontendError) as error:  # what `replay` reports as a one-line error
+        except KNOWN_ERRORS as error:  # what `replay` reports as a one-line error
             rows.append(f"| {name} | second {run} first | refused: {error} | | | |")
             continue
         assert result.stamps_ns is not None
@@ -129,9 +132,7 @@ def halves(name: str, log: Path, reference: dict[int, np.ndarray], args: argpars
             placed = (f"{counts['matched']} / {counts['tracked_outside_map']} / "
                       f"{counts['recovered_by_a_global_fix']} / {counts['never_localized']}")
         elif name == "aces" and args.relations.exists():
-            scored = evaluate_files(result.outputs["tum"], args.relations)
-            relations = f"{scored.translation_mean:.4f} ± {scored.translation_std:.4f}, " \
-                        f"{scored.rotation_mean_deg:.3f} ± {scored.rotation_std_deg:.3f}"
+            relations = relations_text(result.outputs["tum"], args.relations)
         distances = distances_from(reference, stamps, result.poses)
         rows.append(f"| {name} | second {run} first | {len(stamps)} | {figures(distances)} | {placed} "
                     f"| {relations} |")

@@ -187,14 +187,15 @@ def optimize_and_prune(
         loops = np.flatnonzero(edges.is_loop)
         if len(loops) == 0:
             return poses, removed
-        errors = edge_chi2(graph, poses)[loops]
+        chi2 = edge_chi2(graph, poses)
+        errors = chi2[loops]
         worst = int(loops[np.argmax(errors)])
         if errors.max() <= chi2_threshold:
             break
         edges.remove(worst)
         removed += 1
         suspects = [k - (k > worst) for k in suspects if k != worst]
-    if not suspects or _chain_strain(edges, graph, poses) <= STRAIN_CHI2:
+    if not suspects or _chain_strain(edges, chi2) <= STRAIN_CHI2:
         return poses, removed
     # False closures come in agreeing groups (a look-alike place matches again from the next keyframes):
     # the fewest of the new closures whose removal relieves the strain, the least strained of those.
@@ -224,13 +225,13 @@ def _strain_without(edges: Constraints, graph_at: Callable[[FloatArray], PoseGra
     """The chain's strain at the optimum without the constraints `culprits`, and that optimum."""
     rows = [(index, edges.remove(index)) for index in sorted(culprits, reverse=True)]
     graph, optimum = _optimized(graph_at, poses, iterations)
-    strain = _chain_strain(edges, graph, optimum)
+    strain = _chain_strain(edges, edge_chi2(graph, optimum))
     for index, row in reversed(rows):
         edges.restore(index, row)
     return strain, culprits, optimum
 
 
-def _chain_strain(edges: Constraints, graph: PoseGraph, poses: FloatArray) -> float:
-    """The largest χ² of a chain constraint (not a loop closure) of `graph` at `poses`."""
+def _chain_strain(edges: Constraints, chi2: FloatArray) -> float:
+    """The largest of the constraints' `chi2` (in `edges`' order) over the chain (not the loop closures)."""
     chain = ~np.array(edges.is_loop, dtype=bool)
-    return float(edge_chi2(graph, poses)[chain].max()) if chain.any() else 0.0
+    return float(chi2[chain].max()) if chain.any() else 0.0
