@@ -2,9 +2,15 @@
 ../shared's ACES and CSAIL were, to measure the 2D path on logs outside ../shared.
 
     python benchmarks/carmen_log.py IN.clf OUT.mcap [--odometry odom|scans|none] [--drop F] [--jitter S]
+    python benchmarks/carmen_log.py IN.rawlog OUT.mcap ...  # the same log as MRPT converted it
 
 The Radish logs are in MOLAorg/mola_test_datasets (`datasets/radish/*.clf.bz2`, CC-BY-3.0): fr079.clf
 (the Freiburg building-079 log issue 12 names), intel.clf (the Intel Research Lab), fr-clinic_robotlaser.clf.
+MIT Killian Court (the paper's real log, section IV.C) is there only as MRPT's `carmen2rawlog` wrote it,
+`datasets/radish/mit-killian.rawlog`: read by `read_rawlog`, the same FLASER scans (180 beams, read as
+−90° every 1° like the CLF's: the rawlog's 90° aperture is the converter's, it says the same of ACES, whose
+round trip gives the CLF's ranges and odometry), each with the odometry logged before it, stamps as MRPT
+wrote them (its own clock: 4.4 h for Killian).
 
 - Scans: `/scan` LaserScans in frame `laser`, stamped with the line's ipc timestamp. FLASER: N beams from
   −90° every 180° / (N − N mod 2) (ACES's 180 beams every 1°, CSAIL's 361 every 0.5°); ROBOTLASER1: the
@@ -23,7 +29,9 @@ The Radish logs are in MOLAorg/mola_test_datasets (`datasets/radish/*.clf.bz2`, 
 from __future__ import annotations
 
 import argparse
+import gzip
 import math
+import struct
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -92,6 +100,84 @@ def read_carmen(path: Path) -> CarmenLog:
     return CarmenLog(scans, odometry, mount)
 
 
+_FILETIME_TO_UNIX_100NS = 116_444_736_000_000_000
+"""MRPT stamps count 100 ns from 1601-01-01 (Windows FILETIME)."""
+
+
+class _MrptArchive:
+    """MRPT's serialization (`CArchive::WriteObject`): a byte 0x80 | name length, the class name, a version
+    byte, the fields, the end flag 0x88."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data, self.at = data, 0
+
+    def take(self, size: int) -> bytes:
+        if self.at + size > len(self.data):
+            raise ValueError(f"rawlog cut short at byte {self.at}")
+        self.at += size
+        return self.data[self.at - size:self.at]
+
+    def unpack(self, layout: str) -> tuple:
+        return struct.unpack("<" + layout, self.take(struct.calcsize("<" + layout)))
+
+    def string(self) -> str:
+        return self.take(self.unpack("I")[0]).decode()
+
+    def read_object(self) -> tuple[str, object]:
+        head = self.take(1)[0]
+        if not head & 0x80:
+            raise ValueError(f"no object at byte {self.at - 1}")
+        name, version = self.take(head & 0x7F).decode(), self.take(1)[0]
+        if name == "mrpt::poses::CPose2D" and version == 1:
+            value: object = self.unpack("3d")
+        elif name == "mrpt::poses::CPose3D" and version == 3:
+            value = self.unpack("12d")  # x, y, z, the rotation matrix
+        elif name == "mrpt::obs::CObservationOdometry" and version == 2:
+            _, pose = self.read_object()
+            self.string()  # sensor label
+            stamp = self.unpack("Q")[0]
+            for size in (8, 8):  # encoder ticks, velocities: each behind a presence flag
+                self.take(size if self.take(1)[0] else 0)
+            value = (stamp, pose)
+        elif name == "mrpt::obs::CObservation2DRangeScan" and version == 7:
+            self.unpack("fBf")  # aperture, right to left, max range
+            self.read_object()  # the sensor pose (identity in the Radish rawlogs)
+            count = self.unpack("I")[0]
+            ranges = np.frombuffer(self.take(4 * count), "<f4").astype(np.float32)
+            self.take(count)  # valid flags: every range is valid in the Radish rawlogs
+            stamp = self.unpack("fQf")[1]  # σ, stamp, beam aperture
+            self.string()  # sensor label
+            # Δpitch, the intensity flag (unset): carmen2rawlog wrote more zeros than these
+            while self.data[self.at] == 0:
+                self.at += 1
+            value = (stamp, ranges)
+        else:
+            raise ValueError(f"unsupported object {name} version {version} at byte {self.at}")
+        if self.take(1) != b"\x88":
+            raise ValueError(f"{name} does not end where expected (byte {self.at - 1})")
+        return name, value
+
+
+def read_rawlog(path: Path) -> CarmenLog:
+    """An MRPT rawlog of FLASER scans and odometry (`carmen2rawlog`'s, gzip), as `read_carmen` reads a CLF."""
+    archive = _MrptArchive(gzip.decompress(path.read_bytes()))
+    scans: list[Scan] = []
+    odometry: list[tuple[int, tuple[float, float, float]]] = []
+    latest = (0.0, 0.0, 0.0)
+    while archive.at < len(archive.data):
+        name, value = archive.read_object()
+        stamp_100ns, payload = value  # type: ignore[misc]
+        stamp = (stamp_100ns - _FILETIME_TO_UNIX_100NS) * 100
+        if name.endswith("CObservationOdometry"):
+            if payload != latest or not odometry:
+                odometry.append((stamp, payload))
+            latest = payload
+        elif name.endswith("CObservation2DRangeScan"):
+            count = len(payload)
+            scans.append(Scan(stamp, payload, -math.pi / 2, math.pi / (count - count % 2), latest))
+    return CarmenLog(scans, odometry, (0.0, 0.0, 0.0))
+
+
 def stamp_offsets(count: int, jitter: float) -> np.ndarray:
     """The (count,) int64 offsets (ns) `write_mcap` adds to the scans' stamps for `jitter` (seed 0)."""
     return np.round(np.random.default_rng(0).uniform(-jitter, jitter, count) * 1e9).astype(np.int64)
@@ -142,7 +228,7 @@ def main() -> None:
     parser.add_argument("--drop", type=float, default=0.0, help="share of the scans left out")
     parser.add_argument("--jitter", type=float, default=0.0, help="± seconds added to each scan's stamp")
     args = parser.parse_args()
-    log = read_carmen(args.log)
+    log = read_rawlog(args.log) if args.log.suffix == ".rawlog" else read_carmen(args.log)
     odometry = "scans" if args.odometry == "odom" and not log.odometry else args.odometry
     write_mcap(log, args.out, odometry, args.drop, args.jitter)
     print(f"{args.out}: {len(log.scans)} scans, odometry from {odometry}")
