@@ -26,6 +26,9 @@ matching) with the points and normals ICP pairs with.
   (placed by their tracked poses, which odometry keeps consistent with each other) are searched around
   the prediction by branch and bound, in a window growing with the distance driven since the last good
   match, and the match is accepted only when unambiguous and verified by ICP (the loop closures' tests).
+  Once that window outgrows `max_relocalize_window` (a long stretch off the map), the saved map's
+  matches near the track are not taken; the region is searched on the global search's coarse grid, and
+  its match is taken when it lands where the track is or a second one, metres on, agrees with it.
 - Global localization (no start pose, or no good match for `max_dead_reckoning` metres, or no match for
   `lost_after_unmatched` scans without odometry): a loop-closure-free `LaserSlam2D` tracks the scans in a
   frame of their own; at its new keyframes its last few keyframes, seen from the newest one, are searched
@@ -79,6 +82,9 @@ LOCAL_SEARCH_LEVELS = 5
 windows searched; the whole map's pyramid is built once and shared by every attempt."""
 RECENT_TURN = math.radians(12.0)
 """A scan turned this much from the last one kept for re-acquisition queries is kept too (new walls)."""
+AGREEING_HEADING = math.radians(5.0)
+"""Two wide re-acquisitions agree when they turn the track within this of each other (and move it within
+half the ambiguity distance)."""
 
 
 def _propagate(covariance: FloatArray, pose: FloatArray, motion: FloatArray, noise: FloatArray) -> FloatArray:
@@ -236,6 +242,11 @@ class MapLocalizer:
         self._misses = 0
         self._since_good = 0.0
         self._since_attempt = 0.0
+        self._fits_map_while_drifted = False
+        """The last scan matched the saved map well near a pose drifted beyond `max_relocalize_window`."""
+        self._pending_correction: tuple[FloatArray, float] | None = None
+        """The correction of the track a wide re-acquisition found, and `_travelled` then: waiting for one
+        metres on to agree."""
         self._recent: deque[tuple[FloatArray, FloatArray]] = deque(maxlen=self.settings.relocalize_keyframes)
         self._tracker: LaserSlam2D | None = None
         self._map_matched = True
@@ -319,6 +330,7 @@ class MapLocalizer:
             self._misses = 0
             self._since_good = 0.0
             self._dead_reckoned = 0.0
+            self._pending_correction = None
             return result
         self._since_good += moved
         self._misses += 1
@@ -332,9 +344,19 @@ class MapLocalizer:
         explained = result.tracked and (outside or not settings.count_rolling_tracks_near_map)
         if not explained:
             self._dead_reckoned += moved
-        first_attempt = self._misses == settings.relocalize_after
-        every = settings.relocalize_every_outside if outside else settings.relocalize_every
-        if first_attempt or (self._misses > settings.relocalize_after and self._since_attempt >= every):
+        reach = self._relocalize_reach()
+        if reach > settings.max_relocalize_window:
+            # Drifted further than the fine window reaches: the wide search thins out as the region grows,
+            # unless the saved map fits the scan near the track or a candidate waits for its confirmation.
+            soon = self._fits_map_while_drifted or self._pending_correction is not None
+            every = settings.relocalize_every if soon else max(settings.relocalize_every_outside,
+                                                               settings.wide_retry_share * reach)
+            attempt = self._misses > settings.relocalize_after and self._since_attempt >= every
+        else:
+            every = settings.relocalize_every_outside if outside else settings.relocalize_every
+            attempt = self._misses == settings.relocalize_after or (
+                self._misses > settings.relocalize_after and self._since_attempt >= every)
+        if attempt:
             self._since_attempt = 0.0
             with self.stage_times.stage("relocalization"):
                 found = self._relocalize(result)
@@ -354,6 +376,7 @@ class MapLocalizer:
         matching = self.config.matching
         has_odometry = odometry is not None and self._last_odometry is not None
         previous = self._pose
+        self._fits_map_while_drifted = False
         prior, covariance, noise, window, gap = prediction
         motion, motion_information = se2.relative(previous, prior), np.linalg.inv(noise)
         map_information = np.zeros((3, 3))
@@ -367,7 +390,14 @@ class MapLocalizer:
         if len(points) >= matching.min_points:
             found = self._match(points, self.map, prior, prior_information, window, has_odometry,
                                 weigh_weak=True, gap=gap)
-            if not found.strong(self.settings.min_tracking_score) and self._rolling:
+            # Off the saved map for longer than a re-acquisition's fine window allows for, the pose may be
+            # metres off along a corridor, where the map's walls fit a look-alike stretch inside the
+            # tracking window as well as the true one (Killian Court: 9 m off, then matched there for 900
+            # scans): the track goes on, and only a re-acquisition searching as far as the drift allows
+            # may bring the pose back onto the map.
+            drifted = not self._map_matched and self._relocalize_reach() > self.settings.max_relocalize_window
+            self._fits_map_while_drifted = drifted and found.strong(self.settings.min_tracking_score)
+            if (drifted or not found.strong(self.settings.min_tracking_score)) and self._rolling:
                 # The saved map places the scan poorly or not at all: the rolling local map (the recent
                 # scans at their tracked poses, with the saved keyframes nearby) measures the motion, as
                 # the SLAM's own matching on its recent keyframes does. (The odometry's motion instead:
@@ -515,14 +545,16 @@ class MapLocalizer:
         acceptance = settings.acceptance
         scans = [s for s, _ in self._recent]
         poses = [p for _, p in self._recent]
-        query = thinned_query(scans, poses, self._pose, LOOP_QUERY_THINNING)
-        if len(query) < self.config.matching.min_points:
-            return None
-        linear = min(settings.relocalize_window + settings.relocalize_window_per_metre * self._since_good,
-                     settings.max_relocalize_window)
-        window = SearchWindow(linear, settings.relocalize_angular, acceptance.angular_step)
-        found = match_unambiguous(query, self.map, self._pose, window, matching=self.config.matching,
-                                  acceptance=acceptance, levels=LOCAL_SEARCH_LEVELS)
+        linear = self._relocalize_reach()
+        if linear > settings.max_relocalize_window:
+            found = self._confirmed(self._wide_match(scans, poses, linear))
+        else:
+            query = thinned_query(scans, poses, self._pose, LOOP_QUERY_THINNING)
+            if len(query) < self.config.matching.min_points:
+                return None
+            window = SearchWindow(linear, settings.relocalize_angular, acceptance.angular_step)
+            found = match_unambiguous(query, self.map, self._pose, window, matching=self.config.matching,
+                                      acceptance=acceptance, levels=LOCAL_SEARCH_LEVELS)
         if found is None:
             return None
         correction = se2.compose(found.pose, se2.inverse(self._pose))
@@ -542,6 +574,49 @@ class MapLocalizer:
             found.icp.inlier_fraction, found.icp.rms, information, relocalized=True, motion=tracked.motion,
             motion_information=tracked.motion_information, map_information=information,
         )
+
+    def _confirmed(self, found: VerifiedMatch | None) -> VerifiedMatch | None:
+        """A wide match that lands where the track is, or moves it as one found at least
+        `relocalize_every_outside` metres before did (else None: it waits for such a one). One wide match can
+        be a look-alike of a place outside the map, which the map cannot show (CSAIL: 9.4 m off, scoring
+        0.61 with 71 % of the query paired; true ones there and at Killian Court 0.67–0.94 and 84–100 %); the
+        track, or a match metres on with other scans, lands on the same place only where it is the place."""
+        assert self._pose is not None
+        settings = self.settings
+        pending = self._pending_correction
+        if pending is not None and self._travelled - pending[1] > 4.0 * settings.relocalize_every_outside:
+            pending = self._pending_correction = None  # too old to vouch for the track's drift since
+        if found is None:
+            return None
+        for correction, since in [(np.zeros(3), -math.inf)] + ([] if pending is None else [pending]):
+            offset = se2.relative(se2.compose(correction, self._pose), found.pose)
+            if (math.hypot(offset[0], offset[1]) < 0.5 * settings.acceptance.ambiguity_distance
+                    and abs(offset[2]) < AGREEING_HEADING):
+                if self._travelled - since >= settings.relocalize_every_outside:
+                    self._pending_correction = None
+                    return found
+                return None  # the same scans, mostly: not a second opinion yet
+        self._pending_correction = (se2.compose(found.pose, se2.inverse(self._pose)), self._travelled)
+        return None
+
+    def _relocalize_reach(self) -> float:
+        """Half-width (m) of the region a re-acquisition searches: the drift since the last good match."""
+        settings = self.settings
+        return settings.relocalize_window + settings.relocalize_window_per_metre * self._since_good
+
+    def _wide_match(self, scans: list[FloatArray], poses: list[FloatArray],
+                    reach: float) -> VerifiedMatch | None:
+        """The recent scans searched on the global localization's coarse grid within `reach` of the current
+        pose (headings within `relocalize_angular`)."""
+        assert self._pose is not None
+        query = self._global_query(scans, poses, self._pose)
+        if query is None:
+            return None
+        center = self._pose
+        window = SearchWindow(reach, self.settings.relocalize_angular, self.settings.global_angular_step)
+        return match_unambiguous(query, self.map, center, window, matching=self.config.matching,
+                                 acceptance=self.settings.acceptance, levels=self.settings.global_levels,
+                                 search_grid=self._search_grid)
 
     def _predict(self, odometry: FloatArray | None, reliable: bool,
                  stamp_ns: int) -> tuple[FloatArray, FloatArray, FloatArray, SearchWindow, bool]:
@@ -588,6 +663,7 @@ class MapLocalizer:
 
     def _lose(self) -> None:
         self._pose = None
+        self._pending_correction = None
         self._misses = 0
         self._since_good = 0.0
         self._dead_reckoned = 0.0
@@ -654,14 +730,21 @@ class MapLocalizer:
         assert self._tracker is not None
         acceptance = self.settings.acceptance
         recent = slice(max(0, len(keyframe_poses) - 1 - LOOP_QUERY_KEYFRAMES), None)
-        thinning = max(LOOP_QUERY_THINNING, self._search_grid.resolution)
-        query = thinned_query(self._tracker.keyframe_scans()[recent], keyframe_poses[recent],
-                              keyframe_poses[-1], thinning)
+        query = self._global_query(list(self._tracker.keyframe_scans()[recent]), list(keyframe_poses[recent]),
+                                   keyframe_poses[-1])
+        if query is None:
+            return None
+        return match_unambiguous(query, self.map, self._search_center, self._search_window,
+                                 matching=self.config.matching, acceptance=acceptance,
+                                 levels=self.settings.global_levels, search_grid=self._search_grid)
+
+    def _global_query(self, scans: list[FloatArray], poses: list[FloatArray],
+                      frame: FloatArray) -> FloatArray | None:
+        """The query of a search on the coarse grid: the scans seen from `frame`, one point per coarse cell,
+        at most `global_max_points` (None: too few points)."""
+        query = thinned_query(scans, poses, frame, max(LOOP_QUERY_THINNING, self._search_grid.resolution))
         if len(query) < self.config.matching.min_points:
             return None
         # Every candidate of the search scores every query point: an evenly spread share of them bounds
         # and ranks the candidates as well, for a fraction of the work.
-        query = np.ascontiguousarray(query[:: -(-len(query) // self.settings.global_max_points)])
-        return match_unambiguous(query, self.map, self._search_center, self._search_window,
-                                 matching=self.config.matching, acceptance=acceptance,
-                                 levels=self.settings.global_levels, search_grid=self._search_grid)
+        return np.ascontiguousarray(query[:: -(-len(query) // self.settings.global_max_points)])

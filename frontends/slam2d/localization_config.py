@@ -64,7 +64,20 @@ class LocalizationConfig:
     relocalize_window_per_metre: float = 0.1
     """… plus this per metre driven since the last good match (odometry drifts a few % of the distance) …"""
     max_relocalize_window: float = 4.0
-    """… up to this (m); beyond, only the global search looks further."""
+    """… up to this (m), on the map's own grid. Beyond, the drift may have carried the true place out of
+    any window capped short of it (one capped at 4 m accepted a look-alike inside it at Killian Court,
+    after 270 m tracked outside the map: 9 m off, then matched there for 900 scans). Then a strong match
+    of the saved map near the track is not taken (a look-alike stretch of corridor fits as well as the
+    true one), and the re-acquisition searches the whole region the drift allows on the global
+    localization's coarse grid (the same tests, the headings within `relocalize_angular`: over every
+    heading, a query half outside the map fitted a corridor of it turned, 5 m off). Its match is taken
+    only when it lands where the track is, or moves the track as one found metres before did: one match
+    that wide can be a look-alike of a place outside the map (CSAIL: 9.4 m off)."""
+    wide_retry_share: float = 0.25
+    """Such a wide attempt is tried again after driving this share of the region's half-width (at least
+    `relocalize_every_outside`): each costs up to a whole-map search, and the region grows with the
+    distance, so the attempts thin out with it. While the saved map fits the scan near the track, or a
+    match waits for its confirmation, every `relocalize_every`."""
     relocalize_angular: float = math.radians(15.0)
     relocalize_keyframes: int = 6
     """The query of a local re-acquisition: the current scan and this many earlier ones, each at least
