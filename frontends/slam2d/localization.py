@@ -244,6 +244,10 @@ class MapLocalizer:
         self._since_attempt = 0.0
         self._fits_map_while_drifted = False
         """The last scan matched the saved map well near a pose drifted beyond `max_relocalize_window`."""
+        self._wide_failures = 0
+        """Wide re-acquisitions in a row that placed nothing while the saved map fitted near the track or a
+        match waited for its confirmation (after `attempts_before_backoff` of them their spacing doubles
+        with each, up to `relocalize_every_outside`)."""
         self._pending_correction: tuple[FloatArray, float] | None = None
         """The correction of the track a wide re-acquisition found, and `_travelled` then: waiting for one
         metres on to agree."""
@@ -331,6 +335,7 @@ class MapLocalizer:
             self._since_good = 0.0
             self._dead_reckoned = 0.0
             self._pending_correction = None
+            self._wide_failures = 0
             return result
         self._since_good += moved
         self._misses += 1
@@ -348,9 +353,13 @@ class MapLocalizer:
         if reach > settings.max_relocalize_window:
             # Drifted further than the fine window reaches: the wide search thins out as the region grows,
             # unless the saved map fits the scan near the track or a candidate waits for its confirmation.
-            soon = self._fits_map_while_drifted or self._pending_correction is not None
-            every = settings.relocalize_every if soon else max(settings.relocalize_every_outside,
-                                                               settings.wide_retry_share * reach)
+            every = max(settings.relocalize_every_outside, settings.wide_retry_share * reach)
+            if self._fits_map_while_drifted or self._pending_correction is not None:
+                # Sooner, backing off as these attempts fail (each up to 0.25 s on a 250 m building).
+                backoff = max(0, self._wide_failures - settings.attempts_before_backoff)
+                every = min(settings.relocalize_every * 2.0**backoff, settings.relocalize_every_outside)
+            else:
+                self._wide_failures = 0
             attempt = self._misses > settings.relocalize_after and self._since_attempt >= every
         else:
             every = settings.relocalize_every_outside if outside else settings.relocalize_every
@@ -547,7 +556,10 @@ class MapLocalizer:
         poses = [p for _, p in self._recent]
         linear = self._relocalize_reach()
         if linear > settings.max_relocalize_window:
+            if self._fits_map_while_drifted:  # the scans before it may lie where the map never was
+                scans, poses = scans[-1:], poses[-1:]
             found = self._confirmed(self._wide_match(scans, poses, linear))
+            self._wide_failures = 0 if found is not None else self._wide_failures + 1
         else:
             query = thinned_query(scans, poses, self._pose, LOOP_QUERY_THINNING)
             if len(query) < self.config.matching.min_points:
@@ -664,6 +676,7 @@ class MapLocalizer:
     def _lose(self) -> None:
         self._pose = None
         self._pending_correction = None
+        self._wide_failures = 0
         self._misses = 0
         self._since_good = 0.0
         self._dead_reckoned = 0.0

@@ -70,7 +70,9 @@ class LocalizationConfig:
     of the saved map near the track is not taken (a look-alike stretch of corridor fits as well as the
     true one), and the re-acquisition searches the whole region the drift allows on the global
     localization's coarse grid (the same tests, the headings within `relocalize_angular`: over every
-    heading, a query half outside the map fitted a corridor of it turned, 5 m off). Its match is taken
+    heading, a query half outside the map fitted a corridor of it turned, 5 m off; while the map fits the
+    newest scan near the track, that scan alone is the query: the scans before it may lie where the map
+    never was, and kept the robot unplaced 2 m into the map). Its match is taken
     only when it lands where the track is, or moves the track as one found metres before did: one match
     that wide can be a look-alike of a place outside the map (CSAIL: 9.4 m off)."""
     wide_retry_share: float = 0.25
