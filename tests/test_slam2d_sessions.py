@@ -19,6 +19,7 @@ from frontends.slam2d.config import (
     SMALL_CORRECTION_ANGULAR,
     SMALL_CORRECTION_LINEAR,
 )
+from frontends.slam2d.global_match import VerifiedMatch
 from frontends.slam2d.local_map import place
 from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import smooth_localized, smooth_scans, tracking_drift
@@ -266,6 +267,30 @@ def test_a_pose_that_drifted_metres_outside_the_map_is_found_as_far_off_as_it_ma
     assert matched[-40:].all() and errors[-40:].max() < 0.05
     assert errors[matched].max() < 0.1, "never matched to the map in the wrong place"
     assert sum(r.relocalized for r in results) == 1
+
+
+def test_a_wide_match_moving_the_track_is_taken_only_when_another_metres_on_agrees(
+        localizer_map: tuple[list[np.ndarray], np.ndarray]) -> None:
+    """One wide match may be a look-alike of a place the map never saw (CSAIL: 9.4 m off, unambiguous in
+    the map): a match landing where the track is is taken at once; one moving the track waits until
+    another, at least `relocalize_every_outside` metres on (mostly other scans), moves it the same way."""
+    localizer = MapLocalizer(*localizer_map, initial_pose=[5.0, 1.0, 0.0])
+    assert localizer._pose is not None
+    every = localizer.settings.relocalize_every_outside
+
+    def match(pose: list[float]) -> VerifiedMatch:
+        return VerifiedMatch(np.array(pose), 0.8, None)  # type: ignore[arg-type]  # not read
+
+    localizer._travelled = 10.0
+    assert localizer._confirmed(match([5.1, 1.05, 0.01])) is not None, "where the track is: taken"
+    assert localizer._confirmed(match([8.0, 1.0, 0.0])) is None, "3 m off: waits"
+    localizer._travelled += 0.5 * every
+    assert localizer._confirmed(match([8.0, 1.0, 0.0])) is None, "the same scans, mostly"
+    localizer._travelled += every
+    assert localizer._confirmed(match([11.0, 1.0, 0.0])) is None, "another correction: waits again"
+    localizer._travelled += every
+    assert localizer._confirmed(match([11.1, 1.0, 0.02])) is not None, "two agreeing, metres apart"
+    assert localizer._pending_correction is None
 
 
 def localized_in_the_south_corridor_map(mapping_run: Run, run: Run) -> list[LocalizedScan]:
