@@ -293,6 +293,25 @@ def test_a_wide_match_moving_the_track_is_taken_only_when_another_metres_on_agre
     assert localizer._pending_correction is None
 
 
+def test_a_region_hours_of_driving_wide_is_searched_as_the_whole_map(
+        localizer_map: tuple[list[np.ndarray], np.ndarray], mapping_run: Run) -> None:
+    """The region a wide re-acquisition may search grows with the distance driven off the map: 100 km of
+    it (a 200 km square) searches the map's own extent, in the memory and time of a whole-map search."""
+    import time
+    import tracemalloc
+
+    localizer = MapLocalizer(*localizer_map, initial_pose=mapping_run.truth[40])
+    scans, poses = list(mapping_run.scans[36:41]), list(mapping_run.truth[36:41])
+    tracemalloc.start()
+    started = time.process_time()
+    found = localizer._wide_match(scans, poses, 1e5)
+    seconds = time.process_time() - started
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert found is not None and position_errors(found.pose[None], mapping_run.truth[40][None])[0] < 0.05
+    assert peak < 50e6 and seconds < 5.0, f"{peak / 1e6:.0f} MB, {seconds:.1f} s"
+
+
 def localized_in_the_south_corridor_map(mapping_run: Run, run: Run) -> list[LocalizedScan]:
     """`run` localized from its true start in a map of the south corridor only (the mapping run's
     keyframes there, with their points south of y = 2.5 m)."""

@@ -82,6 +82,8 @@ LOCAL_SEARCH_LEVELS = 5
 windows searched; the whole map's pyramid is built once and shared by every attempt."""
 RECENT_TURN = math.radians(12.0)
 """A scan turned this much from the last one kept for re-acquisition queries is kept too (new walls)."""
+CONFIRMATION_SPAN = 4.0
+"""A wide re-acquisition waits for another to agree over at most this many `relocalize_every_outside`."""
 AGREEING_HEADING = math.radians(5.0)
 """Two wide re-acquisitions agree when they turn the track within this of each other (and move it within
 half the ambiguity distance)."""
@@ -596,7 +598,8 @@ class MapLocalizer:
         assert self._pose is not None
         settings = self.settings
         pending = self._pending_correction
-        if pending is not None and self._travelled - pending[1] > 4.0 * settings.relocalize_every_outside:
+        if (pending is not None
+                and self._travelled - pending[1] > CONFIRMATION_SPAN * settings.relocalize_every_outside):
             pending = self._pending_correction = None  # too old to vouch for the track's drift since
         if found is None:
             return None
@@ -619,13 +622,17 @@ class MapLocalizer:
     def _wide_match(self, scans: list[FloatArray], poses: list[FloatArray],
                     reach: float) -> VerifiedMatch | None:
         """The recent scans searched on the global localization's coarse grid within `reach` of the current
-        pose (headings within `relocalize_angular`)."""
+        pose (headings within `relocalize_angular`), or over the whole map once that lies within reach (a
+        region hours of driving wide would cost time and memory as its area grows, for nothing)."""
         assert self._pose is not None
         query = self._global_query(scans, poses, self._pose)
         if query is None:
             return None
-        center = self._pose
-        window = SearchWindow(reach, self.settings.relocalize_angular, self.settings.global_angular_step)
+        center, linear = self._pose, reach
+        whole = self._search_window.linear
+        if reach >= np.hypot(*(np.abs(self._pose[:2] - self._search_center[:2]) + whole)):
+            center, linear = np.array([*self._search_center[:2], self._pose[2]]), whole
+        window = SearchWindow(linear, self.settings.relocalize_angular, self.settings.global_angular_step)
         return match_unambiguous(query, self.map, center, window, matching=self.config.matching,
                                  acceptance=self.settings.acceptance, levels=self.settings.global_levels,
                                  search_grid=self._search_grid)
