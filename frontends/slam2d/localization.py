@@ -407,8 +407,9 @@ class MapLocalizer:
             # scans): the track goes on, and only a re-acquisition searching as far as the drift allows
             # may bring the pose back onto the map.
             drifted = not self._map_matched and self._relocalize_reach() > self.settings.max_relocalize_window
-            self._fits_map_while_drifted = drifted and found.strong(self.settings.min_tracking_score)
-            if (drifted or not found.strong(self.settings.min_tracking_score)) and self._rolling:
+            strong = found.strong(self.settings.min_tracking_score)
+            self._fits_map_while_drifted = drifted and strong
+            if (drifted or not strong) and self._rolling:
                 # The saved map places the scan poorly or not at all: the rolling local map (the recent
                 # scans at their tracked poses, with the saved keyframes nearby) measures the motion, as
                 # the SLAM's own matching on its recent keyframes does. (The odometry's motion instead:
