@@ -317,6 +317,10 @@ class MapLocalizer:
                 deskewed = self._deskewer.deskewed(points, times, int(stamp_ns), None, self._last_motion)
                 self._pose, self._covariance, self._map_matched = before
                 result = self._track(index, int(stamp_ns), deskewed, odometry, odometry_interval, prediction)
+            if odometry_motion is None and not (result.matched or result.tracked) and np.any(
+                    prediction[0] != before[0]):
+                result = self._track_still(index, int(stamp_ns), deskewed, odometry, before, prediction,
+                                           result)
             points = deskewed
             self._deskewer.moved(int(stamp_ns), self._last_motion)
             self._motion_span_ns = 0 if self._last_stamp is None else int(stamp_ns) - self._last_stamp
@@ -449,6 +453,24 @@ class MapLocalizer:
         return LocalizedScan(index, stamp_ns, self._pose.copy(), True, matched, score, inliers, rms,
                              information, tracked=tracked, motion=motion,
                              motion_information=motion_information, map_information=map_information)
+
+    def _track_still(self, index: int, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
+                     before: tuple[FloatArray, FloatArray, bool],
+                     prediction: tuple[FloatArray, FloatArray, FloatArray, SearchWindow, bool],
+                     failed: LocalizedScan) -> LocalizedScan:
+        """Without odometry, a scan `_track` could place neither on the map nor on the recent scans around
+        the constant-velocity prediction, tracked again around the last pose (`before`: the state before
+        the first attempt), as the SLAM does (`LaserSlam2D._match`): constant velocity overshoots where a
+        turn stops or swings back. The first attempt's result and state stand if this one fails too."""
+        first = (self._pose, self._covariance, self._map_matched, self._last_motion)
+        drifted_fit = self._fits_map_while_drifted
+        self._pose, self._covariance, self._map_matched = before
+        still = self._track(index, stamp_ns, points, odometry, 0.0, (before[0], *prediction[1:]))
+        if still.matched or still.tracked:
+            return still
+        self._pose, self._covariance, self._map_matched, self._last_motion = first
+        self._fits_map_while_drifted = drifted_fit
+        return failed
 
     def _tracking_window(self, has_odometry: bool, reliable: bool,
                          widening: tuple[float, float] = (1.0, 1.0)) -> SearchWindow:
@@ -647,9 +669,9 @@ class MapLocalizer:
         and window widened after a gap."""
         assert self._pose is not None
         has_odometry = odometry is not None and self._last_odometry is not None
-        elapsed = 0 if self._last_stamp is None else stamp_ns - self._last_stamp
-        last_motion = (self._last_motion if has_odometry
-                       else carried_motion(self._last_motion, self._motion_span_ns, elapsed))
+        elapsed = 0 if self._last_stamp is None else self._rate.scan_time(stamp_ns - self._last_stamp)
+        span = self._rate.scan_time(self._motion_span_ns)
+        last_motion = self._last_motion if has_odometry else carried_motion(self._last_motion, span, elapsed)
         motion, information = predicted_motion(self.config.odometry, self._last_odometry, odometry, reliable,
                                                last_motion)
         widening = (1.0, 1.0) if has_odometry else gap_widening(self.config.odometry, elapsed)

@@ -392,18 +392,48 @@ class LaserSlam2D:
         """The last matched motion carried over the time since the last matched scan (`carried_motion`)."""
         if self._last_matched is None:
             return self._last_motion
-        return carried_motion(self._last_motion, self._matched_interval_ns, stamp_ns - self._last_matched[1])
+        rate = self._cadence.rate
+        return carried_motion(self._last_motion, rate.scan_time(self._matched_interval_ns),
+                              self._scan_time(stamp_ns))
 
     def _gap_widening(self, stamp_ns: int) -> tuple[float, float]:
         """`gap_widening` over the time since the last matched scan."""
         if self._last_matched is None:
             return 1.0, 1.0
-        return gap_widening(self.config.odometry, stamp_ns - self._last_matched[1])
+        return gap_widening(self.config.odometry, self._scan_time(stamp_ns))
+
+    def _scan_time(self, stamp_ns: int) -> int:
+        """The time since the last matched scan, as the stamps tell it (`ScanRate.scan_time`); 0 before it."""
+        if self._last_matched is None:
+            return 0
+        return self._cadence.rate.scan_time(stamp_ns - self._last_matched[1])
 
     def _match(
         self, stamp_ns: int, points: FloatArray, prior: FloatArray, prior_information: FloatArray,
         window_scale: float
     ) -> tuple[FloatArray, bool, FloatArray]:
+        """The scan's pose, whether a match gave it (else the prior's), and its information.
+
+        Without odometry a match that fails around the constant-velocity prior is tried again around the
+        last pose (no motion): constant velocity overshoots where the motion reverses. On the Intel Research
+        Lab log the robot swings in place, 30° one way then 5° back within a scan; predicted another 30°, the
+        scan fell outside the window, the pose followed the prior, the prior's motion became the velocity,
+        and the next scans ran away with it, metres per scan. A match is still refused where ICP slid beyond
+        the window searched around either (`_match_around`)."""
+        result = self._match_around(stamp_ns, points, prior, prior, prior_information, window_scale)
+        moved = se2.relative(self._last_pose, prior)
+        if result[1] or self._last_odometry is not None or not np.any(moved):
+            return result
+        still = self._match_around(stamp_ns, points, self._last_pose, prior, prior_information, window_scale)
+        return still if still[1] else result
+
+    def _match_around(
+        self, stamp_ns: int, points: FloatArray, center: FloatArray, prior: FloatArray,
+        prior_information: FloatArray, window_scale: float
+    ) -> tuple[FloatArray, bool, FloatArray]:
+        """`_match` searching the window around `center`; the prior weighs in ICP and along look-alike
+        stretches all the same (where a corridor leaves the motion along it open, the prediction's is the
+        better guess than none)."""
         matching = self.config.matching
         settings = self.config.odometry
         has_odometry = self._last_odometry is not None
@@ -413,18 +443,18 @@ class LaserSlam2D:
             if has_odometry:
                 window = SearchWindow(settings.window_linear * window_scale,
                                       settings.window_angular * window_scale, settings.angular_step)
-                coarse = match_exhaustive(points, self._local_map.grid, prior, window)
+                coarse = match_exhaustive(points, self._local_map.grid, center, window)
             else:
                 linear, angular = self._gap_widening(stamp_ns)
                 window = SearchWindow(settings.window_linear_without_odometry * linear,
                                       settings.window_angular_without_odometry * angular,
                                       settings.angular_step)
-                elapsed = 0 if self._last_matched is None else stamp_ns - self._last_matched[1]
+                elapsed = self._scan_time(stamp_ns)
                 gap = after_gap((linear, angular), elapsed, self._cadence.rate.typical_ns)
-                coarse = match_without_odometry(points, self._local_map.grid, prior, window,
+                coarse = match_without_odometry(points, self._local_map.grid, center, window,
                                                 narrow_first=not gap)
             local = self._local_map
-            start = prior if coarse is None else coarse.pose
+            start = center if coarse is None else coarse.pose
             refined = refine_point_to_line(
                 points,
                 local.grid,
@@ -439,7 +469,7 @@ class LaserSlam2D:
             # Without odometry the window spans any plausible motion: ICP ending beyond it slid along a
             # corridor (Intel lidar-only: 2.5 m in one scan). The odometry's window is tight, and ICP rightly
             # leaves it where the wheels slipped (CSAIL's turns: its map bent when such matches were refused).
-            slid = not has_odometry and not window.holds(refined.pose, prior, local.grid.resolution)
+            slid = not has_odometry and not window.holds(refined.pose, center, local.grid.resolution)
             if coarse is not None and refined.inlier_fraction >= settings.min_inlier_fraction and not slid:
                 pose, matched = refined.pose, True
                 information = matching.information_scale * refined.information
