@@ -13,8 +13,9 @@ class GraphError(OptimizerError):
     """The pose graph itself is unusable (disconnected, self-loops, bad information, ...)."""
 
 
-class GraphFileError(OptimizerError):
-    """A graph file could not be read: names the file, and the line when one is at fault."""
+class FileLineError(Exception):
+    """An input file could not be read: names the file, and the line when one is at fault (`path`, `line`,
+    and `reason`, the message without them). Mixed into each package's own base class."""
 
     def __init__(self, path: str | Path, message: str, line: int | None = None) -> None:
         self.path = Path(path)
@@ -22,3 +23,7 @@ class GraphFileError(OptimizerError):
         self.reason = message
         where = f"{self.path}:{line}" if line is not None else f"{self.path}"
         super().__init__(f"{where}: {message}")
+
+
+class GraphFileError(FileLineError, OptimizerError):
+    """A graph file could not be read."""

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from optimizer.errors import FileLineError
 from optimizer.file_input import read_bytes_bounded
 from pipeline.errors import PipelineError
 from pipeline.outputs import write_text
@@ -28,15 +29,8 @@ _INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
 _DECIMAL = re.compile(r"([+-]?)(\d*)(?:\.(\d*))?(?:[eE]([+-]?\d+))?")
 
 
-class DataFileError(PipelineError):
-    """An input text file could not be read: names the file, and the line when one is at fault."""
-
-    def __init__(self, path: str | Path, message: str, line: int | None = None) -> None:
-        self.path = Path(path)
-        self.line = line
-        self.reason = message
-        where = f"{self.path}:{line}" if line is not None else f"{self.path}"
-        super().__init__(f"{where}: {message}")
+class DataFileError(FileLineError, PipelineError):
+    """An input text file could not be read (`FileLineError`: the file, and the line at fault)."""
 
 
 class TrajectoryFileError(DataFileError):
