@@ -72,6 +72,9 @@ LOCAL_MAP_GROWTH = 4
 `local_map_keyframes`; the next one builds it again from the last `local_map_keyframes`. Building it
 stamps every point of every keyframe (a quarter of the 2D replay's time when built at every keyframe);
 adding one stamps that keyframe's alone."""
+FAST_TURN_SHARE = 0.5
+"""Without odometry, a predicted turn of more than this share of the angular window is a fast turn, where
+the turn may stop or swing back within a scan: the last pose's window is searched too (`_match`)."""
 LOCAL_MAP_SLACK = 2.0
 """The local map's grid reaches this much (m) beyond its margin, room for the keyframes added in place."""
 
@@ -418,26 +421,40 @@ class LaserSlam2D:
         last pose (no motion): constant velocity overshoots where the motion reverses. On the Intel Research
         Lab log the robot swings in place, 30° one way then 5° back within a scan; predicted another 30°, the
         scan fell outside the window, the pose followed the prior, the prior's motion became the velocity,
-        and the next scans ran away with it, metres per scan. A match is still refused where ICP slid beyond
-        the window searched around either (`_match_around`)."""
+        and the next scans ran away with it, metres per scan. During a fast turn (the prediction turns by more
+        than half the window) the last pose's window is searched even when the prediction's matched: a
+        laser seeing 180° matched a scan that swung back 35° after turning 24° to a wrong pose 24° off inside
+        the prediction's window. The better-scoring of two different optima is taken (the same optimum
+        found twice: the prediction's). A match is still refused where ICP slid beyond the window searched
+        around either (`_match_around`)."""
         result = self._match_around(stamp_ns, points, prior, prior, prior_information, window_scale)
         moved = se2.relative(self._last_pose, prior)
-        if result[1] or self._last_odometry is not None or not np.any(moved):
-            return result
+        if self._last_odometry is not None or not np.any(moved):
+            return result[:3]
+        turning = abs(moved[2]) > FAST_TURN_SHARE * self.config.odometry.window_angular_without_odometry
+        if result[1] and not turning:
+            return result[:3]
         still = self._match_around(stamp_ns, points, self._last_pose, prior, prior_information, window_scale)
-        return still if still[1] else result
+        better = still[3] > result[3] and not self._same_pose(still[0], result[0])
+        return still[:3] if still[1] and (not result[1] or better) else result[:3]
+
+    def _same_pose(self, a: FloatArray, b: FloatArray) -> bool:
+        """Whether two matches found the same optimum: within a cell and an angular step."""
+        step = se2.relative(a, b)
+        return (math.hypot(step[0], step[1]) <= self.config.matching.resolution
+                and abs(step[2]) <= self.config.odometry.angular_step)
 
     def _match_around(
         self, stamp_ns: int, points: FloatArray, center: FloatArray, prior: FloatArray,
         prior_information: FloatArray, window_scale: float
-    ) -> tuple[FloatArray, bool, FloatArray]:
+    ) -> tuple[FloatArray, bool, FloatArray, float]:
         """`_match` searching the window around `center`; the prior weighs in ICP and along look-alike
         stretches all the same (where a corridor leaves the motion along it open, the prediction's is the
         better guess than none)."""
         matching = self.config.matching
         settings = self.config.odometry
         has_odometry = self._last_odometry is not None
-        matched = False
+        matched, score = False, -1.0
         pose, information = prior, prior_information
         if len(points) >= matching.min_points and self._local_map is not None:
             if has_odometry:
@@ -455,6 +472,7 @@ class LaserSlam2D:
                                                 narrow_first=not gap)
             local = self._local_map
             start = center if coarse is None else coarse.pose
+            score = -1.0 if coarse is None else coarse.score
             refined = refine_point_to_line(
                 points,
                 local.grid,
@@ -476,7 +494,7 @@ class LaserSlam2D:
                 # Along a look-alike stretch the prediction decides (`match_covariance`).
                 pose, information = slide_to_prior(pose, information, prior, prior_information,
                                                    score_plateau(points, local.grid, pose))
-        return pose, matched, information
+        return pose, matched, information, score
 
     def _step_information(self, information: FloatArray, odometry: FloatArray | None,
                           reliable: bool) -> FloatArray:
