@@ -311,12 +311,12 @@ class MapLocalizer:
             odometry_motion = se2.relative(self._pose, prediction[0]) if has_odometry else None
             deskewed = self._deskewer.deskewed(points, times, int(stamp_ns), odometry_motion)
             before = (self._pose, self._covariance, self._map_matched)
-            result = self._track(index, int(stamp_ns), deskewed, odometry, odometry_interval, prediction)
+            result = self._track(index, int(stamp_ns), deskewed, odometry, prediction)
             if times is not None and odometry_motion is None and (result.matched or result.tracked):
                 # As the SLAM does (`LaserSlam2D.add_scan`): again under the scan's own motion, now known.
                 deskewed = self._deskewer.deskewed(points, times, int(stamp_ns), None, self._last_motion)
                 self._pose, self._covariance, self._map_matched = before
-                result = self._track(index, int(stamp_ns), deskewed, odometry, odometry_interval, prediction)
+                result = self._track(index, int(stamp_ns), deskewed, odometry, prediction)
             if odometry_motion is None and not (result.matched or result.tracked) and np.any(
                     prediction[0] != before[0]):
                 result = self._track_still(index, int(stamp_ns), deskewed, odometry, before, prediction,
@@ -384,7 +384,6 @@ class MapLocalizer:
         return result
 
     def _track(self, index: int, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
-               odometry_interval: float,
                prediction: tuple[FloatArray, FloatArray, FloatArray, SearchWindow, bool]) -> LocalizedScan:
         """Match a scan around `prediction` (`_predict`'s)."""
         assert self._pose is not None
@@ -465,7 +464,7 @@ class MapLocalizer:
         first = (self._pose, self._covariance, self._map_matched, self._last_motion)
         drifted_fit = self._fits_map_while_drifted
         self._pose, self._covariance, self._map_matched = before
-        still = self._track(index, stamp_ns, points, odometry, 0.0, (before[0], *prediction[1:]))
+        still = self._track(index, stamp_ns, points, odometry, (before[0], *prediction[1:]))
         if still.matched or still.tracked:
             return still
         self._pose, self._covariance, self._map_matched, self._last_motion = first

@@ -428,8 +428,10 @@ class LaserSlam2D:
         found twice: the prediction's). A match is still refused where ICP slid beyond the window searched
         around either (`_match_around`)."""
         result = self._match_around(stamp_ns, points, prior, prior, prior_information, window_scale)
+        if self._last_odometry is not None:
+            return result[:3]
         moved = se2.relative(self._last_pose, prior)
-        if self._last_odometry is not None or not np.any(moved):
+        if not np.any(moved):
             return result[:3]
         turning = abs(moved[2]) > FAST_TURN_SHARE * self.config.odometry.window_angular_without_odometry
         if result[1] and not turning:
