@@ -6,6 +6,11 @@
 
 The Radish logs are in MOLAorg/mola_test_datasets (`datasets/radish/*.clf.bz2`, CC-BY-3.0): fr079.clf
 (the Freiburg building-079 log issue 12 names), intel.clf (the Intel Research Lab), fr-clinic_robotlaser.clf.
+The UAL log (`datasets/ual/ual_dataset_2014_05_23_2dlaser_odo.rawlog`, CC-BY-3.0, J. L. Blanco-Claraco:
+a vehicle driving 570 m around a block of the University of Almería in 3 minutes, a SICK at 18 Hz, 30–50 m
+ranges outdoors, 2 m ahead of the base; odometry at 80 Hz) is an observation-only rawlog: its range
+scans (version 6: the aperture, the sensor pose, a valid flag per range) and odometry observations
+(version 1) are read as MRPT's `serializeFrom` lays them out; a range not valid is written as NaN.
 MIT Killian Court (the paper's real log, section IV.C) is there only as MRPT's `carmen2rawlog` wrote it,
 `datasets/radish/mit-killian.rawlog`: read by `read_rawlog`, the same FLASER scans (180 beams, read as
 −90° every 1° like the CLF's: the rawlog's 90° aperture is the converter's, it says the same of ACES, whose
@@ -51,6 +56,15 @@ class Scan:
     first_angle: float
     increment: float
     odometry: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class RawlogScan:
+    ranges: np.ndarray
+    first_angle: float
+    increment: float
+    mount: tuple[float, float, float] | None
+    """The laser's pose (x, y, yaw) in the robot's frame, None where the rawlog's is not the laser's."""
 
 
 @dataclass(frozen=True)
@@ -128,16 +142,25 @@ class _MrptArchive:
         if not head & 0x80:
             raise ValueError(f"no object at byte {self.at - 1}")
         name, version = self.take(head & 0x7F).decode(), self.take(1)[0]
-        if name == "mrpt::poses::CPose2D" and version == 1:
+        if name.endswith("CPose2D") and version == 1:
             value: object = self.unpack("3d")
         elif name == "mrpt::poses::CPose3D" and version == 3:
             value = self.unpack("12d")  # x, y, z, the rotation matrix
+        elif name.endswith("CPose3D") and version == 2:
+            x, y, _, qw, qx, qy, qz = self.unpack("7d")  # x, y, z, the rotation as a quaternion
+            value = (x, y, math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz)))
         elif name == "mrpt::obs::CObservationOdometry" and version == 2:
             _, pose = self.read_object()
             self.string()  # sensor label
             stamp = self.unpack("Q")[0]
             for size in (8, 8):  # encoder ticks, velocities: each behind a presence flag
                 self.take(size if self.take(1)[0] else 0)
+            value = (stamp, pose)
+        elif name.endswith("CObservationOdometry") and version == 1:  # an observation-only rawlog's
+            _, pose = self.read_object()
+            self.string()  # sensor label
+            stamp = self.unpack("Q")[0]
+            self.unpack("?ii?ff")  # encoder ticks, velocities, each behind a flag, written whatever it says
             value = (stamp, pose)
         elif name == "mrpt::obs::CObservation2DRangeScan" and version == 7:
             self.unpack("fBf")  # aperture, right to left, max range
@@ -150,7 +173,21 @@ class _MrptArchive:
             # Δpitch, the intensity flag (unset): carmen2rawlog wrote more zeros than these
             while self.data[self.at] == 0:
                 self.at += 1
-            value = (stamp, ranges)
+            # carmen2rawlog's aperture is not the FLASER's 180° (see the module's docstring)
+            value = (stamp, RawlogScan(ranges, -math.pi / 2, math.pi / (count - count % 2), None))
+        elif name.endswith("CObservation2DRangeScan") and version == 6:  # an observation-only rawlog's
+            aperture, right_to_left, _ = self.unpack("fBf")
+            _, mount = self.read_object()
+            count = self.unpack("I")[0]
+            ranges = np.frombuffer(self.take(4 * count), "<f4").astype(np.float32)
+            valid = np.frombuffer(self.take(count), np.uint8).astype(bool)
+            stamp = self.unpack("fQf")[1]  # σ, stamp, beam aperture
+            self.string()  # sensor label
+            self.unpack("d")  # Δpitch (a double here)
+            ranges = np.where(valid, ranges, np.float32(np.nan))  # no return (REP 117)
+            if not right_to_left:
+                ranges = ranges[::-1].copy()
+            value = (stamp, RawlogScan(ranges, -aperture / 2, aperture / (count - 1), mount))
         else:
             raise ValueError(f"unsupported object {name} version {version} at byte {self.at}")
         if self.take(1) != b"\x88":
@@ -164,6 +201,7 @@ def read_rawlog(path: Path) -> CarmenLog:
     scans: list[Scan] = []
     odometry: list[tuple[int, tuple[float, float, float]]] = []
     latest = (0.0, 0.0, 0.0)
+    mount: tuple[float, float, float] | None = None
     while archive.at < len(archive.data):
         name, value = archive.read_object()
         stamp_100ns, payload = value  # type: ignore[misc]
@@ -173,9 +211,12 @@ def read_rawlog(path: Path) -> CarmenLog:
                 odometry.append((stamp, payload))
             latest = payload
         elif name.endswith("CObservation2DRangeScan"):
-            count = len(payload)
-            scans.append(Scan(stamp, payload, -math.pi / 2, math.pi / (count - count % 2), latest))
-    return CarmenLog(scans, odometry, (0.0, 0.0, 0.0))
+            assert isinstance(payload, RawlogScan)
+            if mount is not None and payload.mount is not None and payload.mount != mount:
+                raise ValueError(f"the laser's mount changes at byte {archive.at}: one mount is written")
+            mount = mount or payload.mount
+            scans.append(Scan(stamp, payload.ranges, payload.first_angle, payload.increment, latest))
+    return CarmenLog(scans, odometry, mount or (0.0, 0.0, 0.0))
 
 
 def stamp_offsets(count: int, jitter: float) -> np.ndarray:
@@ -195,7 +236,7 @@ def write_mcap(log: CarmenLog, out: Path, odometry: str, drop: float, jitter: fl
     elif odometry == "scans":
         events += [(stamp, 0, "odometry", scan.odometry) for stamp, _, _, scan in events]
     events.sort(key=lambda event: (event[0], event[1]))
-    top = float(max(scan.ranges.max() for scan in scans))
+    top = float(max(np.nanmax(scan.ranges) for scan in scans))
     with ros2_mcap(out) as (messages, add):
         types = messages.types
 
