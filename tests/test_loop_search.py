@@ -20,7 +20,7 @@ def test_each_frontend_keeps_its_own_radii_and_its_keys_in_their_order() -> None
     # The keys' order is that of every configuration file and `replay --dump-config` written before the
     # settings were shared: inheriting them must not move them to the top of a section.
     laser, lidar = LaserLoopClosureConfig(), LidarLoopClosureConfig()
-    assert (laser.search_radius, laser.max_search_radius) == (2.0, 10.0)
+    assert (laser.search_radius, laser.max_search_radius) == (2.0, 30.0)
     assert (lidar.search_radius, lidar.max_search_radius) == (5.0, 30.0)
     assert [f.name for f in dataclasses.fields(laser)][:5] == [
         "enabled", "search_radius", "search_radius_per_metre", "max_search_radius",

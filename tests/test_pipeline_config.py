@@ -129,7 +129,7 @@ angular_window = 40
 
 def test_derived_defaults_follow_the_values_they_depend_on() -> None:
     # Raising the search radius alone raises the cap with it rather than failing ...
-    for frontend, default in (("slam2d", 10.0), ("slam3d", 30.0)):
+    for frontend, default in (("slam2d", 30.0), ("slam3d", 30.0)):
         raised = ReplayConfig(**{frontend: {"loop_closure": {"search_radius": default + 2}}})
         assert getattr(raised, frontend).loop_closure.max_search_radius == default + 2
         lowered = ReplayConfig(**{frontend: {"loop_closure": {"search_radius": 3.0}}})

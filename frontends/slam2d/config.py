@@ -110,7 +110,7 @@ class KeyframeConfig:
 @dataclass(frozen=True)
 class LoopClosureConfig(LoopSearchRadius, LoopClosureSwitch):
     search_radius: float = 2.0
-    max_search_radius: float = 10.0
+    max_search_radius: float = 30.0
     min_separation_keyframes: int = 40
     """Candidates must be at least this many keyframes older than the current one (not the local map)."""
     submap_keyframes: int = 12

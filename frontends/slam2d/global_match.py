@@ -14,8 +14,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.slam2d.config import LoopClosureConfig, MatchingConfig
-from frontends.slam2d.correlative import SearchWindow, prepare_branch_and_bound
-from frontends.slam2d.grid import LikelihoodGrid
+from frontends.slam2d.correlative import (
+    SearchWindow,
+    branch_and_bound_levels,
+    match_exhaustive,
+    prepare_branch_and_bound,
+)
+from frontends.slam2d.grid import LikelihoodGrid, build_likelihood_grid
 from frontends.slam2d.icp import IcpResult, refine_point_to_line
 from frontends.slam2d.local_map import Submap, one_per_cell, place
 from optimizer import se2
@@ -72,6 +77,43 @@ def match_unambiguous(
     if refined.inlier_fraction < acceptance.min_inlier_fraction or refined.rms > acceptance.max_rms:
         return None
     return VerifiedMatch(refined.pose, coarse.score, refined)
+
+
+def match_beyond(
+    query: FloatArray,
+    submap: Submap,
+    center: FloatArray,
+    fine_window: SearchWindow,
+    radius: float,
+    *,
+    matching: MatchingConfig,
+    acceptance: LoopClosureConfig,
+    cells: int,
+    min_levels: int = 4,
+) -> VerifiedMatch | None:
+    """`match_unambiguous` within ± `radius` around `center`, for a match beyond `fine_window` (the window
+    a search on the submap's own grid covers), or None.
+
+    The window is searched on a grid coarse enough to hold ± `radius` in `cells` cells (σ at least a cell),
+    as the global localization searches a whole map; ICP on the submap refines the match. It is kept only
+    outside `fine_window`, where the fine search is the judge (it found that pose below `min_score`, or with
+    a rival a coarse cell blurs: on the Freiburg clinic log a corridor 5.6 m along), and where the submap's
+    own grid scores it at `min_score` within a cell and an angular step, as a fine search would have (a
+    coarse cell's likelihood is wide: there, look-alike corridors 23 m apart scored 0.57–0.61 on it and
+    0.39–0.43 on the submap's)."""
+    resolution = radius / cells
+    coarse = build_likelihood_grid(submap.points, resolution, max(matching.likelihood_sigma, resolution),
+                                   radius + 1.0)
+    window = SearchWindow(radius, fine_window.angular, fine_window.angular_step)
+    levels = branch_and_bound_levels(radius, resolution, minimum=min_levels)
+    verified = match_unambiguous(query, submap, center, window, matching=matching, acceptance=acceptance,
+                                 levels=levels, search_grid=coarse, crop_pyramid=True)
+    if verified is None or fine_window.holds(verified.icp.pose, center, submap.grid.resolution):
+        return None
+    around = SearchWindow(submap.grid.resolution, window.angular_step, window.angular_step)
+    if match_exhaustive(query, submap.grid, verified.icp.pose, around).score < acceptance.min_score:
+        return None
+    return verified
 
 
 def thinned_query(scans: Sequence[FloatArray], poses: Sequence[FloatArray], frame: FloatArray,

@@ -38,9 +38,15 @@ from frontends.slam2d.config import (
     OdometryConfig,
     Slam2DConfig,
 )
-from frontends.slam2d.correlative import Match, SearchWindow, match_branch_and_bound, match_exhaustive
+from frontends.slam2d.correlative import (
+    Match,
+    SearchWindow,
+    branch_and_bound_levels,
+    match_branch_and_bound,
+    match_exhaustive,
+)
 from frontends.slam2d.deskew import ScanDeskewer, along_motion, interpolated
-from frontends.slam2d.global_match import match_unambiguous
+from frontends.slam2d.global_match import match_beyond, match_unambiguous
 from frontends.slam2d.grid import LikelihoodGrid
 from frontends.slam2d.held_odometry import OdometryHold
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
@@ -64,9 +70,17 @@ NARROW_WINDOW_LINEAR = 0.2
 NARROW_WINDOW_ANGULAR = math.radians(10.0)
 """Without odometry the window searched first around the constant-velocity prediction (± m, ± rad)."""
 BRANCH_AND_BOUND_LEVELS = 4
-"""Coarsest candidates span 2⁴ cells (0.8 m at 5 cm). The optimum does not depend on it; the work does:
-a 3.2 m block bounds every pose inside it by nearly the best score anywhere (some wall is always that
-close), so little is pruned, and on CSAIL 6 levels cost ~1.4× the verification time of 4."""
+"""Coarsest candidates span 2⁴ cells (0.8 m at 5 cm) at least; a wider window gets more levels
+(`branch_and_bound_levels`). The optimum does not depend on it; the work does: a 3.2 m block bounds every
+pose inside it by nearly the best score anywhere (some wall is always that close), so little is pruned, and
+on CSAIL 6 levels cost ~1.4× the verification time of 4."""
+FINE_SEARCH_CELLS = 200
+"""A loop closure's window is searched on the submap's own grid up to this many cells from its centre (10 m
+at 5 cm; 0.08 s a search on a 30 m-range outdoor log). Where the drift allows more (a long path since the
+candidate) and that search finds nothing, the whole window is searched on a grid coarse enough to hold it
+in as many cells, for a match beyond the fine window (`global_match.match_beyond`). The UAL outdoor log
+came back to its start 14 m off after 570 m, beyond any 10 m window, and its map held the street twice,
+7 m apart."""
 LOCAL_MAP_GROWTH = 4
 """A new keyframe is stamped into the local map in place until the map holds this many keyframes more than
 `local_map_keyframes`; the next one builds it again from the last `local_map_keyframes`. Building it
@@ -593,24 +607,22 @@ class LaserSlam2D:
         positions = np.array(self._keyframe_poses[: older + 1])[:, :2]
         here = self._keyframe_poses[current]
         distance = np.hypot(*(positions - here[:2]).T)
-        candidates: list[int] = []
         # The drift between two keyframes grows with the path joining them in the graph (through the
         # loop closures already made), not with the time since the last loop closure anywhere; no
         # keyframe within the largest radius needs no path lengths.
         radius = np.full(older + 1, settings.max_search_radius)
         if np.any(distance <= settings.max_search_radius):
             radius = settings.search_radii(self._path_lengths_to(current)[: older + 1])
-        for candidate in np.argsort(distance / radius):
-            if distance[candidate] > radius[candidate] or len(candidates) >= LOOP_CANDIDATES_PER_KEYFRAME:
-                break
-            if all(abs(int(candidate) - c) > settings.submap_keyframes for c in candidates):
-                candidates.append(int(candidate))
+        fine = np.minimum(radius, FINE_SEARCH_CELLS * self.config.matching.resolution)
+        candidates = self._loop_candidates(distance, fine) or self._loop_candidates(distance, radius)
         found = []
         accepted_now: list[_LoopHypothesis] = []
         self._hypotheses.expire(current, HYPOTHESIS_KEYFRAMES)
         for candidate in candidates:
+            fine_first = bool(distance[candidate] <= fine[candidate])
             with self.stage_times.stage("verification"):
-                hypothesis = self._verify_loop(candidate, current, float(radius[candidate]))
+                hypothesis = self._verify_loop(candidate, current, float(fine[candidate]),
+                                               float(radius[candidate]), fine_first)
             if hypothesis is None:
                 continue
             for accepted in self._hypotheses.confirm(hypothesis):
@@ -638,7 +650,24 @@ class LaserSlam2D:
         lengths = np.array(edges.planar_length, dtype=np.float64)
         return path_lengths(len(self._keyframe_poses), first, second, lengths, keyframe)
 
-    def _verify_loop(self, candidate: int, current: int, radius: float) -> _LoopHypothesis | None:
+    def _loop_candidates(self, distance: FloatArray, radius: FloatArray) -> list[int]:
+        """Up to `LOOP_CANDIDATES_PER_KEYFRAME` keyframes within `radius` of the current one (`distance`
+        away), the nearest for its radius first, each a submap away from the others."""
+        spacing = self.config.loop_closure.submap_keyframes
+        candidates: list[int] = []
+        for candidate in np.argsort(distance / radius):
+            if distance[candidate] > radius[candidate] or len(candidates) >= LOOP_CANDIDATES_PER_KEYFRAME:
+                break
+            if all(abs(int(candidate) - c) > spacing for c in candidates):
+                candidates.append(int(candidate))
+        return candidates
+
+    def _verify_loop(self, candidate: int, current: int, fine_radius: float, radius: float,
+                     fine_first: bool) -> _LoopHypothesis | None:
+        """The loop closure from `candidate`'s submap to the current keyframe, or None: searched within
+        `fine_radius` on the submap's grid (`fine_first`: the candidate is that near), and where that finds
+        none, within the drift's whole `radius` on a coarser grid for a match beyond the fine window
+        (`match_beyond`)."""
         settings = self.config.loop_closure
         matching = self.config.matching
         around = range(
@@ -650,14 +679,22 @@ class LaserSlam2D:
             [self._keyframe_poses[k] for k in around],
             resolution=matching.resolution,
             likelihood_sigma=matching.likelihood_sigma,
-            margin=radius + 1.0,
+            margin=fine_radius + 1.0,
             pairing_distance=matching.icp_max_distance,
         )
         here = self._keyframe_poses[current]
         query = self._query_points(current)
-        window = SearchWindow(radius, settings.angular_window, settings.angular_step)
-        verified = match_unambiguous(query, submap, here, window, matching=matching, acceptance=settings,
-                                     levels=BRANCH_AND_BOUND_LEVELS, crop_pyramid=True)
+        window = SearchWindow(fine_radius, settings.angular_window, settings.angular_step)
+        verified = None
+        if fine_first:
+            levels = branch_and_bound_levels(fine_radius, matching.resolution,
+                                             minimum=BRANCH_AND_BOUND_LEVELS)
+            verified = match_unambiguous(query, submap, here, window, matching=matching, acceptance=settings,
+                                         levels=levels, crop_pyramid=True)
+        if verified is None and radius > fine_radius:
+            verified = match_beyond(query, submap, here, window, radius, matching=matching,
+                                    acceptance=settings, cells=FINE_SEARCH_CELLS,
+                                    min_levels=BRANCH_AND_BOUND_LEVELS)
         if verified is None:
             return None
         refined = verified.icp

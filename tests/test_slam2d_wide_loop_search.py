@@ -1,0 +1,109 @@
+"""Loop closures beyond the fine search's window (`global_match.match_beyond`): where the drift since the
+candidate allows more than the window a search on the submap's own grid covers, the wider window is searched
+on a coarser grid; a match counts only beyond the fine window and where the submap's own grid scores it.
+On the synthetic square-loop floor (tests/laser_world.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from frontends.slam2d.config import LoopClosureConfig, MatchingConfig
+from frontends.slam2d.correlative import SearchWindow, branch_and_bound_levels, match_exhaustive
+from frontends.slam2d.global_match import match_beyond
+from frontends.slam2d.icp import scan_normals
+from frontends.slam2d.local_map import Keyframe, Submap
+from optimizer import se2
+from tests.laser_world import simulate_scan, square_loop
+
+MATCHING = MatchingConfig()
+ACCEPTANCE = LoopClosureConfig()
+FINE_CELLS = 200
+FINE_RADIUS = FINE_CELLS * MATCHING.resolution
+"""10 m: the window a search on the submap's own grid covers."""
+
+
+def test_wider_windows_get_more_levels_up_to_a_bounded_coarsest_level() -> None:
+    # 2.3 m at 5 cm (93 cells across): 6 coarsest candidates a side at the minimum of 4 levels.
+    assert branch_and_bound_levels(2.3, 0.05, minimum=4) == 4
+    # 5 m (201 cells): 4 levels would leave 13 a side, 5 leave 7.
+    assert branch_and_bound_levels(5.0, 0.05, minimum=4) == 5
+    # 10 m (401 cells): 26 a side at 4 levels, 7 at 6.
+    assert branch_and_bound_levels(10.0, 0.05, minimum=4) == 6
+    assert branch_and_bound_levels(30.0, 0.15, minimum=4) == 6
+    assert branch_and_bound_levels(0.2, 0.05, minimum=3) == 3
+    for radius, resolution in ((2.3, 0.05), (5.0, 0.05), (10.0, 0.05), (50.0, 0.05)):
+        levels = branch_and_bound_levels(radius, resolution, minimum=1)
+        side = (2 * math.ceil(radius / resolution) + 1) / 2**levels
+        assert side <= 8 < side * 2
+
+
+@pytest.fixture(scope="module")
+def south_corridor_submap() -> Submap:
+    """The keyframes a robot scanned driving the square loop's south corridor, x from 3 to 17 m."""
+    world = square_loop()
+    rng = np.random.default_rng(3)
+    poses = [np.array([x, 1.0, 0.0]) for x in np.arange(3.0, 17.01, 1.0)]
+    scans = [simulate_scan(world.segments, pose, beams=360, range_noise=0.01, rng=rng) for pose in poses]
+    return Submap.of([Keyframe(s, scan_normals(s)) for s in scans], poses, resolution=MATCHING.resolution,
+                     likelihood_sigma=MATCHING.likelihood_sigma, margin=FINE_RADIUS + 1.0,
+                     pairing_distance=MATCHING.icp_max_distance)
+
+
+def query_at(pose: np.ndarray, range_noise: float = 0.01) -> np.ndarray:
+    """A scan taken at `pose` in the square loop, in the robot's frame."""
+    return simulate_scan(square_loop().segments, pose, beams=360, range_noise=range_noise,
+                         rng=np.random.default_rng(4))
+
+
+def fine_window() -> SearchWindow:
+    return SearchWindow(FINE_RADIUS, ACCEPTANCE.angular_window, ACCEPTANCE.angular_step)
+
+
+def test_a_match_beyond_the_fine_window_is_found_on_the_coarser_grid(south_corridor_submap: Submap) -> None:
+    truth = np.array([9.5, 1.2, 0.1])
+    # The drift put the current keyframe 12 m off, beyond a 10 m window; 16 m of drift are allowed.
+    estimate = truth + np.array([12.0, 2.0, math.radians(4.0)])
+    found = match_beyond(query_at(truth), south_corridor_submap, estimate, fine_window(), 16.0,
+                         matching=MATCHING, acceptance=ACCEPTANCE, cells=FINE_CELLS)
+    assert found is not None
+    error = se2.relative(truth, found.icp.pose)
+    assert math.hypot(error[0], error[1]) < 0.05
+    assert abs(error[2]) < math.radians(0.5)
+
+
+def test_no_match_is_taken_inside_the_fine_window(south_corridor_submap: Submap) -> None:
+    # Inside the fine window the search on the submap's own grid decides (it found nothing there, or a
+    # rival): the coarser search must not overrule it.
+    truth = np.array([9.5, 1.2, 0.1])
+    estimate = truth + np.array([6.0, 2.0, math.radians(4.0)])
+    assert match_beyond(query_at(truth), south_corridor_submap, estimate, fine_window(), 16.0,
+                        matching=MATCHING, acceptance=ACCEPTANCE, cells=FINE_CELLS) is None
+    # The same scan and drift with a fine window of 5 m: the match lies beyond it, and is found.
+    narrow = SearchWindow(5.0, ACCEPTANCE.angular_window, ACCEPTANCE.angular_step)
+    assert match_beyond(query_at(truth), south_corridor_submap, estimate, narrow, 16.0,
+                        matching=MATCHING, acceptance=ACCEPTANCE, cells=FINE_CELLS) is not None
+
+
+def test_a_match_the_submap_grid_does_not_score_is_refused(south_corridor_submap: Submap) -> None:
+    truth = np.array([9.5, 1.2, 0.1])
+    estimate = truth + np.array([12.0, 2.0, math.radians(4.0)])
+    # Noisier ranges (5 cm) and a 30 m window, searched on 15 cm cells: the coarse grid's likelihood (σ of a
+    # cell) scores the match higher than the submap's own grid (σ 6 cm) does, best within a cell and an
+    # angular step of the match.
+    query = query_at(truth, range_noise=0.05)
+    lenient = LoopClosureConfig(min_score=0.3)
+    found = match_beyond(query, south_corridor_submap, estimate, fine_window(), 30.0,
+                         matching=MATCHING, acceptance=lenient, cells=FINE_CELLS)
+    assert found is not None
+    around = SearchWindow(MATCHING.resolution, ACCEPTANCE.angular_step, ACCEPTANCE.angular_step)
+    fine_score = match_exhaustive(query, south_corridor_submap.grid, found.icp.pose, around).score
+    assert fine_score < found.score - 0.02
+    between_the_two = LoopClosureConfig(min_score=0.5 * (fine_score + found.score))
+    assert match_beyond(query, south_corridor_submap, estimate, fine_window(), 30.0,
+                        matching=MATCHING, acceptance=between_the_two, cells=FINE_CELLS) is None
+    just_below = LoopClosureConfig(min_score=fine_score - 1e-3)
+    assert match_beyond(query, south_corridor_submap, estimate, fine_window(), 30.0,
+                        matching=MATCHING, acceptance=just_below, cells=FINE_CELLS) is not None
