@@ -163,6 +163,25 @@ def long_corridor(length: float = 200.0, width: float = 2.0) -> World:
     return World(segments, np.array([[-10.0, 0.0], [10.0, 0.0]]), turn_radius=0.5)
 
 
+def ring_corridors(length: float = 140.0) -> World:
+    """Two parallel 3 m corridors `length` m long, joined at both ends (a thin ring around a wall), nothing
+    along them but their walls; clutter at the west end, where the drive starts and, after a lap, ends.
+
+    Along the corridors no scan pins the robot's position along them: the wheel odometry decides it. A
+    lap later the clutter at the start is the only place where the map can be seen to be off."""
+    parts = [
+        wall((0, 0), (length, 0)), wall((length, 0), (length, 6)), wall((length, 6), (0, 6)),
+        wall((0, 6), (0, 0)), wall((8, 3), (length - 8, 3)),
+        box(1.0, 0.0, 1.6, 0.4), box(3.0, 5.5, 4.2, 6.0), box(6.0, 0.0, 6.3, 0.6), box(0.0, 2.0, 0.5, 2.8),
+        box(10.0, 0.0, 10.8, 0.3), box(9.0, 5.7, 9.4, 6.0), box(12.0, 2.7, 12.6, 3.0),
+        box(2.0, 3.0, 2.6, 3.4),
+        box(length - 4.0, 0.0, length - 3.5, 0.4), box(length - 2.0, 5.6, length - 1.0, 6.0),
+    ]
+    route = np.array([[4, 1.5], [length - 4, 1.5], [length - 4, 4.5], [4, 4.5], [4, 1.5], [30, 1.5]],
+                     dtype=np.float64)
+    return World(np.concatenate(parts), route, turn_radius=1.0)
+
+
 TWIN_ROOM_SHIFT = 3.5
 """Room B is room A moved this far east (m): closer than a loop-closure search radius."""
 

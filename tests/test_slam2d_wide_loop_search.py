@@ -6,17 +6,19 @@ On the synthetic square-loop floor (tests/laser_world.py)."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from frontends.slam2d.config import LoopClosureConfig, MatchingConfig
+from frontends.slam2d.config import LoopClosureConfig, MatchingConfig, Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, branch_and_bound_levels, match_exhaustive
 from frontends.slam2d.global_match import match_beyond
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from optimizer import se2
-from tests.laser_world import simulate_scan, square_loop
+from tests.laser_world import Run, between, compose, drive, ring_corridors, simulate_scan, square_loop
+from tests.slam2d_runs import position_errors, run_slam, wrong_loop_closures
 
 MATCHING = MatchingConfig()
 ACCEPTANCE = LoopClosureConfig()
@@ -107,3 +109,35 @@ def test_a_match_the_submap_grid_does_not_score_is_refused(south_corridor_submap
     just_below = LoopClosureConfig(min_score=fine_score - 1e-3)
     assert match_beyond(query, south_corridor_submap, estimate, fine_window(), 30.0,
                         matching=MATCHING, acceptance=just_below, cells=FINE_CELLS) is not None
+
+
+def slipping_lap(slip: float) -> Run:
+    """A lap of `ring_corridors`, its wheels slipping on the way out: along the first corridor the odometry
+    counts `slip` times the distance driven (12 %: 14 m too far over its 116 m), elsewhere it is exact."""
+    world = ring_corridors()
+    truth = drive(world, 0.2)
+    steps = between(truth[:-1], truth[1:])
+    outward = (np.arange(len(steps)) < len(steps) // 2) & (truth[:-1, 1] < 3.0) & (truth[:-1, 0] > 14.0)
+    steps[outward & (truth[:-1, 0] < 130.0), :2] *= slip
+    odometry = np.empty_like(truth)
+    odometry[0] = truth[0]
+    for k, step in enumerate(steps):
+        odometry[k + 1] = compose(odometry[k], step)
+    rng = np.random.default_rng(0)
+    scans = tuple(simulate_scan(world.segments, pose, range_noise=0.01, rng=rng) for pose in truth)
+    stamps = 1_700_000_000_000_000_000 + np.arange(len(truth), dtype=np.int64) * 400_000_000
+    return Run(stamps, truth, odometry, scans)
+
+
+def test_a_lap_that_comes_back_13_m_off_closes_its_loop_beyond_the_fine_window() -> None:
+    run = slipping_lap(1.12)
+    config = Slam2DConfig()
+    # The drift allowed at the start after a lap (2 m + 5 % of 280 m) holds 13 m; a 10 m window does not.
+    widened = run_slam(run, with_odometry=True, config=config)
+    assert widened.result.loop_closures_accepted >= 1
+    assert wrong_loop_closures(widened) == []
+    assert position_errors(widened.final_scan_poses, run.truth)[-1] < 0.2
+    capped_config = replace(config, loop_closure=replace(config.loop_closure, max_search_radius=10.0))
+    capped = run_slam(run, with_odometry=True, config=capped_config)
+    assert capped.result.loop_closures_accepted == 0
+    assert position_errors(capped.final_scan_poses, run.truth)[-1] > 10.0
