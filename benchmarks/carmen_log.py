@@ -137,6 +137,27 @@ class _MrptArchive:
     def string(self) -> str:
         return self.take(self.unpack("I")[0]).decode()
 
+    def _range_scan(self, version: int) -> tuple[int, RawlogScan]:
+        """A CObservation2DRangeScan's fields after its version: (stamp, scan)."""
+        aperture, right_to_left, _ = self.unpack("fBf")  # aperture, right to left, max range
+        _, mount = self.read_object()
+        count = self.unpack("I")[0]
+        ranges = np.frombuffer(self.take(4 * count), "<f4").astype(np.float32)
+        valid = np.frombuffer(self.take(count), np.uint8).astype(bool)
+        stamp = self.unpack("fQf")[1]  # σ, stamp, beam aperture
+        self.string()  # sensor label
+        if version == 7:  # carmen2rawlog's (the Radish rawlogs; see the module's docstring)
+            # Δpitch, the intensity flag (unset): it wrote more zeros than these. Its aperture is not the
+            # FLASER's 180°, its sensor pose (identity) not a laser mount, and every range is valid.
+            while self.data[self.at] == 0:
+                self.at += 1
+            return stamp, RawlogScan(ranges, -math.pi / 2, math.pi / (count - count % 2), None)
+        self.unpack("d")  # Δpitch (a double here)
+        ranges = np.where(valid, ranges, np.float32(np.nan))  # no return (REP 117)
+        if not right_to_left:
+            ranges = ranges[::-1].copy()
+        return stamp, RawlogScan(ranges, -aperture / 2, aperture / (count - 1), mount)
+
     def read_object(self) -> tuple[str, object]:
         head = self.take(1)[0]
         if not head & 0x80:
@@ -149,45 +170,18 @@ class _MrptArchive:
         elif name.endswith("CPose3D") and version == 2:
             x, y, _, qw, qx, qy, qz = self.unpack("7d")  # x, y, z, the rotation as a quaternion
             value = (x, y, math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz)))
-        elif name == "mrpt::obs::CObservationOdometry" and version == 2:
+        elif name.endswith("CObservationOdometry") and version in (1, 2):
             _, pose = self.read_object()
             self.string()  # sensor label
             stamp = self.unpack("Q")[0]
-            for size in (8, 8):  # encoder ticks, velocities: each behind a presence flag
-                self.take(size if self.take(1)[0] else 0)
+            if version == 1:  # an observation-only rawlog's: ticks and velocities, whatever the flags say
+                self.unpack("?ii?ff")
+            else:
+                for size in (8, 8):  # encoder ticks, velocities: each behind a presence flag
+                    self.take(size if self.take(1)[0] else 0)
             value = (stamp, pose)
-        elif name.endswith("CObservationOdometry") and version == 1:  # an observation-only rawlog's
-            _, pose = self.read_object()
-            self.string()  # sensor label
-            stamp = self.unpack("Q")[0]
-            self.unpack("?ii?ff")  # encoder ticks, velocities, each behind a flag, written whatever it says
-            value = (stamp, pose)
-        elif name == "mrpt::obs::CObservation2DRangeScan" and version == 7:
-            self.unpack("fBf")  # aperture, right to left, max range
-            self.read_object()  # the sensor pose (identity in the Radish rawlogs)
-            count = self.unpack("I")[0]
-            ranges = np.frombuffer(self.take(4 * count), "<f4").astype(np.float32)
-            self.take(count)  # valid flags: every range is valid in the Radish rawlogs
-            stamp = self.unpack("fQf")[1]  # σ, stamp, beam aperture
-            self.string()  # sensor label
-            # Δpitch, the intensity flag (unset): carmen2rawlog wrote more zeros than these
-            while self.data[self.at] == 0:
-                self.at += 1
-            # carmen2rawlog's aperture is not the FLASER's 180° (see the module's docstring)
-            value = (stamp, RawlogScan(ranges, -math.pi / 2, math.pi / (count - count % 2), None))
-        elif name.endswith("CObservation2DRangeScan") and version == 6:  # an observation-only rawlog's
-            aperture, right_to_left, _ = self.unpack("fBf")
-            _, mount = self.read_object()
-            count = self.unpack("I")[0]
-            ranges = np.frombuffer(self.take(4 * count), "<f4").astype(np.float32)
-            valid = np.frombuffer(self.take(count), np.uint8).astype(bool)
-            stamp = self.unpack("fQf")[1]  # σ, stamp, beam aperture
-            self.string()  # sensor label
-            self.unpack("d")  # Δpitch (a double here)
-            ranges = np.where(valid, ranges, np.float32(np.nan))  # no return (REP 117)
-            if not right_to_left:
-                ranges = ranges[::-1].copy()
-            value = (stamp, RawlogScan(ranges, -aperture / 2, aperture / (count - 1), mount))
+        elif name.endswith("CObservation2DRangeScan") and version in (6, 7):
+            value = self._range_scan(version)
         else:
             raise ValueError(f"unsupported object {name} version {version} at byte {self.at}")
         if self.take(1) != b"\x88":

@@ -16,6 +16,7 @@ from frontends.slam2d.correlative import SearchWindow, branch_and_bound_levels, 
 from frontends.slam2d.global_match import match_beyond
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
+from frontends.slam2d.slam import BRANCH_AND_BOUND_LEVELS
 from optimizer import se2
 from tests.laser_world import Run, between, compose, drive, ring_corridors, simulate_scan, square_loop
 from tests.slam2d_runs import position_errors, run_slam, wrong_loop_closures
@@ -25,6 +26,8 @@ ACCEPTANCE = LoopClosureConfig()
 FINE_CELLS = 200
 FINE_RADIUS = FINE_CELLS * MATCHING.resolution
 """10 m: the window a search on the submap's own grid covers."""
+WIDE_SEARCH = {"cells": FINE_CELLS, "min_levels": BRANCH_AND_BOUND_LEVELS}
+"""`match_beyond`'s grid and levels, as the SLAM's loop closures ask for them."""
 
 
 def test_wider_windows_get_more_levels_up_to_a_bounded_coarsest_level() -> None:
@@ -69,7 +72,7 @@ def test_a_match_beyond_the_fine_window_is_found_on_the_coarser_grid(south_corri
     # The drift put the current keyframe 12 m off, beyond a 10 m window; 16 m of drift are allowed.
     estimate = truth + np.array([12.0, 2.0, math.radians(4.0)])
     found = match_beyond(query_at(truth), south_corridor_submap, estimate, fine_window(), 16.0,
-                         matching=MATCHING, acceptance=ACCEPTANCE, cells=FINE_CELLS)
+                         matching=MATCHING, acceptance=ACCEPTANCE, **WIDE_SEARCH)
     assert found is not None
     error = se2.relative(truth, found.icp.pose)
     assert math.hypot(error[0], error[1]) < 0.05
@@ -82,11 +85,11 @@ def test_no_match_is_taken_inside_the_fine_window(south_corridor_submap: Submap)
     truth = np.array([9.5, 1.2, 0.1])
     estimate = truth + np.array([6.0, 2.0, math.radians(4.0)])
     assert match_beyond(query_at(truth), south_corridor_submap, estimate, fine_window(), 16.0,
-                        matching=MATCHING, acceptance=ACCEPTANCE, cells=FINE_CELLS) is None
+                        matching=MATCHING, acceptance=ACCEPTANCE, **WIDE_SEARCH) is None
     # The same scan and drift with a fine window of 5 m: the match lies beyond it, and is found.
     narrow = SearchWindow(5.0, ACCEPTANCE.angular_window, ACCEPTANCE.angular_step)
     assert match_beyond(query_at(truth), south_corridor_submap, estimate, narrow, 16.0,
-                        matching=MATCHING, acceptance=ACCEPTANCE, cells=FINE_CELLS) is not None
+                        matching=MATCHING, acceptance=ACCEPTANCE, **WIDE_SEARCH) is not None
 
 
 def test_a_match_the_submap_grid_does_not_score_is_refused(south_corridor_submap: Submap) -> None:
@@ -98,17 +101,17 @@ def test_a_match_the_submap_grid_does_not_score_is_refused(south_corridor_submap
     query = query_at(truth, range_noise=0.05)
     lenient = LoopClosureConfig(min_score=0.3)
     found = match_beyond(query, south_corridor_submap, estimate, fine_window(), 30.0,
-                         matching=MATCHING, acceptance=lenient, cells=FINE_CELLS)
+                         matching=MATCHING, acceptance=lenient, **WIDE_SEARCH)
     assert found is not None
     around = SearchWindow(MATCHING.resolution, ACCEPTANCE.angular_step, ACCEPTANCE.angular_step)
     fine_score = match_exhaustive(query, south_corridor_submap.grid, found.icp.pose, around).score
     assert fine_score < found.score - 0.02
     between_the_two = LoopClosureConfig(min_score=0.5 * (fine_score + found.score))
     assert match_beyond(query, south_corridor_submap, estimate, fine_window(), 30.0,
-                        matching=MATCHING, acceptance=between_the_two, cells=FINE_CELLS) is None
+                        matching=MATCHING, acceptance=between_the_two, **WIDE_SEARCH) is None
     just_below = LoopClosureConfig(min_score=fine_score - 1e-3)
     assert match_beyond(query, south_corridor_submap, estimate, fine_window(), 30.0,
-                        matching=MATCHING, acceptance=just_below, cells=FINE_CELLS) is not None
+                        matching=MATCHING, acceptance=just_below, **WIDE_SEARCH) is not None
 
 
 def slipping_lap(slip: float) -> Run:

@@ -95,18 +95,19 @@ def match_beyond(
     matching: MatchingConfig,
     acceptance: LoopClosureConfig,
     cells: int,
-    min_levels: int = 4,
+    min_levels: int,
 ) -> VerifiedMatch | None:
     """`match_unambiguous` within ± `radius` around `center`, for a match beyond `fine_window` (the window
     a search on the submap's own grid covers), or None.
 
     The window is searched on a grid coarse enough to hold ± `radius` in `cells` cells (`COARSENING` times
-    the submap's at least; σ at least a cell), as the global localization searches a whole map; ICP on the
-    submap refines the match. It is kept only outside `fine_window`, where the fine search is the judge
-    (it found that pose below `min_score`, or with a rival a coarse cell blurs: on the Freiburg clinic log
-    a corridor 5.6 m along), and where the submap's own grid scores it at `min_score` within a cell and an
-    angular step, as a fine search would have (a coarse cell's likelihood is wide: there, look-alike
-    corridors 23 m apart scored 0.57–0.61 on it and 0.39–0.43 on the submap's)."""
+    the submap's at least; σ at least a cell; at least `min_levels` branch-and-bound levels), as the global
+    localization searches a whole map; ICP on the submap refines the match. It is kept only outside
+    `fine_window`, where the fine search is the judge (it found that pose below `min_score`, or with a
+    rival a coarse cell blurs: on the Freiburg clinic log a corridor 5.6 m along), and where the submap's
+    own grid scores it at `min_score` within a cell and an angular step, as a fine search would have (a
+    coarse cell's likelihood is wide: there, look-alike corridors 23 m apart scored 0.57–0.61 on it and
+    0.39–0.43 on the submap's)."""
     resolution = max(radius / cells, COARSENING * submap.grid.resolution)
     spread = max(matching.likelihood_sigma, resolution)
     # Only the points' own neighbourhood: the search reads nothing beyond the grid, as it reads zeros.

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune, path_lengths
+from frontends.loop_closing import Constraints, HypothesisPool, is_small, optimize_and_prune, path_lengths
 from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import (
     HYPOTHESIS_KEYFRAMES,
@@ -456,9 +456,8 @@ class LaserSlam2D:
 
     def _same_pose(self, a: FloatArray, b: FloatArray) -> bool:
         """Whether two matches found the same optimum: within a cell and an angular step."""
-        step = se2.relative(a, b)
-        return (math.hypot(step[0], step[1]) <= self.config.matching.resolution
-                and abs(step[2]) <= self.config.odometry.angular_step)
+        return is_small(se2.relative(a, b), self.config.matching.resolution,
+                        self.config.odometry.angular_step)
 
     def _match_around(
         self, stamp_ns: int, points: FloatArray, center: FloatArray, prior: FloatArray,
