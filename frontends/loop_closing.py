@@ -18,7 +18,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import combinations
-from typing import Protocol
+from typing import Generic, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -84,27 +84,33 @@ class Constraints:
 
 
 class Hypothesis(Protocol):
-    current: int
-    """The keyframe that found the loop closure."""
-    correction: FloatArray
-    """Planar (x, y, θ): matched pose ∘ estimated pose⁻¹ of `current`, how far the match moves the map."""
+    @property
+    def current(self) -> int:
+        """The keyframe that found the loop closure."""
+
+    @property
+    def correction(self) -> FloatArray:
+        """Planar (x, y, θ): matched pose ∘ estimated pose⁻¹ of `current`, how far the match moves the map."""
 
 
 def is_small(transform: FloatArray, linear: float, angular: float) -> bool:
     return bool(np.hypot(transform[0], transform[1]) <= linear and abs(transform[2]) <= angular)
 
 
+H = TypeVar("H", bound=Hypothesis)
+
+
 @dataclass
-class HypothesisPool:
+class HypothesisPool(Generic[H]):
     """Loop closures waiting for a second one that agrees with their correction."""
 
     small_linear: float
     small_angular: float
-    pending: list[Hypothesis] = field(default_factory=list)
+    pending: list[H] = field(default_factory=list)
     dropped: int = 0
     """Hypotheses forgotten unconfirmed so far (expired, or void after the map moved)."""
 
-    def confirm(self, hypothesis: Hypothesis) -> list[Hypothesis]:
+    def confirm(self, hypothesis: H) -> list[H]:
         """The loop closures `hypothesis` makes acceptable: itself when it barely moves the map; otherwise
         it and the pending ones it agrees with, or none (it waits for a second one)."""
         if is_small(hypothesis.correction, self.small_linear, self.small_angular):

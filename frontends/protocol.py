@@ -62,15 +62,37 @@ def default_base_frame(tree: TransformTree, sensor_frame: str) -> str:
 
 
 class Estimate(Protocol):
-    """What a frontend concluded about one measurement when it processed it."""
+    """What a frontend concluded about one measurement when it processed it (read-only: the frontends'
+    estimates are frozen)."""
 
-    index: int
-    stamp_ns: int
-    keyframe: int
-    new_loop_closures: tuple[tuple[int, int], ...]
+    @property
+    def index(self) -> int: ...
+
+    @property
+    def stamp_ns(self) -> int: ...
+
+    @property
+    def keyframe(self) -> int: ...
+
+    @property
+    def new_loop_closures(self) -> tuple[tuple[int, int], ...]: ...
 
 
-class LogFrontend(Protocol):
+class StreamedFrontend(Protocol):
+    """What mapping and localizing frontends share: the log's measurements streamed through `add`."""
+
+    def measurements(self) -> Iterator[Any]:
+        """The log's measurements, in sensor-time order, as `add` takes them."""
+        ...
+
+    def add(self, measurement: Any) -> Estimate: ...
+
+    def finish(self) -> None:
+        """The end of the stream: the last online optimization (mapping); the results need it."""
+        ...
+
+
+class LogFrontend(StreamedFrontend, Protocol):
     """A SLAM frontend fed from a log (see the module docstring for the order of calls)."""
 
     sensor_frame: str
@@ -80,16 +102,6 @@ class LogFrontend(Protocol):
     odometry_topic: str | None
     """The odometry topic read, `tf <odom> -> <child>` when the odometry came from tf's odom edge, None
     without odometry."""
-
-    def measurements(self) -> Iterator[Any]:
-        """The log's measurements, in sensor-time order, as `add` takes them."""
-        ...
-
-    def add(self, measurement: Any) -> Estimate: ...
-
-    def finish(self) -> None:
-        """The last online optimization; the methods below need it."""
-        ...
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         """The SE(2) keyframe graph the backend optimizes, at the online estimate unless `planar_poses`."""
@@ -134,6 +146,15 @@ class LogFrontend(Protocol):
 
     def settings(self) -> dict[str, Any]:
         """The frontend's configuration, as plain data."""
+        ...
+
+
+class ContinuingFrontend(LogFrontend, Protocol):
+    """A frontend mapping on from a saved session."""
+
+    def placement(self) -> dict[str, Any]:
+        """Where the new run joined the saved map (measurement index, stamp, pose, match quality); {}
+        when no measurement was placed in it."""
         ...
 
 
@@ -367,4 +388,4 @@ class LogFrontendBase(Generic[ConfigT, ResultT]):
         return None
 
     def settings(self) -> dict[str, Any]:
-        return dataclasses.asdict(self.config)  # type: ignore[call-overload, no-any-return]
+        return dataclasses.asdict(self.config)  # type: ignore[call-overload]

@@ -69,7 +69,8 @@ def reversed_anisotropic_variant(graph: PoseGraph, seed: int) -> PoseGraph:
     if len(loops) == 0:
         raise GraphError("the graph has no loop closures to reverse")
     rng = np.random.default_rng(seed)
-    ratio = 10.0 ** rng.uniform(*np.log10(ANISOTROPY_RANGE), size=len(loops))
+    low, high = np.log10(ANISOTROPY_RANGE)
+    ratio = 10.0 ** rng.uniform(low, high, size=len(loops))
     direction = rng.uniform(0.0, np.pi, size=len(loops))
     forward_information = _anisotropic_information(graph.information[loops], ratio, direction)
 

@@ -39,7 +39,7 @@ def inverted_diagonal(matrix: sp.bsr_matrix) -> FloatArray:
     rounding, tested). A block is singular when a pivot is exactly zero, as for LAPACK's `getrf`."""
     blocks = _diagonal_of(matrix)
     if not _invert_blocks(blocks):  # a pose or aggregate its constraints leave free in some direction
-        return np.linalg.pinv(_diagonal_of(matrix))
+        return np.linalg.pinv(_diagonal_of(matrix)).astype(np.float64, copy=False)
     return blocks
 
 

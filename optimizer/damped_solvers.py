@@ -46,6 +46,9 @@ class DirectSolver:
     """Exact steps from qdldl's LDLᵀ; the factorisation's ordering and symbolic analysis are kept."""
 
     exact = True
+    forcing = 0.0
+    """The CG solvers' stopping rule, here for the same interface: a factorisation solves to rounding."""
+    last_converged = True
 
     def __init__(self, pattern: UpperPattern) -> None:
         self._pattern = pattern

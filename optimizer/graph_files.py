@@ -419,7 +419,8 @@ def _complete_poses(path: Path, vertex_ids: IntArray, vertex_poses: FloatArray, 
     # Runs [start, stop) of consecutive unknown poses, composed from the known pose just before them
     # (or, for a run at the very beginning, backwards from the known pose just after).
     change = np.diff(np.concatenate([[0], (~known).astype(np.int8), [0]]))
-    for start, stop in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1), strict=True):
+    for start, stop in zip(np.flatnonzero(change == 1).tolist(), np.flatnonzero(change == -1).tolist(),
+                           strict=True):
         if start > 0:
             missing = np.flatnonzero(~has_step[start - 1:stop - 1])
             if len(missing):
@@ -492,7 +493,8 @@ def _write_rows(file: BinaryIO, tables: Sequence[pa.Table]) -> None:
 
     chunks = (table.slice(start, WRITE_CHUNK_ROWS) for table in tables
               for start in range(0, table.num_rows, WRITE_CHUNK_ROWS))
-    workers = numba_config.NUMBA_NUM_THREADS  # without starting numba's thread pool
+    # Without starting numba's thread pool (numba's config module sets its attributes at import).
+    workers = numba_config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]
     pending: deque[Future[pa.Buffer]] = deque()
     with ThreadPoolExecutor(max_workers=workers) as pool:
         for chunk in chunks:

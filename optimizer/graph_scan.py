@@ -62,7 +62,7 @@ def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]
     expected = np.asarray(fields, dtype=np.int64)
 
     # The configured count, read without starting numba's thread pool (a log replay never starts it).
-    bounds = _piece_bounds(data, start, numba_config.NUMBA_NUM_THREADS)
+    bounds = _piece_bounds(data, start, numba_config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
     # Every piece but the last ends with a line end, so its line ends count its lines.
     line_ends = [data.count(b"\n", first, stop) for first, stop in bounds]
     lines_before = [0, *accumulate(line_ends[:-1])]

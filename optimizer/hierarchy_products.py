@@ -337,11 +337,11 @@ def _galerkin_counts(a_indptr: IntArray, a_indices: IntArray, p_indptr: IntArray
 
 
 @njit(cache=True)
-def _row_range(rows: int, chunks: int, chunk: int) -> tuple[int, int]:
+def _row_range(rows: int, chunks: int, chunk: int | np.int64) -> tuple[int, int]:
     """Rows [first, last) of chunk `chunk` of `chunks` contiguous, near-equal ranges. Callers pass the
     prange index as np.int64: numba types it int64 before its parallel pass and uint64 after, which
     compiled this twice."""
-    return rows * chunk // chunks, rows * (chunk + 1) // chunks
+    return int(rows * chunk // chunks), int(rows * (chunk + 1) // chunks)
 
 
 @njit(cache=True)

@@ -123,7 +123,7 @@ def _gradient(graph: PoseGraph, errors: FloatArray, jac_a: FloatArray, jac_b: Fl
                             (3 * graph.edge_to[:, None] + within).reshape(-1)])
     full = np.bincount(index, weights=np.concatenate([grad_a.reshape(-1), grad_b.reshape(-1)]),
                        minlength=3 * graph.num_poses)
-    return full[3:]
+    return np.asarray(full[3:], dtype=np.float64)  # weighted: floats (numpy's stubs say integers)
 
 
 @dataclass(frozen=True)
@@ -403,6 +403,7 @@ def _solver_for(graph: PoseGraph, linear_solver: LinearSolver, aggregation_order
 def _linearise(graph: PoseGraph, pattern: Pattern, poses: FloatArray) -> Linearisation:
     size = 3 * (graph.num_poses - 1)
     gradient = np.empty(size)
+    hessian: FloatArray | None
     if isinstance(pattern, BlockPattern):
         hessian = np.empty((pattern.num_blocks, 3, 3))
         assemble_blocks(poses, graph.edge_from, graph.edge_to, graph.measurements, graph.information,

@@ -69,10 +69,10 @@ def compose(a: FloatArray, b: FloatArray) -> FloatArray:
         return np.array([ax + c * bx - s * by, ay + s * bx + c * by, _wrapped(at + bt)])
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    cosines, sines = np.cos(a[..., 2]), np.sin(a[..., 2])
     out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
-    out[..., 0] = a[..., 0] + c * b[..., 0] - s * b[..., 1]
-    out[..., 1] = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    out[..., 0] = a[..., 0] + cosines * b[..., 0] - sines * b[..., 1]
+    out[..., 1] = a[..., 1] + sines * b[..., 0] + cosines * b[..., 1]
     out[..., 2] = wrap_angle(a[..., 2] + b[..., 2])
     return out
 
@@ -98,12 +98,12 @@ def relative(a: FloatArray, b: FloatArray) -> FloatArray:
         return np.array([c * dx + s * dy, -s * dx + c * dy, _wrapped(bt - at)])
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    cosines, sines = np.cos(a[..., 2]), np.sin(a[..., 2])
     dx = b[..., 0] - a[..., 0]
     dy = b[..., 1] - a[..., 1]
     out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
-    out[..., 0] = c * dx + s * dy
-    out[..., 1] = -s * dx + c * dy
+    out[..., 0] = cosines * dx + sines * dy
+    out[..., 1] = -sines * dx + cosines * dy
     out[..., 2] = wrap_angle(b[..., 2] - a[..., 2])
     return out
 

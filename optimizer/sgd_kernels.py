@@ -534,7 +534,7 @@ def _prefetch_pose(k: int, base: np.ndarray, weights: np.ndarray, amounts: np.nd
     left child; the sums, adds and re-sums touch both children). One hint per cache line (64 bytes: a
     block's 8 rows of 3 doubles span up to 4 lines, a pair of 9-double nodes up to 4)."""
     start = 3 * ((k // block) * block)
-    prefetch(base, 3 * k)
+    prefetch(base, 3 * k)  # type: ignore[call-arg]  # a numba intrinsic: typed by numba, not mypy
     for line in (0, 8, 16, 23):
         prefetch(weights, start + line)
         prefetch(amounts, start + line)

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -262,7 +262,8 @@ class Optimization:
         finals: dict[str, Iteration] = {}
         references: list[_Reference] = []  # every candidate that converged: what a crawl is judged by
         abandoned: set[str] = set()
-        plans = [(name, start, True) for name, start in self._starts.items()]
+        plans: list[tuple[str, FloatArray | None, bool]] = [
+            (name, start, True) for name, start in self._starts.items()]
         if self._with_chordal:
             plans.append((CHORDAL, None, False))
         for name, start, descend in self._with_sync_plan(plans, candidates):
@@ -335,7 +336,7 @@ class Optimization:
         if min(finals) < max(finals) * (1.0 - SYNC_DISAGREEMENT):
             yield SYNC, None, False
 
-    def _stages(self, poses: FloatArray, descend: bool) -> Iterator[Iteration]:
+    def _stages(self, poses: FloatArray, descend: bool) -> Generator[Iteration, None, PolishStatus | None]:
         """The method's iterations from `poses` (the descent skipped unless `descend`); returns the polish's
         status, or None without a polish."""
         if self._robust is not None:
@@ -372,7 +373,7 @@ class _Aside:
     n iterations can only be abandoned against a reference that converged within n / `ABANDON_FACTOR`, so
     the aside is advanced no further: at most a tenth of the running polish's cost."""
 
-    def __init__(self, stages: Iterator[Iteration]) -> None:
+    def __init__(self, stages: Generator[Iteration, None, PolishStatus | None]) -> None:
         self._stages = stages
         self._steps = 0
         self._chi2 = math.inf

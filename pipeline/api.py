@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     from pipeline.replay_log import LogReplayResult, SessionStart
 
 KNOWN_ERRORS: tuple[type[Exception], ...] = (OptimizerError, FrontendError, PipelineError)
+_KNOWN_OR_SYSTEM_ERRORS: tuple[type[Exception], ...] = (*KNOWN_ERRORS, OSError)
 """What a replay raises on purpose (bad input, unwritable outputs); anything else is a bug."""
 
 DEFAULT_OUT_DIR = Path("recordings")
@@ -242,5 +243,5 @@ def expected_scans(path: str | Path, scan_topic: str | None = None) -> int | Non
         with open_log(path) as log:
             topic, _ = log.sensor_topic(scan_topic)
             return sum(info.count for info in log.info().topics if info.name == topic) or None
-    except (*KNOWN_ERRORS, OSError):
+    except _KNOWN_OR_SYSTEM_ERRORS:
         return None

@@ -75,7 +75,8 @@ class ReplayGroup(TyperGroup):
     leaving room for subcommands (`replay info`, …): a group's own positional argument would swallow them.
     """
 
-    def parse_args(self, ctx: typer.Context, args: list[str]) -> list[str]:
+    def parse_args(self, ctx: typer.Context, args: list[str]) -> list[str]:  # type: ignore[override]
+        # (typer passes its own `Context`, a subclass of the vendored click one the base class names)
         if not args or args[0] not in self.commands:
             ctx.meta[_IMPLICIT_DEFAULT] = True
             args = [DEFAULT_COMMAND, *args]
@@ -259,10 +260,11 @@ def run(
 ) -> None:
     """Replay logs (or optimise pose graphs), recording every iteration, and write the results to DIR."""
     # The options that set configuration keys (named alike: --scan-topic sets [input] scan_topic), given.
-    options = {"optimizer": {"method": method and method.value, "iterations": iterations,
-                             "robust": robust and robust.value},
-               "input": {"scan_topic": scan_topic, "odom_topic": odom_topic, "base_frame": base_frame,
-                         "repair_information": repair_information or None}}
+    options: dict[str, dict[str, object]] = {
+        "optimizer": {"method": method and method.value, "iterations": iterations,
+                      "robust": robust and robust.value},
+        "input": {"scan_topic": scan_topic, "odom_topic": odom_topic, "base_frame": base_frame,
+                  "repair_information": repair_information or None}}
     overrides = {section: {key: value for key, value in values.items() if value is not None}
                  for section, values in options.items()}
     from pipeline.config import config_from_mapping, load_config
@@ -289,7 +291,7 @@ def run(
     from pipeline.batch import refuse_clashing_outputs
 
     with sample_log() if not sources else contextlib.nullcontext() as sample:
-        inputs = sources or [sample]
+        inputs = sources or ([sample] if sample is not None else [])
         try:
             refuse_clashing_outputs(inputs, out)
         except PipelineError as error:

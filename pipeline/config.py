@@ -124,7 +124,7 @@ _MAX_ANGLE = 360.0
 """Upper bound of an angle (degrees)."""
 
 
-def _bounds(section: str, name: str) -> dict[str, float]:
+def _bounds(section: str, name: str) -> dict[str, Any]:
     ceiling = _MAX_ANGLE if is_angle_field(name) else _MAX_NUMBER
     return {"le": ceiling, **_BOUNDS.get(section, {}).get(name, {"gt": 0})}
 
@@ -255,7 +255,7 @@ class OptimizerSection(_Section):
     graph of more than 200 000 poses the default method's SGD hands over to the polish once it stalls
     (`optimizer.solve.until_stalled`, at most 100), and the polish cap (5000) for "gn"."""
 
-    method: _METHOD_CHOICE = DEFAULT_METHOD  # type: ignore[valid-type]
+    method: _METHOD_CHOICE = DEFAULT_METHOD
     iterations: int | None = Field(None, ge=0, le=MAX_ITERATIONS)
     robust: Literal["none", *KERNELS] = "none"  # type: ignore[valid-type]
     """A robust kernel against false loop closures: "cauchy" or "dcs" (methods sgd+gn and sgd)."""
@@ -295,11 +295,11 @@ class ReplayConfig(_Section):
 
     def to_slam2d(self) -> Slam2DConfig:
         """The 2D frontend's frozen dataclass (angles in radians)."""
-        return _to_dataclass(self.slam2d, Slam2DConfig)  # type: ignore[no-any-return]
+        return _to_dataclass(self.slam2d, Slam2DConfig)
 
     def to_slam3d(self) -> Slam3DConfig:
         """The 3D frontend's frozen dataclass (angles in radians)."""
-        return _to_dataclass(self.slam3d, Slam3DConfig)  # type: ignore[no-any-return]
+        return _to_dataclass(self.slam3d, Slam3DConfig)
 
     def to_toml(self) -> str:
         """This configuration as a TOML document that `load_config` reads back to an equal one (sections in
@@ -424,7 +424,8 @@ def _unknown_key_message(loc: tuple[str, ...]) -> str:
                 "remove it from the file")
     model: Any = ReplayConfig
     for part in loc[:-1]:
-        field = model.model_fields.get(part) if isinstance(model, type) else None
+        is_model = isinstance(model, type) and issubclass(model, BaseModel)
+        field = model.model_fields.get(part) if is_model else None
         model = field.annotation if field is not None else None
     known = list(model.model_fields) if isinstance(model, type) and issubclass(model, BaseModel) else []
     what = "unknown section" if len(loc) == 1 else f"unknown key in [{'.'.join(loc[:-1])}]"

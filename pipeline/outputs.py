@@ -144,8 +144,8 @@ def stop_signals_held(*, redeliver: bool = True) -> Iterator[None]:
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-        for number in received if redeliver else ():
-            signal.raise_signal(number)
+        for signum in received if redeliver else ():
+            signal.raise_signal(signum)
 
 
 def install_stop_signals(handler: Callable[[int, FrameType | None], None]) -> None:

@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.logs import LogReader, open_log
-from frontends.protocol import Estimate, FrontendOptions, LogFrontend
+from frontends.protocol import ContinuingFrontend, Estimate, FrontendOptions, LogFrontend, StreamedFrontend
 from optimizer.graph_files import write_g2o
 from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
@@ -174,7 +174,7 @@ class _Sensor:
     saved_map: Callable[[Path, SessionContent], Any]
     """The saved map of a session (`SessionError` when it is damaged), which the two frontends below
     start from: continuing it (a `LogFrontend`) or localizing in it (a `LocalizingFrontend`)."""
-    continuing: Callable[..., LogFrontend]
+    continuing: Callable[..., ContinuingFrontend]
     localizing: Callable[..., LocalizingFrontend]
     localization_recording: type[MapLocalizationRecording] | type[CloudLocalizationRecording]
     """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
@@ -421,7 +421,7 @@ class _Run:
                                         "continued_from": earlier.get("continued_from")}
         write_session_file(staged["session"], header, arrays, keyframe_points)
 
-    def stream(self, frontend: LogFrontend | LocalizingFrontend, recorder: FrontendRecording,
+    def stream(self, frontend: StreamedFrontend, recorder: FrontendRecording,
                timings: dict[str, float]) -> int:
         """Stream the measurements through the frontend and the recording; how many there were."""
         started = time.perf_counter()
@@ -449,6 +449,7 @@ class _Run:
         (localizing in a saved map: nothing is optimized, the map's keyframe poses stand), make the map and
         record all of it; `timings` gets the seconds of each stage."""
         count = self.stream(frontend, recorder, timings)
+        trace: tuple[tuple[str, int, float], ...]
         if self.mode == "map":
             assert self.session is not None
             keyframe_poses, trace, optimization = frontend.saved.keyframe_poses, (), None
@@ -497,7 +498,7 @@ def summary(result: LogReplayResult) -> dict[str, Any]:
     continued = {}
     if result.session is not None and result.mode == "continue":
         continued = {"session": {"continued_from": str(result.session),
-                                 "placement": result.frontend.placement()}}
+                                 "placement": cast(ContinuingFrontend, result.frontend).placement()}}
     return {
         "schema": SUMMARY_SCHEMA,
         "mode": result.mode,

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import DTypeLike, NDArray
 
 from frontends.errors import FrontendError, LogWarning
 from pipeline.errors import OutputError, PipelineError
@@ -281,7 +281,7 @@ def _checked_members(path: Path, arrays: Mapping[str, NDArray[Any]], sensor: str
 
 
 def _checked(path: Path, label: str, arrays: Mapping[str, NDArray[Any]], shape: tuple[int, ...],
-             kind: type[np.generic], *, name: str | None = None) -> NDArray[Any]:
+             kind: DTypeLike, *, name: str | None = None) -> NDArray[Any]:
     """`arrays[name]` (default: `label`) if it has `shape` (−1: any length), a dtype of `kind` and only
     finite values (floats); else `SessionError`."""
     array = arrays[label if name is None else name]

@@ -74,12 +74,12 @@ class BearingTable:
 
     def get(self, count: int, first: float, increment: float) -> tuple[NDArray[np.float64], ...]:
         key = (count, first, increment)
-        table = self._tables.get(key)
+        table: tuple[NDArray[np.float64], ...] | None = self._tables.get(key)
         if table is None:
             if len(self._tables) > 64:  # a sensor whose layout changes every scan: don't grow without bound
                 self._tables.clear()
-            bearings = first + np.arange(count) * increment
-            table = (bearings, np.cos(bearings), np.sin(bearings))
+            bearings = first + np.arange(count, dtype=np.float64) * increment
+            table = (bearings, np.cos(bearings, dtype=np.float64), np.sin(bearings, dtype=np.float64))
             self._tables[key] = table
         return table
 
@@ -128,9 +128,9 @@ def _scan(
     # One type for `_keep_beams` whatever the message held (float32 or float64, either byte order, strided;
     # limits of int or float): each other type was compiled again, seconds on a cold cache. Exact: float32
     # widens to float64 losslessly and the kernel compared and widened in float64 anyway.
-    ranges = np.ascontiguousarray(ranges, dtype=np.float64)
+    contiguous: NDArray[np.float64] = np.ascontiguousarray(ranges, dtype=np.float64)
     bearings, cos, sin = table
-    points, kept, kept_bearings = _keep_beams(ranges, bearings, cos, sin, float(low), float(high))
+    points, kept, kept_bearings = _keep_beams(contiguous, bearings, cos, sin, float(low), float(high))
     return Scan2D(stamp_ns, log_time_ns, frame_id, points, kept, kept_bearings, ranges.shape[0])
 
 
@@ -229,10 +229,10 @@ def _point_times(raw: NDArray[Any], stamp_ns: int) -> NDArray[np.float64]:
     reference = float(np.nanmedian(sample)) if sample.size and not np.isnan(sample).all() else 0.0
     absolute = abs(reference - stamp) < abs(reference)
     if integer:
-        times = (raw.astype(np.int64) - stamp_ns) if absolute else raw.astype(np.int64)
-        return times.astype(np.float64) * 1e-9
-    times = raw.astype(np.float64)
-    return times - stamp if absolute else times
+        nanoseconds = (raw.astype(np.int64) - stamp_ns) if absolute else raw.astype(np.int64)
+        return nanoseconds.astype(np.float64) * 1e-9
+    seconds: NDArray[np.float64] = raw.astype(np.float64)
+    return seconds - stamp if absolute else seconds
 
 
 def _cloud(
@@ -247,9 +247,9 @@ def _cloud(
     width: int,
 ) -> Cloud3D:
     """Points of a packed buffer, read through a strided view (any field order, padding, byte order)."""
-    for axis in "xyz":
-        if axis not in layout:
-            raise WireError(f"point cloud has no {axis!r} field (fields: {', '.join(layout) or 'none'})")
+    for name in "xyz":
+        if name not in layout:
+            raise WireError(f"point cloud has no {name!r} field (fields: {', '.join(layout) or 'none'})")
     time_name = next((name for name in POINT_TIME_FIELDS if name in layout), None)
     used = [layout[name] for name in ("x", "y", "z", time_name) if name is not None]
     count = height * width
@@ -294,7 +294,7 @@ def _cloud(
 def ros_point_cloud2(message: PointCloud2Fields, log_time_ns: int) -> Cloud3D:
     """sensor_msgs/PointCloud2: x, y, z (any numeric type) and an optional per-point time field."""
     endian = ">" if message.is_bigendian else "<"
-    layout = {}
+    layout: dict[str, tuple[str, int]] = {}
     for f in message.fields:
         if f.datatype not in ROS_POINT_TYPES:
             if f.name in ("x", "y", "z"):
@@ -318,7 +318,7 @@ def foxglove_point_cloud(message: Any, log_time_ns: int) -> Cloud3D:
     """foxglove.PointCloud (little-endian packed points); a non-identity `pose` is applied to the points."""
     data = np.frombuffer(foxglove.binary(foxglove.field(message, "data")), np.uint8)
     stride = int(foxglove.field(message, "point_stride", 0))
-    layout = {}
+    layout: dict[str, tuple[str, int]] = {}
     for f in foxglove.field(message, "fields", ()) or ():
         numeric = foxglove.field(f, "type", 0)
         numeric = _FOXGLOVE_TYPE_NAMES.get(numeric, 0) if isinstance(numeric, str) else int(numeric)

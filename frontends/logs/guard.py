@@ -36,6 +36,8 @@ DATA_ERRORS: tuple[type[BaseException], ...] = (
     McapError,
     MemoryError,  # a last resort: lengths are checked before allocating, this must not be reached
 )
+READ_ERRORS: tuple[type[BaseException], ...] = (*DATA_ERRORS, OSError)
+"""What reading a damaged or unreadable file raises: its data's errors and the system's."""
 
 
 def damaged(path: Path, error: BaseException) -> LogFileError:
@@ -54,7 +56,7 @@ def guarded_call(path: Path, call: Callable[[], T]) -> T:
         return call()
     except FrontendError:
         raise
-    except (*DATA_ERRORS, OSError) as err:
+    except READ_ERRORS as err:
         raise damaged(path, err) from None
 
 
@@ -64,7 +66,7 @@ def guarded_iter(path: Path, items: Iterator[T]) -> Iterator[T]:
         yield from items
     except FrontendError:
         raise
-    except (*DATA_ERRORS, OSError) as err:
+    except READ_ERRORS as err:
         raise damaged(path, err) from None
 
 

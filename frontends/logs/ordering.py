@@ -57,7 +57,7 @@ def by_stamp(
     push, pop = heapq.heappush, heapq.heappop
     for item in items:
         # The source: one tf edge, or one sensor / odometry frame of one type.
-        if type(item) is Transform:
+        if isinstance(item, Transform):
             if item.is_static:
                 yield item
                 continue

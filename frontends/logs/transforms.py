@@ -55,7 +55,7 @@ class _Series:
 
     def prune(self, oldest_ns: int) -> None:
         self._sort()
-        keep = np.searchsorted(self.stamps[: self.size], oldest_ns, "left")
+        keep = int(np.searchsorted(self.stamps[: self.size], oldest_ns, "left"))
         if keep:
             n = self.size - keep
             self.stamps[:n] = self.stamps[keep : self.size]

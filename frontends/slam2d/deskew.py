@@ -118,6 +118,6 @@ def _exp(times: FloatArray, twist: FloatArray) -> tuple[FloatArray, FloatArray, 
             turn)
 
 
-def _arc_factors(theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _arc_factors(theta: FloatArray | np.float64) -> tuple[FloatArray, FloatArray]:
     """(sin θ / θ, (1 − cos θ) / θ) of the SE(2) exponential's V(θ), exact at and near θ = 0."""
     return np.sinc(theta / math.pi), np.sin(0.5 * theta) * np.sinc(theta / (2.0 * math.pi))

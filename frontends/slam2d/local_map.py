@@ -100,9 +100,9 @@ def _one_per_key(keys: NDArray[np.int64], keep_last: bool) -> NDArray[np.int64]:
         elif keep_last:
             table_index[slot] = i
     kept = np.zeros(count, dtype=np.bool_)
-    for slot in range(size):
-        if table_index[slot] >= 0:
-            kept[table_index[slot]] = True
+    for entry in range(size):
+        if table_index[entry] >= 0:
+            kept[table_index[entry]] = True
     return np.flatnonzero(kept)
 
 

@@ -44,6 +44,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import cast
 
 import numpy as np
 
@@ -57,7 +58,7 @@ from frontends.slam2d.config import (
     UNRELIABLE_ODOMETRY_SCALE,
     Slam2DConfig,
 )
-from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
+from frontends.slam2d.correlative import Match, SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.deskew import ScanDeskewer
 from frontends.slam2d.global_match import VerifiedMatch, match_unambiguous, thinned_query
 from frontends.slam2d.grid import build_likelihood_grid
@@ -392,12 +393,12 @@ class MapLocalizer:
         previous = self._pose
         self._fits_map_while_drifted = False
         prior, covariance, noise, window, gap = prediction
-        motion, motion_information = se2.relative(previous, prior), np.linalg.inv(noise)
+        motion, motion_information = se2.relative(previous, prior), cast(FloatArray, np.linalg.inv(noise))
         map_information = np.zeros((3, 3))
         # ICP weighs its points as independent, which the match's information undoes by
         # `information_scale`: the prior is weighed on the same (inflated) scale, so the fusion below is
         # the covariance-weighted mean of prediction and match.
-        prior_information = np.linalg.inv(covariance) / matching.information_scale
+        prior_information = cast(FloatArray, np.linalg.inv(covariance)) / matching.information_scale
         pose, matched, tracked, score = prior, False, False, math.nan
         information = np.zeros((3, 3))
         inliers, rms = 0.0, math.inf
@@ -441,7 +442,7 @@ class MapLocalizer:
                 if not tracked:
                     weak = score < self.settings.min_tracking_score
                     map_information = (self.settings.weak_match_weight if weak else 1.0) * own
-                    covariance = np.linalg.inv(information + 1e-12 * np.eye(3))
+                    covariance = cast(FloatArray, np.linalg.inv(information + 1e-12 * np.eye(3)))
                 # A tracked pose keeps the prediction's covariance: matched against scans placed by the
                 # tracking itself, it drifts from the saved map (as odometry does, only slower), and the
                 # map's match must outweigh it as soon as the robot is back in the map.
@@ -490,6 +491,7 @@ class MapLocalizer:
         and bound), then ICP fused with the prior. With `weigh_weak`, a match scoring below
         `min_tracking_score` weighs only `weak_match_weight` against the prior."""
         matching = self.config.matching
+        coarse: Match | None
         if has_odometry:
             coarse = match_exhaustive(points, submap.grid, prior, window)
         elif whole_window:

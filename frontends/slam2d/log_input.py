@@ -49,8 +49,8 @@ class OdometryTrack:
         message has the exact stamp)."""
         stamps = np.asarray(stamps_ns, dtype=np.int64)
         if stamps.shape == (1,) and len(self.stamps_ns) >= 2:
-            pose, interval = self._interpolate_one(int(stamps[0]))
-            return pose[None, :], np.array([interval], dtype=np.int64)
+            pose, one_interval = self._interpolate_one(int(stamps[0]))
+            return pose[None, :], np.array([one_interval], dtype=np.int64)
         out = np.full((len(stamps), 3), np.nan)
         if len(self.stamps_ns) < 2:
             return out, np.zeros(len(stamps), dtype=np.int64)
@@ -175,7 +175,8 @@ def _plausible_motion(
     if count == 0:
         return keep
     keep[0] = True
-    last = np.int64(0)  # not the literal 0: `_reachable` was compiled for Literal[int](0) besides int64
+    # Not the literal 0: `_reachable` was compiled for Literal[int](0) besides int64.
+    last: int | np.int64 = np.int64(0)
     kept_run = 1
     rejected_start = -1
     for i in range(1, count):
@@ -199,7 +200,8 @@ def _plausible_motion(
 
 @njit(cache=True)
 def _reachable(
-    stamps_ns: NDArray[np.int64], poses: FloatArray, a: int, b: int, max_speed: float, max_turn_rate: float
+    stamps_ns: NDArray[np.int64], poses: FloatArray, a: int | np.int64, b: int, max_speed: float,
+    max_turn_rate: float
 ) -> bool:
     seconds = max((stamps_ns[b] - stamps_ns[a]) * 1e-9, ODOMETRY_STAMP_JITTER)
     distance = math.hypot(poses[b, 0] - poses[a, 0], poses[b, 1] - poses[a, 1])

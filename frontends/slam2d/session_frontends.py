@@ -290,7 +290,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         assert self._smoothing is not None
         return {**self._counts, **self._input_counts, **self._log.counts,
                 "map_keyframes": len(self.saved.keyframe_poses), **found.counts(),
-                "scans_smoothed": int(np.sum(found.smoothed)),
+                "scans_smoothed": 0 if found.smoothed is None else int(np.sum(found.smoothed)),
                 "scans_on_saved_path": self._on_path[0], "scans_on_saved_path_unmatched": self._on_path[1],
                 "smoothing_converged": int(self._smoothing.converged)}
 

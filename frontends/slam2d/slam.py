@@ -244,7 +244,8 @@ class LaserSlam2D:
         """How far the keyframes have travelled (m), step by step."""
         self._last_closure_travel = -math.inf
         """`_travel` at the last keyframe that closed a loop."""
-        self._hypotheses = HypothesisPool(SMALL_CORRECTION_LINEAR, SMALL_CORRECTION_ANGULAR)
+        self._hypotheses: HypothesisPool[_LoopHypothesis] = HypothesisPool(SMALL_CORRECTION_LINEAR,
+                                                                           SMALL_CORRECTION_ANGULAR)
         self._rejected = 0
         self._unmatched = 0
         self.stage_times = StageTimes()
@@ -472,6 +473,7 @@ class LaserSlam2D:
         matched, score = False, -1.0
         pose, information = prior, prior_information
         if len(points) >= matching.min_points and self._local_map is not None:
+            coarse: Match | None
             if has_odometry:
                 window = SearchWindow(settings.window_linear * window_scale,
                                       settings.window_angular * window_scale, settings.angular_step)

@@ -86,7 +86,7 @@ def covers_the_circle(sweep_fractions: FloatArray) -> bool:
     """Whether points at these sweep fractions (`azimuth_point_times`) fill the circle of a full sweep."""
     bins = np.minimum((sweep_fractions * AZIMUTH_BINS).astype(np.int64), AZIMUTH_BINS - 1)
     occupied = np.count_nonzero(np.bincount(bins, minlength=AZIMUTH_BINS))
-    return occupied >= MIN_AZIMUTH_COVERAGE * AZIMUTH_BINS
+    return bool(occupied >= MIN_AZIMUTH_COVERAGE * AZIMUTH_BINS)
 
 
 def normalized_point_times(point_times: NDArray[np.float64] | None) -> tuple[FloatArray, float | None]:

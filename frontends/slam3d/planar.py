@@ -18,6 +18,8 @@ in height over a loop (ramps, multi-storey car parks), where a planar loop closu
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -81,7 +83,7 @@ def project_constraints(
     seen_from_level = se3.inverse(level(poses_from)) @ poses_from @ np.asarray(relative, dtype=np.float64)
     covariance = np.linalg.inv(np.asarray(information, dtype=np.float64))
     marginal = covariance[..., PLANAR_AXES, :][..., :, PLANAR_AXES]
-    planar_information = np.linalg.inv(marginal)
+    planar_information = cast(FloatArray, np.linalg.inv(marginal))
     return planar(seen_from_level), 0.5 * (planar_information + np.swapaxes(planar_information, -1, -2))
 
 

@@ -204,7 +204,7 @@ class LidarSlam3D:
         self._pending_loops = 0
         self._last_closure_travel = -np.inf
         """Path length (m) at the keyframe that last closed a loop."""
-        self._hypotheses = HypothesisPool(
+        self._hypotheses: HypothesisPool[_LoopHypothesis] = HypothesisPool(
             self.config.loop_closure.small_correction_linear,
             self.config.loop_closure.small_correction_angular,
         )

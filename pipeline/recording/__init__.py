@@ -32,7 +32,7 @@ import itertools
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Literal, Protocol
 
 # rerun's Rust side logs straight to stderr, in colour (a WARN when an encoder cannot finish, an ERROR when
 # the disk fills); what matters of it reaches us as exceptions, which we word ourselves in one line. Set
@@ -79,8 +79,16 @@ TRAJECTORY_COLOR = (64, 170, 255, 255)
 INITIAL_TRAJECTORY_COLOR = (150, 150, 150, 90)
 LOOP_CLOSURE_COLOR = (255, 80, 220, 200)
 MAP_COLOR = (235, 235, 225, 255)
-LINE_WIDTH = rr.Radius.ui_points(1.25)
-MAP_POINT_RADIUS = rr.Radius.ui_points(1.25)
+
+
+def ui_points(size: float) -> float:
+    """A radius or line width in UI points (pixels at 100 % UI scaling), not scene units: rerun's
+    `Radius.ui_points` of one size, which it stores as a negative radius."""
+    return float(rr.Radius.ui_points(size))  # type: ignore[arg-type]  # one number in, one number out
+
+
+LINE_WIDTH = ui_points(1.25)
+MAP_POINT_RADIUS = ui_points(1.25)
 
 # 2D draw order (higher on top): the occupancy grid under the walls, the animated estimate above all.
 OCCUPANCY_DRAW_ORDER = -20.0
@@ -165,7 +173,7 @@ def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.Rec
     if reason is not None:
         raise OutputError(f"{path}: cannot write the recording: {reason}")
     recording = rr.RecordingStream(APPLICATION_ID)
-    if not recording.is_enabled():  # RERUN=off in the environment: the SDK would drop everything silently
+    if not recording.is_enabled():  # type: ignore[misc]  # rerun's stub types it unbound. RERUN=off in the environment: the SDK would drop everything silently
         raise OutputError(f"{path}: cannot write the recording: Rerun logging is disabled by the environment "
                           f"(RERUN={os.environ.get('RERUN', '')}); unset RERUN to replay")
     if with_map:
@@ -302,7 +310,7 @@ def chi2_views() -> list[rrb.View]:
 
 def layout(main: rrb.View | rrb.Tabs, side: Sequence[rrb.View], *, row_shares: Sequence[int],
            column_shares: Sequence[int] = (3, 1), timeline: str = ITERATION_TIMELINE,
-           play_state: str | None = "following") -> rrb.Blueprint:
+           play_state: Literal["following", "paused", "playing"] | None = "following") -> rrb.Blueprint:
     """`main` beside a column of the `side` views over the legend; the time panel on `timeline`, the side
     panels collapsed so the views have the room."""
     return rrb.Blueprint(
@@ -338,7 +346,8 @@ def world_bounds(*point_sets: NDArray[np.floating]) -> Bounds:
 def log_run_properties(recording: rr.RecordingStream, properties: Mapping[str, str | int | float], *,
                        name: str = RUN_PROPERTY) -> None:
     """What was replayed and how (input file, method, counts), as a recording property `name`."""
-    recording.send_property(name, rr.AnyValues(**{key: [value] for key, value in properties.items()}))
+    values = {key: [value] for key, value in properties.items()}
+    recording.send_property(name, rr.AnyValues(**values))  # type: ignore[arg-type]  # its stub's first keyword
 
 
 def log_note(recording: rr.RecordingStream, text: str) -> None:
@@ -366,13 +375,13 @@ Legend = Mapping[str, tuple[tuple[int, ...], str]]
 """Legend rows: name → (colour, what it shows)."""
 
 
-def log_legend(recording: rr.RecordingStream, extra: Legend = (), *, rows: Legend = LEGEND_ROWS,
+def log_legend(recording: rr.RecordingStream, extra: Legend | None = None, *, rows: Legend = LEGEND_ROWS,
                note: str = LEGEND_NOTE) -> None:
     """A static markdown table naming every colour of the map view (Rerun's spatial views have no
     legend of their own): `rows` and `extra`, then `note`."""
     lines = ["| colour | what |", "|---|---|"]
     lines += [f"| {name} `#{color[0]:02x}{color[1]:02x}{color[2]:02x}` | {text} |"
-              for name, (color, text) in {**rows, **dict(extra)}.items()]
+              for name, (color, text) in {**rows, **(extra or {})}.items()]
     recording.log(LEGEND_ENTITY, rr.TextDocument("\n".join([*lines, note] if note else lines),
                                                  media_type=rr.MediaType.MARKDOWN), static=True)
 

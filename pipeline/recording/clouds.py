@@ -48,6 +48,7 @@ from pipeline.recording import (
     send_blueprint,
     send_match_quality,
     transform3d_columns,
+    ui_points,
     world_bounds,
 )
 
@@ -58,8 +59,8 @@ INITIAL_TRAJECTORY3D_ENTITY = "world3d/initial_trajectory"
 MAP3D_ENTITY = "world3d/map"
 
 MAP3D_COLOR = (60, 60, 60, 255)
-POINT_RADIUS = rr.Radius.ui_points(1.5)
-LINE_WIDTH = rr.Radius.ui_points(2.0)
+POINT_RADIUS = ui_points(1.5)
+LINE_WIDTH = ui_points(2.0)
 RECORDING_KEYFRAME_VOXEL = 0.5
 """Keyframe clouds in the recording are thinned to this voxel (m): hundreds of them stay light to view."""
 KEYFRAME_AXIS_LENGTH = 1.5
@@ -240,7 +241,7 @@ class CloudLocalizationRecording(CloudReplayRecording):
     Nothing is optimized: there is no `iteration` timeline and no χ² plot.
     """
 
-    _frontend: LocalizingLidarFrontend  # type: ignore[assignment]
+    _frontend: LocalizingLidarFrontend
 
     def blueprint(self) -> rrb.Blueprint:
         return localization3d_blueprint()

@@ -22,7 +22,6 @@ from collections.abc import Sequence
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
-from numpy.typing import NDArray
 
 from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInBase, one_per_cell_each, place
 from frontends.slam2d.session_frontends import LocalizingLaserFrontend
@@ -44,6 +43,7 @@ from pipeline.recording import (
     map2d,
     send_blueprint,
     send_match_quality,
+    ui_points,
     visual_bounds,
 )
 
@@ -102,7 +102,7 @@ the whole map, where a pixel is several centimetres, and they were the recording
 def log_scan_styles(recording: rr.RecordingStream) -> None:
     for entity, color, radius, draw_order in ((SCAN_ENTITY, SCAN_COLOR, 1.0, 20.0),
                                               (ROBOT_ENTITY, (90, 230, 120, 255), 2.0, 40.0)):
-        recording.log(entity, rr.Points2D.from_fields(colors=[color], radii=[rr.Radius.ui_points(radius)],
+        recording.log(entity, rr.Points2D.from_fields(colors=[color], radii=[ui_points(radius)],
                                                       draw_order=draw_order), static=True)
 
 
@@ -119,7 +119,7 @@ def log_loop_closures_found(
     recording.log(
         FOUND_LOOP_CLOSURES_ENTITY,
         rr.LineStrips2D(segments.astype(np.float32), colors=[(255, 80, 220, 255)],
-                        radii=[rr.Radius.ui_points(2.5)], draw_order=45.0),
+                        radii=[ui_points(2.5)], draw_order=45.0),
     )
     recording.reset_time()
 
@@ -132,7 +132,7 @@ class ScanRecorder:
         self._recording = recording
         self._indices: list[int] = []
         self._stamps: list[int] = []
-        self._points: list[NDArray[np.float32]] = []
+        self._points: list[FloatArray] = []
         self._poses: list[FloatArray] = []
         self._buffered = 0
 

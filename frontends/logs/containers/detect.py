@@ -15,7 +15,7 @@ from frontends.errors import FrontendError, LogFileError, LogWarning
 from frontends.logs.containers.base import Container
 from frontends.logs.containers.mcap_file import MAGIC as MCAP_MAGIC
 from frontends.logs.containers.mcap_file import McapContainer
-from frontends.logs.guard import DATA_ERRORS, check_is_regular, check_readable_file, guarded_call
+from frontends.logs.guard import READ_ERRORS, check_is_regular, check_readable_file, guarded_call
 
 if TYPE_CHECKING:
     from frontends.logs.containers.rosbag1 import Rosbag1Container
@@ -25,6 +25,9 @@ _SPLIT_BAG = re.compile(r"^(?P<prefix>.*)_(?P<number>\d+)\.bag$")
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 _EXPECTED = "expected an MCAP file, a ROS 1 bag or a ROS 2 bag"
 
+
+_INDEX_ERRORS: tuple[type[BaseException], ...] = (FrontendError, *READ_ERRORS)
+"""What reading a bag's index may raise: a bag that cannot be read is skipped, not a failure."""
 
 def open_container(path: str | Path) -> Container:
     """The container reader for a log file or ROS 2 bag directory. Anything else, and a file whose
@@ -172,7 +175,7 @@ def _bag_span(path: Path) -> _BagSpan | None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", LogWarning)  # the named file's damage is reported when read
             info = _rosbag1(path, (path,)).info()
-    except (FrontendError, *DATA_ERRORS, OSError):
+    except _INDEX_ERRORS:
         return None
     counted = {t.name: t.type for t in info.topics if t.count}
     if not counted:

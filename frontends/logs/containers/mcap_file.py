@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator, Set
 from dataclasses import dataclass, field
 from operator import itemgetter
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import IO, Any, BinaryIO, cast
 
 import lz4.frame
 import zstandard
@@ -144,7 +144,8 @@ class McapContainer:
                 if stream.read(len(MAGIC)) != MAGIC:
                     return None  # no closing magic: cut off before the footer
                 stream.seek(0)
-                summary = SeekingReader(_ReadsCutToFile(stream), record_size_limit=size).get_summary()
+                cut_to_file = cast(IO[bytes], _ReadsCutToFile(stream))  # a BufferedIOBase, typed as one
+                summary = SeekingReader(cut_to_file, record_size_limit=size).get_summary()
         except (McapError, struct.error, ValueError, EOFError):
             return None
         if summary is None or not summary.channels:
@@ -286,8 +287,10 @@ class _ReadsCutToFile(io.BufferedIOBase):
     def tell(self) -> int:
         return self._stream.tell()
 
-    def read(self, size: int = -1) -> bytes:
-        return read_at_most(self._stream, size) if size >= 0 else self._stream.read()
+    def read(self, size: int | None = -1) -> bytes:
+        if size is None or size < 0:
+            return self._stream.read()
+        return read_at_most(self._stream, size)
 
     def readinto(self, buffer: Any) -> int:
         data = self.read(len(buffer))

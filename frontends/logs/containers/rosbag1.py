@@ -219,7 +219,7 @@ class _BagFile:
         self,
         records: bytes,
         wanted: Set[int] | None,
-        on_connection: Callable[[Channel], None] | None,
+        on_connection: Callable[[Channel], object] | None,
     ) -> Unpacked:
         """Messages of the wanted channels (all when None) in a chunk's records (stops at a cut-off
         record)."""

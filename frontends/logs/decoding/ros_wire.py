@@ -136,7 +136,7 @@ class PointFieldFields(NamedTuple):
     name: str
     offset: int
     datatype: int
-    count: int
+    count: int  # type: ignore[assignment]  # ROS's name, shadowing tuple.count
 
 
 class PointCloud2Fields(NamedTuple):
@@ -243,7 +243,7 @@ def _first_echoes(words: NDArray[np.uint32], beams: int) -> NDArray[np.int64]:
     """Index in `words` of each beam's first echo (−1: none), walking the LaserEcho sequence (each a count
     then that many floats); [`_RUNS_PAST`] when it runs past the payload."""
     first = np.full(beams, -1, dtype=np.int64)
-    position = 0
+    position: int | np.int64 = 0
     for beam in range(beams):
         if position >= len(words):
             return np.full(1, _RUNS_PAST, dtype=np.int64)
