@@ -408,8 +408,9 @@ def test_matching_without_odometry_finds_the_optimum_of_the_window_the_motion_ne
     truth = between(keyframe_pose, scan_pose)
     prior = truth - error
     wide = SearchWindow(0.5, math.radians(35.0), math.radians(0.5))
-    match = match_without_odometry(scan, grid, prior, wide)
+    match, searched = match_without_odometry(scan, grid, prior, wide)
     assert match is not None
+    assert searched == wide  # the optimum is inside the window: not widened
     # The search reads the scan thinned to one point per cell; its optimum is the brute-force optimum of
     # those points over the narrow window when the prediction was close (that optimum in the window's
     # inner half), else over the wide window.
@@ -422,6 +423,41 @@ def test_matching_without_odometry_finds_the_optimum_of_the_window_the_motion_ne
     # Either way, within a cell and a step of the truth.
     assert np.all(np.abs(match.pose[:2] - truth[:2]) <= RESOLUTION + 1e-9)
     assert abs(match.pose[2] - truth[2]) <= wide.angular_step + 1e-9
+
+
+
+def test_matching_without_odometry_searches_past_an_optimum_on_the_window_edge() -> None:
+    # The robot turned 45° more than predicted (a scan dropped during a turn): beyond the ±35° window, whose
+    # optimum then lies on its edge. Twice as wide there, the search finds the truth.
+    world = square_loop().segments
+    keyframe_pose, scan_pose = np.array([6.5, 9.0, 0.3]), np.array([6.8, 8.9, 0.45])
+    grid = build_likelihood_grid(simulate_scan(world, keyframe_pose)[:, :2], RESOLUTION, SIGMA, margin=1.0)
+    scan = simulate_scan(world, scan_pose, beams=1440)[:, :2]
+    truth = between(keyframe_pose, scan_pose)
+    prior = truth - np.array([0.0, 0.0, math.radians(45.0)])
+    wide = SearchWindow(0.5, math.radians(35.0), math.radians(0.5))
+    match, searched = match_without_odometry(scan, grid, prior, wide)
+    assert searched == SearchWindow(0.5, math.radians(70.0), wide.angular_step)
+    assert match is not None
+    assert np.all(np.abs(match.pose[:2] - truth[:2]) <= RESOLUTION + 1e-9)
+    assert abs(match.pose[2] - truth[2]) <= wide.angular_step + 1e-9
+
+
+def test_a_window_turns_farther_only_where_its_optimum_lies_on_its_angular_edge() -> None:
+    step = math.radians(0.5)
+    window = SearchWindow(0.5, math.radians(35.0), step)
+    centre = np.array([1.0, 2.0, 0.1])
+
+    def turned(offset: tuple[float, float, float], searched: SearchWindow = window) -> SearchWindow | None:
+        return searched.turned_past(centre + np.array(offset), centre)
+
+    assert turned((0.45, -0.2, math.radians(34.5))) is None  # a step inside
+    assert turned((0.5, 0.5, 0.0)) is None  # a translation's edge: not widened (a corridor's plateau)
+    assert turned((0.1, 0.0, math.radians(35.0))) == SearchWindow(0.5, math.radians(70.0), step)
+    assert turned((0.0, -0.5, math.radians(-35.0))) == SearchWindow(0.5, math.radians(70.0), step)
+    assert turned((0.0, 0.0, math.radians(100.0)), SearchWindow(0.5, math.radians(100.0), step)) == \
+        SearchWindow(0.5, math.pi, step)
+    assert turned((0.0, 0.0, math.pi), SearchWindow(0.5, math.pi, step)) is None  # a half-turn already
 
 
 def test_top_level_scores_are_each_candidates_sum_of_its_points_clamped_blocks() -> None:

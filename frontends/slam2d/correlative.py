@@ -46,6 +46,19 @@ class SearchWindow:
         return (max(abs(pose[0] - center[0]), abs(pose[1] - center[1])) <= self.linear + resolution
                 and turn <= self.angular + self.angular_step)
 
+    def turned_past(self, pose: FloatArray, center: FloatArray) -> SearchWindow | None:
+        """This window turning twice as far (at most a half-turn) when `pose`, a search's optimum, lies on
+        its angular edge (the outermost rotation searched around `center`): the optimum may be the edge of a
+        better one beyond. None when it lies inside, or the window turns half a turn already.
+
+        Rotations only: along a corridor the score is flat, and a translation's optimum on the edge is as
+        likely a plateau's as a cut-off peak's; a wider window there finds look-alikes, not the truth."""
+        steps = max(math.floor(self.angular / self.angular_step), 0)
+        turn = abs(math.remainder(float(pose[2] - center[2]), math.tau))
+        if turn < (steps - 0.5) * self.angular_step or self.angular >= math.pi:
+            return None
+        return SearchWindow(self.linear, min(2.0 * self.angular, math.pi), self.angular_step)
+
 
 @dataclass(frozen=True)
 class Match:

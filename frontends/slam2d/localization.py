@@ -498,7 +498,8 @@ class MapLocalizer:
             coarse = match_branch_and_bound(points, submap.grid, prior, window, 0.0,
                                             levels=ODOMETRY_BRANCH_AND_BOUND_LEVELS)
         else:  # as the SLAM searches: after a gap the wide window at once
-            coarse = match_without_odometry(points, submap.grid, prior, window, narrow_first=not gap)
+            coarse, window = match_without_odometry(points, submap.grid, prior, window,
+                                                    narrow_first=not gap)
         start = prior if coarse is None else coarse.pose
         if weigh_weak and (coarse is None or coarse.score < self.settings.min_tracking_score):
             prior_information = prior_information / self.settings.weak_match_weight
