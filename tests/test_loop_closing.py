@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
-from frontends.loop_closing import Constraints, optimize_and_prune
+from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_prune
 from optimizer import se2
 from optimizer.graph import PoseGraph
 
@@ -92,3 +93,47 @@ def test_strain_the_new_closures_did_not_cause_removes_none_of_them() -> None:
     _, removed = optimize_and_prune(reordered, graph_at(reordered), truth.copy(), CHI2_THRESHOLD, 15,
                                     new_loops=3)
     assert removed == 0 and len(loop_pairs(reordered)) == 7
+
+
+@dataclass(frozen=True)
+class _Hypothesis:
+    current: int
+    correction: np.ndarray
+
+
+def pool() -> HypothesisPool[_Hypothesis]:
+    return HypothesisPool(small_linear=0.3, small_angular=np.radians(3.0))
+
+
+def test_a_loop_closure_barely_moving_the_map_is_accepted_at_once() -> None:
+    small = _Hypothesis(50, np.array([0.1, -0.1, np.radians(1.0)]))
+    hypotheses = pool()
+    assert hypotheses.confirm(small) == [small]
+    assert hypotheses.pending == []
+
+
+def test_a_large_correction_waits_for_an_agreeing_one_found_from_another_keyframe() -> None:
+    hypotheses = pool()
+    first = _Hypothesis(50, np.array([2.3, 0.0, 0.0]))
+    assert hypotheses.confirm(first) == []  # waits
+    # Another candidate of the same query: the same view, the same look-alike. Not a confirmation.
+    same_view = _Hypothesis(50, np.array([2.25, 0.05, 0.0]))
+    assert hypotheses.confirm(same_view) == []
+    assert hypotheses.pending == [first, same_view]
+    # A different correction from a later keyframe confirms nothing either.
+    other = _Hypothesis(52, np.array([-1.0, 0.5, 0.0]))
+    assert hypotheses.confirm(other) == []
+    # One from a later keyframe that agrees confirms those it agrees with, and they leave the pool.
+    agreeing = _Hypothesis(54, np.array([2.3, 0.1, np.radians(1.0)]))
+    assert hypotheses.confirm(agreeing) == [first, same_view, agreeing]
+    assert hypotheses.pending == [other]
+
+
+def test_hypotheses_older_than_their_age_are_forgotten_and_counted() -> None:
+    hypotheses = pool()
+    for current in (10, 20, 30):
+        hypotheses.confirm(_Hypothesis(current, np.array([5.0 + current, 0.0, 0.0])))
+    assert hypotheses.expire(32, max_age=12) == 1
+    assert [h.current for h in hypotheses.pending] == [20, 30]
+    assert hypotheses.clear() == 2
+    assert hypotheses.dropped == 3

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from frontends.slam2d.cadence import PACE_GAP, RECENT_INTERVALS, ScanRate
-from frontends.slam2d.localization import MapLocalizer
+from frontends.slam2d.localization import LocalizedScan, MapLocalizer
 from frontends.slam2d.slam import LaserSlam2D
 from optimizer import se2
 from tests.laser_world import simulate_run, simulate_scan, square_loop, wrap
@@ -126,15 +126,8 @@ def test_a_localizer_without_odometry_tracks_scans_stamped_in_bursts() -> None:
     # The drive above, localized without odometry in a map of the building (scans at their true poses).
     # The turn stops at once: predicted to go on by 40°, the scan fell outside the window and the track
     # ran away, as the SLAM's did.
-    mapping = simulate_run(square_loop(), seed=1)
-    keyframes = range(0, len(mapping.truth), 3)
     truth = straight_then([20.0, 40.0, 40.0, 40.0, 40.0], before=60)
-    rng = np.random.default_rng(4)
-    world = square_loop()
-    localizer = MapLocalizer([mapping.scans[k] for k in keyframes], mapping.truth[keyframes],
-                             initial_pose=truth[0])
-    results = [localizer.localize(stamp, simulate_scan(world.segments, pose, range_noise=0.01, rng=rng))
-               for stamp, pose in zip(burst_stamps(len(truth)), truth, strict=True)]
+    results = localize_without_odometry(truth, burst_stamps(len(truth)), seed=4)
     poses = np.array([r.pose for r in results])
     assert all(r.matched for r in results)
     assert np.max(np.abs(np.degrees(wrap(poses[:, 2] - truth[:, 2])))) < 1.0
@@ -160,18 +153,25 @@ def test_a_turn_that_outruns_the_window_is_found_beyond_its_edge(turns: list[flo
 
 def test_a_localizer_without_odometry_finds_a_turn_beyond_the_window_edge() -> None:
     # The first drive above, localized without odometry in a map of the building (scans at their poses).
-    mapping = simulate_run(square_loop(), seed=1)
-    keyframes = range(0, len(mapping.truth), 3)
     truth = straight_then([8.0, 8.0, 45.0, 8.0, 8.0], before=20)
-    rng = np.random.default_rng(5)
-    world = square_loop()
-    localizer = MapLocalizer([mapping.scans[k] for k in keyframes], mapping.truth[keyframes],
-                             initial_pose=truth[0])
-    stamps = [START_NS + k * 200_000_000 for k in range(len(truth))]
-    results = [localizer.localize(stamp, simulate_scan(world.segments, pose, fov=math.pi, beams=181,
-                                                       range_noise=0.01, rng=rng))
-               for stamp, pose in zip(stamps, truth, strict=True)]
+    results = localize_without_odometry(truth, [START_NS + k * 200_000_000 for k in range(len(truth))],
+                                        seed=5, fov=math.pi, beams=181)
     poses = np.array([r.pose for r in results])
     assert all(r.matched for r in results)
     assert np.max(np.abs(np.degrees(wrap(poses[:, 2] - truth[:, 2])))) < 1.0
     assert np.max(np.hypot(*(poses[:, :2] - truth[:, :2]).T)) < 0.05
+
+
+def localize_without_odometry(truth: np.ndarray, stamps: list[int], *, seed: int, fov: float = 2.0 * math.pi,
+                              beams: int = 360) -> list[LocalizedScan]:
+    """Scans along `truth` localized without odometry, from its first pose, in a map of `square_loop` (the
+    scans of a simulated run at their true poses)."""
+    mapping = simulate_run(square_loop(), seed=1)
+    keyframes = range(0, len(mapping.truth), 3)
+    rng = np.random.default_rng(seed)
+    world = square_loop()
+    localizer = MapLocalizer([mapping.scans[k] for k in keyframes], mapping.truth[keyframes],
+                             initial_pose=truth[0])
+    return [localizer.localize(stamp, simulate_scan(world.segments, pose, fov=fov, beams=beams,
+                                                    range_noise=0.01, rng=rng))
+            for stamp, pose in zip(stamps, truth, strict=True)]
