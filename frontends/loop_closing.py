@@ -112,18 +112,13 @@ class HypothesisPool(Generic[H]):
 
     def confirm(self, hypothesis: H) -> list[H]:
         """The loop closures `hypothesis` makes acceptable: itself when it barely moves the map; otherwise
-        it and the pending ones it agrees with, or none (it waits for a second one).
-
-        Only a hypothesis found from another keyframe confirms: two candidates of one query share its view,
-        and a look-alike in that view matches both their submaps alike (ACES without odometry and 15 % of its
-        scans dropped: one keyframe matched two neighbouring submaps 2.3 m along a corridor, each confirming
-        the other, and the map bent by 3.4 m there)."""
+        it and the pending ones it agrees with, or none (it waits for a second one)."""
         if is_small(hypothesis.correction, self.small_linear, self.small_angular):
             return [hypothesis]
         agreeing = [
             h
             for h in self.pending
-            if h.current != hypothesis.current and is_small(
+            if is_small(
                 se2.relative(h.correction, hypothesis.correction), self.small_linear, self.small_angular
             )
         ]
