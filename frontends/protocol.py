@@ -195,7 +195,14 @@ def unmatched_on_saved_path(positions: FloatArray, matched: BoolArray,
 def checked_on_saved_path(log_path: object, what: str, positions: FloatArray, matched: BoolArray,
                           keyframe_positions: FloatArray) -> tuple[int, int]:
     """`unmatched_on_saved_path` of a localized log's `what` ("scans", "clouds"), with a `LogWarning` naming
-    `log_path` when most of those on the saved path did not match the map (`OFF_MAP_ON_PATH`)."""
+    `log_path` when most of those on the saved path did not match the map (`OFF_MAP_ON_PATH`), or when none
+    of those placed matched it at all: their poses were tracked on the log's own measurements from where
+    the run was started (an `--initial-pose` far from the truth, outside the map, stays there)."""
+    placed = len(np.asarray(matched))
+    if placed and not np.any(matched):
+        warnings.warn(f"{log_path}: none of the {placed} {what} placed in the saved map matched it: their "
+                      f"poses were tracked on the log's own {what}, not in the map (is the log's start, or "
+                      "--initial-pose, in the mapped place?)", LogWarning, stacklevel=3)
     on_path, unmatched = unmatched_on_saved_path(positions, matched, keyframe_positions)
     if on_path >= ON_PATH_MIN_MEASUREMENTS and unmatched > OFF_MAP_ON_PATH * on_path:
         warnings.warn(f"{log_path}: {unmatched} of the {on_path} {what} placed on the saved run's path "

@@ -155,6 +155,19 @@ def test_map_with_an_initial_pose_tracks_from_the_first_scan(logs: Logs, tmp_pat
     assert position_errors(poses, logs.in_map_frame(logs.inside_truth)).max() < MAP_TOLERANCE
 
 
+
+def test_map_warns_when_no_scan_matched_the_saved_map(logs: Logs, tmp_path: Path) -> None:
+    """An initial pose a kilometre off the map: every scan is tracked on the log's own scans, none matches
+    the map. The run ends, but says so (before: exit 0, no warning, every scan "with a pose")."""
+    start = logs.in_map_frame(logs.inside_truth[0]) + np.array([1000.0, 1000.0, 0.0])
+    result = run_replay(logs.inside, "--out", tmp_path, "--map", logs.session,
+                        "--initial-pose", ",".join(f"{value:.6f}" for value in start))
+    assert result.exit_code == 0, result.stderr
+    assert "none of the" in result.stderr and "matched it" in result.stderr
+    summary = json.loads((tmp_path / "inside.json").read_text())
+    assert summary["localization"]["matched"] == 0
+    assert any("none of the" in warning["message"] for warning in summary["warnings"])
+
 def test_map_writes_the_smoothed_trajectory_and_keeps_the_online_states(logs: Logs, tmp_path: Path) -> None:
     """The TUM file and the recording's final trajectory hold the trajectory smoothed offline
     (`frontends.slam2d.localization_smoothing`: the map matches and the motions measured between the

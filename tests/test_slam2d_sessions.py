@@ -612,7 +612,10 @@ def test_most_measurements_on_the_saved_path_matching_nothing_are_warned_of() ->
         checked_on_saved_path("a.mcap", "scans", positions, np.arange(30) < 14, keyframes)
     with warnings.catch_warnings():  # too few on the path to say
         warnings.simplefilter("error")
-        checked_on_saved_path("a.mcap", "scans", positions[:19], np.zeros(19, dtype=bool), keyframes)
+        checked_on_saved_path("a.mcap", "scans", positions[:19], np.arange(19) < 1, keyframes)
+    # None matched at all: said whatever their number (an initial pose off the map, tracked from there).
+    with pytest.warns(LogWarning, match=r"a\.mcap: none of the 19 scans placed in the saved map matched it"):
+        checked_on_saved_path("a.mcap", "scans", positions[:19] + 100.0, np.zeros(19, dtype=bool), keyframes)
 
 
 def test_without_odometry_a_gap_through_a_corner_is_tracked_across(
