@@ -192,7 +192,7 @@ def optimization_recorder(stream: Any, graph: PoseGraph, initial_poses: NDArray[
     """Start the optimization part of a recording of `graph` (styles, legend, the starting estimate
     `initial_poses`, a note when it has no loop closure) and the recorder of its iterations."""
     recording.log_styles(stream)
-    recording.log_legend(stream, legend or {})
+    recording.log_legend(stream, legend)
     recording.log_initial_trajectory(stream, initial_poses)
     loops = ~graph.is_odometry
     if not loops.any():

@@ -42,9 +42,13 @@ class SearchWindow:
         """Whether `pose` lies in the window around `center`, with one cell of `resolution` and one angular
         step of slack (ICP refining a match that ends beyond it slid along a corridor the search never
         scored)."""
-        turn = abs(math.remainder(float(pose[2] - center[2]), math.tau))
         return (max(abs(pose[0] - center[0]), abs(pose[1] - center[1])) <= self.linear + resolution
-                and turn <= self.angular + self.angular_step)
+                and _turn(pose, center) <= self.angular + self.angular_step)
+
+    @property
+    def steps(self) -> int:
+        """Rotations searched on either side of the centre's heading."""
+        return max(math.floor(self.angular / self.angular_step), 0)
 
     def turned_past(self, pose: FloatArray, center: FloatArray) -> SearchWindow | None:
         """This window turning twice as far (at most a half-turn) when `pose`, a search's optimum, lies on
@@ -53,9 +57,7 @@ class SearchWindow:
 
         Rotations only: along a corridor the score is flat, and a translation's optimum on the edge is as
         likely a plateau's as a cut-off peak's; a wider window there finds look-alikes, not the truth."""
-        steps = max(math.floor(self.angular / self.angular_step), 0)
-        turn = abs(math.remainder(float(pose[2] - center[2]), math.tau))
-        if turn < (steps - 0.5) * self.angular_step or self.angular >= math.pi:
+        if _turn(pose, center) < (self.steps - 0.5) * self.angular_step or self.angular >= math.pi:
             return None
         return SearchWindow(self.linear, min(2.0 * self.angular, math.pi), self.angular_step)
 
@@ -68,14 +70,18 @@ class Match:
     """Mean likelihood of the scan's points, in [0, 1]."""
 
 
+def _turn(pose: FloatArray, center: FloatArray) -> float:
+    """How far `pose` is turned from `center` (rad, in [0, π])."""
+    return abs(math.remainder(float(pose[2] - center[2]), math.tau))
+
+
 def _reach(window: SearchWindow, grid: LikelihoodGrid) -> int:
     """The window's half-width in cells (0.05000000000000001 m at 5 cm is one cell, not two)."""
     return math.ceil(window.linear / grid.resolution - 1e-9)
 
 
 def _angles(center: float, window: SearchWindow) -> FloatArray:
-    count = max(int(math.floor(window.angular / window.angular_step)), 0)
-    return center + window.angular_step * np.arange(-count, count + 1, dtype=np.float64)
+    return center + window.angular_step * np.arange(-window.steps, window.steps + 1, dtype=np.float64)
 
 
 @njit(cache=True)

@@ -173,7 +173,9 @@ def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.Rec
     if reason is not None:
         raise OutputError(f"{path}: cannot write the recording: {reason}")
     recording = rr.RecordingStream(APPLICATION_ID)
-    if not recording.is_enabled():  # type: ignore[misc]  # rerun's stub types it unbound. RERUN=off in the environment: the SDK would drop everything silently
+    # RERUN=off in the environment: the SDK would drop everything silently. (rerun's stub types
+    # is_enabled unbound.)
+    if not recording.is_enabled():  # type: ignore[misc]
         raise OutputError(f"{path}: cannot write the recording: Rerun logging is disabled by the environment "
                           f"(RERUN={os.environ.get('RERUN', '')}); unset RERUN to replay")
     if with_map:
