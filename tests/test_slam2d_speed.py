@@ -23,7 +23,7 @@ from frontends.slam2d.correlative import (
     match_exhaustive,
     prepare_branch_and_bound,
 )
-from frontends.slam2d.grid import build_likelihood_grid, max_pyramid, stamp_more
+from frontends.slam2d.grid import LikelihoodGrid, build_likelihood_grid, max_pyramid, stamp_more
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
 from frontends.slam2d.log_input import OdometryTrack, scans_in_base_frame
@@ -98,14 +98,17 @@ def test_exhaustive_search_finds_the_brute_force_optimum_even_across_the_grid_ed
     np.testing.assert_allclose(match.pose, pose, atol=1e-12)
 
 
-@settings(max_examples=8, deadline=None)
+@settings(max_examples=12, deadline=None)
 @given(
     centre=st.tuples(st.floats(-12.0, 12.0), st.floats(-12.0, 12.0), st.floats(-0.3, 0.3)),
     linear=st.sampled_from([0.5, 2.0, 4.0]),
     min_score=st.sampled_from([0.0, 0.2]),
+    margin=st.sampled_from([1.0, 5.0]),
 )
 def test_branch_and_bound_on_the_cropped_pyramid_finds_what_it_finds_on_the_whole_one(
-        centre: tuple[float, float, float], linear: float, min_score: float) -> None:
+        centre: tuple[float, float, float], linear: float, min_score: float, margin: float) -> None:
+    # The cropped pyramid spans the stamped cells only; a loop-closure submap's margin (5 m here) is zeros
+    # the search reads past them.
     world = square_loop().segments
     reference = simulate_scan(world, np.array([6.5, 9.0, 0.3]))[:, :2]
     scan = simulate_scan(world, np.array([6.9, 8.7, 0.35]))[::2, :2]
@@ -113,7 +116,7 @@ def test_branch_and_bound_on_the_cropped_pyramid_finds_what_it_finds_on_the_whol
     results = []
     for crop in (False, True):
         # A fresh grid each time: the whole grid's pyramid must not serve the cropped search.
-        grid = build_likelihood_grid(reference, RESOLUTION, SIGMA, margin=1.0)
+        grid = build_likelihood_grid(reference, RESOLUTION, SIGMA, margin=margin)
         results.append(match_branch_and_bound(scan, grid, np.array(centre), window, min_score, levels=4,
                                               crop_pyramid=crop))
         rival = results[-1]
@@ -173,6 +176,56 @@ def test_a_grid_builds_its_pyramid_once_and_serves_fewer_levels_from_it() -> Non
     assert all(a is b for a, b in zip(grid.pyramid(4), pyramid, strict=True))  # built once
     fewer = grid.pyramid(2)
     assert len(fewer) == 3 and all(a is b for a, b in zip(fewer, pyramid, strict=False))
+
+
+@pytest.mark.parametrize("pairing", [0.0, 0.3])
+def test_a_grids_stamped_window_holds_its_nonzero_cells_and_not_its_margin(pairing: float) -> None:
+    world = square_loop().segments
+    reference = simulate_scan(world, np.array([6.5, 9.0, 0.3]))[:, :2]
+    grid = build_likelihood_grid(reference, RESOLUTION, SIGMA, margin=3.0, pairing_distance=pairing)
+
+    def holds_every_stamp(grid: LikelihoodGrid, *, tightly: bool = True) -> None:
+        assert grid.stamped_window is not None
+        top, bottom, left, right = grid.stamped_window
+        rows, columns = np.nonzero(grid.values)
+        assert top <= rows.min() and rows.max() < bottom and left <= columns.min() and columns.max() < right
+        if tightly:  # and little more: a cell beyond the stamps (the 3 m margins are left out)
+            assert rows.min() - top <= 1 and bottom - rows.max() <= 2
+            assert columns.min() - left <= 1 and right - columns.max() <= 2
+
+    holds_every_stamp(grid)
+    # Points stamped in place later (a local map growing) widen it, as far as the grid where one is past it.
+    more = simulate_scan(world, np.array([7.5, 9.5, 1.3]))[:, :2]
+    points = np.concatenate([reference, more])
+    holds_every_stamp(stamp_more(grid, points, len(reference), SIGMA, pairing))
+    grid = build_likelihood_grid(reference, RESOLUTION, SIGMA, margin=3.0, pairing_distance=pairing)
+    outside = np.concatenate([reference, more, [[1e3, -1e3]]])
+    holds_every_stamp(stamp_more(grid, outside, len(reference), SIGMA, pairing), tightly=False)
+
+
+def test_a_loop_submap_is_built_again_only_when_its_keyframes_moved_or_its_margin_changed() -> None:
+    world = square_loop().segments
+    slam = LaserSlam2D()
+    for k in range(8):
+        pose = np.array([5.0 + 0.4 * k, 9.0, 0.05 * k])
+        slam.add_scan(k * 200_000_000, simulate_scan(world, pose)[:, :2], odometry=pose)
+    around = range(1, 6)
+
+    def built_now(margin: float) -> Submap:
+        return Submap.of([slam._keyframes[k] for k in around], [slam._keyframe_poses[k] for k in around],
+                         resolution=RESOLUTION, likelihood_sigma=SIGMA, margin=margin, pairing_distance=0.3)
+
+    first = slam._loop_submap(around, 3.0)
+    np.testing.assert_array_equal(first.grid.values, built_now(3.0).grid.values)
+    assert slam._loop_submap(around, 3.0) is first
+    wider = slam._loop_submap(around, 4.0)
+    assert wider is not first
+    np.testing.assert_array_equal(wider.grid.values, built_now(4.0).grid.values)
+    slam._keyframe_poses[3] = slam._keyframe_poses[3] + np.array([0.2, 0.0, 0.0])  # an optimization moved it
+    moved = slam._loop_submap(around, 4.0)
+    assert moved is not wider
+    np.testing.assert_array_equal(moved.grid.values, built_now(4.0).grid.values)
+    assert slam._loop_submap(range(2, 6), 4.0) is not moved  # other keyframes: another submap
 
 
 def test_a_keyframe_placed_from_its_cache_is_placed_as_by_place() -> None:

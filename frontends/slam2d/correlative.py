@@ -457,18 +457,15 @@ def prepare_branch_and_bound(
     )
     reach = _reach(window, grid)
     height, width = grid.values.shape
-    # The search reads cells within `reach` of the points' cells, and the coarsest level reads 2^levels
-    # cells on from there; the pyramid of that window of the grid is the pyramid of the grid there (its
-    # edges are the grid's wherever the search reaches them), built in a fraction of the time when the
-    # grid is much larger (a submap with a margin of the whole search radius).
-    left, top, right, bottom = 0, 0, width, height
-    if crop_pyramid and cells_x.size:
-        left = max(int(cells_x.min()) - reach, 0)
-        top = max(int(cells_y.min()) - reach, 0)
-        right = min(int(cells_x.max()) + reach + (1 << levels), width)
-        bottom = min(int(cells_y.max()) + reach + (1 << levels), height)
+    top, bottom, left, right = 0, height, 0, width
+    if crop_pyramid and grid.stamped_window is not None:
+        # Beyond the stamped cells the grid reads zeros, as past its edges: the pyramid of those cells bounds
+        # every block the search reads (one that starts before them by their first cells' block, a bound
+        # as valid), and scores every translation as the whole grid's would. Built once per grid, not per
+        # query: a submap searched again from the next keyframes reuses it.
+        top, bottom, left, right = grid.stamped_window
     if left >= right or top >= bottom:  # the search reads nothing: any window will do
-        left, top, right, bottom = 0, 0, width, height
+        top, bottom, left, right = 0, height, 0, width
     pyramid = tuple(grid.pyramid(levels, (top, bottom, left, right)))
     cells_x = cells_x - left
     cells_y = cells_y - top
@@ -492,9 +489,9 @@ def match_branch_and_bound(
     Equal to `match_exhaustive` on the same window (same optimum), in a fraction of the evaluations.
     `exclude` = (x, y, radius): translations within the radius of (x, y) are not candidates, which is how
     a second, distinct solution is found (an ambiguity test). `crop_pyramid`: build the grid's pyramid
-    only where this search reads it (a grid searched once or twice), not over the whole grid (a grid
-    searched by many scans, which share its pyramid). Several searches of the same points and window:
-    `prepare_branch_and_bound` once, then `best` for each.
+    only over its stamped cells (a loop-closure submap, whose margin of the whole search radius is zeros),
+    not over the whole grid (a local map, searched by many scans). Several searches of the same points and
+    window: `prepare_branch_and_bound` once, then `best` for each.
     """
     search = prepare_branch_and_bound(points, grid, center, window, levels, crop_pyramid)
     return search.best(min_score, exclude)

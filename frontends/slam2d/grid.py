@@ -41,6 +41,9 @@ class LikelihoodGrid:
     resolution: float
     values: NDArray[np.float32]
     nearest: NDArray[np.int32]
+    stamped_window: Window | None = None
+    """(row start, row stop, column start, column stop): a window holding every cell a point was stamped in,
+    beyond which the grid reads zeros as past its edges (None: not known, the whole grid)."""
     _pyramids: dict[tuple[int, Window], list[NDArray[np.float32]]] = field(default_factory=dict, repr=False)
 
     def pyramid(self, levels: int, window: Window | None = None) -> list[NDArray[np.float32]]:
@@ -69,9 +72,9 @@ def build_likelihood_grid(
     its index within max(3σ, `pairing_distance`)."""
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     # numpy's reductions along axis 0 of an (N, 2) array cost ~0.1 ms each, as much as a tenth of the stamping
-    low, high = _bounds(points) if len(points) else (points.min(axis=0), points.max(axis=0))
-    low = low - margin
-    high = high + margin
+    points_low, points_high = _bounds(points) if len(points) else (points.min(axis=0), points.max(axis=0))
+    low = points_low - margin
+    high = points_high + margin
     cells = np.ceil((high - low) / resolution) + 1
     if not np.all(np.isfinite(cells)) or float(cells[0]) * float(cells[1]) > MAX_LIKELIHOOD_CELLS:
         raise MapExtentError(
@@ -83,9 +86,28 @@ def build_likelihood_grid(
     # while the points are stamped, then the Gaussian of them.
     values = np.zeros((int(shape[1]), int(shape[0])), dtype=np.float32)
     nearest = np.full(values.shape, -1, dtype=np.int32)
-    _stamp(points, low, resolution, sigma, _stamp_radius(sigma, pairing_distance, resolution), values,
-           nearest)
-    return LikelihoodGrid(low, resolution, values, nearest)
+    radius = _stamp_radius(sigma, pairing_distance, resolution)
+    _stamp(points, low, resolution, sigma, radius, values, nearest)
+    stamped = _stamped(points_low, points_high, low, resolution, radius, values.shape)
+    return LikelihoodGrid(low, resolution, values, nearest, stamped)
+
+
+def _stamped(low: FloatArray, high: FloatArray, origin: FloatArray, resolution: float, radius: int,
+             shape: tuple[int, ...], around: Window | None = None) -> Window | None:
+    """The window of the cells that stamps reach (`radius` cells around each point's) from points within
+    the box `low`–`high` (m), joined with the window `around` (an earlier stamping's), within a grid of
+    `shape` = (rows, columns); None where the box is not finite."""
+    if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
+        return None
+    # A cell more on each side than the stamps reach: the cells are rounded here as in the stamping.
+    first = np.floor((low - origin) / resolution) - radius - 1
+    last = np.floor((high - origin) / resolution) + radius + 2
+    top, bottom = max(int(first[1]), 0), min(int(last[1]), shape[0])
+    left, right = max(int(first[0]), 0), min(int(last[0]), shape[1])
+    if around is not None:
+        top, bottom = min(top, around[0]), max(bottom, around[1])
+        left, right = min(left, around[2]), max(right, around[3])
+    return (top, bottom, left, right) if top < bottom and left < right else (0, 0, 0, 0)
 
 
 @njit(cache=True)
@@ -196,7 +218,14 @@ def stamp_more(grid: LikelihoodGrid, points: FloatArray, first_new: int, sigma: 
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     radius = _stamp_radius(sigma, pairing_distance, grid.resolution)
     _stamp_more(points, first_new, grid.origin, grid.resolution, sigma, radius, grid.values, grid.nearest)
-    return LikelihoodGrid(grid.origin, grid.resolution, grid.values, grid.nearest)
+    stamped = None
+    if grid.stamped_window is not None and first_new < len(points):
+        low, high = _bounds(np.ascontiguousarray(points[first_new:]))
+        stamped = _stamped(low, high, grid.origin, grid.resolution, radius, grid.values.shape,
+                           grid.stamped_window)
+    elif first_new >= len(points):
+        stamped = grid.stamped_window
+    return LikelihoodGrid(grid.origin, grid.resolution, grid.values, grid.nearest, stamped)
 
 
 @njit(cache=True)

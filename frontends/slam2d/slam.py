@@ -91,6 +91,11 @@ FAST_TURN_SHARE = 0.5
 the turn may stop or swing back within a scan: the last pose's window is searched too (`_match`)."""
 LOCAL_MAP_SLACK = 2.0
 """The local map's grid reaches this much (m) beyond its margin, room for the keyframes added in place."""
+LOOP_SUBMAPS_KEPT_CELLS = 8_000_000
+"""The submaps of the last loop search's candidates are kept, with their pyramids, for the next search when
+their grids hold at most this many cells (64 MB, with the pyramid about twice that). A robot coming back along
+an old path searches the same candidates from keyframe after keyframe while their poses stay put (the UAL
+vehicle: keyframes 0 and 13, 40 times each), and building their grid and pyramid was most of each search."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -257,6 +262,9 @@ class LaserSlam2D:
         """While the wheel odometry repeats its last value: the motion tracked since it last changed."""
         self._deskewer = ScanDeskewer()
         self._local_map: Submap | None = None
+        self._loop_submaps: dict[tuple[int, int], tuple[FloatArray, float, Submap]] = {}
+        """The last loop searches' submaps by their keyframes (first, stop), with those keyframes' poses and
+        the margin they were built with (`_loop_submap`)."""
         self._local_map_first = 0
         """The oldest keyframe in the local map (the map holds it and every later one)."""
         self._pending_loops = 0
@@ -695,14 +703,7 @@ class LaserSlam2D:
             max(0, candidate - settings.submap_keyframes),
             min(current - settings.min_separation_keyframes, candidate + settings.submap_keyframes) + 1,
         )
-        submap = Submap.of(
-            [self._keyframes[k] for k in around],
-            [self._keyframe_poses[k] for k in around],
-            resolution=matching.resolution,
-            likelihood_sigma=matching.likelihood_sigma,
-            margin=fine_radius + 1.0,
-            pairing_distance=matching.icp_max_distance,
-        )
+        submap = self._loop_submap(around, fine_radius + 1.0)
         here = self._keyframe_poses[current]
         query = self._query_points(current)
         window = SearchWindow(fine_radius, settings.angular_window, settings.angular_step)
@@ -723,6 +724,25 @@ class LaserSlam2D:
         correction = se2.compose(refined.pose, se2.inverse(here))
         information = self._loop_information(query, submap, refined)
         return _LoopHypothesis(candidate, current, z, information, correction)
+
+    def _loop_submap(self, around: range, margin: float) -> Submap:
+        """The submap of the keyframes `around` with `margin`: the one a recent search built while none of
+        them moved (`LOOP_SUBMAPS_KEPT_CELLS`), else built now."""
+        matching = self.config.matching
+        poses = np.array([self._keyframe_poses[k] for k in around])
+        key = (around.start, around.stop)
+        kept = self._loop_submaps.pop(key, None)
+        if kept is not None and kept[1] == margin and np.array_equal(kept[0], poses):
+            submap = kept[2]
+        else:
+            submap = Submap.of([self._keyframes[k] for k in around], list(poses),
+                               resolution=matching.resolution, likelihood_sigma=matching.likelihood_sigma,
+                               margin=margin, pairing_distance=matching.icp_max_distance)
+        if submap.grid.values.size <= LOOP_SUBMAPS_KEPT_CELLS:
+            self._loop_submaps[key] = (poses, margin, submap)  # the newest last
+            while len(self._loop_submaps) > LOOP_CANDIDATES_PER_KEYFRAME:
+                del self._loop_submaps[next(iter(self._loop_submaps))]
+        return submap
 
     def _loop_information(self, query: FloatArray, submap: Submap, refined: IcpResult) -> FloatArray:
         """The loop closure's information: the ICP Hessian's, widened along a score plateau (a stretch of
