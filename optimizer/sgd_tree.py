@@ -62,6 +62,7 @@ from optimizer.sgd_tree_kernels import (
     parameters_from_poses,
     path_variance_ratios,
     poses_from_parameters,
+    subtree_intervals,
     tree_depths,
     tree_sgd_iteration,
     tree_stiffness,
@@ -223,6 +224,8 @@ def sgd_tree(
     counter_offset = _COUNTER_OFFSET[spanning.kind]
     params = np.empty_like(state)
     parameters_from_poses(state, spanning.parent, spanning.root, params)
+    entry, exit_ = subtree_intervals(spanning.parent, spanning.root)
+    sums = np.empty((len(state) + 1, 3))
     poses_from_parameters(params, spanning.parent, spanning.order, state)
     stiffness = np.empty_like(state)
     gamma = np.empty(3)
@@ -236,8 +239,8 @@ def sgd_tree(
             tree_stiffness(state, graph.edge_from, graph.edge_to, spanning.top, graph.information,
                            spanning.parent, stiffness, gamma)
         tree_sgd_iteration(params, graph.edge_from, graph.edge_to, spanning.top, visit_order,
-                           graph.measurements, graph.information, spanning.parent, spanning.root, stiffness,
-                           gamma, learning_rate_scale, t + counter_offset, coupled)
+                           graph.measurements, graph.information, spanning.parent, entry, exit_, sums,
+                           stiffness, gamma, learning_rate_scale, t + counter_offset, coupled)
         poses_from_parameters(params, spanning.parent, spanning.order, state)
         if not np.all(np.isfinite(state)):
             raise OptimizerError(f"tree SGD diverged at iteration {t} (non-finite poses)")

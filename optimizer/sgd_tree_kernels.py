@@ -5,7 +5,11 @@ wrapped), and q_root = p_root. A pose is the sum of the parameters on its path t
 (a, b) is satisfied by the parameters on the tree path a → top → b (top = lowest common ancestor): moving
 the parameters on b's side by +δ and those on a's side by −δ changes p_b − p_a by the sum of the δ. The
 residual is computed in the stored direction (the frame of a, as the file measured it), so reversed edges
-need no special case. Poses are summed exactly from the root at every visit, never read stale.
+need no special case. Poses are summed exactly from the root at every visit, never read stale: in O(log N)
+from a Fenwick tree over the poses in depth-first order (`subtree_intervals`), where a parameter's change is
+added to its whole subtree's interval. Walking to the root instead cost the depth at every visit: O(N) a
+constraint on a long corridor's chain (the Freiburg clinic's 3 502 keyframes, depth 2 475: 16 ms an
+iteration, its final optimization's largest share).
 """
 
 from __future__ import annotations
@@ -77,19 +81,85 @@ def poses_from_parameters(params: np.ndarray, parent: np.ndarray, order: np.ndar
             poses[node, j] = poses[q, j] + params[node, j]
 
 
+@njit(cache=True)
+def subtree_intervals(parent: np.ndarray, root: int) -> tuple[np.ndarray, np.ndarray]:
+    """(entry, exit): the poses numbered in depth-first order from `root`, so that the subtree of pose i is
+    the interval [entry[i], exit[i]) of that numbering."""
+    n = parent.shape[0]
+    children_count = np.zeros(n + 1, dtype=np.int64)
+    for i in range(n):
+        if i != root:
+            children_count[parent[i] + 1] += 1
+    start = np.cumsum(children_count)
+    children = np.empty(max(n - 1, 0), dtype=np.int64)
+    filled = start[:-1].copy()
+    for i in range(n):
+        if i != root:
+            children[filled[parent[i]]] = i
+            filled[parent[i]] += 1
+    entry = np.empty(n, dtype=np.int64)
+    exit_ = np.empty(n, dtype=np.int64)
+    stack = np.empty(n, dtype=np.int64)
+    next_child = start[:-1].copy()
+    depth = 0
+    stack[0] = root
+    entry[root] = 0
+    counter = 1
+    while depth >= 0:
+        node = stack[depth]
+        if next_child[node] < start[node + 1]:
+            child = children[next_child[node]]
+            next_child[node] += 1
+            entry[child] = counter
+            counter += 1
+            depth += 1
+            stack[depth] = child
+        else:
+            exit_[node] = counter
+            depth -= 1
+    return entry, exit_
+
+
+@njit(cache=True)
+def _fenwick_of(params: np.ndarray, entry: np.ndarray, exit_: np.ndarray, sums: np.ndarray) -> None:
+    """`sums` (N + 1, 3): the Fenwick tree whose prefix sum at entry[i] is pose i, the sum of the parameters
+    of i and its ancestors (each parameter +q at its subtree's entry, −q at its exit)."""
+    n = params.shape[0]
+    sums[:] = 0.0
+    for i in range(n):
+        for j in range(3):
+            sums[entry[i] + 1, j] += params[i, j]
+            if exit_[i] < n:
+                sums[exit_[i] + 1, j] -= params[i, j]
+    for i in range(1, n + 1):
+        up = i + (i & -i)
+        if up <= n:
+            for j in range(3):
+                sums[up, j] += sums[i, j]
+
+
 @njit(cache=True, inline="always")
-def _pose_of(node: int, params: np.ndarray, parent: np.ndarray, root: int, out: np.ndarray) -> None:
+def _fenwick_add(sums: np.ndarray, position: int, d0: float, d1: float, d2: float) -> None:
+    i = position + 1
+    n = sums.shape[0] - 1
+    while i <= n:
+        sums[i, 0] += d0
+        sums[i, 1] += d1
+        sums[i, 2] += d2
+        i += i & -i
+
+
+@njit(cache=True, inline="always")
+def _pose_of(node: int, entry: np.ndarray, sums: np.ndarray, out: np.ndarray) -> None:
     out[0] = 0.0
     out[1] = 0.0
     out[2] = 0.0
-    while node != root:
-        out[0] += params[node, 0]
-        out[1] += params[node, 1]
-        out[2] += params[node, 2]
-        node = parent[node]
-    out[0] += params[root, 0]
-    out[1] += params[root, 1]
-    out[2] += params[root, 2]
+    i = entry[node] + 1
+    while i > 0:
+        out[0] += sums[i, 0]
+        out[1] += sums[i, 1]
+        out[2] += sums[i, 2]
+        i -= i & -i
 
 
 @njit(cache=True)
@@ -119,9 +189,11 @@ def tree_stiffness(poses: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray
 @njit(cache=True)
 def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.ndarray, top: np.ndarray,
                        visit_order: np.ndarray, measurements: np.ndarray, information: np.ndarray,
-                       parent: np.ndarray, root: int, stiffness: np.ndarray, gamma: np.ndarray,
-                       learning_rate_scale: float, t: int, coupled_headings: bool) -> None:
-    """One pass over the constraints in `visit_order`, updating the parameters in place.
+                       parent: np.ndarray, entry: np.ndarray, exit_: np.ndarray, sums: np.ndarray,
+                       stiffness: np.ndarray, gamma: np.ndarray, learning_rate_scale: float, t: int,
+                       coupled_headings: bool) -> None:
+    """One pass over the constraints in `visit_order`, updating the parameters in place (`entry`, `exit_`:
+    `subtree_intervals`; `sums`: (N + 1, 3) room for the Fenwick tree of the poses).
 
     Per constraint: the residual r = (P_a·z) − p_b (θ wrapped) and d = 2 W r with W = R Ω Rᵀ in the global
     frame; the step β_j = ℓ d_j /(s γ_j t) (ℓ = path length, s = `learning_rate_scale`), clamped to r_j so
@@ -136,12 +208,14 @@ def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.nd
     total_weight = np.empty(3)
     beta = np.empty(3)
     w = np.empty((3, 3))
+    n = params.shape[0]
+    _fenwick_of(params, entry, exit_, sums)
     for position in range(visit_order.shape[0]):
         k = visit_order[position]
         a = edge_from[k]
         b = edge_to[k]
-        _pose_of(a, params, parent, root, pa)
-        _pose_of(b, params, parent, root, pb)
+        _pose_of(a, entry, sums, pa)
+        _pose_of(b, entry, sums, pb)
         _weighted_residual(pa, pb, measurements[k], information[k], w, r, d)
         length = 0
         total_weight[:] = 0.0
@@ -166,8 +240,15 @@ def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.nd
             node = a if side == 0 else b
             sign = -1.0 if side == 0 else 1.0
             while node != top[k]:
-                for j in range(3):
-                    params[node, j] += sign * beta[j] / stiffness[node, j]
+                d0 = sign * beta[0] / stiffness[node, 0]
+                d1 = sign * beta[1] / stiffness[node, 1]
+                d2 = sign * beta[2] / stiffness[node, 2]
+                params[node, 0] += d0
+                params[node, 1] += d1
+                params[node, 2] += d2
+                _fenwick_add(sums, entry[node], d0, d1, d2)
+                if exit_[node] < n:
+                    _fenwick_add(sums, exit_[node], -d0, -d1, -d2)
                 node = parent[node]
 
 

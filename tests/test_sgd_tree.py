@@ -16,6 +16,7 @@ from optimizer.graph import PoseGraph
 from optimizer.gridworld import generate_grid_world
 from optimizer.polish import gauss_newton
 from optimizer.sgd import sgd
+from optimizer.sgd_kernels import _clamped_step, _weighted_residual
 from optimizer.sgd_tree import (
     breadth_first_tree,
     incremental_tree,
@@ -23,6 +24,12 @@ from optimizer.sgd_tree import (
     settled,
     sgd_tree,
     spanning_tree,
+)
+from optimizer.sgd_tree_kernels import (
+    parameters_from_poses,
+    subtree_intervals,
+    tree_sgd_iteration,
+    tree_stiffness,
 )
 from tests.conftest import shared_file
 
@@ -348,3 +355,71 @@ def test_the_coupled_heading_step_minimises_the_constraints_own_cost_along_the_t
     t = 1000
     assert _coupled_heading_step(theta_a, z, w, r[0], r[1], r[2], share_a, 2, gamma, t) == pytest.approx(
         whole * 2 * 2 * information[2, 2] / (gamma * t), rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_subtree_intervals_number_each_subtree_as_one_interval(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = 60
+    parent = np.array([0] + [int(rng.integers(0, i)) for i in range(1, n)])  # random, parents first
+    if seed == 2:  # a long chain (a corridor's keyframes): the depth-first walk must not recurse
+        n = 20_000
+        parent = np.maximum(np.arange(n) - 1, 0)
+    entry, exit_ = subtree_intervals(parent, 0)
+    assert sorted(entry.tolist()) == list(range(n))
+    descendants: list[set[int]] = [{i} for i in range(n)]
+    for i in range(n - 1, 0, -1):  # children after their parents
+        descendants[parent[i]] |= descendants[i]
+    by_entry = np.argsort(entry)
+    for i in (range(n) if n <= 100 else range(0, n, 997)):
+        assert set(by_entry[entry[i]:exit_[i]].tolist()) == descendants[i]
+
+
+def _reference_pass(graph: PoseGraph, params: np.ndarray, parent: np.ndarray, root: int, top: np.ndarray,
+                    order: np.ndarray, stiffness: np.ndarray, gamma: np.ndarray, t: int) -> None:
+    """One tree-SGD pass as its docstring states it, every pose summed by walking to the root."""
+    def pose(node: int) -> np.ndarray:
+        total = params[root].copy()
+        while node != root:
+            total += params[node]
+            node = parent[node]
+        return total
+
+    w, r, d = np.empty((3, 3)), np.empty(3), np.empty(3)
+    for k in order:
+        a, b = graph.edge_from[k], graph.edge_to[k]
+        _weighted_residual(pose(a), pose(b), graph.measurements[k], graph.information[k], w, r, d)
+        paths = []
+        for node in (a, b):
+            path = []
+            while node != top[k]:
+                path.append(node)
+                node = parent[node]
+            paths.append(path)
+        length = len(paths[0]) + len(paths[1])
+        weight = sum(1.0 / stiffness[node] for path in paths for node in path)
+        beta = [_clamped_step(length, d[j], r[j], gamma[j], t) / weight[j] for j in range(3)]
+        for sign, path in zip((-1.0, 1.0), paths, strict=True):
+            for node in path:
+                params[node] += sign * np.array(beta) / stiffness[node]
+
+
+def test_a_pass_reads_every_pose_as_updated_by_the_constraints_before_it() -> None:
+    # The kernel keeps the poses in a Fenwick tree over subtree intervals; a stale or misplaced update
+    # would show against walking every path to the root.
+    graph = generate_grid_world(300, seed=3).graph
+    tree = spanning_tree(graph, "breadth-first")
+    params = np.empty_like(graph.poses)
+    parameters_from_poses(graph.poses, tree.parent, tree.root, params)
+    stiffness, gamma = np.empty_like(params), np.empty(3)
+    tree_stiffness(graph.poses, graph.edge_from, graph.edge_to, tree.top, graph.information, tree.parent,
+                   stiffness, gamma)
+    order = tree.visit_order()
+    expected = params.copy()
+    _reference_pass(graph, expected, tree.parent, tree.root, tree.top, order, stiffness, gamma, 3)
+    entry, exit_ = subtree_intervals(tree.parent, tree.root)
+    tree_sgd_iteration(params, graph.edge_from, graph.edge_to, tree.top, order, graph.measurements,
+                       graph.information, tree.parent, entry, exit_, np.empty((len(params) + 1, 3)),
+                       stiffness, gamma, 1.0, 3, False)
+    assert not np.allclose(params, graph.poses)  # the pass moved the poses
+    np.testing.assert_allclose(params, expected, rtol=1e-9, atol=1e-9)
