@@ -93,20 +93,18 @@ def build_likelihood_grid(
 
 
 def _stamped(low: FloatArray, high: FloatArray, origin: FloatArray, resolution: float, radius: int,
-             shape: tuple[int, ...], around: Window | None = None) -> Window | None:
+             shape: tuple[int, ...]) -> Window | None:
     """The window of the cells that stamps reach (`radius` cells around each point's) from points within
-    the box `low`–`high` (m), joined with the window `around` (an earlier stamping's), within a grid of
-    `shape` = (rows, columns); None where the box is not finite."""
-    if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
+    the box `low`–`high` (m), within a grid of `shape` = (rows, columns); None where the box is not
+    finite."""
+    x0, y0, x1, y1 = float(low[0]), float(low[1]), float(high[0]), float(high[1])
+    if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
         return None
     # A cell more on each side than the stamps reach: the cells are rounded here as in the stamping.
-    first = np.floor((low - origin) / resolution) - radius - 1
-    last = np.floor((high - origin) / resolution) + radius + 2
-    top, bottom = max(int(first[1]), 0), min(int(last[1]), shape[0])
-    left, right = max(int(first[0]), 0), min(int(last[0]), shape[1])
-    if around is not None:
-        top, bottom = min(top, around[0]), max(bottom, around[1])
-        left, right = min(left, around[2]), max(right, around[3])
+    left = max(math.floor((x0 - origin[0]) / resolution) - radius - 1, 0)
+    top = max(math.floor((y0 - origin[1]) / resolution) - radius - 1, 0)
+    right = min(math.floor((x1 - origin[0]) / resolution) + radius + 2, shape[1])
+    bottom = min(math.floor((y1 - origin[1]) / resolution) + radius + 2, shape[0])
     return (top, bottom, left, right) if top < bottom and left < right else (0, 0, 0, 0)
 
 
@@ -218,14 +216,8 @@ def stamp_more(grid: LikelihoodGrid, points: FloatArray, first_new: int, sigma: 
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     radius = _stamp_radius(sigma, pairing_distance, grid.resolution)
     _stamp_more(points, first_new, grid.origin, grid.resolution, sigma, radius, grid.values, grid.nearest)
-    stamped = None
-    if grid.stamped_window is not None and first_new < len(points):
-        low, high = _bounds(np.ascontiguousarray(points[first_new:]))
-        stamped = _stamped(low, high, grid.origin, grid.resolution, radius, grid.values.shape,
-                           grid.stamped_window)
-    elif first_new >= len(points):
-        stamped = grid.stamped_window
-    return LikelihoodGrid(grid.origin, grid.resolution, grid.values, grid.nearest, stamped)
+    # A local map grown in place is never cropped (`crop_pyramid`): its stamped window is not kept.
+    return LikelihoodGrid(grid.origin, grid.resolution, grid.values, grid.nearest)
 
 
 @njit(cache=True)
