@@ -91,11 +91,12 @@ FAST_TURN_SHARE = 0.5
 the turn may stop or swing back within a scan: the last pose's window is searched too (`_match`)."""
 LOCAL_MAP_SLACK = 2.0
 """The local map's grid reaches this much (m) beyond its margin, room for the keyframes added in place."""
-LOOP_SUBMAPS_KEPT_CELLS = 8_000_000
+LOOP_SUBMAPS_KEPT_CELLS = 4_000_000
 """The submaps of the last loop search's candidates are kept, with their pyramids, for the next search when
-their grids hold at most this many cells (64 MB, with the pyramid about twice that). A robot coming back along
-an old path searches the same candidates from keyframe after keyframe while their poses stay put (the UAL
-vehicle: keyframes 0 and 13, 40 times each), and building their grid and pyramid was most of each search."""
+their grids hold at most this many cells: 32 MB each, and at most 96 MB more for a fine search's six pyramid
+levels (the UAL vehicle's, 30 m scans: 1.4–1.8 M cells; its replay peaked 100 MB higher). A robot coming back
+along an old path searches the same candidates from keyframe after keyframe while their poses stay put (UAL:
+keyframes 0 and 13, 40 times each), and building their grid and pyramid was most of each search."""
 
 
 @dataclass(frozen=True, eq=False)
