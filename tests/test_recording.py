@@ -233,7 +233,7 @@ def test_the_occupancy_grid_lies_in_world_metres_north_up(tmp_path: Path) -> Non
     scale = np.asarray(placement["Transform3D:scale"][0], dtype=float).reshape(3)
     image_row = entities["/world/occupancy/grid"].static_columns
     blob = np.asarray(image_row["EncodedImage:blob"][0], dtype=np.uint8).tobytes()
-    decoded = np.asarray(Image.open(io.BytesIO(blob)))
+    decoded = np.asarray(Image.open(io.BytesIO(blob)).convert("RGBA"))  # as a viewer expands a palette
     # Every cell in the colour of its grey, pixel for pixel.
     expected = [[map2d.OCCUPANCY_VIEW_COLORS[grey] for grey in row] for row in picture.tolist()]
     np.testing.assert_array_equal(decoded, np.array(expected, dtype=np.uint8))

@@ -86,12 +86,16 @@ def log_occupancy(recording: rr.RecordingStream, image: NDArray[np.uint8], origi
     from PIL import Image  # as pipeline.outputs.write_png: only when a map is recorded
 
     height = image.shape[0]
-    colors = np.zeros((256, 4), dtype=np.uint8)  # one lookup: a mask per grey took three times as long
+    colors = np.zeros((256, 4), dtype=np.uint8)  # the palette: every grey not drawn is transparent
     for grey, rgba in OCCUPANCY_VIEW_COLORS.items():
         colors[grey] = rgba
     png = io.BytesIO()
-    # zlib's fastest level: still a few % of the raw RGBA, in half the time of the default.
-    Image.fromarray(colors[image], mode="RGBA").save(png, format="PNG", compress_level=1)
+    # One byte a pixel, the colours a palette (alpha in its tRNS chunk): the viewer decodes it to the same
+    # RGBA, and deflating a quarter of the bytes took UAL's map (14 M pixels) 0.03 s instead of 0.5 s.
+    # zlib's fastest level: still a few % of the raw pixels, in half the time of the default.
+    picture = Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8), mode="P")
+    picture.putpalette(colors[:, :3].tobytes())
+    picture.save(png, format="PNG", compress_level=1, transparency=colors[:, 3].tobytes())
     # Pixel (u, v) covers x = origin_x + u·res, y = top − v·res: image rows run south.
     recording.log(
         OCCUPANCY_ENTITY,
