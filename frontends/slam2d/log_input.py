@@ -116,16 +116,21 @@ def read_odometry(
     checks = checks or DataChecksConfig()
     counts = counts if counts is not None else {}
     stamps: list[int] = []
-    poses: list[FloatArray] = []
+    translations: list[FloatArray] = []
+    quaternions: list[FloatArray] = []
     frames: tuple[str, str] = ("odom", "base_link")
     for pose in log.odometry(topic):
         stamps.append(pose.stamp_ns)
-        poses.append(pose.se2)
+        translations.append(pose.translation)
+        quaternions.append(pose.rotation)
         frames = (pose.frame_id, pose.child_frame_id)
     if not stamps:
         return None
     stamp_array = np.array(stamps, dtype=np.int64)
-    pose_array = np.array(poses, dtype=np.float64).reshape(-1, 3)
+    # Headings of all messages at once (`OdometryPose.se2` one by one: 13 us each, 0.2 s of a 3-minute log
+    # with odometry at 80 Hz).
+    pose_array = np.column_stack([np.array(translations, dtype=np.float64)[:, :2],
+                                  rotations.yaw(np.array(quaternions, dtype=np.float64))])
     _add(counts, "odometry_reordered", int(np.count_nonzero(stamp_array[1:] < stamp_array[:-1])))
     order = np.argsort(stamp_array, kind="stable")
     stamp_array, pose_array = stamp_array[order], pose_array[order]
