@@ -140,6 +140,7 @@ def _fenwick_of(params: np.ndarray, entry: np.ndarray, exit_: np.ndarray, sums: 
 
 @njit(cache=True, inline="always")
 def _fenwick_add(sums: np.ndarray, position: int, d0: float, d1: float, d2: float) -> None:
+    """Add (d0, d1, d2) at `position` (N, one past the last pose: nothing)."""
     i = position + 1
     n = sums.shape[0] - 1
     while i <= n:
@@ -208,7 +209,6 @@ def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.nd
     total_weight = np.empty(3)
     beta = np.empty(3)
     w = np.empty((3, 3))
-    n = params.shape[0]
     _fenwick_of(params, entry, exit_, sums)
     for position in range(visit_order.shape[0]):
         k = visit_order[position]
@@ -247,8 +247,7 @@ def tree_sgd_iteration(params: np.ndarray, edge_from: np.ndarray, edge_to: np.nd
                 params[node, 1] += d1
                 params[node, 2] += d2
                 _fenwick_add(sums, entry[node], d0, d1, d2)
-                if exit_[node] < n:
-                    _fenwick_add(sums, exit_[node], -d0, -d1, -d2)
+                _fenwick_add(sums, exit_[node], -d0, -d1, -d2)  # no-op past the last pose (the root's)
                 node = parent[node]
 
 

@@ -38,8 +38,8 @@ if TYPE_CHECKING:
     from pipeline.replay_log import LogReplayResult, SessionStart
 
 KNOWN_ERRORS: tuple[type[Exception], ...] = (OptimizerError, FrontendError, PipelineError)
-_KNOWN_OR_SYSTEM_ERRORS: tuple[type[Exception], ...] = (*KNOWN_ERRORS, OSError)
 """What a replay raises on purpose (bad input, unwritable outputs); anything else is a bug."""
+_KNOWN_OR_SYSTEM_ERRORS: tuple[type[Exception], ...] = (*KNOWN_ERRORS, OSError)
 
 DEFAULT_OUT_DIR = Path("recordings")
 

@@ -29,6 +29,7 @@ _EXPECTED = "expected an MCAP file, a ROS 1 bag or a ROS 2 bag"
 _INDEX_ERRORS: tuple[type[BaseException], ...] = (FrontendError, *READ_ERRORS)
 """What reading a bag's index may raise: a bag that cannot be read is skipped, not a failure."""
 
+
 def open_container(path: str | Path) -> Container:
     """The container reader for a log file or ROS 2 bag directory. Anything else, and a file whose
     structure is damaged beyond reading, is a one-line `LogFileError` naming the path."""
