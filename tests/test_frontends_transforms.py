@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from frontends.errors import LogWarning, TransformLookupError
-from frontends.logs import OdometryPose, Scan2D, Transform, TransformTree, rotations
+from frontends.logs import OdometryPose, Scan2D, Transform, TransformTree, open_log, rotations
 from frontends.logs.ordering import by_stamp
-from tests._frontends_fixtures import ScanListLog
+from tests._frontends_fixtures import ScanListLog, ros2_mcap
 
 
 def planar(
@@ -221,3 +221,38 @@ def test_laser_scans_default_to_the_frame_that_moves_as_clouds_do() -> None:
     assert mount is not None and mount.parent_frame == "base_footprint"
     assert moved.frame_id == "base_footprint"
     np.testing.assert_allclose(moved.points, points + np.array([0.2, 0.0]))
+
+
+def _tf_odometry_log(path: Path) -> Path:
+    """Odometry only on tf: odom → base_link at 20 Hz with one message stored late (out of stamp order), a
+    static odom → dock and, later, a second moving child odom → cart (not the odometry: the first child
+    seen is), with map → odom beside them."""
+    with ros2_mcap(path) as (messages, add):
+        tf = "tf2_msgs/msg/TFMessage"
+        add("/tf_static", tf, 0, messages.tf_message([messages.transform_stamped(0, "odom", "dock",
+                                                                               (1.0, 0.0, 0.0), 0.0)]))
+        stamps = [k * 50_000_000 for k in range(40)]
+        stamps[10], stamps[11] = stamps[11], stamps[10]  # stored late: sorted by the reader
+        for stamp in stamps:
+            moving = [messages.transform_stamped(stamp, "odom", "base_link", (stamp * 1e-9, 0.2, 0.0), 0.1),
+                      messages.transform_stamped(stamp, "map", "odom", (0.5, 0.0, 0.0), 0.0)]
+            if stamp >= 1_000_000_000:
+                cart = (0.0, stamp * 1e-9, 0.0)
+                moving.append(messages.transform_stamped(stamp, "odom", "cart", cart, 0.0))
+            add("/tf", tf, stamp, messages.tf_message(moving))
+    return path
+
+
+def test_the_odometry_on_tf_is_kept_from_the_tree_pass(tmp_path: Path) -> None:
+    path = _tf_odometry_log(tmp_path / "tf_odometry.mcap")
+    with open_log(path) as log:
+        second_pass = [(p.stamp_ns, p.frame_id, p.child_frame_id, *p.translation, *p.rotation)
+                       for p in log.odometry()]
+    with open_log(path) as log:
+        tree = log.transform_tree()
+        log.transforms = None  # type: ignore[method-assign]  # another pass over tf would fail
+        kept = [(p.stamp_ns, p.frame_id, p.child_frame_id, *p.translation, *p.rotation)
+                for p in log.odometry()]
+    assert kept == second_pass
+    assert len(kept) == 40 and {pose[2] for pose in kept} == {"base_link"}
+    assert tree.lookup("map", "cart", 1_500_000_000).translation[1] == pytest.approx(1.5)
