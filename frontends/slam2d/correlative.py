@@ -8,6 +8,13 @@ starting point for a sub-cell refinement (ICP), not the final estimate.
 - `match_branch_and_bound`: wide windows (loop closures): candidates on coarse levels of the max pyramid
   bound the scores of all finer translations they contain, so whole blocks are pruned at once
   (Hess et al. 2016, "Real-time loop closure in 2D LIDAR SLAM"); the result is the exhaustive optimum.
+
+The score of a translation (tx, ty) in whole cells on pyramid level h, whose cells hold the max over blocks
+of 2^h × 2^h cells (the block score): each point's cell shifted by (tx, ty) is read, the edge cell where its
+block only partly overlaps the grid (which covers the overlapping part: the level stays an upper bound of
+the finer ones), nothing where it misses it; the values are summed over the points in their order and
+divided by the point count. Level 0 is the grid itself and the score the mean likelihood. Every kernel
+below sums in that order, so their scores agree up to round-off.
 """
 
 from __future__ import annotations
@@ -103,48 +110,15 @@ def _base_cells(
     return cells_x, cells_y
 
 
-@njit(cache=True, inline="always")
-def _score(
-    values: NDArray[np.float32],
-    cells_x: NDArray[np.int64],
-    cells_y: NDArray[np.int64],
-    tx: int,
-    ty: int,
-    span: int,
-) -> float:
-    """Σ of the level's values at the points' cells shifted by (tx, ty), divided by the point count.
-
-    A point whose block [c, c + span) only partly overlaps the grid reads the edge cell, whose block
-    covers the overlapping part: the level stays an upper bound of the finer ones.
-    """
-    height, width = values.shape
-    total = 0.0
-    for i in range(cells_x.shape[0]):
-        cx = cells_x[i] + tx
-        cy = cells_y[i] + ty
-        if cx < 0:
-            if cx + span <= 0:
-                continue
-            cx = 0
-        if cy < 0:
-            if cy + span <= 0:
-                continue
-            cy = 0
-        if cx < width and cy < height:
-            total += values[cy, cx]
-    return total / max(cells_x.shape[0], 1)
-
-
 @njit(cache=True)
 def _exhaustive(
     values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y: NDArray[np.int64], reach: int
 ) -> tuple[int, int, int, float]:
-    """The best (angle, tx, ty, score) of every translation within ±`reach` cells, as `_score` with span 1.
+    """The best (angle, tx, ty, score) of every translation within ±`reach` cells: the block score on level 0.
 
     Point by point, each adding its (2·reach + 1)² patch of the grid to the totals of all translations:
     rows read contiguously instead of one random cell per point and candidate. Consecutive points in one
-    cell (a dense laser has several per 5 cm cell) add their patch once, times their count. Each total
-    sums the points in `_score`'s order, so the scores are `_score`'s up to round-off, and the first best
+    cell (a dense laser has several per 5 cm cell) add their patch once, times their count. The first best
     is taken in (angle, ty, tx) order.
     """
     height, width = values.shape
@@ -211,8 +185,8 @@ def _excluded(tx: int, ty: int, span: int, exclude_x: int, exclude_y: int, radiu
 
 @njit(cache=True, inline="always")
 def _block_cell(cell: int, span: int, size: int) -> int:
-    """The cell `_score` reads for a point whose block [cell, cell + span) is shifted there: the edge cell
-    where the block only partly overlaps the grid, −1 where it misses it."""
+    """The cell the block score reads for a point whose block [cell, cell + span) is shifted there: the edge
+    cell where the block only partly overlaps the grid, −1 where it misses it."""
     if cell < 0:
         return 0 if cell + span > 0 else -1
     return cell if cell < size else -1
@@ -229,8 +203,8 @@ def _top_level(
     """Scores of every candidate (angle, tx, ty) of the coarsest level, level `top` (its `values`), and
     those keys.
 
-    Each point adds its cells of all translations at once (the cell `_score` reads, clamped alike), so its
-    row is read for all of them together; every total sums the points in `_score`'s order: equal scores."""
+    Each point adds its cells of all translations at once (`_block_cell`), so its row is read for all of
+    them together."""
     span = 1 << top
     height, width = values.shape
     starts = np.arange(-reach, reach + 1, span)
@@ -274,8 +248,8 @@ def _child_scores(
     wanted: NDArray[np.bool_],
     out: FloatArray,
 ) -> None:
-    """`_score` of the four children (tx + half·(c & 1), ty + half·(c >> 1)) with span `half`, in one pass
-    over the points (each child's total sums them in `_score`'s order); −1 for a child not `wanted`."""
+    """The block scores of the four children (tx + half·(c & 1), ty + half·(c >> 1)) with span `half`, in
+    one pass over the points; −1 for a child not `wanted`."""
     height, width = values.shape
     total0 = total1 = total2 = total3 = 0.0
     for i in range(cells_x.shape[0]):

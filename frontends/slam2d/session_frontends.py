@@ -70,9 +70,6 @@ class SavedMap2D:
         return PoseGraph.build(np.arange(len(self.keyframe_poses)), self.keyframe_poses, c.edge_from,
                                c.edge_to, c.measurements, c.information)
 
-    def occupancy(self) -> OccupancyGrid:
-        return occupancy_grid(self.keyframe_scans, self.keyframe_poses)
-
 
 OLD_NEW_CLOSURES_ON_PATH = 0.05
 """A continued run should close loops with the saved keyframes where it drives their path: one for at most

@@ -25,9 +25,6 @@ class StageTimes:
     def stage(self, name: str) -> _Stage:
         return _Stage(self, name)
 
-    def as_dict(self) -> dict[str, dict[str, float]]:
-        return {"wall_s": dict(self.wall), "cpu_s": dict(self.cpu)}
-
     def _charge(self) -> None:
         """Charge the time since the last mark to the innermost running stage, and move the mark."""
         wall, cpu = time.perf_counter(), time.process_time()
