@@ -228,14 +228,19 @@ class LogReader:
         same_pass = options == (ODOMETRY_FRAME, DEFAULT_WINDOW_NS, DEFAULT_MAX_ITEMS)
         if kept is not None and same_pass:  # `transform_tree` read it, in a pass with these options
             return kept.poses()
-        return _odometry_from_tf(self.transforms(window_ns=window_ns, max_items=max_items), odom_frame)
+        odometry = _TfOdometry(odom_frame)
+        for _ in odometry.noting(self.transforms(window_ns=window_ns, max_items=max_items)):
+            pass
+        return odometry.poses()
 
 
 class _TfOdometry:
-    """What `_odometry_from_tf` would give of tf's transforms out of `ODOMETRY_FRAME`, noted in passing
-    (`noting`) in flat arrays: stamps, log times, and translation + rotation (7 numbers) per pose."""
+    """The odometry on tf: the dynamic transforms out of `frame` to the first child frame seen (REP 105's
+    odom → base), noted as they pass (`noting`) in flat arrays: stamps, log times, and translation +
+    rotation (7 numbers) per pose."""
 
-    def __init__(self) -> None:
+    def __init__(self, frame: str = ODOMETRY_FRAME) -> None:
+        self.frame = frame
         self.child: str | None = None
         self.stamps = array("q")
         self.log_times = array("q")
@@ -244,7 +249,7 @@ class _TfOdometry:
     def noting(self, transforms: Iterator[Transform]) -> Iterator[Transform]:
         """The transforms, those of the odometry noted."""
         for transform in transforms:
-            if not transform.is_static and transform.parent_frame == ODOMETRY_FRAME:
+            if not transform.is_static and transform.parent_frame == self.frame:
                 if self.child is None:
                     self.child = transform.child_frame
                 if transform.child_frame == self.child:
@@ -257,23 +262,5 @@ class _TfOdometry:
     def poses(self) -> Iterator[OdometryPose]:
         values = self.values
         for k, (stamp, log_time) in enumerate(zip(self.stamps, self.log_times, strict=True)):
-            yield OdometryPose(stamp, log_time, ODOMETRY_FRAME, self.child or "",
+            yield OdometryPose(stamp, log_time, self.frame, self.child or "",
                                np.array(values[7 * k : 7 * k + 3]), np.array(values[7 * k + 3 : 7 * k + 7]))
-
-
-def _odometry_from_tf(transforms: Iterator[Transform], odom_frame: str) -> Iterator[OdometryPose]:
-    child: str | None = None
-    for transform in transforms:
-        if transform.is_static or transform.parent_frame != odom_frame:
-            continue
-        if child is None:
-            child = transform.child_frame
-        if transform.child_frame == child:
-            yield OdometryPose(
-                transform.stamp_ns,
-                transform.log_time_ns,
-                transform.parent_frame,
-                transform.child_frame,
-                transform.translation,
-                transform.rotation,
-            )
