@@ -18,12 +18,14 @@ from frontends.slam2d.config import (
     OPTIMIZE_EVERY_LOOP_CLOSURES,
     SMALL_CORRECTION_ANGULAR,
     SMALL_CORRECTION_LINEAR,
+    Slam2DConfig,
 )
 from frontends.slam2d.global_match import VerifiedMatch
 from frontends.slam2d.local_map import place
 from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import smooth_localized, smooth_scans, tracking_drift
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
+from frontends.slam2d.scan_odometry import ScanOdometry
 from frontends.slam2d.slam import LaserSlam2D, _LoopHypothesis
 from optimizer import se2
 from optimizer.solve import optimize
@@ -632,3 +634,36 @@ def test_without_odometry_a_gap_through_a_corner_is_tracked_across(
     poses, truth = np.array([r.pose for r in results]), new_run.truth[kept]
     assert position_errors(poses, truth).max() < 0.05
     assert heading_errors(poses, truth).max() < math.radians(1.0)
+
+
+def test_the_scans_own_odometry_goes_on_in_one_frame_across_its_restarts(new_run: Run) -> None:
+    """Without wheel odometry the localizer predicts by the scans' own odometry, which restarts its tracking
+    every few keyframes to bound memory: the restart's scan is placed by both trackings, so the motion
+    between any two scans is measured as by one that never restarted."""
+    span = range(0, 120)
+    restarting = ScanOdometry(Slam2DConfig(), max_keyframes=4)
+    whole = ScanOdometry(Slam2DConfig(), max_keyframes=10**6)
+    restarted = np.array([restarting.pose(int(new_run.stamps_ns[k]), new_run.scans[k], None) for k in span])
+    unbroken = np.array([whole.pose(int(new_run.stamps_ns[k]), new_run.scans[k], None) for k in span])
+    truth = new_run.truth[list(span)]
+    steps, true_steps = se2.relative(restarted[:-1], restarted[1:]), se2.relative(truth[:-1], truth[1:])
+    assert np.abs(steps[:, :2] - true_steps[:, :2]).max() < 0.02
+    assert np.abs(se2.wrap_angle(steps[:, 2] - true_steps[:, 2])).max() < math.radians(1.0)
+    # Over the whole drive (round corners, 24 m), no more drift than the tracking that never restarted.
+    assert position_errors(align_to_first(restarted, truth), truth).max() < 0.1
+    assert position_errors(align_to_first(unbroken, truth), truth).max() < 0.1
+
+
+def test_without_odometry_a_whole_drive_is_tracked_on_the_truth(
+        localizer_map: tuple[list[np.ndarray], np.ndarray], new_run: Run) -> None:
+    """No wheel odometry: every scan is matched on the map around the scans' own odometry's prediction."""
+    localizer = MapLocalizer(*localizer_map, initial_pose=new_run.truth[0])
+    results = [localizer.localize(int(stamp), scan, None)
+               for stamp, scan in zip(new_run.stamps_ns, new_run.scans, strict=True)]
+    assert all(r.localized and r.matched for r in results)
+    assert not any(r.global_fix or r.relocalized for r in results)
+    poses = np.array([r.pose for r in results])
+    errors = position_errors(poses, new_run.truth)
+    assert errors.max() < 0.05 and np.median(errors) < 0.02
+    assert heading_errors(poses, new_run.truth).max() < math.radians(1.0)
+    assert localizer.stage_times.wall["scan odometry"] > 0.0

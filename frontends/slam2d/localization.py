@@ -3,14 +3,15 @@
 The map is built once from the saved keyframe scans at their poses: one likelihood grid (correlative
 matching) with the points and normals ICP pairs with.
 
-- Tracking: each scan is matched around its prediction (wheel odometry, else constant velocity), then
-  refined by point-to-line ICP, exactly as the SLAM matches its local map, with one difference: the prior
-  is the prediction with the pose's own covariance (carried along the odometry, shrunk by every match), so
-  the pose is the covariance-weighted mean of prediction and match, and a weak match (scoring below
-  `min_tracking_score`: most of the scan falls where the map saw nothing) weighs only
-  `weak_match_weight`. The match is not used when it scores below `min_match_score`, pairs too few points,
-  or ICP left the search window (it slid along a corridor the search never scored): the scan keeps the
-  prediction and counts as predicted (`LocalizedScan.predicted`).
+- Tracking: each scan is matched around its prediction (wheel odometry, else the scans' own odometry,
+  `ScanOdometry`, used as wheel odometry is; constant velocity only where neither measured the motion from the
+  last scan: the first scan, a change of source), then refined by point-to-line ICP, exactly as the SLAM
+  matches its local map, with one difference: the prior is the prediction with the pose's own covariance
+  (carried along the odometry, shrunk by every match), so the pose is the covariance-weighted mean of
+  prediction and match, and a weak match (scoring below `min_tracking_score`: most of the scan falls where the
+  map saw nothing) weighs only `weak_match_weight`. The match is not used when it scores below
+  `min_match_score`, pairs too few points, or ICP left the search window (it slid along a corridor the search
+  never scored): the scan keeps the prediction and counts as predicted (`LocalizedScan.predicted`).
 - Rolling local map (slam_toolbox's localization mode keeps one too): the scans of the last
   `rolling_map_length` metres at their tracked poses, with the saved keyframes nearest to them, never
   written into the saved map. A scan the saved map places only weakly or not at all is matched on it too,
@@ -67,6 +68,7 @@ from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from frontends.slam2d.localization_config import LocalizationConfig
 from frontends.slam2d.motion_prior import after_gap, carried_motion, gap_widening
+from frontends.slam2d.scan_odometry import ScanOdometry
 from frontends.slam2d.slam import (
     ODOMETRY_BRANCH_AND_BOUND_LEVELS,
     LaserSlam2D,
@@ -256,6 +258,8 @@ class MapLocalizer:
         metres on to agree."""
         self._recent: deque[tuple[FloatArray, FloatArray]] = deque(maxlen=self.settings.relocalize_keyframes)
         self._tracker: LaserSlam2D | None = None
+        self._scan_odometry: ScanOdometry | None = None
+        """Without wheel odometry, the scans' own (`ScanOdometry`), used as the wheel odometry would be."""
         self._map_matched = True
         """The last scan was placed by the saved map (else tracked or predicted: a weak match of the saved
         map does not take over from the rolling local map's track)."""
@@ -301,6 +305,15 @@ class MapLocalizer:
         self._count += 1
         self._rate.add(int(stamp_ns))
         odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
+        if (odometry is None) != (self._scan_odometry is not None):
+            # The odometry's source changes (or the first scan): no motion measured across the change.
+            self._last_odometry = None
+            self._scan_odometry = None if odometry is not None else ScanOdometry(
+                self.config, self.settings.max_lost_keyframes)
+        if self._scan_odometry is not None:
+            with self.stage_times.stage("scan odometry"):
+                odometry = self._scan_odometry.pose(int(stamp_ns), points, times)
+            odometry_interval = 0.0
         if self._pose is None:
             self._deskewer.moved(int(stamp_ns), None)  # the lost stretch's tracker deskews its scans
             with self.stage_times.stage("global"):

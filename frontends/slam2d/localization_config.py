@@ -36,15 +36,16 @@ class LocalizationConfig:
     """… up to this many keyframes (~7 m): a robot driving where the map never was (a courtyard, another
     wing) would otherwise pay a whole-map search every metre, seconds each on a large map, for nothing."""
     lost_after_unmatched: int = 5
-    """Without wheel odometry, tracking is lost after this many scans in a row matched nothing: localize
-    globally again (a constant-velocity prediction is worth a few scans, not metres)."""
+    """Predicted by constant velocity (no odometry, not even the scans' own: see `ScanOdometry`), tracking
+    is lost after this many scans in a row matched nothing: localize globally again (a constant-velocity
+    prediction is worth a few scans, not metres)."""
     max_dead_reckoning: float = 30.0
-    """With wheel odometry, scans that match nothing (the robot drove out of the saved map, or people hide
-    the walls) keep the odometry's pose; tracking is declared lost only once it moved this far (m) since
-    the last match scoring `min_tracking_score`, not counting the scans the rolling local map tracked
-    (`count_rolling_tracks_near_map`): back in the map, the tracking window or the local
-    re-acquisition finds the walls again, which a global search in a place the map does not show never
-    would (and it costs seconds)."""
+    """With odometry (the wheels', else the scans' own), scans that match nothing (the robot drove out of the
+    saved map, or people hide the walls) keep the odometry's pose; tracking is declared lost only once it
+    moved this far (m) since the last match scoring `min_tracking_score`, not counting the scans the rolling
+    local map tracked (`count_rolling_tracks_near_map`): back in the map, the tracking window or the local
+    re-acquisition finds the walls again, which a global search in a place the map does not show never would
+    (and it costs seconds)."""
     min_tracking_score: float = 0.5
     """A tracked scan scoring below this on the map (a robot carried elsewhere can still match a look-alike
     corridor at 0.55–0.7; a corridor the map saw only from afar scores 0.2–0.4) counts as a miss: after
