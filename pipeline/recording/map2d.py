@@ -1,7 +1,7 @@
 """The map of a 2D log replay in the recording: walls that move with the optimizer, over the final grid.
 
-- `world/keyframes/kNNNNNN/scan`: each keyframe's scan, logged once (at the first recorded iteration, after
-  the first batch of transforms), in the keyframe's own frame, thinned to one point per `SCAN_CELL`;
+- `world/keyframes/kNNNNNN/scan`: each keyframe's scan, logged once (at the first recorded iteration), in
+  the keyframe's own frame, thinned to one point per `SCAN_CELL`;
 - `world/keyframes/kNNNNNN`: the keyframe's pose as a `Transform3D` on `iteration`, sent in columns: the
   walls straighten as the optimizer iterates while an iteration costs 28 bytes per keyframe instead of the
   whole map, and only for keyframes that moved by more than `SHOWN_MOVE` / `SHOWN_TURN` since their last
@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from frontends.logs.rotations import from_yaw
 from frontends.slam2d import one_per_cell, place
+from optimizer.iteration import Iteration
 from pipeline.recording import (
     ITERATION_TIMELINE,
     KEYFRAMES_ENTITY,
@@ -118,6 +119,11 @@ class KeyframeMapRecorder(PoseBatches):
         self._scans_logged = False
         self._last_sent: NDArray[np.float64] = np.full((len(scans), 3), np.nan)
 
+    def add(self, step: int, iteration: Iteration) -> None:
+        if not self._scans_logged:
+            self._log_scans(step)
+        super().add(step, iteration)
+
     def _log_scans(self, step: int) -> None:
         # On `iteration` (not static): on the `scan` and `time` timelines the keyframes have no pose, and
         # static points would be drawn piled up at the origin there.
@@ -152,10 +158,6 @@ class KeyframeMapRecorder(PoseBatches):
                 indexes=[rr.TimeColumn(ITERATION_TIMELINE, sequence=steps[rows[block]])],
                 columns=transform3d_columns(translations[block], quaternions[block]),
             )
-        if not self._scans_logged:
-            # After the first batch of transforms (every keyframe's first pose is in it): a viewer still
-            # loading the file drew the scans it had read at the origin until their transforms arrived.
-            self._log_scans(int(steps[0]))
 
 
 @njit(cache=True)
