@@ -23,16 +23,21 @@ from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.slam import LaserSlam2D
 from optimizer import se2
 
+MAX_SCANS = 20_000
+"""The tracking also restarts after this many scans (a robot standing still makes no keyframes, and the
+tracking keeps every scan's offset from its keyframe: a few hundred bytes each)."""
+
 
 class ScanOdometry:
     """Feed every scan with `pose`; it returns the scan's pose in a frame of its own (only the motion
     between scans means anything, as for wheel odometry). Memory stays bounded: the tracking restarts
-    after `max_keyframes` keyframes, the restart's scan placed by both trackings so that the frame goes
-    on."""
+    after `max_keyframes` keyframes or `max_scans` scans, the restart's scan placed by both trackings so
+    that the frame goes on."""
 
-    def __init__(self, config: Slam2DConfig, max_keyframes: int) -> None:
+    def __init__(self, config: Slam2DConfig, max_keyframes: int, max_scans: int = MAX_SCANS) -> None:
         self._config = replace(config, loop_closure=replace(config.loop_closure, enabled=False))
         self._max_keyframes = max_keyframes
+        self._max_scans = max_scans
         self._tracking = LaserSlam2D(self._config)
         self._frame = np.zeros(3)
         """The current tracking's origin in the odometry's frame."""
@@ -40,7 +45,8 @@ class ScanOdometry:
     def pose(self, stamp_ns: int, points: FloatArray, point_times: FloatArray | None) -> FloatArray:
         estimate = self._tracking.add_scan(stamp_ns, points, None, 0.0, point_times)
         pose = se2.compose(self._frame, estimate.pose)
-        if estimate.keyframe + 1 >= self._max_keyframes and not estimate.between:
+        full = estimate.keyframe + 1 >= self._max_keyframes or estimate.index + 1 >= self._max_scans
+        if full and not estimate.between:
             # The next tracking starts at this scan, where this one placed it.
             self._tracking = LaserSlam2D(self._config)
             self._tracking.add_scan(stamp_ns, points, None, 0.0, point_times)
