@@ -599,7 +599,7 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
                if found.get("between_localized_scans") else "")
             + f"{found['recovered_by_a_global_fix']} recovered by a global fix), "
             f"{found['never_localized']} never localized (not in the .tum)",
-            f"  {len(found['global_fixes'])} global fixes"
+            f"  {len(found['global_fixes'])} global fix{'' if len(found['global_fixes']) == 1 else 'es'}"
             + ("" if first_fix is None else f", the first {first_fix:.1f} s after the first scan")
             + f"; median match score {_or_dash(found['score']['median'])}, "
               f"inliers {_or_dash(found['inlier_fraction']['median'])}",
