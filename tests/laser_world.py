@@ -182,6 +182,22 @@ def ring_corridors(length: float = 140.0) -> World:
     return World(np.concatenate(parts), route, turn_radius=1.0)
 
 
+def corridor_of_doors(doors_open: bool, length: float = 30.0) -> World:
+    """A 2 m corridor along x ∈ [0, `length`] closed at both ends. With `doors_open`, nine doors on each
+    side (3 m apart) open into small rooms; without, its walls are plain: a map made with the doors shut
+    cannot tell where along the corridor a scan was taken (a laser of 8 m reaches an end only near it),
+    while the open doors tell each scan from the next. The route drives its length."""
+    south = [(3.0 + 3.0 * k, 0.9) for k in range(9)]
+    north = [(centre + 1.2, width) for centre, width in south]
+    parts = [wall((0, 0), (length, 0), doors=south if doors_open else []),
+             wall((0, 2), (length, 2), doors=north if doors_open else []),
+             wall((0, 0), (0, 2)), wall((length, 0), (length, 2))]
+    if doors_open:
+        parts += [room(centre - 0.8, -1.5, centre + 0.8, 0.0, "north") for centre, _ in south]
+        parts += [room(centre - 0.8, 2.0, centre + 0.8, 3.5, "south") for centre, _ in north]
+    return World(np.concatenate(parts), np.array([[1.5, 1.0], [length - 1.5, 1.0]]), turn_radius=0.5)
+
+
 TWIN_ROOM_SHIFT = 3.5
 """Room B is room A moved this far east (m): closer than a loop-closure search radius."""
 
