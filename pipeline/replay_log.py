@@ -572,9 +572,9 @@ def localization_summary(result: LogReplayResult) -> dict[str, Any]:
 def localization_summary_text(result: LogReplayResult) -> str:
     """`localization_summary` as JSON text, with `per_scan`: one row of compact arrays per quantity
     (the scan's stamp, state — m matched, t tracked outside the saved map on the rolling local map of the
-    recent scans, p predicted by odometry without a match, b a fast laser's scan posed between two localized
-    ones, r pose recovered by a later global fix, - never localized — score, inlier fraction, ICP rms), each
-    on one line."""
+    recent scans, p predicted by odometry (the wheels', else the scans' own) without a match, b a fast
+    laser's scan posed between two localized ones, r pose recovered by a later global fix, - never
+    localized — score, inlier fraction, ICP rms), each on one line."""
     assert result.mode == "map"
     found = cast(LocalizingFrontend, result.frontend).localizations
     stride = -(-len(found.stamps_ns) // MAX_PER_SCAN_ROWS)
