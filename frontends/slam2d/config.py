@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from frontends.loop_search import LoopClosureSwitch, LoopSearchRadius
 
@@ -161,3 +161,7 @@ class Slam2DConfig:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+
+    def without_loop_closures(self) -> Slam2DConfig:
+        """These settings with loop closing off: a tracking of the scans alone (the localizer's)."""
+        return replace(self, loop_closure=replace(self.loop_closure, enabled=False))

@@ -734,8 +734,7 @@ class MapLocalizer:
                 odometry_interval: float, times: FloatArray | None) -> LocalizedScan:
         """Track the scan in the lost stretch's own frame; at a new keyframe, look for it in the map."""
         if self._tracker is None or len(self._tracker.keyframe_poses()) > self.settings.max_lost_keyframes:
-            disabled = replace(self.config.loop_closure, enabled=False)
-            self._tracker = LaserSlam2D(replace(self.config, loop_closure=disabled))
+            self._tracker = LaserSlam2D(self.config.without_loop_closures())
             self._tracked = []
             self._last_tracker_keyframe = -1
             # The first scan alone is tried at once: a robot standing still makes no keyframe to wait for.

@@ -121,7 +121,8 @@ class LocalizationConfig:
     metres: the map may still have seen the place from afar, but mostly there is nothing to find."""
     max_lost_keyframes: int = 300
     """While lost, the scans are tracked in their own frame; that track restarts after this many keyframes
-    (only the last few make a query; the rest would only cost memory)."""
+    (only the last few make a query; the rest would only cost memory). The scans' own odometry of a log
+    without wheel odometry (`ScanOdometry`) restarts its tracking as often."""
     odometry_noise_linear: float = 0.015
     """Wheel odometry's noise between two scans, σ (m) …"""
     odometry_noise_per_metre: float = 0.1

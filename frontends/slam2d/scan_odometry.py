@@ -14,8 +14,6 @@ instead (on `ScorePlateau.is_slide` matches) was tried and lost more than it gai
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from frontends.protocol import FloatArray
@@ -35,7 +33,7 @@ class ScanOdometry:
     that the frame goes on."""
 
     def __init__(self, config: Slam2DConfig, max_keyframes: int, max_scans: int = MAX_SCANS) -> None:
-        self._config = replace(config, loop_closure=replace(config.loop_closure, enabled=False))
+        self._config = config.without_loop_closures()
         self._max_keyframes = max_keyframes
         self._max_scans = max_scans
         self._tracking = LaserSlam2D(self._config)
