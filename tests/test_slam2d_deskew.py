@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from frontends.slam2d.config import Slam2DConfig
-from frontends.slam2d.deskew import ScanDeskewer, deskewed, velocity
+from frontends.slam2d.deskew import ScanDeskewer, along_motion, deskewed, velocity
 from frontends.slam2d.frontend import deskewed_by_odometry
 from frontends.slam2d.localization import MapLocalizer
 from frontends.slam2d.log_input import OdometryTrack
@@ -71,6 +71,19 @@ def test_velocity_moves_by_the_motion_in_the_elapsed_time(motion: tuple[float, f
     np.testing.assert_allclose(moved[1], se2.compose(np.array(motion), np.array([1.0, 2.0, 0.0]))[:2],
                                atol=1e-12)
     np.testing.assert_allclose(deskewed(probe, np.zeros(2), twist), probe)
+
+
+@pytest.mark.parametrize("motion", [(0.3, -0.05, 0.4), (0.1, 0.02, 0.0), (0.2, 0.0, 1e-12),
+                                    (-0.2, 0.1, -2.5)])
+def test_along_motion_follows_the_constant_velocity_arc(motion: tuple[float, float, float]) -> None:
+    fractions = np.array([0.0, 0.25, 0.5, 1.0])
+    poses = along_motion(np.array(motion), fractions)
+    np.testing.assert_allclose(poses[0], np.zeros(3), atol=1e-15)
+    np.testing.assert_allclose(poses[-1], motion, atol=1e-12)
+    # Each fraction f of the way is exp(f·ξ), ξ the twist that makes the whole motion.
+    twist = velocity(np.array(motion), 1.0)
+    for fraction, pose in zip(fractions, poses, strict=True):
+        np.testing.assert_allclose(pose, _exp(twist * fraction), atol=1e-12)
 
 
 def test_deskewer_without_odometry_uses_the_last_motions_and_forgets_them_after_a_gap() -> None:
