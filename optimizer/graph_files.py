@@ -52,6 +52,12 @@ _GRAPH_TAGS = {tag: (name, tag == tags[0]) for name, tags in _FORMATS.items() fo
 _3D_TAGS = ("VERTEX3", "EDGE3")
 _3D_TAG_PREFIXES = ("VERTEX_SE3", "EDGE_SE3")
 
+
+def is_graph_tag(word: str) -> bool:
+    """Whether a line starting with `word` is a pose-graph line: a 2D g2o or TORO vertex or edge, or a 3D
+    one (which `read_graph` refuses by name)."""
+    return word in _GRAPH_TAGS or word in _3D_TAGS or word.startswith(_3D_TAG_PREFIXES)
+
 # Row, column of each g2o upper-triangle slot (xx xy xθ yy yθ θθ) in the 3×3 matrix.
 _UPPER_ROWS = np.array([0, 0, 0, 1, 1, 2])
 _UPPER_COLS = np.array([0, 1, 2, 1, 2, 2])

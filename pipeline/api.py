@@ -44,8 +44,6 @@ _KNOWN_OR_SYSTEM_ERRORS: tuple[type[Exception], ...] = (*KNOWN_ERRORS, OSError)
 DEFAULT_OUT_DIR = Path("recordings")
 
 GRAPH_SUFFIXES = frozenset({".g2o", ".graph"})
-GRAPH_TAGS = frozenset({"VERTEX_SE2", "EDGE_SE2", "VERTEX2", "EDGE2", "VERTEX_SE3:QUAT", "EDGE_SE3:QUAT",
-                        "VERTEX3", "EDGE3"})
 _LOG_SUFFIXES = frozenset({".mcap", ".bag", ".db3", ".yaml"})
 
 InputKind = Literal["log", "graph"]
@@ -64,9 +62,11 @@ def input_kind(path: str | Path) -> InputKind:
             head = file.read(4096).decode("utf-8", errors="replace")
     except OSError:
         return "log"
+    from optimizer.graph_files import is_graph_tag  # with pyarrow: not for every start of the command
+
     lines = (fields for fields in map(str.split, head.splitlines())
              if fields and not fields[0].startswith("#"))
-    return "graph" if next(lines, [""])[0] in GRAPH_TAGS else "log"
+    return "graph" if is_graph_tag(next(lines, [""])[0]) else "log"
 
 
 @dataclass(frozen=True)

@@ -95,6 +95,10 @@ def test_inputs_are_told_apart_by_suffix_and_content(tmp_path: Path) -> None:
     bag.mkdir()
     assert [input_kind(path) for path in (toro, other, bag, tmp_path / "x.g2o")] == ["graph", "log", "log",
                                                                                      "graph"]
+    # A 3D graph is a graph too, so that its replay says what it is (not "no topic" from the log reader).
+    for tag in ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT", "VERTEX3"):
+        (tmp_path / "poses.txt").write_text(f"{tag} 0 0 0 0 0 0 0 1\n")
+        assert input_kind(tmp_path / "poses.txt") == "graph"
     assert [output_stem(path) for path in (toro, bag)] == ["graph", "rosbag2_run"]
 
 
