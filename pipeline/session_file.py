@@ -18,14 +18,15 @@ import hashlib
 import io
 import json
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
-from numpy.typing import DTypeLike, NDArray
+from numpy.typing import NDArray
 
 from frontends.errors import FrontendError, LogWarning
 from pipeline.errors import OutputError, PipelineError
@@ -202,10 +203,6 @@ def _array(path: Path, topic: str, data: bytes) -> NDArray[Any]:
         raise SessionError(f"{path}: damaged session file ({topic}: {error})") from error
 
 
-SCAN_SESSION_ARRAYS = ("keyframe_poses", "edge_from", "edge_to", "measurements", "information", "is_loop",
-                       "scan_stamps_ns", "scan_keyframes", "scan_offsets")
-"""The arrays a 2D laser session holds (`frontends.slam2d.LaserFrontend.session_content`)."""
-
 SENSOR_WORDS = {"scan": "2D laser scans", "cloud": "3D point clouds"}
 
 
@@ -218,114 +215,29 @@ def session_sensor_kind(path: Path, content: SessionContent) -> str:
 
 
 def saved_map_2d(path: Path, content: SessionContent) -> SavedMap2D:
-    """The keyframe map of a 2D laser session, checked for consistency: `SessionError` naming the file and
-    the array when one is missing or does not fit the others."""
-    from frontends.slam2d.resume import SavedConstraints, SavedScans
+    """The keyframe map of a 2D laser session (`SavedMap2D.from_arrays`): `SessionError` naming the file
+    and the array when one is missing or does not fit the others."""
     from frontends.slam2d.session_frontends import SavedMap2D
 
-    arrays = content.arrays
-    poses, scans = _checked_keyframes(path, content, SCAN_SESSION_ARRAYS, (3,), 2, "scans")
-    keyframes = len(poses)
-    edge_from, edge_to = _checked_edges(path, arrays, keyframes)
-    edges = len(edge_from)
-    stamps, scan_keyframes = _checked_members(path, arrays, "scan", keyframes)
-    return SavedMap2D(
-        scans, poses,
-        SavedConstraints(edge_from.astype(np.int64), edge_to.astype(np.int64),
-                         _checked(path, "measurements", arrays, (edges, 3), np.floating),
-                         _checked(path, "information", arrays, (edges, 3, 3), np.floating),
-                         _checked(path, "is_loop", arrays, (edges,), np.bool_)),
-        SavedScans(stamps.astype(np.int64), scan_keyframes.astype(np.int64),
-                   _checked(path, "scan_offsets", arrays, (len(stamps), 3), np.floating)),
-    )
-
-
-def _checked_keyframes(
-    path: Path, content: SessionContent, required: Sequence[str], pose_shape: tuple[int, ...],
-    point_dims: int, what: str,
-) -> tuple[NDArray[np.float64], tuple[NDArray[np.float64], ...]]:
-    """The keyframe poses, (K, *pose_shape), and each keyframe's points, (n, point_dims), once every
-    `required` array is there and there are as many point sets as poses."""
-    missing = [name for name in required if name not in content.arrays]
-    if missing:
-        raise SessionError(f"{path}: damaged session file (no {', '.join(missing)})")
-    poses = _checked(path, "keyframe_poses", content.arrays, (-1, *pose_shape), np.floating)
-    if len(content.keyframe_points) != len(poses):
-        raise SessionError(f"{path}: damaged session file ({len(content.keyframe_points)} keyframe {what} "
-                           f"for {len(poses)} keyframe poses)")
-    points = tuple(_checked(path, f"keyframe_points[{index}]", {"": each}, (-1, point_dims), np.floating,
-                            name="") for index, each in enumerate(content.keyframe_points))
-    return poses, points
-
-
-def _checked_edges(path: Path, arrays: Mapping[str, NDArray[Any]],
-                   keyframes: int) -> tuple[NDArray[Any], NDArray[Any]]:
-    """`edge_from`, `edge_to`: equally long, between keyframes that exist."""
-    edge_from = _checked(path, "edge_from", arrays, (-1,), np.integer)
-    edge_to = _checked(path, "edge_to", arrays, (len(edge_from),), np.integer)
-    ends = np.concatenate([edge_from, edge_to])
-    if len(ends) and (ends.min() < 0 or ends.max() >= keyframes):
-        raise SessionError(f"{path}: damaged session file (constraints between keyframes that do not exist)")
-    return edge_from, edge_to
-
-
-def _checked_members(path: Path, arrays: Mapping[str, NDArray[Any]], sensor: str,
-                     keyframes: int) -> tuple[NDArray[Any], NDArray[Any]]:
-    """`<sensor>_stamps_ns` and `<sensor>_keyframes` (which keyframe each scan or cloud hangs off): equally
-    long, of keyframes that exist."""
-    stamps = _checked(path, f"{sensor}_stamps_ns", arrays, (-1,), np.integer)
-    owners = _checked(path, f"{sensor}_keyframes", arrays, (len(stamps),), np.integer)
-    if len(stamps) and (owners.min() < 0 or owners.max() >= keyframes):
-        raise SessionError(f"{path}: damaged session file ({sensor}s of keyframes that do not exist)")
-    return stamps, owners
-
-
-def _checked(path: Path, label: str, arrays: Mapping[str, NDArray[Any]], shape: tuple[int, ...],
-             kind: DTypeLike, *, name: str | None = None) -> NDArray[Any]:
-    """`arrays[name]` (default: `label`) if it has `shape` (−1: any length), a dtype of `kind` and only
-    finite values (floats); else `SessionError`."""
-    array = arrays[label if name is None else name]
-    fits = array.ndim == len(shape) and all(want in (-1, got) for want, got in zip(shape, array.shape,
-                                                                                      strict=True))
-    if not fits or not np.issubdtype(array.dtype, kind):
-        raise SessionError(f"{path}: damaged session file ({label}: {array.dtype} {array.shape})")
-    if kind is np.floating:
-        if not np.all(np.isfinite(array)):
-            raise SessionError(f"{path}: damaged session file ({label}: values not finite)")
-        return array.astype(np.float64)
-    return array
-
-
-CLOUD_SESSION_ARRAYS = ("keyframe_poses", "keyframe_stamps_ns", "edge_from", "edge_to", "relative",
-                        "information", "is_loop", "cloud_stamps_ns", "cloud_keyframes", "cloud_offsets")
-"""The arrays a 3D point-cloud session must hold (`frontends.slam3d.LidarFrontend.session_content`; it
-also writes `keyframe_planar_poses` and, since the sessions that continue, `sensor_to_base`, the
-LiDAR's mount, which older files lack)."""
+    with _naming(path):
+        return SavedMap2D.from_arrays(content.arrays, content.keyframe_points)
 
 
 def saved_map_3d(path: Path, content: SessionContent) -> SavedMap3D:
-    """The keyframe map of a 3D point-cloud session, checked for consistency: `SessionError` naming the
+    """The keyframe map of a 3D point-cloud session (`SavedMap3D.from_arrays`): `SessionError` naming the
     file and the array when one is missing or does not fit the others."""
-    from frontends.slam3d.resume import SavedGraph3D
     from frontends.slam3d.session_frontends import SavedMap3D
 
-    arrays = content.arrays
-    poses, clouds = _checked_keyframes(path, content, CLOUD_SESSION_ARRAYS, (4, 4), 3, "clouds")
-    keyframes = len(poses)
-    if keyframes == 0:
-        raise SessionError(f"{path}: damaged session file (no keyframes)")
-    edge_from, edge_to = _checked_edges(path, arrays, keyframes)
-    edges = len(edge_from)
-    stamps, cloud_keyframes = _checked_members(path, arrays, "cloud", keyframes)
-    mount = (_checked(path, "sensor_to_base", arrays, (4, 4), np.floating)
-             if "sensor_to_base" in arrays else None)
-    graph = SavedGraph3D(
-        clouds, poses,
-        _checked(path, "keyframe_stamps_ns", arrays, (keyframes,), np.integer).astype(np.int64),
-        edge_from.astype(np.int64), edge_to.astype(np.int64),
-        _checked(path, "relative", arrays, (edges, 4, 4), np.floating),
-        _checked(path, "information", arrays, (edges, 6, 6), np.floating),
-        _checked(path, "is_loop", arrays, (edges,), np.bool_),
-        stamps.astype(np.int64), cloud_keyframes.astype(np.int64),
-        _checked(path, "cloud_offsets", arrays, (len(stamps), 4, 4), np.floating))
-    return SavedMap3D(graph, mount)
+    with _naming(path):
+        return SavedMap3D.from_arrays(content.arrays, content.keyframe_points)
+
+
+@contextmanager
+def _naming(path: Path) -> Iterator[None]:
+    """The frontends' `SavedArraysError` as the session reader's `SessionError`, with the file's name."""
+    from frontends.saved_arrays import SavedArraysError
+
+    try:
+        yield
+    except SavedArraysError as error:
+        raise SessionError(f"{path}: {error}") from error

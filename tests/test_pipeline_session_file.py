@@ -96,3 +96,49 @@ def test_an_mcap_log_is_not_a_session(tmp_path: Path) -> None:
         writer.finish()
     with pytest.raises(SessionError, match="not a session file"):
         read_session(path)
+
+
+def laser_map_arrays() -> tuple[dict[str, np.ndarray], list[np.ndarray]]:
+    """The arrays of a consistent 2D map of two keyframes, one constraint and three scans."""
+    arrays = {"keyframe_poses": np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.1]]),
+              "edge_from": np.array([0], dtype=np.int64), "edge_to": np.array([1], dtype=np.int64),
+              "measurements": np.array([[1.0, 0.0, 0.1]]), "information": np.eye(3)[None] * 100.0,
+              "is_loop": np.array([False]), "scan_stamps_ns": np.array([1, 2, 3], dtype=np.int64),
+              "scan_keyframes": np.array([0, 0, 1], dtype=np.int64), "scan_offsets": np.zeros((3, 3))}
+    return arrays, [np.ones((4, 2)), np.ones((5, 2))]
+
+
+@pytest.mark.parametrize(("damage", "message"), [
+    ("drop scan_offsets", r"\(no scan_offsets\)"),
+    ("edge to keyframe 2", r"constraints between keyframes that do not exist"),
+    ("scan of keyframe 5", r"scans of keyframes that do not exist"),
+    ("NaN measurement", r"measurements: values not finite"),
+    ("one keyframe scan", r"1 keyframe scans for 2 keyframe poses"),
+    ("poses of 4 numbers", r"keyframe_poses: float64 \(2, 4\)"),
+])
+def test_a_laser_map_whose_arrays_do_not_fit_is_refused_naming_file_and_array(tmp_path: Path, damage: str,
+                                                                              message: str) -> None:
+    from pipeline.session_file import saved_map_2d
+
+    arrays, points = laser_map_arrays()
+    path = tmp_path / "map.session"
+    with path.open("wb") as stream:
+        write_session(stream, {"sensor_kind": "scan"}, arrays, points)
+    saved = saved_map_2d(path, read_session(path))  # the undamaged arrays make a map
+    assert saved.graph().num_edges == 1 and saved.scans is not None and len(saved.scans.stamps_ns) == 3
+    if damage == "drop scan_offsets":
+        del arrays["scan_offsets"]
+    elif damage == "edge to keyframe 2":
+        arrays["edge_to"] = np.array([2], dtype=np.int64)
+    elif damage == "scan of keyframe 5":
+        arrays["scan_keyframes"] = np.array([0, 0, 5], dtype=np.int64)
+    elif damage == "NaN measurement":
+        arrays["measurements"] = np.array([[1.0, np.nan, 0.1]])
+    elif damage == "one keyframe scan":
+        points = points[:1]
+    else:
+        arrays["keyframe_poses"] = np.zeros((2, 4))
+    with path.open("wb") as stream:
+        write_session(stream, {"sensor_kind": "scan"}, arrays, points)
+    with pytest.raises(SessionError, match=rf"^{path}: damaged session file .*{message}"):
+        saved_map_2d(path, read_session(path))

@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from frontends.errors import FrontendError, LogWarning, MapPlacementError
 from frontends.logs import LogReader
@@ -39,6 +40,7 @@ from frontends.protocol import (
     checked_on_saved_path,
     on_saved_path,
 )
+from frontends.saved_arrays import checked, checked_edges, checked_keyframes, checked_members
 from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.deskew import along_motion, interpolated
@@ -50,6 +52,10 @@ from frontends.slam2d.resume import ResumedSlam2D, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate
 from optimizer import se2
 from optimizer.graph import PoseGraph
+
+SCAN_SESSION_ARRAYS = ("keyframe_poses", "edge_from", "edge_to", "measurements", "information", "is_loop",
+                       "scan_stamps_ns", "scan_keyframes", "scan_offsets")
+"""The arrays a 2D laser session holds (`LaserFrontend.session_content`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,6 +75,26 @@ class SavedMap2D:
         c = self.constraints
         return PoseGraph.build(np.arange(len(self.keyframe_poses)), self.keyframe_poses, c.edge_from,
                                c.edge_to, c.measurements, c.information)
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, NDArray[Any]],
+                    keyframe_points: Sequence[NDArray[Any]]) -> SavedMap2D:
+        """The map a session's arrays hold (`LaserFrontend.session_content`'s), checked for consistency:
+        `SavedArraysError` naming the array that is missing or does not fit the others."""
+        poses, scans = checked_keyframes(arrays, keyframe_points, SCAN_SESSION_ARRAYS, (3,), 2, "scans")
+        keyframes = len(poses)
+        edge_from, edge_to = checked_edges(arrays, keyframes)
+        edges = len(edge_from)
+        stamps, scan_keyframes = checked_members(arrays, "scan", keyframes)
+        return cls(
+            scans, poses,
+            SavedConstraints(edge_from.astype(np.int64), edge_to.astype(np.int64),
+                             checked("measurements", arrays, (edges, 3), np.floating),
+                             checked("information", arrays, (edges, 3, 3), np.floating),
+                             checked("is_loop", arrays, (edges,), np.bool_)),
+            SavedScans(stamps.astype(np.int64), scan_keyframes.astype(np.int64),
+                       checked("scan_offsets", arrays, (len(stamps), 3), np.floating)),
+        )
 
 
 OLD_NEW_CLOSURES_ON_PATH = 0.05

@@ -12,7 +12,7 @@ odometry prior, KISS-ICP).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,6 +28,13 @@ from frontends.protocol import (
     ScanLocalizations,
     checked_on_saved_path,
 )
+from frontends.saved_arrays import (
+    SavedArraysError,
+    checked,
+    checked_edges,
+    checked_keyframes,
+    checked_members,
+)
 from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.frontend import MAP_VOXEL, LidarFrontend
@@ -40,6 +47,13 @@ from optimizer.graph import PoseGraph
 __all__ = ["CloudLocalizations", "ContinuingLidarFrontend", "LocalizingLidarFrontend", "SavedMap3D"]
 
 
+CLOUD_SESSION_ARRAYS = ("keyframe_poses", "keyframe_stamps_ns", "edge_from", "edge_to", "relative",
+                        "information", "is_loop", "cloud_stamps_ns", "cloud_keyframes", "cloud_offsets")
+"""The arrays a 3D point-cloud session must hold (`LidarFrontend.session_content`; it also writes
+`keyframe_planar_poses` and, since the sessions that continue, `sensor_to_base`, the LiDAR's mount, which
+older files lack)."""
+
+
 @dataclass(frozen=True, eq=False)
 class SavedMap3D:
     """A saved 3D keyframe map: what a session file gives the frontends."""
@@ -47,6 +61,30 @@ class SavedMap3D:
     graph: SavedGraph3D
     sensor_to_base: FloatArray | None = None
     """The saved run's LiDAR mount (None: the session did not record it)."""
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, NDArray[Any]],
+                    keyframe_points: Sequence[NDArray[Any]]) -> SavedMap3D:
+        """The map a session's arrays hold (`LidarFrontend.session_content`'s), checked for consistency:
+        `SavedArraysError` naming the array that is missing or does not fit the others."""
+        poses, clouds = checked_keyframes(arrays, keyframe_points, CLOUD_SESSION_ARRAYS, (4, 4), 3, "clouds")
+        keyframes = len(poses)
+        if keyframes == 0:
+            raise SavedArraysError("damaged session file (no keyframes)")
+        edge_from, edge_to = checked_edges(arrays, keyframes)
+        edges = len(edge_from)
+        stamps, cloud_keyframes = checked_members(arrays, "cloud", keyframes)
+        mount = checked("sensor_to_base", arrays, (4, 4), np.floating) if "sensor_to_base" in arrays else None
+        graph = SavedGraph3D(
+            clouds, poses,
+            checked("keyframe_stamps_ns", arrays, (keyframes,), np.integer).astype(np.int64),
+            edge_from.astype(np.int64), edge_to.astype(np.int64),
+            checked("relative", arrays, (edges, 4, 4), np.floating),
+            checked("information", arrays, (edges, 6, 6), np.floating),
+            checked("is_loop", arrays, (edges,), np.bool_),
+            stamps.astype(np.int64), cloud_keyframes.astype(np.int64),
+            checked("cloud_offsets", arrays, (len(stamps), 4, 4), np.floating))
+        return cls(graph, mount)
 
     @property
     def keyframe_poses(self) -> FloatArray:
