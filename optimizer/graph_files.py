@@ -58,6 +58,7 @@ def is_graph_tag(word: str) -> bool:
     one (which `read_graph` refuses by name)."""
     return word in _GRAPH_TAGS or word in _3D_TAGS or word.startswith(_3D_TAG_PREFIXES)
 
+
 # Row, column of each g2o upper-triangle slot (xx xy xθ yy yθ θθ) in the 3×3 matrix.
 _UPPER_ROWS = np.array([0, 0, 0, 1, 1, 2])
 _UPPER_COLS = np.array([0, 1, 2, 1, 2, 2])
