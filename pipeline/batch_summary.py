@@ -16,8 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pipeline.errors import OutputError
-from pipeline.outputs import prepare_output_dir, staged_outputs
+from pipeline.outputs import prepare_output_dir, staged_outputs, writing
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -71,9 +70,6 @@ def write_batch_summary(path: Path, outcomes: Sequence[BatchOutcome]) -> Path:
 
     table = summary_table(outcomes)
     prepare_output_dir(path.parent)
-    with staged_outputs(path) as (temporary,):
-        try:
-            pq.write_table(table, temporary)
-        except OSError as error:
-            raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
+    with staged_outputs(path) as (temporary,), writing(path):
+        pq.write_table(table, temporary)
     return path

@@ -118,10 +118,8 @@ def _publish(staging: Path, temporaries: tuple[Path, ...], targets: tuple[Path, 
         raise _folder_error(targets[0].parent, error) from error
     with stop_signals_held():
         for temporary, target in zip(temporaries, targets, strict=True):
-            try:
+            with writing(target):
                 os.replace(temporary, target)
-            except OSError as error:
-                raise OutputError(f"{target}: cannot write the file: {error.strerror or error}") from error
         with contextlib.suppress(OSError):
             _fsync_path(targets[0].parent)
 
@@ -258,12 +256,19 @@ def output_stem(path: str | Path) -> str:
     return path.name if path.is_dir() else path.stem
 
 
+@contextmanager
+def writing(path: Path, what: str = "the file") -> Iterator[None]:
+    """OS errors inside become an `OutputError` naming the file: "<path>: cannot write <what>: <reason>"."""
+    try:
+        yield
+    except OSError as error:
+        raise OutputError(f"{path}: cannot write {what}: {error.strerror or error}") from error
+
+
 def write_bytes(path: Path, data: bytes) -> None:
     """Write `data`, turning OS errors into an OutputError that names the file."""
-    try:
+    with writing(path):
         path.write_bytes(data)
-    except OSError as error:
-        raise OutputError(f"{path}: cannot write the file: {error.strerror or error}") from error
 
 
 def write_text(path: Path, text: str) -> None:
@@ -275,10 +280,8 @@ def write_png(path: Path, image: Any) -> None:
     """Write a uint8 grey or RGB image (rows top to bottom) as PNG."""
     from PIL import Image
 
-    try:
+    with writing(path, "the image"):
         Image.fromarray(image).save(path, format="PNG", optimize=False)
-    except OSError as error:
-        raise OutputError(f"{path}: cannot write the image: {error.strerror or error}") from error
 
 
 def json_text(data: Any) -> str:

@@ -29,7 +29,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError, LogWarning
-from pipeline.errors import OutputError, PipelineError
+from pipeline.errors import PipelineError
+from pipeline.outputs import writing
 
 if TYPE_CHECKING:
     from frontends.slam2d.session_frontends import SavedMap2D
@@ -92,11 +93,8 @@ def source_description(files: Sequence[Path]) -> dict[str, Any]:
 def write_session_file(path: Path, header: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]],
                        keyframe_points: Sequence[NDArray[Any]]) -> None:
     """`write_session` into a new file at `path` (a staged output); OS errors become `OutputError`."""
-    try:
-        with path.open("wb") as stream:
-            write_session(stream, header, arrays, keyframe_points)
-    except OSError as error:
-        raise OutputError(f"{path}: cannot write the session: {error.strerror or error}") from error
+    with writing(path, "the session"), path.open("wb") as stream:
+        write_session(stream, header, arrays, keyframe_points)
 
 
 def write_session(stream: BinaryIO, header: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]],

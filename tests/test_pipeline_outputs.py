@@ -81,6 +81,20 @@ def test_errors_name_the_output_not_the_hidden_copy(tmp_path: Path) -> None:
     assert str(caught.value).startswith(f"{tmp_path / 'a.json'}: cannot write the file")
 
 
+def test_an_image_or_a_session_that_cannot_be_written_is_an_output_error_naming_it(tmp_path: Path) -> None:
+    import numpy as np
+
+    from pipeline.outputs import write_png
+    from pipeline.session_file import write_session_file
+
+    missing = tmp_path / "no such folder"
+    with pytest.raises(OutputError, match=f"^{missing / 'map.png'}: cannot write the image: "):
+        write_png(missing / "map.png", np.zeros((4, 4), dtype=np.uint8))
+    with pytest.raises(OutputError, match=f"^{missing / 'run.session'}: cannot write the session: "):
+        write_session_file(missing / "run.session", {}, {}, [])
+    assert not missing.exists()
+
+
 def test_staged_outputs_require_every_file(tmp_path: Path) -> None:
     with pytest.raises(OutputError, match="was not written"), \
             staged_outputs(tmp_path / "a.txt", tmp_path / "b.txt") as (first, _):
