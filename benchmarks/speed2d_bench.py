@@ -1,6 +1,6 @@
 """Benchmark of the 2D path's speed (issue 12, item 6): every 2D log end to end, × real time, per stage.
 
-    NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 \\
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 \\
         python benchmarks/speed2d_bench.py [--shared ../shared] [--out benchmarks/results] [--logs ACES CSAIL]
         [--extra LOG ...] [--json speed2d.json] [--repeats 3]
 
@@ -16,6 +16,10 @@ per-stage profile in CPU seconds (wall seconds in the JSON):
   (scans, iterations, maps, closing the file), outputs (occupancy grid and files): this benchmark wraps the
   functions the replay calls for them in the same kind of timers while it runs (nothing is changed in
   the library); "other" is the rest (the replay's per-scan loop).
+
+NUMBA_NUM_THREADS is left as `replay` finds it (one thread per core): the wide branch-and-bound searches
+(loop closures, scan matching without odometry) share their rotations among those threads. The CPU figures
+count every thread's time; the wall figures are what a user waits.
 
 On ACES the relations error against its Freiburg ground truth is printed too (accuracy must not change).
 

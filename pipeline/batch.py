@@ -210,7 +210,9 @@ def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, worker
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     outcomes: list[BatchOutcome | None] = [None] * len(inputs)
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=pool_context(), initializer=_init_worker)
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=pool_context(), initializer=_init_worker,
+                               initargs=(threads,))
     try:
         futures: dict[Future[BatchOutcome], int] = {
             pool.submit(_run_in_worker, path, config, out_dir): index for index, path in enumerate(inputs)
@@ -307,11 +309,16 @@ _worker_stopping = False
 SIGTERM) must not interrupt that clean-up."""
 
 
-def _init_worker() -> None:
+def _init_worker(threads: int) -> None:
     # As in the command's main(): BLAS threads only add hand-off latency to our small linear algebra, and
     # several workers each spinning a thread per core would fight over the cores.
     global _worker_limits
+    from numba import config as numba_config
     from threadpoolctl import threadpool_limits
+
+    # The threads our kernels share work among (graph files' parsing, wide scan-matching searches) read
+    # numba's count: the workers share the cores.
+    numba_config.NUMBA_NUM_THREADS = threads  # type: ignore[attr-defined]
 
     _worker_limits = threadpool_limits(limits=1, user_api="blas")
     install_stop_signals(_on_worker_stop_signal)

@@ -11,7 +11,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from frontends.slam2d.correlative import SearchWindow, match_branch_and_bound, match_exhaustive
+from frontends.slam2d import correlative
+from frontends.slam2d.correlative import (
+    SearchWindow,
+    match_branch_and_bound,
+    match_exhaustive,
+    prepare_branch_and_bound,
+)
 from frontends.slam2d.grid import LikelihoodGrid, build_likelihood_grid, max_pyramid
 from frontends.slam2d.icp import refine_point_to_line, scan_normals
 from tests.laser_world import between, box, long_corridor, simulate_scan, square_loop, transform_points, wall
@@ -217,6 +223,41 @@ def test_branch_and_bound_scores_the_same_as_exhaustive_search(
     again = match_branch_and_bound(scan, grid, centre, window, min_score=exhaustive.score - 1e-3,
                                    levels=levels)
     assert again is not None and again.score == pytest.approx(exhaustive.score, rel=1e-9)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), threads=st.integers(2, 5), levels=st.integers(2, 5))
+def test_branch_and_bound_shared_among_threads_finds_what_one_thread_finds(
+        seed: int, threads: int, levels: int) -> None:
+    """A wide search's rotations dealt out to threads, each searching its own: the optimum and the rival
+    away from it are those of one thread's search of them all."""
+    rng = np.random.default_rng(seed)
+    world = square_loop()
+    reference_pose = np.array([rng.uniform(3.0, 9.0), rng.uniform(3.0, 17.0), rng.uniform(-np.pi, np.pi)])
+    scan_pose = reference_pose + np.array([*rng.uniform(-0.5, 0.5, 2), rng.uniform(-0.2, 0.2)])
+    reference = simulate_scan(world.segments, reference_pose, beams=180, range_noise=0.01, rng=rng)
+    scan = simulate_scan(world.segments, scan_pose, beams=120, range_noise=0.01, rng=rng)
+    grid = build_likelihood_grid(reference, RESOLUTION, SIGMA, margin=1.5)
+    window = SearchWindow(1.2, math.radians(15.0), math.radians(1.0))
+    centre = np.zeros(3)
+
+    def searched(thread_count: int) -> tuple[correlative.Match | None, correlative.Match | None, int]:
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(correlative, "SIDE_BY_SIDE_READS", 0)
+            patch.setattr(correlative.numba_config, "NUMBA_NUM_THREADS", thread_count)
+            search = prepare_branch_and_bound(scan, grid, centre, window, levels=levels)
+            best = search.best(0.1)
+            rival = None if best is None else search.best(0.1, exclude=(best.pose[:2], 0.4))
+            return best, rival, len(search.parts)
+
+    alone, alone_rival, parts = searched(1)
+    shared, shared_rival, shared_parts = searched(threads)
+    assert (parts, shared_parts) == (1, threads)
+    for one, many in ((alone, shared), (alone_rival, shared_rival)):
+        assert (one is None) == (many is None)
+        if one is not None and many is not None:
+            assert many.score == one.score  # each rotation's scores summed in the same order
+            assert grid_score(scan, grid, many.pose) == pytest.approx(many.score, abs=3.0 / len(scan))
 
 
 # ---------------------------------------------------------------------------------------------- ICP

@@ -513,7 +513,8 @@ def test_a_window_turns_farther_only_where_its_optimum_lies_on_its_angular_edge(
 def test_top_level_scores_are_each_candidates_sum_of_its_points_clamped_blocks() -> None:
     """Every coarsest candidate's score is the mean, over the points, of the coarsest level at the point's
     shifted cell: a block starting left of (or below) the grid but reaching into it reads the edge cell,
-    one wholly outside reads nothing (written from the definition, point by point)."""
+    one wholly outside reads nothing (written from the definition, point by point); for the rotations
+    asked, in their order, each keyed by its own index."""
     rng = np.random.default_rng(7)
     values = rng.random((37, 29)).astype(np.float32)
     levels = tuple(max_pyramid(values, 3))
@@ -521,7 +522,10 @@ def test_top_level_scores_are_each_candidates_sum_of_its_points_clamped_blocks()
     cells_x = rng.integers(-12, 40, size=(3, 25)).astype(np.int64)
     cells_y = rng.integers(-12, 48, size=(3, 25)).astype(np.int64)
     reach = 13
-    scores, keys = correlative._top_level(levels[-1], len(levels) - 1, cells_x, cells_y, reach)
+    rotations = np.array([2, 0], dtype=np.int64)
+    candidates = len(rotations) * len(range(-reach, reach + 1, span)) ** 2
+    scores, keys = np.full(candidates, np.nan), np.full((candidates, 3), -1, dtype=np.int64)
+    correlative._top_level(levels[-1], len(levels) - 1, cells_x, cells_y, reach, rotations, scores, keys)
     top = levels[-1]
     height, width = top.shape
 
@@ -530,7 +534,7 @@ def test_top_level_scores_are_each_candidates_sum_of_its_points_clamped_blocks()
             return 0 if cell + span > 0 else -1
         return cell if cell < size else -1
 
-    assert len(scores) == 3 * len(range(-reach, reach + 1, span)) ** 2
+    assert list(keys[:: candidates // 2, 0]) == [2, 0]
     for score, (a, tx, ty) in zip(scores, keys, strict=True):
         total = 0.0
         for x, y in zip(cells_x[a], cells_y[a], strict=True):

@@ -19,16 +19,24 @@ below sums in that order, so their scores agree up to round-off.
 
 from __future__ import annotations
 
+import itertools
 import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
+from typing import TypeVar
 
 import numpy as np
+from numba import config as numba_config
 from numba import njit
 from numpy.typing import NDArray
 
 from frontends.slam2d.grid import LikelihoodGrid
 
 FloatArray = NDArray[np.float64]
+T = TypeVar("T")
 
 PYRAMID_SLOTS = 8
 """Levels `_branch_and_bound` takes: a shorter pyramid is padded to this many with its top level (never
@@ -192,16 +200,20 @@ def _block_cell(cell: int, span: int, size: int) -> int:
     return cell if cell < size else -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _top_level(
     values: NDArray[np.float32],
     top: int,
     cells_x: NDArray[np.int64],
     cells_y: NDArray[np.int64],
     reach: int,
-) -> tuple[FloatArray, NDArray[np.int64]]:
+    angles: NDArray[np.int64],
+    scores: FloatArray,
+    keys: NDArray[np.int64],
+) -> None:
     """Scores of every candidate (angle, tx, ty) of the coarsest level, level `top` (its `values`), and
-    those keys.
+    those keys, for the rotations `angles` (indices into `cells_x`): their rows of `scores` and `keys`,
+    side² rows a rotation, in the order of `angles`.
 
     Each point adds its cells of all translations at once (`_block_cell`), so its row is read for all of
     them together."""
@@ -209,13 +221,11 @@ def _top_level(
     height, width = values.shape
     starts = np.arange(-reach, reach + 1, span)
     side = starts.shape[0]
-    angles, count = cells_x.shape
-    scores = np.empty(angles * side * side)
-    keys = np.empty((angles * side * side, 3), dtype=np.int64)
+    count = cells_x.shape[1]
     totals = np.empty((side, side))
     columns = np.empty(side, dtype=np.int64)
     k = 0
-    for a in range(angles):
+    for a in angles:
         totals[:] = 0.0
         for i in range(count):
             for t in range(side):
@@ -234,7 +244,6 @@ def _top_level(
                 keys[k, 1] = starts[t]
                 keys[k, 2] = starts[j]
                 k += 1
-    return scores, keys
 
 
 @njit(cache=True)
@@ -274,7 +283,7 @@ def _child_scores(
     out[3] = total3 / count if wanted[3] else -1.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _branch_and_bound(
     levels: tuple[NDArray[np.float32], ...],
     top: int,
@@ -378,6 +387,9 @@ class BranchAndBoundSearch:
     cells_y: NDArray[np.int64]
     top_scores: FloatArray
     top_keys: NDArray[np.int64]
+    parts: tuple[slice, ...]
+    """Rows of `top_scores` and `top_keys` searched side by side (`_side_by_side`), a share of the
+    rotations each."""
 
     def best(self, min_score: float, exclude: tuple[FloatArray, float] | None = None) -> Match | None:
         """`match_branch_and_bound` of these points with this `min_score` and `exclude`."""
@@ -391,10 +403,14 @@ class BranchAndBoundSearch:
             exclude_radius = round(radius / resolution)
         top = len(self.pyramid) - 1
         padded = self.pyramid + (self.pyramid[-1],) * max(PYRAMID_SLOTS - len(self.pyramid), 0)
-        a, tx, ty, score = _branch_and_bound(
-            padded, top, self.cells_x, self.cells_y, self.reach, self.top_scores, self.top_keys,
-            float(min_score), exclude_x, exclude_y, exclude_radius,
-        )
+        found = _side_by_side([
+            partial(_branch_and_bound, padded, top, self.cells_x, self.cells_y, self.reach,
+                    self.top_scores[part], self.top_keys[part], float(min_score), exclude_x, exclude_y,
+                    exclude_radius)
+            for part in self.parts
+        ])
+        # The best of the parts; of equal scores the first rotation's, whatever thread finished first.
+        a, tx, ty, score = max(found, key=lambda f: (f[3], -f[0]))
         if score < 0.0:
             return None
         return Match(np.array([center[0] + tx * resolution, center[1] + ty * resolution, self.angles[a]]),
@@ -443,9 +459,50 @@ def prepare_branch_and_bound(
     pyramid = tuple(grid.pyramid(levels, (top, bottom, left, right)))
     cells_x = cells_x - left
     cells_y = cells_y - top
-    top_scores, top_keys = _top_level(pyramid[-1], len(pyramid) - 1, cells_x, cells_y, reach)
+    top = len(pyramid) - 1
+    side = len(range(-reach, reach + 1, 1 << top))
+    rotations = _rotation_shares(len(angles), len(angles) * len(points) * side * side)
+    top_scores = np.empty(len(angles) * side * side)
+    top_keys = np.empty((len(angles) * side * side, 3), dtype=np.int64)
+    bounds = np.cumsum([0] + [len(share) * side * side for share in rotations])
+    parts = tuple(slice(int(first), int(stop)) for first, stop in itertools.pairwise(bounds))
+    _side_by_side([
+        partial(_top_level, pyramid[-1], top, cells_x, cells_y, reach, share, top_scores[part],
+                top_keys[part])
+        for share, part in zip(rotations, parts, strict=True)
+    ])
     return BranchAndBoundSearch(np.asarray(center, dtype=np.float64), grid.resolution, angles, reach, pyramid,
-                                cells_x, cells_y, top_scores, top_keys)
+                                cells_x, cells_y, top_scores, top_keys, parts)
+
+
+SIDE_BY_SIDE_READS = 200_000
+"""A search reads at least this many cells on its coarsest level (rotations × points × candidates) before
+its rotations are shared among threads: below, handing them over costs more than it saves."""
+
+_pool: tuple[int, ThreadPoolExecutor] | None = None
+"""The worker threads, with the process that started them (a forked child has none of them)."""
+
+
+def _rotation_shares(rotations: int, reads: int) -> list[NDArray[np.int64]]:
+    """The rotations' indices, one share per thread of numba's (`NUMBA_NUM_THREADS`): every n-th rotation,
+    so that the ones near the optimum, which the search descends deepest, are spread over all; all in one
+    where the search is small."""
+    threads = numba_config.NUMBA_NUM_THREADS if reads >= SIDE_BY_SIDE_READS else 1  # type: ignore[attr-defined]
+    threads = max(1, min(threads, rotations))
+    return [np.arange(first, rotations, threads, dtype=np.int64) for first in range(threads)]
+
+
+def _side_by_side(calls: list[Callable[[], T]]) -> list[T]:
+    """Every call's result: the first made in this thread, the others in worker threads at the same time
+    (the kernels let go of the GIL)."""
+    global _pool
+    if len(calls) == 1:
+        return [calls[0]()]
+    if _pool is None or _pool[0] != os.getpid():
+        workers = ThreadPoolExecutor(max_workers=len(calls) - 1, thread_name_prefix="correlative")
+        _pool = (os.getpid(), workers)
+    others = [_pool[1].submit(call) for call in calls[1:]]
+    return [calls[0](), *(other.result() for other in others)]
 
 
 def match_branch_and_bound(
