@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from frontends.growing_rows import GrowingRows
 from optimizer import se2
 from optimizer.cost import edge_chi2
 from optimizer.graph import PoseGraph
@@ -49,6 +50,12 @@ class Constraints:
     """Length of each planar measurement's (x, y, θ) translation, kept as constraints are added: the path
     lengths of every loop search need them, and converting the measurements each time cost more than the
     search itself (NaN for other measurements)."""
+    _paths: GrowingRows = field(init=False, repr=False)
+    """(first, second, planar length) of every constraint, as `path_columns` gives them."""
+
+    def __post_init__(self) -> None:
+        self._paths = GrowingRows((3,), np.float64)
+        self._paths.reset(zip(self.first, self.second, self.planar_length, strict=True))
 
     def add(self, a: int, b: int, measurement: FloatArray, information: FloatArray, is_loop: bool) -> None:
         self.first.append(a)
@@ -58,18 +65,28 @@ class Constraints:
         self.is_loop.append(is_loop)
         planar = self.measurement_shape == (3,)
         self.planar_length.append(float(np.hypot(measurement[0], measurement[1])) if planar else math.nan)
+        self._paths.append((a, b, self.planar_length[-1]))
 
     def _columns(self) -> tuple[list, ...]:
         return (self.first, self.second, self.measurement, self.information, self.is_loop, self.planar_length)
 
     def remove(self, index: int) -> tuple[object, ...]:
         """Remove constraint `index`; returns its row, for `restore`."""
-        return tuple(column.pop(index) for column in self._columns())
+        row = tuple(column.pop(index) for column in self._columns())
+        self._paths.reset(zip(self.first, self.second, self.planar_length, strict=True))
+        return row
 
     def restore(self, index: int, row: tuple[object, ...]) -> None:
         """Put a row `remove` returned back at `index`."""
         for column, value in zip(self._columns(), row, strict=True):
             column.insert(index, value)
+        self._paths.reset(zip(self.first, self.second, self.planar_length, strict=True))
+
+    def path_columns(self) -> tuple[IntArray, IntArray, FloatArray]:
+        """(first, second, planar length) of every constraint, without converting the lists (a loop search
+        reads them at every searching keyframe)."""
+        paths = self._paths.rows()
+        return paths[:, 0].astype(np.int64), paths[:, 1].astype(np.int64), paths[:, 2]
 
     def arrays(self) -> tuple[IntArray, IntArray, FloatArray, FloatArray, NDArray[np.bool_]]:
         """(first, second, measurements, informations, is_loop) as arrays."""

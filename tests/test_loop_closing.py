@@ -135,3 +135,25 @@ def test_hypotheses_older_than_their_age_are_forgotten_and_counted() -> None:
     assert [h.current for h in hypotheses.pending] == [20, 30]
     assert hypotheses.clear() == 2
     assert hypotheses.dropped == 3
+
+
+def test_path_columns_follow_the_constraints_through_additions_removals_and_restores() -> None:
+    """The arrays a loop search reads are the constraint lists, whatever was added, removed or put back
+    (the buffer behind them grows past its first size here), and a view taken earlier keeps its rows."""
+    rng = np.random.default_rng(3)
+    edges = Constraints(measurement_shape=(3,), information_size=3)
+    for k in range(40):
+        edges.add(k, k + 1 + int(rng.integers(0, 3)), rng.normal(size=3), np.eye(3), is_loop=bool(k % 5 == 0))
+    before, lengths_before = edges.path_columns(), list(edges.planar_length)
+    removed = edges.remove(7)
+    edges.add(2, 30, np.array([3.0, 4.0, 0.1]), np.eye(3), is_loop=True)
+    first, second, lengths = edges.path_columns()
+    np.testing.assert_array_equal(first, edges.first)
+    np.testing.assert_array_equal(second, edges.second)
+    np.testing.assert_array_equal(lengths, edges.planar_length)
+    assert lengths[-1] == 5.0
+    edges.restore(7, removed)
+    first, second, lengths = edges.path_columns()
+    np.testing.assert_array_equal(first, edges.first)
+    np.testing.assert_array_equal(lengths, edges.planar_length)
+    np.testing.assert_array_equal(before[2], lengths_before)  # the earlier view is as it was

@@ -104,7 +104,7 @@ class ResumedSlam2D(LaserSlam2D):
         self._placer: MapLocalizer | None = MapLocalizer(keyframe_scans, poses, self.config,
                                                          settings=localization, first_scan_alone=False)
         self._old_count = len(poses)
-        self._keyframe_poses = [p.copy() for p in poses]
+        self._set_keyframe_poses(poses)
         self._keyframes = [Keyframe(np.ascontiguousarray(s, dtype=np.float64),
                                     scan_normals(np.ascontiguousarray(s, dtype=np.float64)))
                            for s in keyframe_scans]

@@ -15,13 +15,14 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
+from frontends.growing_rows import GrowingRows
 from frontends.loop_closing import Constraints, HypothesisPool, is_small, optimize_and_prune, path_lengths
 from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import (
@@ -241,6 +242,8 @@ class LaserSlam2D:
     def __init__(self, config: Slam2DConfig | None = None) -> None:
         self.config = config or Slam2DConfig()
         self._keyframe_poses: list[FloatArray] = []
+        self._keyframe_rows = GrowingRows((3,), np.float64)
+        """`_keyframe_poses` as one array (`_set_keyframe_poses`, `_add_keyframe_untimed` keep both)."""
         self._keyframes: list[Keyframe] = []
         self._edges = Constraints(measurement_shape=(3,), information_size=3)
         self._scan_stamps: list[int] = []
@@ -571,6 +574,7 @@ class LaserSlam2D:
         self, pose: FloatArray, points: FloatArray, step: FloatArray | None, information: FloatArray
     ) -> None:
         self._keyframe_poses.append(np.array(pose, dtype=np.float64))
+        self._keyframe_rows.append(pose)
         self._keyframes.append(Keyframe(points, scan_normals(points)))
         self._last_pose = np.array(pose, dtype=np.float64)
         count = len(self._keyframe_poses)
@@ -634,7 +638,7 @@ class LaserSlam2D:
         older = current - settings.min_separation_keyframes
         if older < 0:
             return ()
-        positions = np.array(self._keyframe_poses[: older + 1])[:, :2]
+        positions = self._keyframe_rows.rows()[: older + 1, :2]
         here = self._keyframe_poses[current]
         distance = np.hypot(*(positions - here[:2]).T)
         # The drift between two keyframes grows with the path joining them in the graph (through the
@@ -674,10 +678,7 @@ class LaserSlam2D:
 
     def _path_lengths_to(self, keyframe: int) -> FloatArray:
         """Shortest path length (m) through the graph's constraints from `keyframe` to every keyframe."""
-        edges = self._edges  # only the columns needed: `arrays()` would stack every information matrix too
-        first = np.array(edges.first, dtype=np.int64)
-        second = np.array(edges.second, dtype=np.int64)
-        lengths = np.array(edges.planar_length, dtype=np.float64)
+        first, second, lengths = self._edges.path_columns()
         return path_lengths(len(self._keyframe_poses), first, second, lengths, keyframe)
 
     def _loop_candidates(self, distance: FloatArray, radius: FloatArray) -> list[int]:
@@ -794,9 +795,14 @@ class LaserSlam2D:
 
     def _move_keyframes(self, poses: FloatArray) -> None:
         offset = se2.relative(self._keyframe_poses[-1], self._last_pose)
-        self._keyframe_poses = [np.array(p) for p in poses]
+        self._set_keyframe_poses(poses)
         self._last_pose = se2.compose(self._keyframe_poses[-1], offset)
         self._rebuild_local_map()
+
+    def _set_keyframe_poses(self, poses: Iterable[FloatArray]) -> None:
+        """Every keyframe's pose anew (an optimization moved them, or a saved map's)."""
+        self._keyframe_poses = [np.array(p, dtype=np.float64) for p in poses]
+        self._keyframe_rows.reset(self._keyframe_poses)
 
     def keyframe_poses(self) -> FloatArray:
         """(K, 3) the current estimate of every keyframe's pose in the map frame."""
