@@ -209,8 +209,11 @@ def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, worker
                  on_done: OutcomeCallback | None) -> list[BatchOutcome]:
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
+    from numba import config as numba_config
+
     outcomes: list[BatchOutcome | None] = [None] * len(inputs)
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    # numba's count (NUMBA_NUM_THREADS, else the cores), shared by the workers.
+    threads = max(1, numba_config.NUMBA_NUM_THREADS // workers)  # type: ignore[attr-defined]
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=pool_context(), initializer=_init_worker,
                                initargs=(threads,))
     try:
@@ -317,7 +320,7 @@ def _init_worker(threads: int) -> None:
     from threadpoolctl import threadpool_limits
 
     # The threads our kernels share work among (graph files' parsing, wide scan-matching searches) read
-    # numba's count: the workers share the cores.
+    # numba's count: this worker's share of the parent's.
     numba_config.NUMBA_NUM_THREADS = threads  # type: ignore[attr-defined]
 
     _worker_limits = threadpool_limits(limits=1, user_api="blas")

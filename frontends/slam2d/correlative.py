@@ -207,13 +207,13 @@ def _top_level(
     cells_x: NDArray[np.int64],
     cells_y: NDArray[np.int64],
     reach: int,
-    angles: NDArray[np.int64],
+    rotations: NDArray[np.int64],
     scores: FloatArray,
     keys: NDArray[np.int64],
 ) -> None:
     """Scores of every candidate (angle, tx, ty) of the coarsest level, level `top` (its `values`), and
-    those keys, for the rotations `angles` (indices into `cells_x`): their rows of `scores` and `keys`,
-    side² rows a rotation, in the order of `angles`.
+    those keys, for the `rotations` (indices into `cells_x`): their rows of `scores` and `keys`, side²
+    rows a rotation, in the order of `rotations`.
 
     Each point adds its cells of all translations at once (`_block_cell`), so its row is read for all of
     them together."""
@@ -225,7 +225,7 @@ def _top_level(
     totals = np.empty((side, side))
     columns = np.empty(side, dtype=np.int64)
     k = 0
-    for a in angles:
+    for a in rotations:
         totals[:] = 0.0
         for i in range(count):
             for t in range(side):
@@ -481,8 +481,8 @@ its rotations are shared among threads: a hand-over costs ~50 µs (two or three 
 two threads on a scan of the synthetic hall: 117 000 reads 0.12 → 0.17 ms, 289 000 0.29 → 0.27 ms,
 868 000 0.70 → 0.52 ms; a loop-closure search reads millions (UAL: 2.7 million)."""
 
-_pool: tuple[int, ThreadPoolExecutor] | None = None
-"""The worker threads, with the process that started them (a forked child has none of them)."""
+_pool: tuple[int, int, ThreadPoolExecutor] | None = None
+"""The worker threads: the process that started them (a forked child has none of them), how many."""
 
 
 def _rotation_shares(rotations: int, reads: int) -> list[NDArray[np.int64]]:
@@ -495,15 +495,17 @@ def _rotation_shares(rotations: int, reads: int) -> list[NDArray[np.int64]]:
 
 
 def _side_by_side(calls: list[Callable[[], T]]) -> list[T]:
-    """Every call's result: the first made in this thread, the others in worker threads at the same time
-    (the kernels let go of the GIL)."""
+    """Every call's result: the first made in this thread, each other one in a worker thread at the same
+    time (the kernels let go of the GIL)."""
     global _pool
     if len(calls) == 1:
         return [calls[0]()]
-    if _pool is None or _pool[0] != os.getpid():
-        workers = ThreadPoolExecutor(max_workers=len(calls) - 1, thread_name_prefix="correlative")
-        _pool = (os.getpid(), workers)
-    others = [_pool[1].submit(call) for call in calls[1:]]
+    if _pool is None or _pool[0] != os.getpid() or _pool[1] < len(calls) - 1:
+        if _pool is not None and _pool[0] == os.getpid():
+            _pool[2].shutdown(wait=False)
+        _pool = (os.getpid(), len(calls) - 1,
+                 ThreadPoolExecutor(max_workers=len(calls) - 1, thread_name_prefix="correlative"))
+    others = [_pool[2].submit(call) for call in calls[1:]]
     return [calls[0](), *(other.result() for other in others)]
 
 
