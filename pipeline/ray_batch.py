@@ -98,7 +98,8 @@ def _run_tasks(ray: ModuleType, inputs: list[Path], config: ReplayConfig, out_di
                                             retry_exceptions=True)
     config_ref = ray.put(config)  # sent to the object store once, not with each of thousands of tasks
     working_folder = os.getcwd()
-    index_of = {task.remote(str(path), config_ref, str(out_dir), working_folder, replay_one): index
+    threads = max(1, int(options.cpus_per_task))  # the cores the task holds, for its kernels' threads
+    index_of = {task.remote(str(path), config_ref, str(out_dir), working_folder, replay_one, threads): index
                 for index, path in enumerate(inputs)}
     outcomes: list[BatchOutcome | None] = [None] * len(inputs)
     pending = list(index_of)
@@ -118,10 +119,14 @@ def _run_tasks(ray: ModuleType, inputs: list[Path], config: ReplayConfig, out_di
 
 
 def _replay_task(path: str, config: ReplayConfig, out_dir: str, working_folder: str,
-                 replay_one: ReplayOne) -> BatchOutcome:
+                 replay_one: ReplayOne, threads: int) -> BatchOutcome:
     """One input, in a Ray worker. Our own errors (bad input) are outcomes; anything else raises, so that
     Ray retries the task."""
+    from numba import config as numba_config
     from threadpoolctl import threadpool_limits
+
+    # Ray starts a worker per core it schedules on: each keeps to the cores its task holds.
+    numba_config.NUMBA_NUM_THREADS = threads  # type: ignore[attr-defined]
 
     if os.path.isdir(working_folder):  # the driver's, so that relative paths resolve as they do there
         os.chdir(working_folder)
