@@ -7,8 +7,6 @@ keyframes: 0.85 s of a 10 s replay went into `np.array` of those lists).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 
@@ -31,13 +29,14 @@ class GrowingRows:
         self._buffer[self._count] = row
         self._count += 1
 
-    def reset(self, rows: Iterable[ArrayLike]) -> None:
+    def reset(self, rows: ArrayLike) -> None:
         """Every row anew (after rows were changed, removed or inserted), in a new buffer: the views
         `rows` gave before keep what they held."""
-        self._buffer = np.empty_like(self._buffer)
-        self._count = 0
-        for row in rows:
-            self.append(row)
+        row_shape = self._buffer.shape[1:]
+        given = np.asarray(rows, dtype=self._buffer.dtype).reshape(-1, *row_shape)
+        self._buffer = np.empty((max(16, 2 * len(given)), *row_shape), dtype=self._buffer.dtype)
+        self._buffer[: len(given)] = given
+        self._count = len(given)
 
     def rows(self) -> NDArray:
         """The rows so far: a read-only view, which later appends and resets leave as it is."""

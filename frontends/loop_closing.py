@@ -50,12 +50,9 @@ class Constraints:
     """Length of each planar measurement's (x, y, θ) translation, kept as constraints are added: the path
     lengths of every loop search need them, and converting the measurements each time cost more than the
     search itself (NaN for other measurements)."""
-    _paths: GrowingRows = field(init=False, repr=False)
-    """(first, second, planar length) of every constraint, as `path_columns` gives them."""
-
-    def __post_init__(self) -> None:
-        self._paths = GrowingRows((3,), np.float64)
-        self._paths.reset(zip(self.first, self.second, self.planar_length, strict=True))
+    _paths: GrowingRows | None = field(default=None, init=False, repr=False)
+    """(first, second, planar length) of every constraint, as `path_columns` gives them; None after a
+    removal or a restore (a pruning may try many), made again when next read."""
 
     def add(self, a: int, b: int, measurement: FloatArray, information: FloatArray, is_loop: bool) -> None:
         self.first.append(a)
@@ -65,26 +62,29 @@ class Constraints:
         self.is_loop.append(is_loop)
         planar = self.measurement_shape == (3,)
         self.planar_length.append(float(np.hypot(measurement[0], measurement[1])) if planar else math.nan)
-        self._paths.append((a, b, self.planar_length[-1]))
+        if self._paths is not None:
+            self._paths.append((a, b, self.planar_length[-1]))
 
     def _columns(self) -> tuple[list, ...]:
         return (self.first, self.second, self.measurement, self.information, self.is_loop, self.planar_length)
 
     def remove(self, index: int) -> tuple[object, ...]:
         """Remove constraint `index`; returns its row, for `restore`."""
-        row = tuple(column.pop(index) for column in self._columns())
-        self._paths.reset(zip(self.first, self.second, self.planar_length, strict=True))
-        return row
+        self._paths = None
+        return tuple(column.pop(index) for column in self._columns())
 
     def restore(self, index: int, row: tuple[object, ...]) -> None:
         """Put a row `remove` returned back at `index`."""
+        self._paths = None
         for column, value in zip(self._columns(), row, strict=True):
             column.insert(index, value)
-        self._paths.reset(zip(self.first, self.second, self.planar_length, strict=True))
 
     def path_columns(self) -> tuple[IntArray, IntArray, FloatArray]:
         """(first, second, planar length) of every constraint, without converting the lists (a loop search
         reads them at every searching keyframe)."""
+        if self._paths is None:
+            self._paths = GrowingRows((3,), np.float64)
+            self._paths.reset(np.column_stack([self.first, self.second, self.planar_length]))
         paths = self._paths.rows()
         return paths[:, 0].astype(np.int64), paths[:, 1].astype(np.int64), paths[:, 2]
 

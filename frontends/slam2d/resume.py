@@ -172,7 +172,7 @@ class ResumedSlam2D(LaserSlam2D):
         stamp, points, odometry = scan.stamp_ns, scan.points, scan.odometry
         max_range = self.config.matching.max_range
         points = points[np.einsum("ij,ij->i", points, points) <= max_range**2]
-        old = np.array(self._keyframe_poses[: self._old_count])
+        old = self._keyframe_rows.rows()[: self._old_count]
         nearest = int(np.argmin(np.hypot(*(old[:, :2] - pose[:2]).T)))
         bridge = np.diag([BRIDGE_SIGMA_LINEAR**-2, BRIDGE_SIGMA_LINEAR**-2, BRIDGE_SIGMA_ANGULAR**-2])
         if not np.any(information):  # a global fix always has an ICP Hessian; guard an empty one anyway
@@ -202,7 +202,7 @@ class ResumedSlam2D(LaserSlam2D):
         wanted = self.config.keyframes.local_map_keyframes
         count = len(self._keyframe_poses)
         recent = list(range(max(self._old_count, count - wanted), count))
-        old = np.array(self._keyframe_poses[: self._old_count])
+        old = self._keyframe_rows.rows()[: self._old_count]
         distance = np.hypot(*(old[:, :2] - self._keyframe_poses[-1][:2]).T)
         reach = 2.0 * self.config.matching.max_range
         closest = np.argsort(distance)[: max(wanted - len(recent), 0)]

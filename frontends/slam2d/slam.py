@@ -15,7 +15,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -770,7 +770,7 @@ class LaserSlam2D:
         first, second, measurements, informations, _ = self._edges.arrays()
         return PoseGraph.build(
             np.arange(len(self._keyframe_poses)),
-            np.array(self._keyframe_poses) if poses is None else poses,
+            self._keyframe_rows.rows() if poses is None else poses,
             first,
             second,
             measurements,
@@ -788,7 +788,7 @@ class LaserSlam2D:
         self._hypotheses.clear()  # a hypothesis' correction is relative to the estimate it was found on
         if len(self._keyframe_poses) < 2 or not any(self._edges.is_loop):
             return
-        poses, removed = optimize_and_prune(self._edges, self._graph, np.array(self._keyframe_poses),
+        poses, removed = optimize_and_prune(self._edges, self._graph, self._keyframe_rows.rows(),
                                             settings.chi2_threshold, REOPTIMIZE_ITERATIONS, new_loops)
         self._rejected += removed
         self._move_keyframes(poses)
@@ -799,14 +799,14 @@ class LaserSlam2D:
         self._last_pose = se2.compose(self._keyframe_poses[-1], offset)
         self._rebuild_local_map()
 
-    def _set_keyframe_poses(self, poses: Iterable[FloatArray]) -> None:
+    def _set_keyframe_poses(self, poses: Sequence[FloatArray] | FloatArray) -> None:
         """Every keyframe's pose anew (an optimization moved them, or a saved map's)."""
         self._keyframe_poses = [np.array(p, dtype=np.float64) for p in poses]
         self._keyframe_rows.reset(self._keyframe_poses)
 
     def keyframe_poses(self) -> FloatArray:
         """(K, 3) the current estimate of every keyframe's pose in the map frame."""
-        return np.array(self._keyframe_poses).reshape(-1, 3)
+        return self._keyframe_rows.rows().copy()
 
     def keyframe_scans(self) -> list[FloatArray]:
         """Every keyframe's points (N, 2) in its own frame."""
