@@ -310,6 +310,8 @@ class MapLocalizer:
             self._last_odometry = None
             self._scan_odometry = None if odometry is not None else ScanOdometry(
                 self.config, self.settings.max_lost_keyframes)
+            if self._tracker is not None:  # the lost stretch's tracker too, else it takes the jump as motion
+                self._tracker.odometry_restarts()
         if self._scan_odometry is not None:
             with self.stage_times.stage("scan odometry"):
                 odometry = self._scan_odometry.pose(int(stamp_ns), points, times)

@@ -376,6 +376,14 @@ class LaserSlam2D:
         self._scan_keyframes.append(keyframe)
         self._scan_offsets.append(se2.relative(self._keyframe_poses[keyframe], pose))
 
+    def odometry_restarts(self) -> None:
+        """The next scan's odometry is in another frame (its source changed, e.g. the wheels' taking over
+        from the scans' own): no motion is measured across the change, to the last scan nor to the last
+        keyframe, as at the first scan."""
+        self._last_odometry = None
+        self._keyframe_odometry = None
+        self._odometry_hold.reset()
+
     def _motion_since_matched(self, stamp_ns: int, odometry: FloatArray | None) -> FloatArray:
         """The motion predicted from the last matched scan to the scan at `stamp_ns`: the odometry's, or the
         last matched motion at constant velocity."""
