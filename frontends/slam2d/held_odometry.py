@@ -51,3 +51,41 @@ class OdometryHold:
         if np.hypot(held[0], held[1]) > window_linear or abs(held[2]) > window_angular:
             return se2.relative(held, motion)
         return motion
+
+
+class OverruledOdometry:
+    """The motion the map matched beyond the wheels' while it overruled them (`MapLocalizer`): wheels that
+    stop counting and then report the whole motion at once owe it, and their jump pays it back. (CSAIL's
+    odometry holds its position for two scans while the robot drives 0.4 m, its heading still turning, then
+    jumps 0.83 m: predicted from the matched pose, the scan was sought 0.6 m ahead.)"""
+
+    def __init__(self) -> None:
+        self._owed: FloatArray | None = None
+
+    def reset(self) -> None:
+        self._owed = None
+
+    def note(self, overruled: bool, odometry_motion: FloatArray, matched_motion: FloatArray) -> None:
+        """After a scan: whether the map overruled the wheels, their motion and the matched one."""
+        if not overruled:
+            self._owed = None
+            return
+        step = se2.relative(odometry_motion, matched_motion)
+        self._owed = step if self._owed is None else se2.compose(self._owed, step)
+
+    def corrected(self, motion: FloatArray, last_motion: FloatArray, window_linear: float) -> FloatArray:
+        """The wheels' `motion` since the last scan, without the motion they owe when it is a jump: longer
+        than the last matched motion (`last_motion`) by more than the search window reaches
+        (`window_linear`, m), the owed motion longer than the window too, and paying it shortens the
+        motion. (A turn is no jump: wheels that hold their position still report their heading; a fast
+        vehicle's steps are long, not jumps.)"""
+        owed = self._owed
+        length = float(np.hypot(motion[0], motion[1]))
+        if owed is None or length - float(np.hypot(last_motion[0], last_motion[1])) <= window_linear \
+                or np.hypot(owed[0], owed[1]) <= window_linear:
+            return motion
+        paid = se2.relative(owed, motion)
+        if np.hypot(paid[0], paid[1]) >= length:
+            return motion
+        self._owed = None
+        return paid

@@ -9,7 +9,10 @@ matching) with the points and normals ICP pairs with.
   matches its local map, with one difference: the prior is the prediction with the pose's own covariance
   (carried along the odometry, shrunk by every match), so the pose is the covariance-weighted mean of
   prediction and match, and a weak match (scoring below `min_tracking_score`: most of the scan falls where the
-  map saw nothing) weighs only `weak_match_weight`. The match is not used when it scores below
+  map saw nothing) weighs only `weak_match_weight`. Wheels that slip or misreport are overruled: where the
+  match scores as a loop closure must and the prediction lies off its score plateau, the prediction weighs
+  only `weak_match_weight` against it, and a later jump of the wheels that pays back the motion they missed
+  meanwhile is taken off (`held_odometry.OverruledOdometry`). The match is not used when it scores below
   `min_match_score`, pairs too few points, or ICP left the search window (it slid along a corridor the search
   never scored): the scan keeps the prediction and counts as predicted (`LocalizedScan.predicted`).
 - Rolling local map (slam_toolbox's localization mode keeps one too): the scans of the last
@@ -63,10 +66,11 @@ from frontends.slam2d.correlative import Match, SearchWindow, match_branch_and_b
 from frontends.slam2d.deskew import ScanDeskewer
 from frontends.slam2d.global_match import VerifiedMatch, match_unambiguous, thinned_query
 from frontends.slam2d.grid import build_likelihood_grid
-from frontends.slam2d.held_odometry import OdometryHold
+from frontends.slam2d.held_odometry import OdometryHold, OverruledOdometry
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
 from frontends.slam2d.localization_config import LocalizationConfig
+from frontends.slam2d.match_covariance import score_plateau
 from frontends.slam2d.motion_prior import after_gap, carried_motion, gap_widening
 from frontends.slam2d.scan_odometry import ScanOdometry
 from frontends.slam2d.slam import (
@@ -161,6 +165,8 @@ class _TrackingMatch:
     """The match may place the scan (see `MapLocalizer._match`)."""
     prior_information: FloatArray
     """The prediction's information ICP fused the match with (part of `refined.information`)."""
+    overruled: bool = False
+    """The search's optimum overruled the wheels' prediction (it weighed as a weak match, `_match`)."""
 
     def own_information(self, information_scale: float) -> FloatArray:
         """The match's information without the prediction's (on the SLAM's constraint scale)."""
@@ -176,6 +182,16 @@ class _RollingScan:
     pose: FloatArray
     travelled: float
     """Distance driven (m) from the start of the rolling map's track to this scan."""
+
+
+def _off_the_plateau(points: FloatArray, submap: Submap, optimum: FloatArray, prior: FloatArray) -> bool:
+    """Whether `prior` lies off the score plateau of `points` on the submap around `optimum` (both poses):
+    the scan tells the two apart (`match_covariance.score_plateau`). A prior within a cell of the optimum
+    is on it."""
+    offset = np.asarray(prior[:2]) - np.asarray(optimum[:2])
+    if math.hypot(float(offset[0]), float(offset[1])) <= submap.grid.resolution:
+        return False
+    return not score_plateau(points, submap.grid, optimum).holds(offset)
 
 
 class MapLocalizer:
@@ -244,6 +260,9 @@ class MapLocalizer:
         """The time `_last_motion` took (0: unknown)."""
         self._rate = ScanRate()
         self._odometry_hold = OdometryHold()
+        self._overruled = OverruledOdometry()
+        self._last_overruled = False
+        """Whether the last `_match` of the map let its optimum overrule the wheels."""
         self._misses = 0
         self._since_good = 0.0
         self._since_attempt = 0.0
@@ -308,6 +327,7 @@ class MapLocalizer:
         if (odometry is None) != (self._scan_odometry is not None):
             # The odometry's source changes (or the first scan): no motion measured across the change.
             self._last_odometry = None
+            self._overruled.reset()
             self._scan_odometry = None if odometry is not None else ScanOdometry(
                 self.config, self.settings.max_lost_keyframes)
             if self._tracker is not None:  # the lost stretch's tracker too, else it takes the jump as motion
@@ -337,6 +357,9 @@ class MapLocalizer:
                     prediction[0] != before[0]):
                 result = self._track_still(index, int(stamp_ns), deskewed, odometry, before, prediction,
                                            result)
+            if odometry_motion is not None:
+                matched_motion = se2.relative(before[0], self._pose)
+                self._overruled.note(self._last_overruled, odometry_motion, matched_motion)
             points = deskewed
             self._deskewer.moved(int(stamp_ns), self._last_motion)
             self._motion_span_ns = 0 if self._last_stamp is None else int(stamp_ns) - self._last_stamp
@@ -415,6 +438,7 @@ class MapLocalizer:
         # the covariance-weighted mean of prediction and match.
         prior_information = cast(FloatArray, np.linalg.inv(covariance)) / matching.information_scale
         pose, matched, tracked, score = prior, False, False, math.nan
+        self._last_overruled = False
         information = np.zeros((3, 3))
         inliers, rms = 0.0, math.inf
         if len(points) >= matching.min_points:
@@ -450,6 +474,7 @@ class MapLocalizer:
                     if not found.accepted:
                         found, tracked = rolling, True
             inliers, rms = found.refined.inlier_fraction, found.refined.rms
+            self._last_overruled = found.accepted and found.overruled
             if found.accepted:
                 pose, matched, score = found.refined.pose, not tracked, found.score
                 information = matching.information_scale * found.refined.information
@@ -516,8 +541,22 @@ class MapLocalizer:
             coarse, window = match_without_odometry(points, submap.grid, prior, window,
                                                     narrow_first=not gap)
         start = prior if coarse is None else coarse.pose
-        if weigh_weak and (coarse is None or coarse.score < self.settings.min_tracking_score):
+        overruled = False
+        strong = coarse is not None and coarse.score >= self.settings.min_tracking_score
+        if weigh_weak and not strong:
             prior_information = prior_information / self.settings.weak_match_weight
+        elif (coarse is not None and coarse.score >= self.settings.acceptance.min_score and has_odometry
+              and window.linear <= self.config.odometry.window_linear
+              and submap is self.map and _off_the_plateau(points, submap, start, prior)):
+            # The wheels, trusted (their narrow window: not interpolated over a long gap), put the scan
+            # where it scores well below an optimum the map would accept as a loop closure: they slipped or
+            # misreport (the Freiburg 079 log's drive forwards while the robot backs up, 0.2 m a scan).
+            # Fused as it weighs, their prediction dragged every match towards it, and the pose off the
+            # map, 5 m within 30 scans: it weighs against the match as a weak match weighs against it. (A
+            # weaker optimum does not overrule them: where the map saw a place from afar, matches scoring
+            # 0.50–0.52 lay 0.3–0.7 m off.)
+            prior_information = prior_information * self.settings.weak_match_weight
+            overruled = True
         refined = refine_point_to_line(
             points, submap.grid, submap.points, submap.normals, start,
             max_distance=matching.icp_max_distance, sigma=matching.point_sigma,
@@ -536,7 +575,7 @@ class MapLocalizer:
                                whole_window=True)
         accepted = (scored and refined.inlier_fraction >= self.config.odometry.min_inlier_fraction and inside)
         return _TrackingMatch(math.nan if coarse is None else float(coarse.score), refined, accepted,
-                              prior_information)
+                              prior_information, overruled)
 
     def _remember(self, points: FloatArray) -> None:
         """Keep the scan for local re-acquisition queries when it is `relocalize_every` from the last kept."""
@@ -695,6 +734,8 @@ class MapLocalizer:
         window = self._tracking_window(has_odometry, reliable, widening)
         motion = self._odometry_hold.corrected(motion, self._last_odometry, odometry, self._last_motion,
                                                window.linear, window.angular)
+        if has_odometry:
+            motion = self._overruled.corrected(motion, self._last_motion, window.linear)
         if self._odometry_hold.holding:
             # The odometry's value is stale, not a robot standing still: the motion the scans tracked last
             # goes on (a turn in place at 14°/scan would otherwise leave the window at its first scan).
@@ -722,6 +763,7 @@ class MapLocalizer:
 
     def _lose(self) -> None:
         self._pose = None
+        self._overruled.reset()
         self._pending_correction = None
         self._wide_failures = 0
         self._misses = 0

@@ -55,7 +55,8 @@ class LocalizationConfig:
     """Below this the scan's match is not used at all: too few of its points lie on the map."""
     weak_match_weight: float = 0.1
     """A match scoring below `min_tracking_score` weighs this much against the prediction (its points
-    mostly fall where the map saw nothing, and the few that do not can pull it onto the wrong wall)."""
+    mostly fall where the map saw nothing, and the few that do not can pull it onto the wrong wall); and the
+    wheels' prediction weighs this much against a match that overrules them (`MapLocalizer._match`)."""
     relocalize_after: int = 3
     """Local re-acquisition starts after this many misses in a row …"""
     relocalize_every: float = 0.3
