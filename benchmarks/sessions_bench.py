@@ -43,6 +43,11 @@
     error in the map it was given). For the "full-run poses" row the two references are one. Last, the
     scans placed within 1 m of a map keyframe (the saved run's path) and how many of them did not match the
     map (`frontends.protocol.unmatched_on_saved_path`; the replay warns when most of them did not).
+(c) The same log again (a user replaying the log a session was made from): the whole log, its first
+    scans before any odometry message included, localized in the full run's own map (`--map`) and
+    continued from the full run's own graph (`--continue`); every scan's distance from the full run's pose
+    (median / 95 % / max, scans farther than 0.5 m), and for the continued one the constraints between the
+    old and the new keyframes.
 (b) Continue. The second half goes to `LaserSlam2D.resume` on the first half's saved graph (odometry
     origin dropped); the joint graph is optimized once. ACES: every scan of both halves is scored against
     aces.relations; the single run's figure is the reference (target: within 10 %). CSAIL (no ground
@@ -356,6 +361,45 @@ def continue_agreement_row(name: str, mapped: Mapped) -> tuple[str, ...]:
             f"{joint.loop_closures_accepted}", f"{crossing}", f"{seconds:.1f}")
 
 
+def same_log_rows(mapped: Mapped) -> list[tuple[str, ...]]:
+    """(c): the whole log again, localized in its own map and continued from its own graph."""
+    scans, full, full_keyframes = mapped.scans, mapped.full, mapped.full_keyframes
+    reference = full.scan_poses(full_keyframes)
+    localizer = MapLocalizer(full.keyframe_scans, full_keyframes)
+    results = [localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval) for s in scans]
+    localized = np.array([r.localized for r in results])
+    poses = np.array([r.pose for r in results])
+    rows = [("--map", f"{int(localized.sum())} / {len(scans)}",
+             distance_figures(poses[localized], reference[localized]), "")]
+    slam = LaserSlam2D.resume(full.keyframe_scans, full_keyframes, SavedConstraints.of(full.graph),
+                              scans=SavedScans.of(full))
+    joint, joint_keyframes = map_scans(slam, scans)
+    old = full.graph.num_poses
+    graph = joint.graph
+    crossing = int((((graph.edge_from < old) != (graph.edge_to < old)) & ~graph.is_odometry).sum())
+    new_poses = joint.scan_poses(joint_keyframes)[len(scans):]
+    placed = len(new_poses)
+    rows.append(("--continue", f"{placed} / {len(scans)}",
+                 distance_figures(new_poses, reference[len(scans) - placed:]), f"{crossing}"))
+    return rows
+
+
+def distance_figures(poses: FloatArray, reference: FloatArray) -> str:
+    """"median / 95 % / max (scans over 0.5 m)" of the positions' distances (m)."""
+    distances = np.hypot(*(poses[:, :2] - reference[:, :2]).T)
+    return (f"{np.median(distances):.3f} / {np.percentile(distances, 95):.3f} / {distances.max():.3f} "
+            f"({np.count_nonzero(distances > 0.5)})")
+
+
+def print_same_log(name: str, mapped: Mapped) -> None:
+    print(f"## {name} (c) The same log again, in its own session: against the single run\n")
+    print("| log | replay | scans placed | median / 95 % / max (m) (scans > 0.5 m) | old-new constraints |")
+    print("|---|---|---|---|---|")
+    for row in same_log_rows(mapped):
+        print(f"| {name} | " + " | ".join(row) + " |", flush=True)
+    print()
+
+
 def print_continue_agreement(name: str, mapped: Mapped) -> None:
     print(f"## {name} (b) Continue: two halves, the second resumed on the first's graph, against the single "
           "run (no ground truth)\n")
@@ -395,6 +439,8 @@ def main() -> None:
                 print()
             elif not args.skip_continue:
                 print_continue_agreement(name, mapped)
+            if not args.skip_continue:
+                print_same_log(name, mapped)
 
 
 if __name__ == "__main__":
