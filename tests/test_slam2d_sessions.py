@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 
 import numpy as np
 import pytest
@@ -172,9 +173,20 @@ def test_tracking_a_whole_drive_stays_on_the_truth(
     assert heading_errors(poses[5:], new_run.truth[5:]).max() < math.radians(1.0)
 
 
+def matched_poses(localizer_map: tuple[list[np.ndarray], np.ndarray], new_run: Run, order: list[int],
+                  odometry: Sequence[np.ndarray]) -> np.ndarray:
+    """The new run's scans `order` localized with `odometry` from the first one's true pose, 0.3 s apart;
+    every one must match the map."""
+    localizer = MapLocalizer(*localizer_map, initial_pose=new_run.truth[order[0]])
+    results = [localizer.localize(int(new_run.stamps_ns[0]) + k * 300_000_000, new_run.scans[scan], odo)
+               for k, (scan, odo) in enumerate(zip(order, odometry, strict=True))]
+    assert all(r.matched for r in results)
+    return np.array([r.pose for r in results])
+
+
 def test_wheels_that_report_driving_forwards_while_the_robot_backs_up_do_not_drag_it_off_the_map(
         localizer_map: tuple[list[np.ndarray], np.ndarray], new_run: Run) -> None:
-    """The Freiburg 079 log's odometry drives forwards while the robot backs up, 0.2 m a scan. Where the
+    """The Freiburg 079 log's odometry drives forwards while the robot backs up, 0.1 m a scan. Where the
     map places each scan distinctly, the wheels' prediction off its score plateau must not pull the match
     towards it: fused as it weighs, it took the pose 5 m off that log's own map, here 11 m."""
     forward = list(range(120, 160))
@@ -185,11 +197,7 @@ def test_wheels_that_report_driving_forwards_while_the_robot_backs_up_do_not_dra
     odometry = [truth[0]]
     for step in steps:
         odometry.append(compose_poses(odometry[-1], step))
-    localizer = MapLocalizer(*localizer_map, initial_pose=truth[0])
-    results = [localizer.localize(int(new_run.stamps_ns[0]) + k * 300_000_000, new_run.scans[scan], odo)
-               for k, (scan, odo) in enumerate(zip(order, odometry, strict=True))]
-    assert all(r.matched for r in results)
-    poses = np.array([r.pose for r in results])
+    poses = matched_poses(localizer_map, new_run, order, odometry)
     assert position_errors(poses, truth).max() < 0.05
     assert heading_errors(poses, truth).max() < math.radians(1.0)
 
@@ -204,11 +212,7 @@ def test_wheels_that_stop_counting_and_then_jump_are_paid_back_what_the_map_matc
     odometry = truth.copy()
     odometry[10:15, :2] = odometry[9, :2]  # five scans (0.75 m) without counting the wheels' turns
     odometry[10:15, 2] += 1e-3 * np.arange(1, 6)  # while the heading still updates
-    localizer = MapLocalizer(*localizer_map, initial_pose=truth[0])
-    results = [localizer.localize(int(new_run.stamps_ns[0]) + k * 300_000_000, new_run.scans[scan], odo)
-               for k, (scan, odo) in enumerate(zip(order, odometry, strict=True))]
-    assert all(r.matched for r in results)
-    poses = np.array([r.pose for r in results])
+    poses = matched_poses(localizer_map, new_run, order, odometry)
     assert position_errors(poses, truth).max() < 0.05
 
 

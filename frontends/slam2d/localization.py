@@ -550,7 +550,7 @@ class MapLocalizer:
               and submap is self.map and _off_the_plateau(points, submap, start, prior)):
             # The wheels, trusted (their narrow window: not interpolated over a long gap), put the scan
             # where it scores well below an optimum the map would accept as a loop closure: they slipped or
-            # misreport (the Freiburg 079 log's drive forwards while the robot backs up, 0.2 m a scan).
+            # misreport (the Freiburg 079 log's drive forwards while the robot backs up, 0.1 m a scan).
             # Fused as it weighs, their prediction dragged every match towards it, and the pose off the
             # map, 5 m within 30 scans: it weighs against the match as a weak match weighs against it. (A
             # weaker optimum does not overrule them: where the map saw a place from afar, matches scoring
