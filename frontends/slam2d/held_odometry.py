@@ -3,7 +3,9 @@
 CSAIL's log does it three times: one value for 4 scans of a turn in place, then +1.49 rad. The scans track
 the motion meanwhile, and the jump holds that motion again: predicted from the last pose, the scan would be
 sought a whole turn off, and a match there lands on the wrong wall. The SLAM and the localizer both predict
-through `OdometryHold`.
+through `OdometryHold`. Wheels may also hold only their position, their heading still turning, or misreport
+the motion; the localizer's saved map then overrules them, and `OverruledOdometry` takes what they missed off
+the jump that pays it back.
 """
 
 from __future__ import annotations

@@ -166,7 +166,8 @@ class _TrackingMatch:
     prior_information: FloatArray
     """The prediction's information ICP fused the match with (part of `refined.information`)."""
     overruled: bool = False
-    """The search's optimum overruled the wheels' prediction (it weighed as a weak match, `_match`)."""
+    """The search's optimum overruled the prediction (the wheels', or the rolling map's where `_track` matches
+    the saved map again around it): the prediction weighed as a weak match would (`_match`)."""
 
     def own_information(self, information_scale: float) -> FloatArray:
         """The match's information without the prediction's (on the SLAM's constraint scale)."""
@@ -262,7 +263,8 @@ class MapLocalizer:
         self._odometry_hold = OdometryHold()
         self._overruled = OverruledOdometry()
         self._last_overruled = False
-        """Whether the last `_match` of the map let its optimum overrule the wheels."""
+        """Whether the pose `_track` gave last came from a match of the saved map that overruled the
+        prediction (`_TrackingMatch.overruled`)."""
         self._misses = 0
         self._since_good = 0.0
         self._since_attempt = 0.0
