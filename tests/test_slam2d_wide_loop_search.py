@@ -7,16 +7,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
 
-from frontends.slam2d.config import LoopClosureConfig, MatchingConfig, Slam2DConfig
+from frontends.slam2d.config import LOOP_QUERY_KEYFRAMES, LoopClosureConfig, MatchingConfig, Slam2DConfig
 from frontends.slam2d.correlative import SearchWindow, branch_and_bound_levels, match_exhaustive
 from frontends.slam2d.global_match import match_beyond
 from frontends.slam2d.icp import scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
-from frontends.slam2d.slam import BRANCH_AND_BOUND_LEVELS
+from frontends.slam2d.slam import BRANCH_AND_BOUND_LEVELS, LaserSlam2D
 from optimizer import se2
 from tests.laser_world import Run, between, compose, drive, ring_corridors, simulate_scan, square_loop
 from tests.slam2d_runs import position_errors, run_slam, wrong_loop_closures
@@ -144,3 +145,47 @@ def test_a_lap_that_comes_back_13_m_off_closes_its_loop_beyond_the_fine_window()
     capped = run_slam(run, with_odometry=True, config=capped_config)
     assert capped.result.loop_closures_accepted == 0
     assert position_errors(capped.final_scan_poses, run.truth)[-1] > 10.0
+
+
+def test_a_submap_searched_wide_in_vain_is_searched_wide_again_only_by_a_query_of_new_keyframes(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # Coming back 13 m off, the keyframes search the same candidates beyond the fine window long before one
+    # matches (the UAL vehicle: 116 wide searches in vain, 0.65 s of its 4 s replay). Their fine windows
+    # are still searched: there a search that failed matches a few keyframes later.
+    events: list[tuple[int, int, bool, bool] | None] = []
+    verify, set_poses = LaserSlam2D._verify_loop, LaserSlam2D._set_keyframe_poses
+
+    def recorded_verify(self: LaserSlam2D, candidate: int, current: int, fine_radius: float, radius: float,
+                        fine_first: bool) -> Any:
+        hypothesis = verify(self, candidate, current, fine_radius, radius, fine_first)
+        events.append((candidate, current, radius > fine_radius, hypothesis is not None))
+        return hypothesis
+
+    def recorded_set_poses(self: LaserSlam2D, poses: Any) -> None:
+        set_poses(self, poses)
+        events.append(None)  # the poses moved: every submap is new
+
+    monkeypatch.setattr(LaserSlam2D, "_verify_loop", recorded_verify)
+    monkeypatch.setattr(LaserSlam2D, "_set_keyframe_poses", recorded_set_poses)
+    run = slipping_lap(1.12)
+    outcome = run_slam(run, with_odometry=True)
+    spacing = LoopClosureConfig().submap_keyframes
+    failed_wide: list[tuple[int, int]] = []
+    wide_again, fine_again = [], []
+    for event in events:
+        if event is None:
+            failed_wide = []
+            continue
+        candidate, current, wide, found = event
+        recent = [(c, k) for c, k in failed_wide
+                  if abs(candidate - c) <= spacing and current - k <= LOOP_QUERY_KEYFRAMES]
+        (wide_again if wide else fine_again).extend(recent)
+        if wide and not found:
+            failed_wide.append((candidate, current))
+    assert wide_again == []
+    assert fine_again != []  # the fine window of such a candidate is searched still
+    assert sum(wide and not found for *_, wide, found in filter(None, events)) >= 5  # put to the test
+    # The loop still closes, as well as when every keyframe searched everything.
+    assert outcome.result.loop_closures_accepted >= 1
+    assert wrong_loop_closures(outcome) == []
+    assert position_errors(outcome.final_scan_poses, run.truth)[-1] < 0.2
