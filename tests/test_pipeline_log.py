@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -332,3 +334,30 @@ def test_info_on_a_file_that_is_not_a_log_is_a_one_line_error(tmp_path: Path) ->
     result = CliRunner().invoke(app, ["info", str(path)])
     assert result.exit_code == 2
     assert result.output.strip().count("\n") == 0 and str(path) in result.output
+
+
+def test_a_map_picture_failing_on_its_own_thread_is_one_line_and_keeps_the_old_outputs(
+    drive_log: tuple[Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The map files are written on a thread beside the replay (`replay_log._WrittenBeside`): what fails
+    # there must reach the command as on the main thread.
+    path, _ = drive_log
+    out = tmp_path / "out"
+    assert CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet"]).exit_code == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    save = Image.Image.save
+
+    def full_disk_for_png_files(image: Image.Image, fp: object, format: str | None = None,
+                                **params: object) -> None:
+        if format == "PNG" and isinstance(fp, os.PathLike):  # not the recording's, encoded in memory
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        save(image, fp, format, **params)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Image.Image, "save", full_disk_for_png_files)
+    result = CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet"])
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and str(out / "drive_map.png") in lines[0]
+    assert "No space left on device" in lines[0]
+    assert "Traceback" not in result.output
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
