@@ -354,6 +354,25 @@ def test_the_api_refuses_what_the_command_refuses(logs: Logs, tmp_path: Path) ->
     assert issubclass(MapPlacementError, FrontendError)
 
 
+def test_a_log_driving_through_the_walls_of_another_buildings_map_is_warned_of(tmp_path: Path) -> None:
+    # Real logs: CSAIL placed in the mumble loop's map (an RPLidar robot's hallway and room) by a look-alike
+    # stretch. All of its 39 scans on the mapping robot's path matched the map, so the on-path share said
+    # nothing; tracked on its own scans from there, the run crosses the map's walls 14 times.
+    mapped = pipeline.replay(shared_file("logs/mumble/hallway_room_loop"), out_dir=tmp_path / "map")
+    other = run_replay(shared_file("logs/csail/csail.mcap"), "--map", mapped.outputs["session"],
+                       "--out", tmp_path / "other")
+    assert other.exit_code == 2 or "cross its walls" in other.stderr, other.output
+    if other.exit_code == 0:
+        counts = json.loads((tmp_path / "other" / "csail.json").read_text())["counts"]
+        assert counts["saved_map_wall_crossings"] >= 10
+    # The log of the map's own place does not cross them.
+    own = run_replay(shared_file("logs/mumble/hallway_room_loop"), "--map", mapped.outputs["session"],
+                     "--out", tmp_path / "own")
+    assert own.exit_code == 0 and "cross its walls" not in own.stderr, own.output
+    own_counts = json.loads((tmp_path / "own" / "hallway_room_loop.json").read_text())["counts"]
+    assert own_counts["saved_map_wall_crossings"] == 0
+
+
 def test_a_log_placed_in_the_map_of_another_building_is_warned_of(tmp_path: Path) -> None:
     # Real logs: the CSAIL map, the CSAIL log of another container (the same run), and ACES (Austin).
     mapped = pipeline.replay(shared_file("logs/csail/csail.mcap"), out_dir=tmp_path / "map")

@@ -50,6 +50,7 @@ from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_s
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
 from frontends.slam2d.resume import ResumedSlam2D, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate
+from frontends.slam2d.wall_crossings import WallCrossings, checked_wall_crossings
 from optimizer import se2
 from optimizer.graph import PoseGraph
 
@@ -203,6 +204,9 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self._localizations: ScanLocalizations | None = None
         self._on_path = (0, 0)
         """Scans placed on the saved run's path, and how many of them did not match the saved map."""
+        self._crossings = WallCrossings(0, 0.0)
+        self._saved_grid: OccupancyGrid | None = None
+        """The saved map's occupancy grid, at its own keyframe poses (`map_export`)."""
         self._smoothing: SmoothedTrajectory | None = None
 
     def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
@@ -280,6 +284,8 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         examined = columns["localized"] & ~between
         self._on_path = checked_on_saved_path(self._log.path, "scans", poses[examined, :2],
                                               columns["matched"][examined], self.saved.keyframe_poses[:, :2])
+        self._crossings = checked_wall_crossings(self._log.path, "scans", poses[:, :2],
+                                                 self.map_export(self.saved.keyframe_poses))
 
     def _pose_between(self, poses: FloatArray, smoothed: BoolArray, given: IntArray) -> None:
         """The scans between two given to the localizer, in place: between the two (smoothed) poses around
@@ -301,7 +307,11 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         return graph if planar_poses is None else graph.with_poses(planar_poses)
 
     def map_export(self, planar_poses: FloatArray) -> OccupancyGrid:
-        return occupancy_grid(self.saved.keyframe_scans, planar_poses)
+        if not np.array_equal(planar_poses, self.saved.keyframe_poses):
+            return occupancy_grid(self.saved.keyframe_scans, planar_poses)
+        if self._saved_grid is None:
+            self._saved_grid = occupancy_grid(self.saved.keyframe_scans, self.saved.keyframe_poses)
+        return self._saved_grid
 
     def keyframe_wheel_odometry(self) -> FloatArray | None:
         return None
@@ -315,6 +325,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
                 "map_keyframes": len(self.saved.keyframe_poses), **found.counts(),
                 "scans_smoothed": 0 if found.smoothed is None else int(np.sum(found.smoothed)),
                 "scans_on_saved_path": self._on_path[0], "scans_on_saved_path_unmatched": self._on_path[1],
+                "saved_map_wall_crossings": self._crossings.crossings,
                 "smoothing_converged": int(self._smoothing.converged)}
 
     def loop_closures(self) -> dict[str, Any]:
