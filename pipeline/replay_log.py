@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeAlias, cast
 import numpy as np
 from numpy.typing import NDArray
 
+from frontends.errors import MapExtentError
 from frontends.logs import LogReader, open_log
 from frontends.protocol import ContinuingFrontend, Estimate, FrontendOptions, LogFrontend, StreamedFrontend
 from optimizer.graph_files import write_g2o
@@ -159,9 +160,16 @@ class SessionStart:
                                 f"{SENSOR_WORDS[kind]} ({topic}): a session continues or localizes logs of "
                                 "its own kind")
         saved = sensor.saved_map(self.path, self.content)
-        if self.mode == "continue":
-            return sensor.continuing(log, topic, saved, config, options)
-        return sensor.localizing(log, topic, saved, config, options, initial_pose=self.initial_pose)
+        try:
+            if self.mode == "continue":
+                return sensor.continuing(log, topic, saved, config, options)
+            return sensor.localizing(log, topic, saved, config, options, initial_pose=self.initial_pose)
+        except MapExtentError as error:
+            # The localizer matches against one grid of the whole saved map: a building of more than
+            # ~0.1 km² at 5 cm (the Freiburg clinic's 439 × 246 m) does not fit in it.
+            verb = "continue" if self.mode == "continue" else "localize in"
+            raise MapExtentError(f"{self.path}: this saved map is too large to {verb}: {error} (maps beyond "
+                                 "that are not supported yet)") from error
 
 
 @dataclass(frozen=True)

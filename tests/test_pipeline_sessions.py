@@ -26,7 +26,7 @@ from frontends.errors import FrontendError
 from frontends.slam2d.resume import MapPlacementError
 from pipeline.cli import app
 from pipeline.errors import PipelineError
-from pipeline.session_file import SESSION_VERSION, SessionError, write_session
+from pipeline.session_file import SESSION_VERSION, SessionError, read_session, write_session
 from pipeline.trajectory_io import read_tum
 from tests.conftest import shared_file
 from tests.laser_world import between, long_corridor
@@ -341,6 +341,25 @@ def test_a_session_of_the_other_sensor_kind_is_refused(logs: Logs, tmp_path: Pat
     assert file_names(out) == set()
     with pytest.raises(PipelineError, match="3D point clouds"):
         pipeline.replay(logs.inside, out_dir=out, map=session)
+
+
+def test_a_saved_map_too_large_for_one_grid_is_one_line_naming_the_session(logs: Logs,
+                                                                          tmp_path: Path) -> None:
+    # The localizer matches against one grid of the whole map (the Freiburg clinic's 439 × 246 m did not
+    # fit): the error names the session, not only the grid.
+    content = read_session(logs.session)
+    arrays = dict(content.arrays)
+    poses = np.array(arrays["keyframe_poses"], dtype=np.float64)
+    poses[-1, :2] += (20_000.0, 0.0)  # one keyframe 20 km away: a grid of 400 000 × 300+ cells
+    arrays["keyframe_poses"] = poses
+    session = tmp_path / "huge.session"
+    with session.open("wb") as stream:
+        write_session(stream, dict(content.header), arrays, list(content.keyframe_points))
+    for mode in ("--map", "--continue"):
+        out = tmp_path / mode.strip("-")
+        line = one_error_line(run_replay(logs.inside, "--out", out, mode, session))
+        assert str(session) in line and "too large to" in line
+        assert file_names(out) == set()
 
 
 def test_the_api_refuses_what_the_command_refuses(logs: Logs, tmp_path: Path) -> None:
