@@ -165,8 +165,8 @@ class SessionStart:
                 return sensor.continuing(log, topic, saved, config, options)
             return sensor.localizing(log, topic, saved, config, options, initial_pose=self.initial_pose)
         except MapExtentError as error:
-            # The localizer matches against one grid of the whole saved map: a building of more than
-            # ~0.1 km² at 5 cm (the Freiburg clinic's 439 × 246 m) does not fit in it.
+            # The localizer matches against one grid of the whole saved map, on cells up to 20 cm where the
+            # map is large (`localization.whole_map_resolution`): 1.6 km² at most.
             verb = "continue" if self.mode == "continue" else "localize in"
             raise MapExtentError(f"{self.path}: this saved map is too large to {verb}: {error} (maps beyond "
                                  "that are not supported yet)") from error

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 import pytest
 
-from frontends.errors import LogWarning
+from frontends.errors import LogWarning, MapExtentError
 from frontends.protocol import checked_on_saved_path, unmatched_on_saved_path
 from frontends.slam2d.config import (
     OPTIMIZE_EVERY_LOOP_CLOSURES,
@@ -22,8 +22,16 @@ from frontends.slam2d.config import (
     Slam2DConfig,
 )
 from frontends.slam2d.global_match import VerifiedMatch
-from frontends.slam2d.local_map import place
-from frontends.slam2d.localization import EmptyMapError, LocalizationConfig, LocalizedScan, MapLocalizer
+from frontends.slam2d.grid import MAX_LIKELIHOOD_CELLS
+from frontends.slam2d.icp import scan_normals
+from frontends.slam2d.local_map import Keyframe, place
+from frontends.slam2d.localization import (
+    EmptyMapError,
+    LocalizationConfig,
+    LocalizedScan,
+    MapLocalizer,
+    whole_map_resolution,
+)
 from frontends.slam2d.localization_smoothing import smooth_localized, smooth_scans, tracking_drift
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints, SavedScans
 from frontends.slam2d.scan_odometry import ScanOdometry
@@ -769,3 +777,21 @@ def test_without_odometry_the_scans_own_odometry_carries_the_pose_where_the_map_
     results = [localizer.localize(int(stamp), scan, None) for stamp, scan in zip(stamps, scans, strict=True)]
     errors = position_errors(np.array([r.pose for r in results]), truth)
     assert errors.max() < 0.4 and np.median(errors) < 0.02
+
+
+def test_a_saved_map_too_large_for_one_grid_is_localized_in_on_coarser_cells_up_to_a_bound() -> None:
+    scan = np.column_stack([np.linspace(-10.0, 10.0, 50), np.full(50, 10.0)])  # 14.1 m reach
+    keyframes = [Keyframe(scan, scan_normals(scan))] * 2
+    margin = 1.0
+    # 100 m between the keyframes: 5 560 × 700 cells at 5 cm, well within the bound.
+    near = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0]])
+    assert whole_map_resolution(keyframes, near, 0.05, margin) == 0.05
+    # A building of 410 × 250 m (the Freiburg clinic's is 439 × 246) needs 8 201 × 5 001 cells at 5 cm,
+    # 41 M: 10 cm cells fit.
+    reach = float(np.hypot(10.0, 10.0))
+    building = np.array([[0.0, 0.0, 0.0], [410.0 - 2 * (reach + margin), 250.0 - 2 * (reach + margin), 0.0]])
+    assert MAX_LIKELIHOOD_CELLS < 8_201 * 5_001
+    assert whole_map_resolution(keyframes, building, 0.05, margin) == pytest.approx(0.10)
+    far = np.array([[0.0, 0.0, 0.0], [2_000.0, 2_000.0, 0.0]])
+    with pytest.raises(MapExtentError, match="would need cells of"):
+        whole_map_resolution(keyframes, far, 0.05, margin)

@@ -52,7 +52,7 @@ from typing import cast
 
 import numpy as np
 
-from frontends.errors import FrontendError
+from frontends.errors import FrontendError, MapExtentError
 from frontends.protocol import FloatArray, IntArray, LocalizedMeasurement
 from frontends.slam2d.cadence import ScanRate
 from frontends.slam2d.config import (
@@ -65,7 +65,7 @@ from frontends.slam2d.config import (
 from frontends.slam2d.correlative import Match, SearchWindow, match_branch_and_bound, match_exhaustive
 from frontends.slam2d.deskew import ScanDeskewer
 from frontends.slam2d.global_match import VerifiedMatch, match_unambiguous, thinned_query
-from frontends.slam2d.grid import build_likelihood_grid
+from frontends.slam2d.grid import MAX_LIKELIHOOD_CELLS, build_likelihood_grid
 from frontends.slam2d.held_odometry import OdometryHold, OverruledOdometry
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap
@@ -94,6 +94,31 @@ CONFIRMATION_SPAN = 4.0
 AGREEING_HEADING = math.radians(5.0)
 """Two wide re-acquisitions agree when they turn the track within this of each other (and move it within
 half the ambiguity distance)."""
+
+
+def whole_map_resolution(keyframes: Sequence[Keyframe], poses: FloatArray, resolution: float,
+                         margin: float) -> float:
+    """The cell size of the saved map's one grid: `resolution`, or the smallest multiple of it, up to
+    `MAX_MAP_COARSENING` times, that fits the map with `margin` in `MAX_LIKELIHOOD_CELLS` (bounds from
+    each keyframe's pose and farthest point); `MapExtentError` beyond."""
+    reach = np.array([float(np.sqrt((k.points ** 2).sum(axis=1).max())) for k in keyframes])
+    low = (poses[:, :2] - reach[:, None]).min(axis=0) - margin
+    high = (poses[:, :2] + reach[:, None]).max(axis=0) + margin
+    cells = float(np.prod(np.ceil((high - low) / resolution) + 1))
+    coarsening = max(1, math.ceil(math.sqrt(cells / MAX_LIKELIHOOD_CELLS)))
+    if coarsening > MAX_MAP_COARSENING:
+        width, height = high - low
+        raise MapExtentError(f"a map of {width:.4g} × {height:.4g} m would need cells of "
+                             f"{coarsening * resolution:.2g} m to fit in one grid of {MAX_LIKELIHOOD_CELLS} "
+                             f"cells (at most {MAX_MAP_COARSENING * resolution:.2g} m)")
+    return resolution * coarsening
+
+
+MAX_MAP_COARSENING = 4
+"""A saved map too large for one grid at the matching's resolution is localized in on cells up to this
+many times coarser (`whole_map_resolution`): 1.6 km² at 20 cm. The Freiburg clinic's map (439 × 246 m, 3 502
+keyframes; 43 M cells at 5 cm) is localized in at 10 cm: its own log 0.021 / 0.090 m (median / 95 %) from
+the single run. Coarser cells would blur what a match can tell."""
 
 
 def _propagate(covariance: FloatArray, pose: FloatArray, motion: FloatArray, noise: FloatArray) -> FloatArray:
@@ -230,15 +255,17 @@ class MapLocalizer:
         kept = poses[np.array(usable)]
         self._map_keyframes = keyframes
         self._map_keyframe_poses = kept
+        map_resolution = whole_map_resolution(keyframes, kept, matching.resolution,
+                                              self.settings.global_margin + 1.0)
         self.map = Submap.of(
             keyframes,
             list(kept),
-            resolution=matching.resolution,
-            likelihood_sigma=matching.likelihood_sigma,
+            resolution=map_resolution,
+            likelihood_sigma=max(matching.likelihood_sigma, map_resolution),
             margin=self.settings.global_margin + 1.0,
             pairing_distance=matching.icp_max_distance,
         )
-        resolution = max(self.settings.global_resolution, matching.resolution)
+        resolution = max(self.settings.global_resolution, map_resolution)
         self._search_grid = build_likelihood_grid(self.map.points, resolution,
                                                   max(matching.likelihood_sigma, resolution),
                                                   self.settings.global_margin + 1.0)
