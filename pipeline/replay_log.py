@@ -421,7 +421,7 @@ class _Run:
             if outputs.kitti is not None:
                 write_kitti_poses(staged["kitti"], result.poses)
             if not localizing:
-                self.write_map_outputs(frontend, log, kind, topic, result, staged)
+                self.write_graph_and_session(frontend, log, kind, topic, result, staged)
             beside.wait()
             timings["write"] = time.perf_counter() - write_started
             timings["total"] = time.perf_counter() - started
@@ -441,8 +441,8 @@ class _Run:
                 write_text(staged["json"], json_text(summary(replayed)))
         return replayed
 
-    def write_map_outputs(self, frontend: LogFrontend, log: LogReader, kind: str, topic: str,
-                          result: _Optimized, staged: dict[str, Path]) -> None:
+    def write_graph_and_session(self, frontend: LogFrontend, log: LogReader, kind: str, topic: str,
+                                result: _Optimized, staged: dict[str, Path]) -> None:
         """The keyframe graph and the session of a mapping replay (plain or continued); its map files are
         written beside (`through`'s `on_map`)."""
         write_g2o(staged["g2o"], frontend.keyframe_graph(), result.keyframe_poses)
