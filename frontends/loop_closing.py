@@ -167,6 +167,14 @@ def path_lengths(
     """Shortest path length from keyframe `source` to every keyframe, over constraints of these lengths
     (each walked either way; of two constraints between the same keyframes, the shorter)."""
     weights = np.maximum(lengths, 1e-6)  # a zero weight would mean "no edge" to the sparse graph
+    if _is_chain(count, first, second) and np.all(np.isfinite(weights)):
+        # Until a loop closes, the graph is one chain: a path's length is its steps added outwards from
+        # `source`, in the order the search adds them (the same floats). At every searching keyframe of a
+        # long log without loop closures, the search cost as much as the candidates' (UAL: 0.11 s).
+        along = np.zeros(count)
+        along[:source] = np.cumsum(weights[:source][::-1])[::-1]
+        along[source + 1:] = np.cumsum(weights[source:])
+        return along
     # Both directions of every constraint as rows of a CSR matrix, built directly: a COO conversion would
     # sum two constraints between the same keyframes into one longer edge, and the undirected search
     # transposes the matrix first; together they cost three times the search itself.
@@ -177,6 +185,12 @@ def path_lengths(
     np.cumsum(np.bincount(tails, minlength=count), out=starts[1:])
     adjacency = csr_matrix((np.concatenate([weights, weights])[order], heads, starts), shape=(count, count))
     return dijkstra(adjacency, directed=True, indices=source)
+
+
+def _is_chain(count: int, first: IntArray, second: IntArray) -> bool:
+    """Whether the constraints are exactly k → k + 1 for k = 0 … `count` − 2, in that order."""
+    return (len(first) == count - 1 and bool(np.all(first == np.arange(count - 1)))
+            and bool(np.all(second == first + 1)))
 
 
 MAX_SUSPECTS = 6

@@ -582,6 +582,21 @@ def test_path_lengths_are_the_shortest_over_constraints_either_way(seed: int, co
     np.testing.assert_allclose(path_lengths(count, first, second, lengths, source), expected, rtol=1e-12)
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 300))
+def test_path_lengths_along_a_chain_are_the_sparse_searchs_to_the_bit(seed: int, count: int) -> None:
+    # Until a loop closes, the constraints are one chain, summed outwards without the sparse search.
+    rng = np.random.default_rng(seed)
+    first = np.arange(count - 1, dtype=np.int64)
+    lengths = rng.choice([0.0, 1e-9, 0.3, 30.0], size=count - 1) * rng.random(count - 1)
+    source = int(rng.integers(0, count))
+    chain = path_lengths(count, first, first + 1, lengths, source)
+    # The same chain with a repeated last constraint is no chain: the sparse search answers.
+    repeated = np.append(first, count - 2) if count > 1 else first
+    searched = path_lengths(count, repeated, repeated + 1, np.append(lengths, lengths[-1:]), source)
+    np.testing.assert_array_equal(chain, searched)
+
+
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), step_cells=st.integers(1, 3))
 def test_plateau_scores_are_each_shifts_mean_over_the_points_also_across_the_grid_edge(
