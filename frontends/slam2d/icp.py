@@ -1,6 +1,6 @@
 """Point-to-line ICP in 2D with an optional Gaussian prior on the pose, compiled.
 
-Each scan point is paired with the reference point nearest its cell (the likelihood grid's `nearest`
+Each scan point is paired with the reference point nearest its cell (the likelihood grid's `pairing`
 index: no KD-tree query per iteration) and penalised by its distance to that point's tangent line, or,
 where the reference has no line (corners, clutter), by its distance to the point itself. A Cauchy
 weight keeps wrong pairings from dragging the pose. The prior (the wheel-odometry or constant-velocity
@@ -116,12 +116,12 @@ def refine_point_to_line(
 ) -> IcpResult:
     """Refine `initial` so the scan lies on the reference's lines; σ is the point noise (m).
 
-    `grid.nearest` indexes `reference_points`/`reference_normals` (normals NaN where none).
+    `grid.pairing` − 1 indexes `reference_points`/`reference_normals` (normals NaN where none).
     """
     has_prior = prior is not None and prior_information is not None
     pose, hessian, paired, rms = _icp(
         np.ascontiguousarray(scan, dtype=np.float64),
-        grid.nearest,
+        grid.pairing,
         grid.origin,
         grid.resolution,
         reference_points,
@@ -141,7 +141,7 @@ def refine_point_to_line(
 @njit(cache=True)
 def _icp(
     scan: FloatArray,
-    nearest: NDArray[np.int32],
+    pairing: NDArray[np.int32],
     origin: FloatArray,
     resolution: float,
     reference_points: FloatArray,
@@ -154,7 +154,7 @@ def _icp(
     iterations: int,
     tolerance: float,
 ) -> tuple[FloatArray, FloatArray, int, float]:
-    height, width = nearest.shape
+    height, width = pairing.shape
     pose = initial.copy()
     hessian = np.zeros((3, 3))
     gradient = np.zeros(3)
@@ -187,7 +187,7 @@ def _icp(
             iy = int(math.floor((wy - origin[1]) / resolution))
             if ix < 0 or iy < 0 or ix >= width or iy >= height:
                 continue
-            k = nearest[iy, ix]
+            k = pairing[iy, ix] - 1
             if k < 0:
                 continue
             ox = wx - reference_points[k, 0]
