@@ -169,8 +169,8 @@ def path_lengths(
     weights = np.maximum(lengths, 1e-6)  # a zero weight would mean "no edge" to the sparse graph
     if _is_chain(count, first, second) and np.all(np.isfinite(weights)):
         # Until a loop closes, the graph is one chain: a path's length is its steps added outwards from
-        # `source`, in the order the search adds them (the same floats). At every searching keyframe of a
-        # long log without loop closures, the search cost as much as the candidates' (UAL: 0.11 s).
+        # `source`, in the order the search adds them (the same floats). The sparse search at every
+        # searching keyframe of a long log without loop closures was 0.11 s of UAL's 3.2 s replay.
         along = np.zeros(count)
         along[:source] = np.cumsum(weights[:source][::-1])[::-1]
         along[source + 1:] = np.cumsum(weights[source:])
