@@ -42,17 +42,17 @@
     against the full run, whatever the localizer does), and the smoothed error against it (the localizer's
     error in the map it was given). For the "full-run poses" row the two references are one. Last, the
     scans placed within 1 m of a map keyframe (the saved run's path) and how many of them did not match the
-    map (`frontends.protocol.unmatched_on_saved_path`; the replay warns when most of them did not).
-(c) The same log again (a user replaying the log a session was made from): the whole log, its first
-    scans before any odometry message included, localized in the full run's own map (`--map`) and
-    continued from the full run's own graph (`--continue`); every scan's distance from the full run's pose
-    (median / 95 % / max, scans farther than 0.5 m), and for the continued one the constraints between the
-    old and the new keyframes.
+    map (`frontends.protocol.unmatched_on_saved_path`; the replay warns when more than a fifth did not).
 (b) Continue. The second half goes to `LaserSlam2D.resume` on the first half's saved graph (odometry
     origin dropped); the joint graph is optimized once. ACES: every scan of both halves is scored against
     aces.relations; the single run's figure is the reference (target: within 10 %). CSAIL (no ground
     truth): every scan's distance to the single run's estimate of it after a rigid alignment, with the scan
     where it is largest and how many scans lie over 0.3 m.
+(c) The same log again (a user replaying the log a session was made from): the whole log, its first
+    scans before any odometry message included, localized in the full run's own map (`--map`) and
+    continued from the full run's own graph (`--continue`); every scan's distance from the full run's pose
+    (median / 95 % / max, scans farther than 0.5 m), and for the continued one the constraints between the
+    old and the new keyframes.
 """
 
 from __future__ import annotations
@@ -387,8 +387,7 @@ def same_log_rows(mapped: Mapped) -> list[tuple[str, ...]]:
 def distance_figures(poses: FloatArray, reference: FloatArray) -> str:
     """"median / 95 % / max (scans over 0.5 m)" of the positions' distances (m)."""
     distances = np.hypot(*(poses[:, :2] - reference[:, :2]).T)
-    return (f"{np.median(distances):.3f} / {np.percentile(distances, 95):.3f} / {distances.max():.3f} "
-            f"({np.count_nonzero(distances > 0.5)})")
+    return f"{error_figures(distances)} / {distances.max():.3f} ({np.count_nonzero(distances > 0.5)})"
 
 
 def print_same_log(name: str, mapped: Mapped) -> None:
