@@ -203,9 +203,12 @@ def optimization_recorder(stream: Any, graph: PoseGraph, initial_poses: NDArray[
 
 def record_optimization(optimization: Optimization, recorder: recording.IterationRecorder,
                         sinks: Sequence[recording.IterationSink] = (),
-                        on_iteration: ProgressCallback | None = None) -> RecordedOptimization:
+                        on_iteration: ProgressCallback | None = None,
+                        on_final: Callable[[NDArray[np.float64]], None] | None = None
+                        ) -> RecordedOptimization:
     """Run `optimization`, adding every iteration to `recorder` and `sinks` (flushed at the end) and
-    passing it to `on_iteration`, timing the optimizer apart from the rest."""
+    passing it to `on_iteration`, timing the optimizer apart from the rest. `on_final` gets the final
+    poses as soon as the last iteration is known, before the recorder and the sinks are flushed."""
     started = time.perf_counter()
     trace: list[IterationRecord] = []
     optimize_time: dict[str, float] = {}
@@ -226,6 +229,8 @@ def record_optimization(optimization: Optimization, recorder: recording.Iteratio
         final_poses = iteration.poses
         if on_iteration is not None:
             on_iteration(iteration)
+    if on_final is not None and final_poses is not None:
+        on_final(np.array(final_poses, dtype=np.float64))
     recorder.flush()
     for sink in sinks:
         sink.flush()

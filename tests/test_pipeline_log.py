@@ -8,6 +8,7 @@ import json
 import os
 import shutil
 import subprocess
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -17,9 +18,12 @@ from mcap.writer import Writer as McapWriter
 from PIL import Image
 from typer.testing import CliRunner
 
+from frontends.errors import MapExtentError
 from frontends.logs import open_log
 from frontends.slam2d import ScanEstimate
+from frontends.slam2d import frontend as laser_frontend
 from frontends.slam2d.log_input import scans_in_base_frame
+from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
 from optimizer import se2
 from optimizer.graph_files import read_graph
 from pipeline.api import replay
@@ -359,5 +363,40 @@ def test_a_map_picture_failing_on_its_own_thread_is_one_line_and_keeps_the_old_o
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and str(out / "drive_map.png") in lines[0]
     assert "No space left on device" in lines[0]
+    assert "Traceback" not in result.output
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_the_map_made_beside_the_sent_iterations_is_the_written_poses_map_and_fails_as_one_line(
+    drive_log: tuple[Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The map is made on the thread beside the replay while the recorded iterations are sent
+    # (`replay_log._WrittenBeside.make_map`): it must be the map of the poses written, and what fails
+    # there must reach the command as on the main thread.
+    path, _ = drive_log
+    out = tmp_path / "out"
+    made: list[tuple[bool, np.ndarray]] = []
+
+    def traced(scans: list[np.ndarray], poses: np.ndarray, **settings: float) -> OccupancyGrid:
+        made.append((threading.current_thread() is threading.main_thread(), np.array(poses)))
+        return occupancy_grid(scans, poses, **settings)
+
+    monkeypatch.setattr(laser_frontend, "occupancy_grid", traced)
+    assert CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet"]).exit_code == 0
+    assert len(made) == 1
+    on_main_thread, poses = made[0]
+    assert not on_main_thread
+    written = read_graph(out / "drive.g2o").graph.poses
+    np.testing.assert_allclose(poses, written, atol=1e-6)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def too_large(scans: list[np.ndarray], poses: np.ndarray, **settings: float) -> OccupancyGrid:
+        raise MapExtentError("occupancy grid: a keyframe pose or point is not finite")
+
+    monkeypatch.setattr(laser_frontend, "occupancy_grid", too_large)
+    result = CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet"])
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and "occupancy grid: a keyframe pose or point is not finite" in lines[0]
     assert "Traceback" not in result.output
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before

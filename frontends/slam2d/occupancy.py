@@ -80,7 +80,7 @@ def coarsest_needed(extent: FloatArray, resolution: float, max_cells: int) -> fl
     return resolution
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # traced beside the replay's sending of the recorded iterations
 def _integrate(points: FloatArray, counts: NDArray[np.int64], poses: FloatArray, origin: FloatArray,
                resolution: float, max_range: float, log_odds: NDArray[np.float32]) -> None:
     height, width = log_odds.shape
