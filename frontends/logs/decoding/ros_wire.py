@@ -296,15 +296,71 @@ def odometry(data: bytes | memoryview, cdr: bool) -> OdometryFields:
     return OdometryFields(stamp_ns, frame_id, child_frame_id, cursor.pose())
 
 
+_TF_LAYOUTS: dict[str, tuple[struct.Struct, struct.Struct, struct.Struct]] = {
+    # a TransformStamped's header up to frame_id's length (→ sec, nanosec, length), a string's length, and
+    # the 7 float64 of its transform; by CDR byte order, and for ROS 1 (whose header starts with `seq`)
+    "<": (struct.Struct("<iII"), struct.Struct("<I"), struct.Struct("<7d")),
+    ">": (struct.Struct(">iII"), struct.Struct(">I"), struct.Struct(">7d")),
+    "ros1": (struct.Struct("<4xIII"), struct.Struct("<I"), struct.Struct("<7d")),
+}
+
+
 def tf_message(data: bytes | memoryview, cdr: bool) -> list[TransformStampedFields]:
-    """tf2_msgs/TFMessage."""
-    cursor = _Cursor(data, cdr)
-    count = cursor.u32()
-    if count > len(data):
+    """tf2_msgs/TFMessage.
+
+    Written out flat: the UAL log's odometry is 14 751 tf messages, and `_Cursor`'s call per field made this
+    a tenth of its reading time. The steps, checks and errors are the cursor's, in its order (the tests
+    hold the two to the same results); ROS 1 is CDR with every alignment 1 and no NUL after strings."""
+    size = len(data)
+    if cdr:
+        if size < 4 or data[0] != 0 or data[1] > 1:
+            raise WireError(f"unsupported CDR encapsulation {bytes(data[:2]).hex() or 'missing'}")
+        header, word, pose = _TF_LAYOUTS["<" if data[1] == 1 else ">"]
+        pos, word_align, pose_align, nul = 4, 4, 8, 1
+    else:
+        header, word, pose = _TF_LAYOUTS["ros1"]
+        pos, word_align, pose_align, nul = 0, 1, 1, 0
+    header_size = header.size
+    try:
+        (count,) = word.unpack_from(data, pos)
+    except struct.error:
+        raise WireError("payload ends early") from None
+    if count > size:
         raise WireError("transform count exceeds the payload")
+    pos += 4
     out = []
     for _ in range(count):
-        stamp_ns, frame_id = cursor.header()
-        child_frame_id = cursor.string()
-        out.append(TransformStampedFields(stamp_ns, frame_id, child_frame_id, cursor.pose()))
+        pos += -(pos - 4) % word_align
+        try:
+            sec, nanosec, length = header.unpack_from(data, pos)
+        except struct.error:
+            raise WireError("payload ends early") from None
+        start = pos + header_size
+        pos = start + length
+        if pos > size:
+            raise WireError("string runs past the payload")
+        try:
+            frame_id = str(data[start : pos - nul if length else pos], "utf-8")
+        except UnicodeDecodeError:
+            raise WireError("string is not UTF-8") from None
+        pos += -(pos - 4) % word_align
+        try:
+            (length,) = word.unpack_from(data, pos)
+        except struct.error:
+            raise WireError("payload ends early") from None
+        start = pos + 4
+        pos = start + length
+        if pos > size:
+            raise WireError("string runs past the payload")
+        try:
+            child_frame_id = str(data[start : pos - nul if length else pos], "utf-8")
+        except UnicodeDecodeError:
+            raise WireError("string is not UTF-8") from None
+        pos += -(pos - 4) % pose_align
+        try:
+            transform = pose.unpack_from(data, pos)
+        except struct.error:
+            raise WireError("payload ends early") from None
+        pos += 56
+        out.append(TransformStampedFields(sec * 1_000_000_000 + nanosec, frame_id, child_frame_id, transform))
     return out
