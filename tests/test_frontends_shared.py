@@ -87,6 +87,24 @@ def test_csail_odometry_is_identical_in_every_container() -> None:
         np.testing.assert_array_equal([p.rotation for p in poses[name]], [p.rotation for p in reference])
 
 
+@pytest.mark.parametrize("after_tree", [False, True], ids=["own-pass", "kept-by-transform-tree"])
+def test_csail_odometry_arrays_are_the_odometry_stream_stacked(after_tree: bool) -> None:
+    for name in CSAIL:  # odometry topics, and the Foxglove file's odometry on tf
+        with open_log(shared_file(name)) as log:
+            if after_tree:
+                log.transform_tree()
+            arrays = log.odometry_arrays()
+        with open_log(shared_file(name)) as log:
+            poses = list(log.odometry())
+        assert arrays is not None
+        assert arrays.stamps_ns.tolist() == [p.stamp_ns for p in poses]
+        assert (arrays.frame_id, arrays.child_frame_id) == (poses[-1].frame_id, poses[-1].child_frame_id)
+        for stacked, single in ((arrays.translations, [p.translation for p in poses]),
+                                (arrays.rotations, [p.rotation for p in poses])):
+            assert stacked.flags.c_contiguous
+            assert stacked.tobytes() == np.array(single, dtype=np.float64).tobytes()
+
+
 def test_tf_example_bag_and_ros2_bag_hold_identical_transforms() -> None:
     ros1 = list(open_log(shared_file("bags/tf_example.bag")).transforms())
     ros2 = list(open_log(shared_file("bags/tf_example")).transforms())

@@ -19,8 +19,10 @@ from collections import Counter
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import TracebackType
+from typing import NamedTuple
 
 import numpy as np
+from numpy.typing import NDArray
 
 from frontends.errors import TopicSelectionError
 from frontends.logs.containers.base import Channel, Container
@@ -223,15 +225,58 @@ class LogReader:
         chosen = self.odometry_topic(topic)
         if chosen is not None:
             return self.messages([chosen], window_ns=window_ns, max_items=max_items)  # type: ignore[return-value]
+        return self._tf_odometry(odom_frame, window_ns, max_items).poses()
+
+    def odometry_arrays(self, topic: str | None = None) -> OdometryArrays | None:
+        """`odometry(topic)` as arrays, None when it is empty. The odometry on tf comes straight from the
+        arrays it was noted in: an `OdometryPose` each, only to be taken apart again, was 0.04 s of the UAL
+        log's reading (14 751 poses)."""
+        if self.odometry_topic(topic) is None:
+            return self._tf_odometry().arrays()
+        stamps: list[int] = []
+        translations: list[NDArray[np.float64]] = []
+        rotations: list[NDArray[np.float64]] = []
+        frames = ("", "")
+        for pose in self.odometry(topic):
+            stamps.append(pose.stamp_ns)
+            translations.append(pose.translation)
+            rotations.append(pose.rotation)
+            frames = (pose.frame_id, pose.child_frame_id)
+        if not stamps:
+            return None
+        return OdometryArrays(np.array(stamps, dtype=np.int64), np.array(translations, dtype=np.float64),
+                              np.array(rotations, dtype=np.float64), *frames)
+
+    def _tf_odometry(
+        self,
+        odom_frame: str = ODOMETRY_FRAME,
+        window_ns: int = DEFAULT_WINDOW_NS,
+        max_items: int = DEFAULT_MAX_ITEMS,
+    ) -> _TfOdometry:
+        """The odometry on tf: the one `transform_tree` kept when it read it with these options, else read
+        in a pass of its own."""
         kept, self._odometry_from_tree = self._odometry_from_tree, None
         options = (odom_frame, window_ns, max_items)
         same_pass = options == (ODOMETRY_FRAME, DEFAULT_WINDOW_NS, DEFAULT_MAX_ITEMS)
         if kept is not None and same_pass:  # `transform_tree` read it, in a pass with these options
-            return kept.poses()
+            return kept
         odometry = _TfOdometry(odom_frame)
         for _ in odometry.noting(self.transforms(window_ns=window_ns, max_items=max_items)):
             pass
-        return odometry.poses()
+        return odometry
+
+
+class OdometryArrays(NamedTuple):
+    """Odometry poses in arrival order: the pose of `child_frame_id` in `frame_id` (those of the last
+    message) at each stamp."""
+
+    stamps_ns: NDArray[np.int64]
+    translations: NDArray[np.float64]
+    """(N, 3)"""
+    rotations: NDArray[np.float64]
+    """(N, 4) quaternions (x, y, z, w)"""
+    frame_id: str
+    child_frame_id: str
 
 
 class _TfOdometry:
@@ -255,9 +300,18 @@ class _TfOdometry:
                 if transform.child_frame == self.child:
                     self.stamps.append(transform.stamp_ns)
                     self.log_times.append(transform.log_time_ns)
-                    self.values.extend(transform.translation)
-                    self.values.extend(transform.rotation)
+                    # tolist(): the same floats as iterating the arrays, at a third of the cost
+                    self.values.extend(transform.translation.tolist())
+                    self.values.extend(transform.rotation.tolist())
             yield transform
+
+    def arrays(self) -> OdometryArrays | None:
+        if not self.stamps:
+            return None
+        values = np.frombuffer(self.values, dtype=np.float64).reshape(-1, 7)
+        # Copies, contiguous like the arrays stacked from `poses()`; and `self.values` stays growable.
+        return OdometryArrays(np.array(self.stamps, dtype=np.int64), values[:, :3].copy(),
+                              values[:, 3:].copy(), self.frame, self.child or "")
 
     def poses(self) -> Iterator[OdometryPose]:
         values = self.values

@@ -115,22 +115,13 @@ def read_odometry(
     previous kept message are dropped (`odometry_dropped_nonfinite`, `_out_of_world`, `_jumps`)."""
     checks = checks or DataChecksConfig()
     counts = counts if counts is not None else {}
-    stamps: list[int] = []
-    translations: list[FloatArray] = []
-    quaternions: list[FloatArray] = []
-    frames: tuple[str, str] = ("odom", "base_link")
-    for pose in log.odometry(topic):
-        stamps.append(pose.stamp_ns)
-        translations.append(pose.translation)
-        quaternions.append(pose.rotation)
-        frames = (pose.frame_id, pose.child_frame_id)
-    if not stamps:
+    odometry = log.odometry_arrays(topic)
+    if odometry is None:
         return None
-    stamp_array = np.array(stamps, dtype=np.int64)
+    stamp_array = odometry.stamps_ns
     # Headings of all messages at once (`OdometryPose.se2` one by one: 13 us each, 0.2 s of a 3-minute log
     # with odometry at 80 Hz).
-    pose_array = np.column_stack([np.array(translations, dtype=np.float64)[:, :2],
-                                  rotations.yaw(np.array(quaternions, dtype=np.float64))])
+    pose_array = np.column_stack([odometry.translations[:, :2], rotations.yaw(odometry.rotations)])
     _add(counts, "odometry_reordered", int(np.count_nonzero(stamp_array[1:] < stamp_array[:-1])))
     order = np.argsort(stamp_array, kind="stable")
     stamp_array, pose_array = stamp_array[order], pose_array[order]
@@ -149,7 +140,7 @@ def read_odometry(
     stamp_array, pose_array = stamp_array[plausible], pose_array[plausible]
     if len(stamp_array) < 2:
         return None
-    return OdometryTrack(stamp_array, pose_array, frames[0], frames[1])
+    return OdometryTrack(stamp_array, pose_array, odometry.frame_id, odometry.child_frame_id)
 
 
 def _add(counts: MutableMapping[str, int], name: str, value: int) -> None:
