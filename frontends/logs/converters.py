@@ -366,16 +366,9 @@ def ros_tf_message(
 ) -> list[Transform]:
     """tf2_msgs/TFMessage: each TransformStamped maps child_frame_id into header.frame_id."""
     return [
-        Transform(
-            t.frame_id,
-            t.child_frame_id,
-            t.stamp_ns,
-            log_time_ns,
-            np.array(t.transform[:3]),
-            _unit_quaternion(t.transform[3:]),
-            is_static,
-        )
-        for t in message
+        Transform(frame_id, child_frame_id, stamp_ns, log_time_ns, np.array(transform[:3]),
+                  _unit_quaternion(transform[3:]), is_static)
+        for stamp_ns, frame_id, child_frame_id, transform in message
     ]
 
 
