@@ -16,7 +16,6 @@ from frontends.errors import MapExtentError
 from frontends.logs.types import Scan2D, Transform
 from frontends.loop_closing import Constraints, path_lengths
 from frontends.slam2d import correlative, stage_times
-from frontends.slam2d import grid as grid_module
 from frontends.slam2d import slam as slam_module
 from frontends.slam2d.correlative import (
     SearchWindow,
@@ -239,34 +238,6 @@ def test_a_keyframe_placed_from_its_cache_is_placed_as_by_place() -> None:
     submap = Submap.of([keyframe], [np.array([0.5, 0.0, -2.0])], resolution=RESOLUTION,
                        likelihood_sigma=SIGMA, margin=0.5, pairing_distance=0.3)
     assert len(submap.points) > 0.5 * len(points)
-
-
-@settings(max_examples=15, deadline=None)
-@given(seed=st.integers(0, 10_000), count=st.integers(1, 600), threads=st.integers(2, 9),
-       pairing=st.sampled_from([0.0, 0.3]))
-def test_a_grid_stamped_in_row_bands_is_the_grid_stamped_in_one_pass(
-        seed: int, count: int, threads: int, pairing: float) -> None:
-    # Bands of rows, one per thread, each stamping every point in its own rows: a cell must see the
-    # same points in the same order as in one pass, so the grid is the same to the bit, ties included.
-    rng = np.random.default_rng(seed)
-    walls = rng.uniform(-6.0, 6.0, (count, 2))
-    walls[: count // 3] = np.round(walls[: count // 3], 1)  # many points in one cell: ties
-    walls[count // 3: count // 2] = walls[0]  # one row crowded, the bands cut around it
-    reference = build_likelihood_grid(walls, RESOLUTION, SIGMA, 0.5, pairing)
-    values = np.zeros_like(reference.values)
-    nearest = np.zeros_like(reference.pairing)
-    radius = grid_module._stamp_radius(SIGMA, pairing, RESOLUTION)
-    grid_module._stamp(walls, reference.origin, RESOLUTION, SIGMA, radius, values, nearest, 1)
-    np.testing.assert_array_equal(reference.pairing, nearest)
-    np.testing.assert_array_equal(reference.values, values)
-    banded_values = np.zeros_like(values)
-    banded_nearest = np.zeros_like(nearest)
-    grid_module._stamp(walls, reference.origin, RESOLUTION, SIGMA, radius, banded_values, banded_nearest,
-                       threads)
-    np.testing.assert_array_equal(banded_nearest, nearest)
-    np.testing.assert_array_equal(banded_values, values)
-    edges = grid_module._row_bands((walls[:, 1] - reference.origin[1]) / RESOLUTION, len(values), threads)
-    assert edges[0] == 0 and edges[-1] == len(values) and np.all(np.diff(edges) >= 0)
 
 
 @settings(max_examples=10, deadline=None)

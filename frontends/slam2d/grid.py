@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import get_num_threads, njit, prange
+from numba import njit
 from numpy.typing import NDArray
 
 from frontends.errors import MapExtentError
@@ -93,7 +93,7 @@ def build_likelihood_grid(
     values = np.zeros((int(shape[1]), int(shape[0])), dtype=np.float32)
     pairing = np.zeros(values.shape, dtype=np.int32)
     radius = _stamp_radius(sigma, pairing_distance, resolution)
-    _stamp(points, low, resolution, sigma, radius, values, pairing, get_num_threads())
+    _stamp(points, low, resolution, sigma, radius, values, pairing)
     stamped = _stamped(points_low, points_high, low, resolution, radius, values.shape)
     return LikelihoodGrid(low, resolution, values, pairing, stamped)
 
@@ -132,7 +132,7 @@ def _bounds(points: FloatArray) -> tuple[FloatArray, FloatArray]:
     return low, high
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def _stamp(
     points: FloatArray,
     origin: FloatArray,
@@ -141,71 +141,31 @@ def _stamp(
     radius: int,
     values: NDArray[np.float32],
     pairing: NDArray[np.int32],
-    threads: int,
 ) -> None:
     """Stamp every point within `radius` cells: each cell gets its nearest point (the first one on a tie;
-    1 + its index in `pairing`) and the Gaussian of the distance to it.
-
-    The grid's rows are cut into bands holding as many stamps each, one per thread (`_row_bands`); each
-    band stamps every point in order, in its own rows only. A cell sees the same points in the same order
-    as in one pass over the grid, so the grid is the same to the bit whatever the threads."""
-    height = values.shape[0]
-    # Each point's position in cells, kept for the Gaussian pass (the same values, not divided again).
-    cells_x = np.empty(points.shape[0])
-    cells_y = np.empty(points.shape[0])
-    for k in range(points.shape[0]):
-        cells_x[k] = (points[k, 0] - origin[0]) / resolution
-        cells_y[k] = (points[k, 1] - origin[1]) / resolution
-    bands = _row_bands(cells_y, height, threads)
-    for band in prange(len(bands) - 1):
-        _stamp_rows(cells_x, cells_y, resolution, sigma, radius, values, pairing, bands[band],
-                    bands[band + 1])
-
-
-@njit(cache=True)
-def _row_bands(cells_y: FloatArray, height: int, count: int) -> NDArray[np.int64]:
-    """`count` + 1 row edges (0 first, `height` last) cutting the grid into bands of as many points' rows
-    each (a point stamps as many rows wherever it lies): equal work for the threads, whatever the shape
-    of the map."""
-    points_per_row = np.zeros(height, dtype=np.int64)
-    for k in range(cells_y.shape[0]):
-        points_per_row[min(max(int(math.floor(cells_y[k])), 0), height - 1)] += 1
-    edges = np.full(count + 1, height, dtype=np.int64)
-    edges[0] = 0
-    band, seen = 1, 0
-    for row in range(height):
-        seen += points_per_row[row]
-        while band < count and seen * count >= band * cells_y.shape[0]:
-            edges[band] = row + 1
-            band += 1
-    return edges
-
-
-@njit(cache=True)
-def _stamp_rows(cells_x: FloatArray, cells_y: FloatArray, resolution: float, sigma: float, radius: int,
-                values: NDArray[np.float32], pairing: NDArray[np.int32], first_row: int,
-                stop_row: int) -> None:
-    """`_stamp` in rows `first_row` to `stop_row`: points along a wall stamp the same cells dozens of times;
-    the Gaussian is evaluated once per cell afterwards, over the columns the stamps reached in each row.
+    1 + its index in `pairing`) and the Gaussian of the distance to it. Points along a wall stamp the same
+    cells dozens of times; the Gaussian is evaluated once per cell afterwards, over the columns the stamps
+    reached in each row.
 
     A stamp's rows are short (13 cells at the default settings): looping over a variable count of them
     costs the vectorized loop's set-up and its scalar tail on every row. Stamps up to `STAMP_WIDTH` cells
     wide away from the grid's right edge run a loop of that fixed count instead, the columns past the
     stamp given an infinite distance, which no cell takes (16 % less time on CSAIL's local maps)."""
-    width = values.shape[1]
+    height, width = values.shape
     inverse_two_sigma2 = 1.0 / (2.0 * sigma * sigma)
-    row_start = np.full(stop_row - first_row, width, dtype=np.int64)
-    row_stop = np.zeros(stop_row - first_row, dtype=np.int64)
+    row_start = np.full(height, width, dtype=np.int64)
+    row_stop = np.zeros(height, dtype=np.int64)
     dx_squared = np.empty(max(2 * radius + 1, STAMP_WIDTH))
-    for k in range(cells_x.shape[0]):
-        fx = cells_x[k]
-        fy = cells_y[k]
-        cy = int(math.floor(fy))
-        low_y = max(cy - radius, first_row)
-        stop_y = min(cy + radius + 1, stop_row)
-        if low_y >= stop_y:
-            continue
+    # Each point's position in cells, kept for the Gaussian pass (the same values, not divided again).
+    cells_x = np.empty(points.shape[0])
+    cells_y = np.empty(points.shape[0])
+    for k in range(points.shape[0]):
+        fx = (points[k, 0] - origin[0]) / resolution
+        fy = (points[k, 1] - origin[1]) / resolution
+        cells_x[k] = fx
+        cells_y[k] = fy
         cx = int(math.floor(fx))
+        cy = int(math.floor(fy))
         low_x = max(cx - radius, 0)
         columns = min(cx + radius + 1, width) - low_x
         for j in range(columns):
@@ -214,11 +174,11 @@ def _stamp_rows(cells_x: FloatArray, cells_y: FloatArray, resolution: float, sig
         fixed_width = 2 * radius + 1 <= STAMP_WIDTH and low_x + STAMP_WIDTH <= width
         if fixed_width:
             dx_squared[columns:STAMP_WIDTH] = np.inf
-        for iy in range(low_y, stop_y):
+        for iy in range(max(cy - radius, 0), min(cy + radius + 1, height)):
             dy = (iy + 0.5 - fy) * resolution
             dy_squared = dy * dy
-            row_start[iy - first_row] = min(row_start[iy - first_row], low_x)
-            row_stop[iy - first_row] = max(row_stop[iy - first_row], low_x + columns)
+            row_start[iy] = min(row_start[iy], low_x)
+            row_stop[iy] = max(row_stop[iy], low_x + columns)
             value_row = values[iy]
             pairing_row = pairing[iy]
             # Selects, not branches: the compiler vectorizes the row.
@@ -238,8 +198,8 @@ def _stamp_rows(cells_x: FloatArray, cells_y: FloatArray, resolution: float, sig
                     closer = (old_pairing == 0) | (squared < old_value)
                     value_row[low_x + j] = np.float32(squared) if closer else old_value
                     pairing_row[low_x + j] = k + 1 if closer else old_pairing
-    for iy in range(first_row, stop_row):
-        for ix in range(row_start[iy - first_row], row_stop[iy - first_row]):
+    for iy in range(height):
+        for ix in range(row_start[iy], row_stop[iy]):
             k = pairing[iy, ix] - 1
             if k >= 0:
                 # The same arithmetic as above: the value the winning point's own distance gives.
@@ -321,26 +281,23 @@ def _coarse_levels(values: NDArray[np.float32], levels: int) -> list[NDArray[np.
     return pyramid
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def _doubled_max(values: NDArray[np.float32], shift: int) -> NDArray[np.float32]:
     """max of values[y : y + 2·shift, x : x + 2·shift] from values holding the max over shift × shift;
-    branch-free inner loops (the compiler vectorizes them), edges copied; rows shared among the threads
-    (each output cell is one max, the same whoever computes it)."""
+    branch-free inner loops (the compiler vectorizes them), edges copied."""
     height, width = values.shape
     along_x = np.empty_like(values)
     inner_width = max(width - shift, 0)
-    for y in prange(height):
+    for y in range(height):
         for x in range(inner_width):
             along_x[y, x] = max(values[y, x], values[y, x + shift])
         for x in range(inner_width, width):
             along_x[y, x] = values[y, x]
     out = np.empty_like(values)
-    inner_height = max(height - shift, 0)
-    for y in prange(height):
-        if y < inner_height:
-            for x in range(width):
-                out[y, x] = max(along_x[y, x], along_x[y + shift, x])
-        else:
-            for x in range(width):
-                out[y, x] = along_x[y, x]
+    for y in range(max(height - shift, 0)):
+        for x in range(width):
+            out[y, x] = max(along_x[y, x], along_x[y + shift, x])
+    for y in range(max(height - shift, 0), height):
+        for x in range(width):
+            out[y, x] = along_x[y, x]
     return out
