@@ -17,7 +17,9 @@ rad of noise, the paper's SGD alone leaves the polish 240–530 times above the 
 (or from the chordal start) it reaches it (benchmarks/optimizer_bench.py, best-known section). When those
 two candidates end in different minima (several basins within reach), a third: headings from the planar
 SE-Sync relaxation, which uses the translations (`optimizer.planar_sync`), positions solved for them,
-polished; at σθ = 0.3 only that one reaches the best-known minimum. Above `LARGEST_FOR_EXTRA_STAGES` poses
+polished; at σθ = 0.3 only that one reaches the best-known minimum. A start at which the polish's
+convergence test holds at once (a keyframe graph's online estimate, optimized as it came) is only polished:
+the descent would climb out of the minimum for the polish to come back. Above `LARGEST_FOR_EXTRA_STAGES` poses
 the default is the paper's SGD, handed over to the polish once its χ² stalls (`until_stalled`), then the
 polish.
 """
@@ -39,7 +41,7 @@ from optimizer.graph import PoseGraph
 from optimizer.initialization import chordal_initialization
 from optimizer.iteration import ESTIMATE, Iteration
 from optimizer.planar_sync import sync_initialization
-from optimizer.polish import DEFAULT_MAX_ITERATIONS, PolishStatus, gauss_newton
+from optimizer.polish import DEFAULT_MAX_ITERATIONS, DIRECT_SOLVER_MAX_POSES, PolishStatus, gauss_newton
 from optimizer.polish import STAGE as POLISH_STAGE
 from optimizer.robust import KERNELS, check_kernel, robust_sgd
 from optimizer.robust_gnc import robust_optimize
@@ -225,6 +227,11 @@ class Optimization:
         # Given iterations are run as given; the default count is a cap once SGD alone precedes the polish.
         self._until_stalled = (self._method.handover_when_stalled and iterations is None
                                and graph.num_poses > LARGEST_FOR_EXTRA_STAGES)
+        # A start already at a minimum is not descended from (`_converged_at_once`): the default iterations
+        # only (given iterations are run as given), and within the direct solver's reach (a multigrid step
+        # on 10⁶ poses takes seconds).
+        self._probe_minimum = (self._method.polish and robust is None and iterations is None
+                               and graph.num_poses <= DIRECT_SOLVER_MAX_POSES)
         # With the polish alone, `iterations` caps the polish.
         self._polish_cap = (iterations if self._method.descent is None and iterations is not None
                             else polish_iterations)
@@ -346,6 +353,11 @@ class Optimization:
             yield from robust_sgd(self._graph, self._sweeps, poses, kernel=self._robust)
             return None
         if descend and self._method.descent is not None:
+            if self._probe_minimum:
+                probe = _converged_at_once(self._graph, poses)
+                if probe is not None:
+                    yield from probe[0]
+                    return probe[1]
             descent = self._method.descent(self._graph, self._sweeps, poses)
             for iteration in until_stalled(descent) if self._until_stalled else descent:
                 poses = iteration.poses
@@ -356,6 +368,29 @@ class Optimization:
         if not self._method.polish:
             return None
         return (yield from gauss_newton(self._graph, poses, max_iterations=self._polish_cap))
+
+
+AT_ONCE_STEPS = 1
+"""A start at which the polish's convergence test holds within this many steps is at a minimum already."""
+
+
+def _converged_at_once(graph: PoseGraph, poses: FloatArray) -> tuple[list[Iteration], PolishStatus] | None:
+    """The polish's iterations and status from `poses` when its convergence test holds within
+    `AT_ONCE_STEPS` steps (the start is a minimum already), else None.
+
+    A keyframe graph's online estimate is such a start: its last optimization converged and the keyframes
+    since follow the odometry chain (UAL, ACES, CSAIL and FR079 all). The paper's SGD from a minimum only
+    climbs out of it (UAL: χ² 10.57 → 84 in its 100 iterations) for the polish to come back down, which
+    costs a third of the final optimization and of its recording on such logs. The probe costs one
+    polish step where the start is not a minimum (UAL's poor starts: 1 ms against SGD's 20 ms)."""
+    polish = gauss_newton(graph, poses, max_iterations=AT_ONCE_STEPS)
+    steps: list[Iteration] = []
+    while True:
+        try:
+            steps.append(next(polish))
+        except StopIteration as stop:
+            status: PolishStatus = stop.value
+            return (steps, status) if status.converged else None
 
 
 @dataclass(frozen=True)

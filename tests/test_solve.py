@@ -272,3 +272,25 @@ def test_candidates_in_the_same_minimum_keep_the_sgd_path() -> None:
     assert own.chi2 == pytest.approx(chordal.chi2, rel=SAME_MINIMUM)
     assert run.result.winner == ESTIMATE and iterations[-1].start == ESTIMATE
     assert "sgd" in {it.stage for it in iterations if it.start == ESTIMATE}
+
+
+def test_a_start_at_a_minimum_is_polished_without_descending_and_a_poor_one_is_descended() -> None:
+    # A keyframe graph's online estimate is often a minimum already: the paper's SGD from there climbs out
+    # of it for the polish to come back. Such a start is only polished; the poor one is still descended,
+    # and both end in the same minimum, the poor one kept as listed first.
+    world = _poor_start_world(0)
+    minimum = _final(gauss_newton(world.graph, world.ground_truth, max_iterations=1000)).poses
+    run = optimize(world.graph, "sgd+gn", starts={"odometry": world.graph.poses, "online": minimum})
+    stages: dict[str, list[str]] = {}
+    for iteration in run:
+        stages.setdefault(iteration.start, []).append(iteration.stage)
+    assert stages["odometry"].count("sgd") == 100 and stages["odometry"].count("sgd-tree") == 100
+    assert stages["online"][0] == "initial"
+    assert set(stages["online"][1:]) <= {"gauss-newton"} and len(stages["online"]) <= 2
+    online = next(candidate for candidate in run.result.candidates if candidate.start == "online")
+    assert online.converged
+    assert run.result.winner == "odometry" and run.result.converged
+    assert run.result.chi2 == pytest.approx(chi2(world.graph, minimum), rel=1e-9)
+    # Iterations given are run as given, from every start.
+    given = optimize(world.graph, "sgd+gn", iterations=5, starts={"online": minimum})
+    assert [iteration.stage for iteration in given].count("sgd") == 5
