@@ -305,6 +305,18 @@ _TF_LAYOUTS: dict[str, tuple[struct.Struct, struct.Struct, struct.Struct]] = {
 }
 
 
+def _string_at(data: bytes | memoryview, start: int, length: int, nul: int) -> tuple[str, int]:
+    """The string of `length` bytes at `start` (its NUL terminator left out when `nul` is 1), and where it
+    ends: `_Cursor.string` after the length was read."""
+    end = start + length
+    if end > len(data):
+        raise WireError("string runs past the payload")
+    try:
+        return str(data[start : end - nul if length else end], "utf-8"), end
+    except UnicodeDecodeError:
+        raise WireError("string is not UTF-8") from None
+
+
 def tf_message(data: bytes | memoryview, cdr: bool) -> list[TransformStampedFields]:
     """tf2_msgs/TFMessage.
 
@@ -335,27 +347,13 @@ def tf_message(data: bytes | memoryview, cdr: bool) -> list[TransformStampedFiel
             sec, nanosec, length = header.unpack_from(data, pos)
         except struct.error:
             raise WireError("payload ends early") from None
-        start = pos + header_size
-        pos = start + length
-        if pos > size:
-            raise WireError("string runs past the payload")
-        try:
-            frame_id = str(data[start : pos - nul if length else pos], "utf-8")
-        except UnicodeDecodeError:
-            raise WireError("string is not UTF-8") from None
+        frame_id, pos = _string_at(data, pos + header_size, length, nul)
         pos += -(pos - 4) % word_align
         try:
             (length,) = word.unpack_from(data, pos)
         except struct.error:
             raise WireError("payload ends early") from None
-        start = pos + 4
-        pos = start + length
-        if pos > size:
-            raise WireError("string runs past the payload")
-        try:
-            child_frame_id = str(data[start : pos - nul if length else pos], "utf-8")
-        except UnicodeDecodeError:
-            raise WireError("string is not UTF-8") from None
+        child_frame_id, pos = _string_at(data, pos + 4, length, nul)
         pos += -(pos - 4) % pose_align
         try:
             transform = pose.unpack_from(data, pos)
