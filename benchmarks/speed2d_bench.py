@@ -290,6 +290,8 @@ def main() -> None:
                 every.setdefault(name, []).append(run)
                 if name == "ACES" and round_ == 0:  # the replay is deterministic: one score
                     aces = print_aces_accuracy(result, args.shared / ACES_RELATIONS)
+                # Not alive during the next replay, as no user's replay has another log's in memory.
+                del result
     if not every:
         raise SystemExit(f"no log found under {args.shared}")
     runs = [min(log_runs, key=lambda r: r.wall_s) for log_runs in every.values()]
