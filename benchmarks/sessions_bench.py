@@ -80,6 +80,7 @@ from frontends.slam2d.localization_smoothing import smooth_scans  # noqa: E402
 from frontends.slam2d.resume import SavedConstraints, SavedScans  # noqa: E402
 from frontends.slam2d.slam import LaserSlam2D, Slam2DGraph  # noqa: E402
 from optimizer import se2  # noqa: E402
+from optimizer.graph import PoseGraph  # noqa: E402
 from optimizer.solve import DEFAULT_METHOD, optimize  # noqa: E402
 from pipeline.evaluation import read_relations, relations_error  # noqa: E402
 
@@ -316,7 +317,7 @@ def continue_rows(mapped: Mapped, relations_path: Path) -> list[tuple[str, ...]]
     both = relations_error(joint.scan_stamps_ns, joint.scan_poses(joint_keyframes), relations)
     old = first.graph.num_poses
     graph = joint.graph
-    crossing = int((((graph.edge_from < old) != (graph.edge_to < old)) & ~graph.is_odometry).sum())
+    crossing = old_new_constraints(graph, old)
     return [
         ("single run", f"{len(full.scan_stamps_ns)}", f"{single.count}", f"{single.translation_mean:.4f}",
          f"{single.rotation_mean_deg:.3f}", f"{full.loop_closures_accepted}", "", ""),
@@ -326,6 +327,11 @@ def continue_rows(mapped: Mapped, relations_path: Path) -> list[tuple[str, ...]]
         ("ratio", "", "", f"{both.translation_mean / single.translation_mean:.3f}",
          f"{both.rotation_mean_deg / single.rotation_mean_deg:.3f}", "", "", ""),
     ]
+
+
+def old_new_constraints(graph: PoseGraph, old: int) -> int:
+    """The loop closures of a joint graph between its first `old` keyframes (the saved run's) and the rest."""
+    return int((((graph.edge_from < old) != (graph.edge_to < old)) & ~graph.is_odometry).sum())
 
 
 def continued(mapped: Mapped) -> tuple[Slam2DGraph, FloatArray, float]:
@@ -351,7 +357,7 @@ def continue_agreement_row(name: str, mapped: Mapped) -> tuple[str, ...]:
     errors = np.hypot(*(moved[:, :2] - reference[in_full, :2]).T)
     old = mapped.first.graph.num_poses
     graph = joint.graph
-    crossing = int((((graph.edge_from < old) != (graph.edge_to < old)) & ~graph.is_odometry).sum())
+    crossing = old_new_constraints(graph, old)
     worst = int(np.argmax(errors))
     worst_seconds = (full.scan_stamps_ns[in_full[worst]] - full.scan_stamps_ns[0]) * 1e-9
     return (name, f"{len(joint.scan_stamps_ns)}", f"{len(errors)}", f"{np.median(errors):.3f}",
@@ -376,7 +382,7 @@ def same_log_rows(mapped: Mapped) -> list[tuple[str, ...]]:
     joint, joint_keyframes = map_scans(slam, scans)
     old = full.graph.num_poses
     graph = joint.graph
-    crossing = int((((graph.edge_from < old) != (graph.edge_to < old)) & ~graph.is_odometry).sum())
+    crossing = old_new_constraints(graph, old)
     new_poses = joint.scan_poses(joint_keyframes)[len(scans):]
     placed = len(new_poses)
     rows.append(("--continue", f"{placed} / {len(scans)}",

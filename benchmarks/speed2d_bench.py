@@ -15,9 +15,10 @@ per-stage profile in CPU seconds (wall seconds in the JSON):
 - reading (decoding the log, scans into the base frame, odometry and tf), final optimization, recording
   (scans, iterations, maps, closing the file), outputs (occupancy grid and files): this benchmark wraps the
   functions the replay calls for them in the same kind of timers while it runs (nothing is changed in
-  the library); "other" is the rest (the replay's per-scan loop). The map files (PNG, PGM, YAML) are
-  written on a thread beside the replay from the moment the map is made (`replay_log._WrittenBeside`):
-  their time is no stage's, and what the replay still waits for them at the end is in "other".
+  the library); "other" is the rest (the replay's per-scan loop). The map is made on a thread beside the
+  replay from the final poses on, and its files (PNG, PGM, YAML) are written there
+  (`replay_log._WrittenBeside`): their time is no stage's, and what the replay still waits for them is in
+  "other".
 
 NUMBA_NUM_THREADS is left as `replay` finds it (one thread per core): the wide branch-and-bound searches
 (loop closures, scan matching without odometry) share their rotations among those threads. The CPU figures
@@ -126,7 +127,7 @@ class _Timed:
         else:
             def timed(*args: Any, **kwargs: Any) -> Any:
                 if threading.current_thread() is not threading.main_thread():
-                    return original(*args, **kwargs)  # the map files written beside: not a stage
+                    return original(*args, **kwargs)  # the map made and written beside: not a stage
                 with times.stage(stage):
                     return original(*args, **kwargs)
 

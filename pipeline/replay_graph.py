@@ -229,14 +229,14 @@ def record_optimization(optimization: Optimization, recorder: recording.Iteratio
         final_poses = iteration.poses
         if on_iteration is not None:
             on_iteration(iteration)
+    final = np.array(final_poses, dtype=np.float64)
     if on_final is not None and final_poses is not None:
-        on_final(np.array(final_poses, dtype=np.float64))
+        on_final(final)
     recorder.flush()
     for sink in sinks:
         sink.flush()
     record_seconds = time.perf_counter() - started - sum(optimize_time.values())
-    return RecordedOptimization(tuple(trace), np.array(final_poses, dtype=np.float64), optimization.result,
-                                optimize_time, record_seconds)
+    return RecordedOptimization(tuple(trace), final, optimization.result, optimize_time, record_seconds)
 
 
 def _optimize_and_record(
