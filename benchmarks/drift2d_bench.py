@@ -16,6 +16,9 @@ what a log without loops, or the first half of one, gets). Every scan's pose is 
   gives `L`);
 - end: the open-loop run's heading and position at the last scan against the reference's (both runs start
   at the same pose), and the largest heading difference along the log;
+- heading drift: the open-loop heading error's growth per 100 m of the reference's path, signed
+  (counter-clockwise positive), fitted to its increments over 10 m windows (± the fit's standard error); a
+  matcher biased per metre driven drifts one way whatever the turns;
 - turn bias: the slope of the open-loop heading error against the reference's heading turned since the
   start (%, least squares, with its R²): a matcher that over- or under-rotates by a fixed share of every
   turn drifts with the net turn, whatever the path length (ACES circles the same way ~3.5 times).
@@ -24,6 +27,9 @@ what a log without loops, or the first half of one, gets). Every scan's pose is 
 rotation as if its beams were taken over that many seconds from the first bearing to the last, at the
 reference's angular rate there (motion distortion: a scan taken while turning is stretched or squeezed).
 It uses the reference, so it is not a frontend; the logs' own LaserScan timing is not read by the frontend.
+`--beam-times-sweep SECONDS` gives the open-loop scans beam times as if swept over that many seconds in
+order of bearing (`sessions_bench.with_assumed_sweep`) and lets the frontend deskew them itself, in
+translation and rotation, under its own motion estimates: no reference involved.
 
 The reference has errors of its own (a loop closure, the optimizer), so on ACES both runs are also scored
 against the Freiburg relations (Kümmerle et al. 2009): the closed-loop figure is the one the SLAM is judged
@@ -46,7 +52,7 @@ from threadpoolctl import threadpool_limits
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.sessions_bench import LogScan, map_scans, read_scans  # noqa: E402
+from benchmarks.sessions_bench import LogScan, map_scans, read_scans, with_assumed_sweep  # noqa: E402
 from frontends.slam2d.config import Slam2DConfig  # noqa: E402
 from frontends.slam2d.slam import LaserSlam2D  # noqa: E402
 from optimizer import se2  # noqa: E402
@@ -89,6 +95,25 @@ def segment_drift(reference: FloatArray, estimate: FloatArray, length: float) ->
     return float(rotation.mean()), float(translation.mean()), len(starts)
 
 
+HEADING_WINDOW = 10.0
+"""Metres of the reference's path per increment of the heading-drift fit."""
+
+
+def heading_drift(reference: FloatArray, estimate: FloatArray) -> tuple[float, float]:
+    """The estimate's heading error growth (deg / 100 m, signed) fitted through the origin to its increments
+    over `HEADING_WINDOW` metres of the reference's path, and the fit's standard error."""
+    travelled = path_lengths(reference)
+    error = np.unwrap(estimate[:, 2] - reference[:, 2])
+    edges = np.searchsorted(travelled, np.arange(0.0, travelled[-1], HEADING_WINDOW))
+    grown, spans = np.diff(error[edges]), np.diff(travelled[edges])
+    if len(spans) < 2:
+        return float("nan"), float("nan")
+    slope = float(grown @ spans / (spans @ spans))
+    residual = grown - slope * spans
+    spread = float(np.sqrt(residual @ residual / (len(spans) - 1) / (spans @ spans)))
+    return float(np.degrees(slope) * 100.0), float(np.degrees(spread) * 100.0)
+
+
 def turn_bias(reference: FloatArray, estimate: FloatArray) -> tuple[float, float]:
     """Slope (%) of the estimate's heading error against the reference's heading turned since the start,
     and the fit's R²."""
@@ -126,7 +151,7 @@ def scan_poses(scans: list[LogScan], config: Slam2DConfig,
     else:
         slam = LaserSlam2D(config)
         for s in scans:
-            slam.add_scan(s.stamp_ns, s.points, s.odometry, s.interval)
+            slam.add_scan(s.stamp_ns, s.points, s.odometry, s.interval, s.times)
         frontend = slam.finish()
         keyframes = frontend.graph.poses
     seconds = time.process_time() - started
@@ -143,6 +168,11 @@ def main() -> None:
     parser.add_argument("--reference", type=Path,
                         help="also score the open-loop run against DIR/<log>.npy, a closed-loop run saved "
                              "by --save-reference (e.g. of main): a fixed reference for comparing versions")
+    parser.add_argument("--extra", nargs="+", type=Path, default=[],
+                        help="other 2D logs (named by their file stem)")
+    parser.add_argument("--beam-times-sweep", type=float, default=0.0,
+                        help="diagnostic: give the open-loop scans beam times as if swept over this many "
+                             "seconds; the frontend deskews them")
     parser.add_argument("--assumed-sweep", type=float, default=0.0,
                         help="diagnostic: deskew the open-loop scans as if swept over this many seconds")
     args = parser.parse_args()
@@ -150,14 +180,15 @@ def main() -> None:
     open_loop = replace(closed, loop_closure=replace(closed.loop_closure, enabled=False))
     rows, relation_rows, fixed_rows = [], [], []
     with threadpool_limits(limits=1, user_api="blas"):
-        for name in args.logs:
-            path = args.shared / LOGS[name]
+        paths = {name: args.shared / LOGS[name] for name in args.logs} | {p.stem: p for p in args.extra}
+        for name, path in paths.items():
             if not path.exists():
                 print(f"{name}: {path} absent, skipped", file=sys.stderr)
                 continue
             scans = read_scans(path)
             reference, stamps, closed_seconds, loops = scan_poses(scans, closed, optimize=True)
             open_scans = deskewed(scans, reference, args.assumed_sweep) if args.assumed_sweep else scans
+            open_scans = with_assumed_sweep(open_scans, args.beam_times_sweep)
             estimate, open_stamps, open_seconds, _ = scan_poses(open_scans, open_loop, optimize=False)
             if not np.array_equal(stamps, open_stamps):
                 raise RuntimeError(f"{name}: the two runs have different scans")
@@ -179,7 +210,8 @@ def main() -> None:
             rows.append((name, len(scans), travelled, loops, length, segments, rotation, translation,
                          float(np.degrees(abs(se2.wrap_angle(end[2])))),
                          float(np.hypot(*(estimate[-1, :2] - reference[-1, :2]))), float(heading.max()),
-                         turn_bias(reference, estimate), open_seconds, closed_seconds))
+                         heading_drift(reference, estimate), turn_bias(reference, estimate), open_seconds,
+                         closed_seconds))
             if name in RELATIONS:
                 relations = read_relations(args.shared / RELATIONS[name])
                 for run, poses in (("closed loop (as replay)", reference), ("open loop", estimate)):
@@ -191,13 +223,14 @@ def main() -> None:
     print("## Open-loop drift of the 2D frontend against the log's own closed-loop run\n")
     print("| log | scans | path (m) | loop closures (reference) | L (m) | segments | rotation (deg/100 m) "
           "| translation (m/100 m) | end heading (deg) | end position (m) | max heading (deg) "
-          "| turn bias (%, R²) | open-loop CPU s | closed-loop CPU s |")
-    print("|---" * 14 + "|")
+          "| heading drift (deg/100 m) | turn bias (%, R²) | open-loop CPU s | closed-loop CPU s |")
+    print("|---" * 15 + "|")
     for (name, scans_count, travelled, loops, length, segments, rotation, translation, end_heading,
-         end_position, max_heading, (bias, fit), open_seconds, closed_seconds) in rows:
+         end_position, max_heading, (drift, drift_error), (bias, fit), open_seconds, closed_seconds) in rows:
         print(f"| {name} | {scans_count} | {travelled:.1f} | {loops} | {length:.1f} | {segments} "
               f"| {rotation:.3f} | {translation:.3f} | {end_heading:.2f} | {end_position:.2f} "
-              f"| {max_heading:.2f} | {bias:+.3f} ({fit:.2f}) | {open_seconds:.1f} | {closed_seconds:.1f} |")
+              f"| {max_heading:.2f} | {drift:+.2f} ± {drift_error:.2f} | {bias:+.3f} ({fit:.2f}) "
+              f"| {open_seconds:.1f} | {closed_seconds:.1f} |")
     if fixed_rows:
         print(f"\n## The open-loop run against the closed-loop run saved in {args.reference}\n")
         print("| log | rotation (deg/100 m) | translation (m/100 m) |")

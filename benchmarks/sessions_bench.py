@@ -1,7 +1,7 @@
 """Benchmark of sessions (issue 13): localization in a saved map, and mapping continued from one.
 
     python benchmarks/sessions_bench.py [--shared ../shared] [--logs ACES CSAIL "mumble loop"]
-        [--extra LOG ...] [--skip-continue]
+        [--extra LOG ...] [--skip-continue] [--beam-times-sweep SECONDS]
 
 (a) Localization. Each log is cut in two at its middle scan. The first half is mapped (LaserSlam2D, then
     the default optimizer from the odometry and the online estimates, as `replay` does); the second half is
@@ -53,6 +53,9 @@
     continued from the full run's own graph (`--continue`); every scan's distance from the full run's pose
     (median / 95 % / max, scans farther than 0.5 m), and for the continued one the constraints between the
     old and the new keyframes.
+
+`--beam-times-sweep S` is a diagnostic of motion distortion: every scan is given beam times as if swept
+over S seconds (`with_assumed_sweep`), which the frontend and the localizer deskew.
 """
 
 from __future__ import annotations
@@ -105,6 +108,9 @@ class LogScan:
     points: FloatArray
     odometry: FloatArray | None
     interval: float
+    times: FloatArray | None = None
+    """Beam times (s after the stamp); None: taken at the stamp (as the replay reads logs whose LaserScan
+    `time_increment` is 0, all of ours but the fast lasers')."""
 
 
 def read_scans(path: Path) -> list[LogScan]:
@@ -131,7 +137,23 @@ def without_origin(scans: list[LogScan]) -> list[LogScan]:
     if origin is None:
         return scans
     return [LogScan(s.stamp_ns, s.points, None if s.odometry is None else se2.relative(origin, s.odometry),
-                    s.interval) for s in scans]
+                    s.interval, s.times) for s in scans]
+
+
+def with_assumed_sweep(scans: list[LogScan], sweep: float) -> list[LogScan]:
+    """A diagnostic of motion distortion: each scan without beam times given them as if its beams were
+    taken over `sweep` seconds in order of bearing (counter-clockwise from the smallest), the first at the
+    stamp; the frontend then deskews them itself, under its own motion estimates
+    (`frontends.slam2d.deskew`)."""
+    out = []
+    for scan in scans:
+        bearings = np.arctan2(scan.points[:, 1], scan.points[:, 0])
+        times = scan.times
+        if times is None and sweep and len(bearings):
+            span = max(float(np.ptp(bearings)), 1e-9)
+            times = sweep * (bearings - bearings.min()) / span
+        out.append(LogScan(scan.stamp_ns, scan.points, scan.odometry, scan.interval, times))
+    return out
 
 
 def optimized(frontend: Slam2DGraph) -> FloatArray:
@@ -147,7 +169,7 @@ def optimized(frontend: Slam2DGraph) -> FloatArray:
 
 def map_scans(slam: LaserSlam2D, scans: list[LogScan]) -> tuple[Slam2DGraph, FloatArray]:
     for s in scans:
-        slam.add_scan(s.stamp_ns, s.points, s.odometry, s.interval)
+        slam.add_scan(s.stamp_ns, s.points, s.odometry, s.interval, s.times)
     frontend = slam.finish()
     return frontend, optimized(frontend)
 
@@ -230,7 +252,7 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     localizer = MapLocalizer(first.keyframe_scans, map_poses)
     second = without_origin(scans[half:])
     started, started_cpu = time.perf_counter(), time.process_time()
-    results = [localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval) for s in second]
+    results = [localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval, s.times) for s in second]
     seconds, cpu_seconds = time.perf_counter() - started, time.process_time() - started_cpu
     smoothing_started = time.process_time()
     smoothed = smooth_scans(results)
@@ -372,7 +394,7 @@ def same_log_rows(mapped: Mapped) -> list[tuple[str, ...]]:
     scans, full, full_keyframes = mapped.scans, mapped.full, mapped.full_keyframes
     reference = full.scan_poses(full_keyframes)
     localizer = MapLocalizer(full.keyframe_scans, full_keyframes)
-    results = [localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval) for s in scans]
+    results = [localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval, s.times) for s in scans]
     localized = np.array([r.localized for r in results])
     poses = np.array([r.pose for r in results])
     rows = [("--map", f"{int(localized.sum())} / {len(scans)}",
@@ -421,11 +443,14 @@ def main() -> None:
     parser.add_argument("--extra", nargs="+", type=Path, default=[],
                         help="other 2D logs, benchmarked as CSAIL is (named by their file stem)")
     parser.add_argument("--skip-continue", action="store_true")
+    parser.add_argument("--beam-times-sweep", type=float, default=0.0,
+                        help="diagnostic: give every scan beam times as if swept over this many seconds "
+                             "(`with_assumed_sweep`)")
     args = parser.parse_args()
     paths = {name: args.shared / LOGS[name] for name in args.logs} | {path.stem: path for path in args.extra}
     with threadpool_limits(limits=1, user_api="blas"):
         for name, path in paths.items():  # ACES first: both of its tables print before CSAIL is mapped
-            mapped = Mapped.of(read_scans(path))
+            mapped = Mapped.of(with_assumed_sweep(read_scans(path), args.beam_times_sweep))
             print(f"## {name} (a) Localization: second half in the first half's map, no initial pose, "
                   "odometry origin dropped\n")
             print(LOCALIZATION_HEADER)
