@@ -7,9 +7,9 @@ Library code: nothing is printed; callers report the outcomes.
 A pool interrupted in the calling process (Ctrl-C, or SIGTERM turned into `KeyboardInterrupt` as the
 command does) stops its workers before the interrupt propagates: each gets SIGTERM, which in a worker
 raises `KeyboardInterrupt` so its staged outputs are removed, then it exits; one still running after
-`STOP_GRACE_S` is killed and what it left is cleaned up here. No worker publishes outputs afterwards, and
-with the workers gone the forkserver and the resource tracker (which live as long as some process holds
-their pipes) exit too.
+`STOP_GRACE_S` is killed, and whatever a worker left is cleaned up here. No worker publishes outputs
+afterwards, and with the workers gone the forkserver and the resource tracker (which live as long as some
+process holds their pipes) exit too.
 """
 
 from __future__ import annotations
@@ -239,8 +239,8 @@ def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, worker
 
 
 def _stop_pool(pool: ProcessPoolExecutor, inputs: list[Path], out_dir: Path) -> None:
-    """SIGTERM every worker, wait up to `STOP_GRACE_S` for them to clean up and exit, kill the rest and
-    clean up after them."""
+    """SIGTERM every worker, wait up to `STOP_GRACE_S` for them to clean up and exit, kill the rest, and
+    clean up whatever any of them left."""
     workers = _pool_processes(pool)
     pool.shutdown(wait=False, cancel_futures=True)
     for worker in workers:
@@ -253,9 +253,11 @@ def _stop_pool(pool: ProcessPoolExecutor, inputs: list[Path], out_dir: Path) -> 
     for worker in killed:
         with contextlib.suppress(OSError, ValueError):
             worker.kill()
-        worker.join(1.0)
-    if killed:
-        remove_partial_outputs(out_dir, {output_stem(path) for path in inputs})
+    for worker in killed:  # until they are gone: a killed worker's lock holds until its process ends
+        worker.join(STOP_GRACE_S)
+    # Not only after the killed ones: a worker that died otherwise mid-write (the OS's OOM killer) left its
+    # staging folder and lock too.
+    remove_partial_outputs(out_dir, {output_stem(path) for path in inputs})
 
 
 def remove_partial_outputs(out_dir: Path, stems: set[str]) -> list[str]:

@@ -8,6 +8,9 @@ A run killed outright (SIGKILL, power loss) leaves its staging folder behind: th
 same outputs cleans it up, and finishes its renames first if it was killed while publishing (a `.complete`
 marker says the staged set was whole). A lock per output name (`.<stem>.lock`, removed afterwards) makes a
 second run of the same outputs into the same folder fail with a clear message instead of interleaving.
+The clean-up after a failure (the staging folder, the lock file) also runs with the stop signals held
+back: one arriving during it (Ctrl-C pressed twice, or the alarm retrying an interrupt that was lost) is
+delivered once it is done.
 """
 
 from __future__ import annotations
@@ -37,7 +40,8 @@ if TYPE_CHECKING:
 
 _STAGING = ".staging-"
 _COMPLETE = ".complete"
-_HELD_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+_HELD_SIGNALS = {signal.SIGINT, signal.SIGTERM, signal.SIGALRM}
+"""The stop signals, and the alarm that retries a lost interrupt (`install_stop_signals`)."""
 INTERRUPT_RETRY_SECONDS = 0.05
 
 
@@ -89,7 +93,8 @@ def staged_outputs(*targets: Path) -> Iterator[tuple[Path, ...]]:
                     raise OutputError(f"{target}: was not written")
             _publish(staging, temporaries, targets)
         finally:
-            shutil.rmtree(staging, ignore_errors=True)
+            with stop_signals_held():  # a second Ctrl-C must not cut the clean-up short
+                shutil.rmtree(staging, ignore_errors=True)
 
 
 def _naming_the_outputs(error: Exception, staging: Path, directory: Path) -> OutputError | None:
@@ -126,16 +131,18 @@ def _publish(staging: Path, temporaries: tuple[Path, ...], targets: tuple[Path, 
 
 @contextmanager
 def stop_signals_held(*, redeliver: bool = True) -> Iterator[None]:
-    """Hold SIGINT and SIGTERM back while the block runs, then deliver them (or, with `redeliver=False`,
-    drop them: the block is itself the reaction to one). Python runs signal handlers in the main thread
-    whichever thread the kernel picks, so the main thread's handlers are swapped (a thread mask would not
-    do); elsewhere signals cannot interrupt this thread anyway."""
+    """Hold SIGINT, SIGTERM and SIGALRM back while the block runs, then deliver them (or, with
+    `redeliver=False`, drop them: the block is itself the reaction to one). Python runs signal handlers in
+    the main thread whichever thread the kernel picks, so the main thread's handlers are swapped (a thread
+    mask would not do); elsewhere signals cannot interrupt this thread anyway. A handler installed outside
+    Python (`getsignal` None) could not be put back, so its signal is left alone."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     received: list[int] = []
-    previous = {number: signal.getsignal(number) for number in _HELD_SIGNALS}
-    for number in _HELD_SIGNALS:
+    previous = {number: handler for number in _HELD_SIGNALS
+                if (handler := signal.getsignal(number)) is not None}
+    for number in previous:
         signal.signal(number, lambda signum, _frame: received.append(signum))
     try:
         yield
@@ -229,9 +236,10 @@ def _output_lock(directory: Path, stem: str) -> Iterator[None]:
     try:
         yield
     finally:
-        with contextlib.suppress(OSError):
-            path.unlink()
-        os.close(descriptor)
+        with stop_signals_held():
+            with contextlib.suppress(OSError):
+                path.unlink()
+            os.close(descriptor)
 
 
 @contextmanager

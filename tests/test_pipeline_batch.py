@@ -254,3 +254,25 @@ def test_what_killed_replays_left_is_cleaned_up_for_the_batch_stems_only(tmp_pat
     assert "run.g2o" in remaining and (tmp_path / "run.g2o").read_text() == "a finished output"
     hidden = [name for name in remaining if name.startswith(".")]
     assert hidden and all(name.startswith(".other") for name in hidden)
+
+
+def test_a_stopped_pool_cleans_up_after_workers_that_exited_on_their_own(tmp_path: Path) -> None:
+    """A worker that died mid-write without being killed here (the OS's OOM killer, or a clean-up cut
+    short) left its staging folder and lock: stopping the pool removes them, not only the killed ones'."""
+    from pipeline import batch
+
+    class StoppedPool:  # its workers are gone already
+        def __init__(self) -> None:
+            self._processes: dict[int, object] = {}
+
+        def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+            pass
+
+    staging = tmp_path / ".run.staging-123-abcd"
+    staging.mkdir()
+    (staging / "run.json").write_text("half")
+    (tmp_path / ".run.lock").write_text("")
+    (tmp_path / "run.g2o").write_text("the previous run's output")
+    batch._stop_pool(StoppedPool(), [tmp_path / "run.g2o"], tmp_path)  # type: ignore[arg-type]
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["run.g2o"]
+    assert (tmp_path / "run.g2o").read_text() == "the previous run's output"

@@ -4,6 +4,7 @@ an output set at a time, and whatever a killed run left cleaned up by the next."
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -37,6 +38,46 @@ def test_staged_outputs_keep_old_files_and_remove_temporaries_on_failure(tmp_pat
         raise failure("interrupted")
     assert target.read_text() == "good"
     assert [path.name for path in tmp_path.iterdir()] == ["a.rrd"]
+
+
+@pytest.mark.parametrize("during", ["staging folder", "lock file"])
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM", "SIGALRM"])
+def test_a_stop_signal_during_the_clean_up_is_held_until_it_is_done(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, during: str, signal_name: str) -> None:
+    """Ctrl-C pressed again, SIGTERM, or the alarm retrying a lost interrupt (`install_stop_signals`), while
+    an interrupted run removes its staging folder or its lock file: the signal waits for the clean-up,
+    then stops the run."""
+    import shutil
+    import signal
+
+    from pipeline import outputs
+
+    number = getattr(signal, signal_name)
+    removed: list[str] = []
+
+    def interrupted(remove: Callable[..., None]) -> Callable[..., None]:
+        def remove_with_a_signal(*args: object, **kwargs: object) -> None:
+            signal.raise_signal(number)  # lands as the clean-up starts
+            remove(*args, **kwargs)
+            removed.append(during)
+        return remove_with_a_signal
+
+    def stop(_signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    if during == "staging folder":
+        monkeypatch.setattr(outputs.shutil, "rmtree", interrupted(shutil.rmtree))
+    else:
+        monkeypatch.setattr(outputs.Path, "unlink", interrupted(Path.unlink))
+    previous = signal.signal(number, stop)
+    try:
+        with pytest.raises(KeyboardInterrupt), staged_outputs(tmp_path / "a.g2o") as (temporary,):
+            temporary.write_text("half")
+            raise KeyboardInterrupt  # the first Ctrl-C
+    finally:
+        signal.signal(number, previous)
+    assert removed == [during]
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_second_run_of_the_same_outputs_fails_clearly_while_the_first_writes(tmp_path: Path) -> None:
