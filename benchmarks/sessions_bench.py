@@ -109,8 +109,8 @@ class LogScan:
     odometry: FloatArray | None
     interval: float
     times: FloatArray | None = None
-    """Beam times (s after the stamp); None: taken at the stamp (as the replay reads logs whose LaserScan
-    `time_increment` is 0, all of ours but the fast lasers')."""
+    """Beam times (s after the stamp); None: all taken at the stamp (`read_scans` gives None: it does not
+    read the LaserScan timing)."""
 
 
 def read_scans(path: Path) -> list[LogScan]:
@@ -142,7 +142,8 @@ def without_origin(scans: list[LogScan]) -> list[LogScan]:
 
 def with_assumed_sweep(scans: list[LogScan], sweep: float) -> list[LogScan]:
     """A diagnostic of motion distortion: each scan without beam times given them as if its beams were
-    taken over `sweep` seconds in order of bearing (counter-clockwise from the smallest), the first at the
+    taken over `sweep` seconds in order of bearing (counter-clockwise from the smallest, seen from the base
+    frame's origin: the laser's own bearings where it sits there, as in ACES and CSAIL), the first at the
     stamp; the frontend then deskews them itself, under its own motion estimates
     (`frontends.slam2d.deskew`)."""
     out = []
