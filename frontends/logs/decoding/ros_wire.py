@@ -333,32 +333,24 @@ def tf_message(data: bytes | memoryview, cdr: bool) -> list[TransformStampedFiel
         header, word, pose = _TF_LAYOUTS["ros1"]
         pos, word_align, pose_align, nul = 0, 1, 1, 0
     header_size = header.size
-    try:
+    out = []
+    try:  # every read past the payload's end is the cursor's one error
         (count,) = word.unpack_from(data, pos)
+        if count > size:
+            raise WireError("transform count exceeds the payload")
+        pos += 4
+        for _ in range(count):
+            pos += -(pos - 4) % word_align
+            sec, nanosec, length = header.unpack_from(data, pos)
+            frame_id, pos = _string_at(data, pos + header_size, length, nul)
+            pos += -(pos - 4) % word_align
+            (length,) = word.unpack_from(data, pos)
+            child_frame_id, pos = _string_at(data, pos + 4, length, nul)
+            pos += -(pos - 4) % pose_align
+            transform = pose.unpack_from(data, pos)
+            pos += 56
+            out.append(TransformStampedFields(sec * 1_000_000_000 + nanosec, frame_id, child_frame_id,
+                                              transform))
     except struct.error:
         raise WireError("payload ends early") from None
-    if count > size:
-        raise WireError("transform count exceeds the payload")
-    pos += 4
-    out = []
-    for _ in range(count):
-        pos += -(pos - 4) % word_align
-        try:
-            sec, nanosec, length = header.unpack_from(data, pos)
-        except struct.error:
-            raise WireError("payload ends early") from None
-        frame_id, pos = _string_at(data, pos + header_size, length, nul)
-        pos += -(pos - 4) % word_align
-        try:
-            (length,) = word.unpack_from(data, pos)
-        except struct.error:
-            raise WireError("payload ends early") from None
-        child_frame_id, pos = _string_at(data, pos + 4, length, nul)
-        pos += -(pos - 4) % pose_align
-        try:
-            transform = pose.unpack_from(data, pos)
-        except struct.error:
-            raise WireError("payload ends early") from None
-        pos += 56
-        out.append(TransformStampedFields(sec * 1_000_000_000 + nanosec, frame_id, child_frame_id, transform))
     return out
