@@ -52,7 +52,7 @@ from frontends.slam2d.grid import LikelihoodGrid
 from frontends.slam2d.held_odometry import OdometryHold
 from frontends.slam2d.icp import IcpResult, refine_point_to_line, scan_normals
 from frontends.slam2d.local_map import Keyframe, Submap, one_per_cell, place
-from frontends.slam2d.match_covariance import score_plateau, slide_to_prior, widened
+from frontends.slam2d.match_covariance import heading_coupling, score_plateau, slide_to_prior, widened
 from frontends.slam2d.motion_prior import after_gap, carried_motion, gap_widening
 from frontends.slam2d.stage_times import StageTimes
 from optimizer import se2
@@ -552,8 +552,11 @@ class LaserSlam2D:
                 pose, matched = refined.pose, True
                 information = matching.information_scale * refined.information
                 # Along a look-alike stretch the prediction decides (`match_covariance`).
+                # The scan's own information (the prior taken out) says how a slide turns (an arc's wall).
+                coupling = heading_coupling(refined.information - prior_information)
                 pose, information = slide_to_prior(pose, information, prior, prior_information,
-                                                   score_plateau(points, local.grid, pose))
+                                                   score_plateau(points, local.grid, pose,
+                                                                 heading_per_metre=coupling))
         return pose, matched, information, score
 
     def _step_information(self, information: FloatArray, odometry: FloatArray | None,
