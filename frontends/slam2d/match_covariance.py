@@ -9,6 +9,11 @@ best: a few centimetres where the scan pins the pose, the length of the look-ali
 not. `slide_to_prior` then lets the prediction (wheel odometry) decide the pose along such a stretch, when
 the prediction lies on the plateau itself, and widens the match's covariance by the plateau, so neither
 the scan's estimate nor the keyframe graph trusts a match along the direction it cannot measure.
+
+Along a wall that bends as an arc the direction a scan cannot measure is a shift that turns (a rotation
+about the arc's centre): at a fixed heading its score is sharp. Where the match's own information says so
+(`heading_coupling`), the plateau is sampled along that coupled direction, and the slide moves and widens
+the heading with the shift.
 """
 
 from __future__ import annotations
@@ -272,7 +277,7 @@ def score_plateau(points: FloatArray, grid: LikelihoodGrid, pose: FloatArray, *,
     arguments = (grid.values, np.asarray(grid.origin, dtype=np.float64), float(grid.resolution),
                  np.ascontiguousarray(points, dtype=np.float64), np.asarray(pose, dtype=np.float64),
                  step_cells, steps)
-    if float(np.hypot(*coupling)) * reach < 0.5 * math.radians(0.5):  # under a quarter degree at the edge
+    if float(np.hypot(*coupling)) * reach < COUPLED_HEADING_STEP:  # under a rounding step at the edge
         coupling = np.zeros(2)
         scores = _plateau_scores(*arguments)
     else:
