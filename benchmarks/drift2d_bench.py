@@ -52,7 +52,13 @@ from threadpoolctl import threadpool_limits
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.sessions_bench import LogScan, map_scans, read_scans, with_assumed_sweep  # noqa: E402
+from benchmarks.sessions_bench import (  # noqa: E402
+    LogScan,
+    map_scans,
+    read_scans,
+    sweep_fractions,
+    with_assumed_sweep,
+)
 from frontends.slam2d.config import Slam2DConfig  # noqa: E402
 from frontends.slam2d.slam import LaserSlam2D  # noqa: E402
 from optimizer import se2  # noqa: E402
@@ -132,9 +138,7 @@ def deskewed(scans: list[LogScan], reference: FloatArray, sweep: float) -> list[
     rates = np.gradient(np.unwrap(reference[:, 2]), seconds)
     out = []
     for scan, rate in zip(scans, rates, strict=True):
-        bearings = np.arctan2(scan.points[:, 1], scan.points[:, 0])
-        span = max(float(np.ptp(bearings)), 1e-9) if len(bearings) else 1.0
-        angle = rate * sweep * ((bearings - bearings.min()) / span - 0.5) if len(bearings) else bearings
+        angle = rate * sweep * (sweep_fractions(scan.points) - 0.5)
         c, s = np.cos(angle), np.sin(angle)
         points = np.stack([c * scan.points[:, 0] - s * scan.points[:, 1],
                            s * scan.points[:, 0] + c * scan.points[:, 1]], axis=1)

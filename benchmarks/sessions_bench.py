@@ -140,19 +140,25 @@ def without_origin(scans: list[LogScan]) -> list[LogScan]:
                     s.interval, s.times) for s in scans]
 
 
+def sweep_fractions(points: FloatArray) -> FloatArray:
+    """How far through a sweep in order of bearing each point was taken: 0 at the smallest bearing, 1 at the
+    largest (counter-clockwise, seen from the base frame's origin: the laser's own bearings where it sits
+    there, as in ACES and CSAIL)."""
+    bearings = np.arctan2(points[:, 1], points[:, 0])
+    if not len(bearings):
+        return bearings
+    return (bearings - bearings.min()) / max(float(np.ptp(bearings)), 1e-9)
+
+
 def with_assumed_sweep(scans: list[LogScan], sweep: float) -> list[LogScan]:
     """A diagnostic of motion distortion: each scan without beam times given them as if its beams were
-    taken over `sweep` seconds in order of bearing (counter-clockwise from the smallest, seen from the base
-    frame's origin: the laser's own bearings where it sits there, as in ACES and CSAIL), the first at the
-    stamp; the frontend then deskews them itself, under its own motion estimates
-    (`frontends.slam2d.deskew`)."""
+    taken over `sweep` seconds in order of bearing (`sweep_fractions`), the first at the stamp; the
+    frontend then deskews them itself, under its own motion estimates (`frontends.slam2d.deskew`)."""
     out = []
     for scan in scans:
-        bearings = np.arctan2(scan.points[:, 1], scan.points[:, 0])
         times = scan.times
-        if times is None and sweep and len(bearings):
-            span = max(float(np.ptp(bearings)), 1e-9)
-            times = sweep * (bearings - bearings.min()) / span
+        if times is None and sweep and len(scan.points):
+            times = sweep * sweep_fractions(scan.points)
         out.append(LogScan(scan.stamp_ns, scan.points, scan.odometry, scan.interval, times))
     return out
 
