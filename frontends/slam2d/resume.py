@@ -96,13 +96,17 @@ class ResumedSlam2D(LaserSlam2D):
         *,
         scans: SavedScans | None = None,
         localization: LocalizationConfig | None = None,
+        placed_by_caller: bool = False,
     ) -> None:
+        """`placed_by_caller`: the caller localizes the new scans in the saved map itself and gives each
+        scan's `LocalizedScan` to `add_scan` until the run is placed (no second whole-map localizer)."""
         super().__init__(config)
         poses = np.asarray(keyframe_poses, dtype=np.float64).reshape(-1, 3)
         if len(keyframe_scans) != len(poses):
             raise MapPlacementError(f"{len(keyframe_scans)} keyframe scans for {len(poses)} keyframe poses")
-        self._placer: MapLocalizer | None = MapLocalizer(keyframe_scans, poses, self.config,
-                                                         settings=localization, first_scan_alone=False)
+        self._placer: MapLocalizer | None = None if placed_by_caller else MapLocalizer(
+            keyframe_scans, poses, self.config, settings=localization, first_scan_alone=False)
+        self._placed = False
         self._old_count = len(poses)
         self._set_keyframe_poses(poses)
         self._keyframes = [Keyframe(np.ascontiguousarray(s, dtype=np.float64),
@@ -128,7 +132,7 @@ class ResumedSlam2D(LaserSlam2D):
 
     @property
     def placed(self) -> bool:
-        return self._placer is None
+        return self._placed
 
     def add_scan(
         self,
@@ -137,19 +141,25 @@ class ResumedSlam2D(LaserSlam2D):
         odometry: FloatArray | None = None,
         odometry_interval: float = 0.0,
         point_times: FloatArray | None = None,
+        located: LocalizedScan | None = None,
     ) -> ScanEstimate:
         """As `LaserSlam2D.add_scan`. Until the run is placed in the old map the scan waits: its estimate
-        has a NaN pose, `matched` False and keyframe −1 (`finish` gives it its pose)."""
-        if self._placer is None:
+        has a NaN pose, `matched` False and keyframe −1 (`finish` gives it its pose). `located`: the
+        caller's localization of this scan (required until placed when `placed_by_caller`; its indices
+        count the scans given since the first waiting one)."""
+        if self._placed:
             return super().add_scan(stamp_ns, points, odometry, odometry_interval, point_times)
         odometry = None if odometry is None else np.asarray(odometry, dtype=np.float64)
         points = np.asarray(points, dtype=np.float64)
         self._waiting.append(_WaitingScan(int(stamp_ns), points, odometry, odometry_interval, point_times))
         index = len(self._scan_stamps) + len(self._waiting) - 1
-        found = self._placer.localize(stamp_ns, points, odometry, odometry_interval, point_times)
-        if not found.localized:
+        if self._placer is not None:
+            located = self._placer.localize(stamp_ns, points, odometry, odometry_interval, point_times)
+        elif located is None:
+            raise MapPlacementError("a scan of a run placed by its caller came without its localization")
+        if not located.localized:
             return ScanEstimate(index, int(stamp_ns), np.full(3, np.nan), False, -1, ())
-        self.placement = found
+        found = self.placement = located
         poses = np.concatenate([found.recovered_poses, found.pose[None, :]])
         # Localizer indices count from the first scan it saw, which was the first waiting one.
         order = np.concatenate([found.recovered_indices, [found.index]])
@@ -157,7 +167,7 @@ class ResumedSlam2D(LaserSlam2D):
         # The lost-stretch tracker restarts after `max_lost_keyframes`: scans before its last start have
         # no map pose and are left out (`scans_unplaced`).
         first = min(placed)
-        waiting, self._waiting, self._placer = self._waiting[first:], [], None
+        waiting, self._waiting, self._placer, self._placed = self._waiting[first:], [], None, True
         self.scans_unplaced = first
         self._start_new_run(waiting[0], placed[first], found.information)
         estimate = None
@@ -243,7 +253,7 @@ class ResumedSlam2D(LaserSlam2D):
     def finish(self) -> Slam2DGraph:
         """The joint keyframe graph, old and new; `MapPlacementError` if the new run never matched the
         saved map (then its scans cannot be placed in it)."""
-        if self._placer is not None and self._waiting:
+        if not self._placed and self._waiting:
             raise MapPlacementError(
                 f"none of the {len(self._waiting)} new scans could be placed in the saved map of "
                 f"{self._old_count} keyframes: no unambiguous match"

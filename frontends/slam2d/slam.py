@@ -294,13 +294,16 @@ class LaserSlam2D:
         config: Slam2DConfig | None = None,
         *,
         scans: SavedScans | None = None,
+        placed_by_caller: bool = False,
     ) -> ResumedSlam2D:
         """Continue mapping from a saved keyframe graph (`frontends.slam2d.resume`): the new run is placed
-        in the old map by global localization, its keyframes get indices after the old ones, loop closures
-        search old and new keyframes alike, and `finish` returns the joint graph."""
+        in the old map by global localization (the caller's, when `placed_by_caller`), its keyframes get
+        indices after the old ones, loop closures search old and new keyframes alike, and `finish` returns
+        the joint graph."""
         from frontends.slam2d.resume import ResumedSlam2D  # the subclass imports this module
 
-        return ResumedSlam2D(keyframe_scans, keyframe_poses, constraints, config, scans=scans)
+        return ResumedSlam2D(keyframe_scans, keyframe_poses, constraints, config, scans=scans,
+                             placed_by_caller=placed_by_caller)
 
     # ------------------------------------------------------------------------------------------ scans
 

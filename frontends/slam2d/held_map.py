@@ -1,0 +1,147 @@
+"""A new run's keyframe graph solved against a saved map held where it is (`replay LOG --map SESSION`).
+
+Localization must leave the saved map as it is, yet a run matched scan by scan against that map knows
+nothing where the map saw nothing: it is tracked there, and drifts. The SLAM of the same run, resumed on the
+saved keyframe graph (`frontends.slam2d.resume`), knows more: its scans are matched on its own recent
+keyframes, and its loop closures tie it to itself where it drives a stretch twice and to the saved keyframes
+wherever it sees them. Its joint graph, solved with the saved keyframes held at their saved poses, places the
+new run in the saved map without moving the map.
+
+Holding them is exact: the saved keyframes leave the graph, pose 0 stands for the map's origin, and a
+constraint from saved keyframe a to new keyframe b (z, Ω) becomes one from the origin to b measuring x_a·z
+with the same Ω: its error z⁻¹·(x_a⁻¹·x_b) is unchanged. The SLAM only adds constraints from an older
+keyframe to a newer one, so no constraint runs from a new keyframe to a saved one; constraints between saved
+keyframes are dropped (nothing they tie can move).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from frontends.errors import FrontendError
+from frontends.protocol import BoolArray, FloatArray, IntArray
+from frontends.slam2d.resume import ResumedSlam2D
+from optimizer import se2
+from optimizer.graph import PoseGraph
+from optimizer.solve import DEFAULT_METHOD, optimize
+
+__all__ = ["HELD_MAP_AGREEMENT", "HeldMapScans", "HeldMapSolution", "HeldMapTrajectory", "held_map_scans",
+           "held_map_trajectory", "solve_with_map_held"]
+
+HELD_MAP_AGREEMENT = 0.5
+"""The median distance (m) at most between the held-map poses and a localizer's own poses of the scans it
+matched to the saved map, for the former to be given (`held_map_trajectory`). The second halves of ACES,
+CSAIL, FR079, Intel and the mumble loop in their first halves' maps: 0.011–0.032 m
+(`benchmarks/sessions_bench.py`); 0.5 m off, the two placed the run differently (a look-alike place), and
+the one matched scan by scan is the one to keep."""
+
+
+@dataclass(frozen=True, eq=False)
+class HeldMapSolution:
+    poses: FloatArray
+    """(K − held, 3) the new keyframes' poses in the saved map's frame."""
+    converged: bool
+    """The optimization met its convergence test (if not, `poses` are not an optimum and not to be given as
+    one)."""
+
+
+def solve_with_map_held(graph: PoseGraph, held_poses: FloatArray) -> HeldMapSolution:
+    """The poses of keyframes `len(held_poses)`… of the joint `graph` (its first keyframes the saved map's),
+    optimized with the saved keyframes at `held_poses`, from the graph's own estimate moved rigidly onto
+    them (the online estimate of a resumed SLAM, whose optimizations moved the saved keyframes too).
+
+    Raises `FrontendError` when a constraint runs from a new keyframe to a saved one, or when no constraint
+    ties the new keyframes to the saved ones."""
+    held_poses = np.asarray(held_poses, dtype=np.float64).reshape(-1, 3)
+    held = len(held_poses)
+    edge_from, edge_to = graph.edge_from, graph.edge_to
+    if np.any((edge_from >= held) & (edge_to < held)):
+        raise FrontendError("a constraint runs from a new keyframe to a saved one: the saved map cannot be "
+                            "held with it")
+    crossing = (edge_from < held) & (edge_to >= held)
+    if not crossing.any():
+        raise FrontendError("no constraint ties the new keyframes to the saved map")
+    new = (edge_from >= held) & (edge_to >= held)
+    # Node 0 is the map's origin, node i > 0 new keyframe held + i − 1.
+    measurements = np.concatenate([se2.compose(held_poses[edge_from[crossing]], graph.measurements[crossing]),
+                                   graph.measurements[new]])
+    nodes_from = np.concatenate([np.zeros(int(crossing.sum()), dtype=np.int64), edge_from[new] - held + 1])
+    nodes_to = np.concatenate([edge_to[crossing], edge_to[new]]) - held + 1
+    information = np.concatenate([graph.information[crossing], graph.information[new]])
+    onto_map = _rigid_fit(graph.poses[:held], held_poses)
+    start = np.vstack([np.zeros((1, 3)), se2.compose(onto_map, graph.poses[held:])])
+    reduced = PoseGraph.build(np.arange(len(start)), start, nodes_from, nodes_to, measurements, information,
+                              check_information=False)
+    run = optimize(reduced, method=DEFAULT_METHOD, starts={"online": start})
+    for _ in run:
+        pass
+    return HeldMapSolution(np.array(run.result.poses[1:]), run.result.converged)
+
+
+@dataclass(frozen=True, eq=False)
+class HeldMapScans:
+    """A resumed SLAM's new scans placed by its joint graph solved with the saved map held."""
+
+    stamps_ns: IntArray
+    """The new scans from the one the run was placed at (those before have no pose here)."""
+    poses: FloatArray
+    """(S, 3) their poses in the saved map's frame."""
+    converged: bool
+    keyframes: int
+    """The new run's keyframes."""
+    old_new_constraints: int
+    """The constraints tying them to the saved keyframes (the placement's included)."""
+
+
+def held_map_scans(resumed: ResumedSlam2D, held_poses: FloatArray) -> HeldMapScans:
+    """`resumed` (resumed on the saved keyframes at `held_poses`) finished, and its new scans posed by
+    `solve_with_map_held`. Raises `MapPlacementError` when the run was never placed."""
+    held_poses = np.asarray(held_poses, dtype=np.float64).reshape(-1, 3)
+    joint = resumed.finish()
+    solution = solve_with_map_held(joint.graph, held_poses)
+    keyframes = np.vstack([held_poses, solution.poses])
+    graph, held = joint.graph, len(held_poses)
+    crossing = int(np.sum((graph.edge_from < held) & (graph.edge_to >= held)))
+    new = joint.scan_keyframes >= held
+    return HeldMapScans(joint.scan_stamps_ns[new], joint.scan_poses(keyframes)[new], solution.converged,
+                        len(solution.poses), crossing)
+
+
+@dataclass(frozen=True, eq=False)
+class HeldMapTrajectory:
+    poses: FloatArray
+    """(S, 3) every scan's held-map pose (NaN before the one the run was placed at)."""
+    apart: float
+    """The median distance (m) from the localizer's poses of the scans it matched (NaN: none matched)."""
+    agrees: bool
+    """Converged, checked against at least one map match, and within `HELD_MAP_AGREEMENT` of them."""
+
+
+def held_map_trajectory(held: HeldMapScans, stamps_ns: IntArray, located: FloatArray,
+                        matched: BoolArray) -> HeldMapTrajectory:
+    """The held-map poses of a localized run's scans (`stamps_ns`, in log order; the held SLAM has every
+    scan from the one it was placed at), checked against the localizer's poses `located` (S, 3) of the scans
+    it `matched` to the saved map."""
+    first = len(stamps_ns) - len(held.stamps_ns)
+    if first < 0 or not np.array_equal(held.stamps_ns, np.asarray(stamps_ns)[first:]):
+        raise FrontendError("the held-map SLAM's scans are not the localized ones")
+    poses = np.full((len(stamps_ns), 3), np.nan)
+    poses[first:] = held.poses
+    both = np.asarray(matched, dtype=bool) & np.isfinite(poses[:, 0])
+    if not both.any():
+        return HeldMapTrajectory(poses, float("nan"), False)
+    apart = float(np.median(np.hypot(*(poses[both, :2] - located[both, :2]).T)))
+    return HeldMapTrajectory(poses, apart, held.converged and apart <= HELD_MAP_AGREEMENT)
+
+
+def _rigid_fit(source: FloatArray, target: FloatArray) -> FloatArray:
+    """The SE(2) transform T minimising Σ |T·source_i − target_i|² over the positions (Umeyama, no scale)."""
+    mean_source, mean_target = source[:, :2].mean(axis=0), target[:, :2].mean(axis=0)
+    a, b = source[:, :2] - mean_source, target[:, :2] - mean_target
+    angle = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]),
+                       np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    shift = mean_target - rotation @ mean_source
+    return np.array([shift[0], shift[1], angle])
