@@ -5,9 +5,11 @@
 
 (a) Localization. Each log is cut in two at its middle scan. The first half is mapped (LaserSlam2D, then
     the default optimizer from the odometry and the online estimates, as `replay` does); the second half is
-    localized with `MapLocalizer` with no initial pose and its odometry origin dropped (re-expressed from
-    its own first pose). The reference is the whole log mapped in one run, optimized the same way (the
-    issue's "full run's own optimized trajectory"). Two rows per log:
+    localized as `replay --map` does (`localize_as_replay`), with no initial pose and its odometry origin
+    dropped (re-expressed from its own first pose): `MapLocalizer` scan by scan, and the run's own SLAM
+    resumed on the first half's graph, placed by the localizer, its joint graph solved with the saved
+    keyframes held (`frontends.slam2d.held_map`). The reference is the whole log mapped in one run,
+    optimized the same way (the issue's "full run's own optimized trajectory"). Two rows per log:
 
     - "half map": the map is the first half as mapped alone (what a user has). Its frame is not the full
       run's, and its shape is not either: without the second half's loop closures the first half bends
@@ -26,30 +28,35 @@
     errors there may be the reference's (or the odometry slipped: CSAIL's is poor).
 
     Reported: scans of the second half; seconds to the first global fix; share of scans localized when
-    processed (a map-frame pose given at once), split by how: map-matched (the saved map placed the scan),
-    tracked on the rolling local map (recent scans at their tracked poses with the nearest saved keyframes:
-    outside the saved map), predicted by odometry (no match), all among the scans more than 10 s after the
-    start; median / 95 % translational error of the localized scans after 10 s, overall and per state (same
-    scans), as given online and as smoothed offline (`localization_smoothing`: what the replay writes), with
-    the smoothing's CPU time; the median over those in places the first half saw well (the scan at its
-    reference pose scores ≥ 0.5 on the map: the split is the reference's, not the localizer's), with their
-    share; global fixes and local re-acquisitions; scans per second of `MapLocalizer.localize` (global search
-    included) over process CPU time and over wall time (the two differ on a loaded machine: CPU time is the
-    localizer's own cost). Last, for the scans within 3 m of a first-half keyframe: the reference carried
-    into the map through that keyframe (its pose relative to the keyframe in the full run, applied to the
-    keyframe's pose in the map: where the map's own walls put the scan), how far that lies from the
-    rigidly aligned reference (the map's disagreement with the full run there: a floor under the error
-    against the full run, whatever the localizer does), and the smoothed error against it (the localizer's
-    error in the map it was given). For the "full-run poses" row the two references are one. Last, the
-    scans placed within 1 m of a map keyframe (the saved run's path) and how many of them did not match the
-    map (`frontends.protocol.unmatched_on_saved_path`; the replay warns when more than a fifth did not).
+    processed (a map-frame pose given at once); the error of the trajectory `replay --map` writes (the held
+    map's where it agrees with the localizer's map matches, else the smoothed one: the issue's figure), and
+    whether the held map's was given (with its median distance from the map matches); split by how:
+    map-matched (the saved map placed the scan), tracked on the rolling local map (recent scans at their
+    tracked poses with the nearest saved keyframes: outside the saved map), predicted by odometry (no match),
+    all among the scans more than 10 s after the start; median / 95 % translational error of the localized
+    scans after 10 s, overall and per state (same scans), as given online and as smoothed offline
+    (`localization_smoothing`: what the replay writes when the held map's disagrees), with the CPU time of the
+    smoothing and of the held-map solve; the median over those in places the first half saw well (the scan at
+    its reference pose scores ≥ 0.5 on the map: the split is the reference's, not the localizer's), with their
+    share; global fixes and local re-acquisitions; scans per second of the whole localization (localizer, held
+    SLAM, smoothing and held-map solve; global search included) over process CPU time and over wall time (the
+    two differ on a loaded machine: CPU time is the localization's own cost). Last, for the scans within 3 m
+    of a first-half keyframe: the reference carried into the map through that keyframe (its pose relative to
+    the keyframe in the full run, applied to the keyframe's pose in the map: where the map's own walls put the
+    scan), how far that lies from the rigidly aligned reference (the map's disagreement with the full run
+    there: a floor under the error against the full run, whatever the localizer does), and the error as given
+    against it (the localizer's error in the map it was given). For the "full-run poses" row the two
+    references are one. Last, the scans placed within 1 m of a map keyframe (the saved run's path) and how
+    many of them did not match the map (`frontends.protocol.unmatched_on_saved_path`; the replay warns when
+    more than a fifth did not).
 (b) Continue. The second half goes to `LaserSlam2D.resume` on the first half's saved graph (odometry
     origin dropped); the joint graph is optimized once. ACES: every scan of both halves is scored against
     aces.relations; the single run's figure is the reference (target: within 10 %). CSAIL (no ground
     truth): every scan's distance to the single run's estimate of it after a rigid alignment, with the scan
     where it is largest and how many scans lie over 0.3 m.
 (c) The same log again (a user replaying the log a session was made from): the whole log, its first
-    scans before any odometry message included, localized in the full run's own map (`--map`) and
+    scans before any odometry message included, localized in the full run's own map (`--map`, as
+    `localize_as_replay` does) and
     continued from the full run's own graph (`--continue`); every scan's distance from the full run's pose
     (median / 95 % / max, scans farther than 0.5 m), and for the continued one the constraints between the
     old and the new keyframes.
@@ -77,9 +84,10 @@ from frontends.logs import open_log  # noqa: E402
 from frontends.protocol import unmatched_on_saved_path  # noqa: E402
 from frontends.slam2d import read_odometry, scans_in_base_frame  # noqa: E402
 from frontends.slam2d.grid import LikelihoodGrid  # noqa: E402
+from frontends.slam2d.held_map import HeldMapTrajectory, held_map_scans, held_map_trajectory  # noqa: E402
 from frontends.slam2d.local_map import place  # noqa: E402
-from frontends.slam2d.localization import MapLocalizer  # noqa: E402
-from frontends.slam2d.localization_smoothing import smooth_scans  # noqa: E402
+from frontends.slam2d.localization import LocalizedScan, MapLocalizer  # noqa: E402
+from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans  # noqa: E402
 from frontends.slam2d.resume import SavedConstraints, SavedScans  # noqa: E402
 from frontends.slam2d.slam import LaserSlam2D, Slam2DGraph  # noqa: E402
 from optimizer import se2  # noqa: E402
@@ -238,6 +246,45 @@ def map_fit(grid: LikelihoodGrid, scans: list[LogScan], poses: FloatArray, max_r
     return fits
 
 
+@dataclass(frozen=True, eq=False)
+class LocalizedRun:
+    localizer: MapLocalizer
+    results: list[LocalizedScan]
+    smoothed: SmoothedTrajectory
+    held: HeldMapTrajectory
+    given: FloatArray
+    """(S, 3) what `replay --map` writes: the held-map poses where they agree with the map matches, else
+    the smoothed ones."""
+    seconds: float
+    cpu_seconds: float
+    smoothing_cpu: float
+    held_cpu: float
+
+
+def localize_as_replay(saved: Slam2DGraph, map_poses: FloatArray, scans: list[LogScan]) -> LocalizedRun:
+    """`scans` localized in the map of `saved`'s keyframe scans at `map_poses` as `replay --map` does
+    (`LocalizingLaserFrontend`): the localizer, the run's own SLAM resumed on the saved graph and placed by
+    it, the localizer's trajectory smoothed, the SLAM's graph solved with the saved map held."""
+    started, started_cpu = time.perf_counter(), time.process_time()
+    localizer = MapLocalizer(saved.keyframe_scans, map_poses)
+    resumed = LaserSlam2D.resume(saved.keyframe_scans, map_poses, SavedConstraints.of(saved.graph),
+                                 placed_by_caller=True)
+    results = []
+    for s in scans:
+        results.append(localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval, s.times))
+        resumed.add_scan(s.stamp_ns, s.points, s.odometry, s.interval, s.times, located=results[-1])
+    smoothing_started = time.process_time()
+    smoothed = smooth_scans(results)
+    smoothing_cpu = time.process_time() - smoothing_started
+    held_started = time.process_time()
+    held = held_map_trajectory(held_map_scans(resumed, map_poses), np.array([s.stamp_ns for s in scans]),
+                               np.array([r.pose for r in results]), np.array([r.matched for r in results]))
+    held_cpu = time.process_time() - held_started
+    given = np.where(np.isfinite(held.poses[:, :1]) & held.agrees, held.poses, smoothed.poses)
+    return LocalizedRun(localizer, results, smoothed, held, given, time.perf_counter() - started,
+                        time.process_time() - started_cpu, smoothing_cpu, held_cpu)
+
+
 def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tuple[str, ...]:
     scans, full, full_keyframes = mapped.scans, mapped.full, mapped.full_keyframes
     first, first_keyframes = mapped.first, mapped.first_keyframes
@@ -256,14 +303,12 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
         to_map = rigid_alignment(full_keyframes[:shared], first_keyframes)
         reference = se2.compose(to_map, reference)
         residual = np.hypot(*(se2.compose(to_map, full_keyframes[:shared])[:, :2] - first_keyframes[:, :2]).T)
-    localizer = MapLocalizer(first.keyframe_scans, map_poses)
     second = without_origin(scans[half:])
-    started, started_cpu = time.perf_counter(), time.process_time()
-    results = [localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval, s.times) for s in second]
-    seconds, cpu_seconds = time.perf_counter() - started, time.process_time() - started_cpu
-    smoothing_started = time.process_time()
-    smoothed = smooth_scans(results)
-    smoothing_cpu = time.process_time() - smoothing_started
+    localized_run = localize_as_replay(first, map_poses, second)
+    results, smoothed, held, given = (localized_run.results, localized_run.smoothed, localized_run.held,
+                                      localized_run.given)
+    seconds, cpu_seconds = localized_run.seconds, localized_run.cpu_seconds
+    smoothing_cpu, held_cpu = localized_run.smoothing_cpu, localized_run.held_cpu
     localized = np.array([r.localized for r in results])
     states = {"matched": np.array([r.matched for r in results]),
               "tracked": np.array([r.tracked for r in results]),
@@ -275,24 +320,28 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     errors[localized] = np.hypot(*(poses[localized, :2] - reference[localized, :2]).T)
     smoothed_errors = np.full(len(second), np.nan)
     smoothed_errors[localized] = np.hypot(*(smoothed.poses[localized, :2] - reference[localized, :2]).T)
+    given_errors = np.full(len(second), np.nan)
+    given_errors[localized] = np.hypot(*(given[localized, :2] - reference[localized, :2]).T)
     first_fix = next((r.index for r in results if r.global_fix), -1)
     fix_seconds = (stamps[first_fix] - stamps[0]) * 1e-9 if first_fix >= 0 else float("nan")
     # Where the first half saw the place well: the reference pose puts the scan on the map's walls.
     scored = localized & settled
+    localizer = localized_run.localizer
     covered = map_fit(localizer.map.grid, second, reference, localizer.config.matching.max_range)[scored]
     covered = covered >= COVERED_FIT
     covered_median = np.median(errors[scored][covered]) if covered.any() else np.nan
     # Near the map, the reference carried in through the nearest keyframe: what the map's own walls say.
     near = scored & near_map
     disagreement = np.hypot(*(carried[near, :2] - reference[near, :2]).T)
-    against_carried = np.hypot(*(smoothed.poses[near, :2] - carried[near, :2]).T)
+    against_carried = np.hypot(*(given[near, :2] - carried[near, :2]).T)
     shares = [f"{100 * (state & settled).sum() / settled.sum():.1f}" for state in states.values()]
     return (name, "full-run poses" if full_run_poses else "half map", f"{len(second)}", f"{fix_seconds:.1f}",
-            f"{100 * localized[settled].mean():.1f}", *shares, error_figures(errors[scored]),
+            f"{100 * localized[settled].mean():.1f}", error_figures(given_errors[scored]),
+            f"{'yes' if held.agrees else 'no'} ({held.apart:.3f})", *shares, error_figures(errors[scored]),
             *(error_figures(errors[state & settled]) for state in states.values()),
             error_figures(smoothed_errors[scored]),
             *(error_figures(smoothed_errors[states[state] & settled]) for state in ("matched", "tracked")),
-            f"{smoothing_cpu:.2f}{'' if smoothed.converged else ' (not converged)'}",
+            f"{smoothing_cpu:.2f}{'' if smoothed.converged else ' (not converged)'} / {held_cpu:.2f}",
             f"{covered_median:.3f} ({100 * covered.mean():.0f} %)", f"{sum(r.global_fix for r in results)}",
             f"{sum(r.relocalized for r in results)}", f"{len(second) / cpu_seconds:.0f}",
             f"{len(second) / seconds:.0f}", f"{np.median(residual):.3f} / {residual.max():.3f}",
@@ -323,16 +372,18 @@ def error_figures(errors: FloatArray) -> str:
 
 
 LOCALIZATION_HEADER = (
-    "| log | map | scans | first fix after (s) | localized after 10 s (%) | map-matched (%) "
+    "| log | map | scans | first fix after (s) | localized after 10 s (%) "
+    "| error, as replay gives it (held map, else smoothed): median / 95 % (m) "
+    "| held map given (median distance from the map matches, m) | map-matched (%) "
     "| tracked on the rolling map (%) | predicted by odometry (%) | error, localized: median / 95 % (m) "
     "| map-matched (m) | tracked (m) | predicted (m) "
     "| smoothed: error, localized (m) | smoothed: map-matched (m) | smoothed: tracked (m) "
-    "| smoothing CPU (s) "
+    "| CPU (s): smoothing / held-map solve "
     "| median error where the map covers the place (m) (share of scans) | global fixes "
     "| local re-acquisitions | scans/s (CPU) | scans/s (wall) "
     "| alignment residual, median / max (m) | reference slips "
     "| scans within 3 m of a map keyframe (%) | there: map against the full run (m) "
-    "| there: smoothed error against the full run carried into the map (m) "
+    "| there: error as given against the full run carried into the map (m) "
     "| on the saved path (1 m): scans unmatched / placed |"
 )
 
@@ -400,10 +451,9 @@ def same_log_rows(mapped: Mapped) -> list[tuple[str, ...]]:
     """(c): the whole log again, localized in its own map and continued from its own graph."""
     scans, full, full_keyframes = mapped.scans, mapped.full, mapped.full_keyframes
     reference = full.scan_poses(full_keyframes)
-    localizer = MapLocalizer(full.keyframe_scans, full_keyframes)
-    results = [localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval, s.times) for s in scans]
-    localized = np.array([r.localized for r in results])
-    poses = np.array([r.pose for r in results])
+    localized_run = localize_as_replay(full, full_keyframes, scans)
+    localized = np.array([r.localized for r in localized_run.results])
+    poses = localized_run.given
     rows = [("--map", f"{int(localized.sum())} / {len(scans)}",
              distance_figures(poses[localized], reference[localized]), "")]
     slam = LaserSlam2D.resume(full.keyframe_scans, full_keyframes, SavedConstraints.of(full.graph),

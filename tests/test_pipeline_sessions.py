@@ -12,6 +12,7 @@ seen from the first log's first pose is what every pose written must match.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -22,7 +23,9 @@ import pytest
 from typer.testing import CliRunner
 
 import pipeline
-from frontends.errors import FrontendError
+from frontends.errors import FrontendError, LogWarning
+from frontends.slam2d import session_frontends
+from frontends.slam2d.held_map import HELD_MAP_AGREEMENT, HeldMapScans
 from frontends.slam2d.resume import MapPlacementError
 from pipeline.cli import app
 from pipeline.errors import PipelineError
@@ -168,23 +171,54 @@ def test_map_warns_when_no_scan_matched_the_saved_map(logs: Logs, tmp_path: Path
     assert summary["localization"]["matched"] == 0
     assert any("none of the" in warning["message"] for warning in summary["warnings"])
 
-def test_map_writes_the_smoothed_trajectory_and_keeps_the_online_states(logs: Logs, tmp_path: Path) -> None:
-    """The TUM file and the recording's final trajectory hold the trajectory smoothed offline
-    (`frontends.slam2d.localization_smoothing`: the map matches and the motions measured between the
-    scans, weighed together); the robot's pose recorded scan by scan stays the one given online."""
+def test_map_writes_the_held_map_trajectory_and_keeps_the_online_states(logs: Logs, tmp_path: Path) -> None:
+    """The TUM file and the recording's final trajectory hold the run's own keyframe graph solved with the
+    saved map held (`frontends.slam2d.held_map`); the robot's pose recorded scan by scan stays the one given
+    online, and the saved map is not written."""
     start = logs.in_map_frame(logs.second_truth[0])
     pipeline.replay(logs.second, out_dir=tmp_path, map=logs.session, initial_pose=tuple(start))
     _, poses = tum_poses(tmp_path / "second.tum")
     summary = json.loads((tmp_path / "second.json").read_text())
-    assert summary["counts"]["scans_smoothed"] == len(poses)
-    assert summary["counts"]["smoothing_converged"] == 1
+    counts = summary["counts"]
+    assert counts["held_map_used"] == 1 and counts["held_map_converged"] == 1
+    assert counts["scans_held_map"] == len(poses) and counts["scans_smoothed"] == 0
+    assert counts["held_map_old_new_constraints"] >= 2, "the placement and at least one loop closure"
+    assert 0 <= counts["held_map_apart_from_matches_mm"] < 1000 * HELD_MAP_AGREEMENT
+    assert not (tmp_path / "second.session").exists() and not (tmp_path / "second.g2o").exists()
     entities = read_recording(tmp_path / "second.rrd", timeline="scan")
     final = np.array(entities["/world/final_trajectory"].static_columns["LineStrips2D:strips"][0][0])
     online = np.array([row[0] for row in entities["/world/robot"].columns["Points2D:positions"]])
     np.testing.assert_allclose(final, poses[:, :2], atol=1e-5)
     moved = position_errors(online, poses)
-    assert moved.max() > 1e-3, "the smoothing moved the poses given online …"
-    assert np.median(moved) < 0.01, "… by millimetres here (the same base poses, not the laser's)"
+    assert moved.max() > 1e-3, "the held-map solution moved the poses given online …"
+    assert np.median(moved) < 0.03, "… by centimetres here (the same base poses, not the laser's)"
+    truth = logs.in_map_frame(logs.second_truth)
+    worst = position_errors(poses, truth).max()
+    assert worst < MAP_TOLERANCE
+    assert worst < position_errors(online, truth).max(), "nearer the truth at its worst than the online poses"
+
+
+def test_map_keeps_the_scan_by_scan_trajectory_when_the_held_map_solution_disagrees(
+        logs: Logs, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A held-map solution placed 2 m off the localizer's map matches (as a look-alike place would) is not
+    given: a warning says so, and the trajectory is the localizer's, smoothed."""
+    real = session_frontends.held_map_scans
+
+    def shifted(*args: object) -> HeldMapScans:
+        found = real(*args)  # type: ignore[arg-type]
+        return dataclasses.replace(found, poses=found.poses + np.array([2.0, 0.0, 0.0]))
+
+    monkeypatch.setattr(session_frontends, "held_map_scans", shifted)
+    start = logs.in_map_frame(logs.second_truth[0])
+    with pytest.warns(LogWarning, match="solved in the saved map"):
+        pipeline.replay(logs.second, out_dir=tmp_path, map=logs.session, initial_pose=tuple(start))
+    _, poses = tum_poses(tmp_path / "second.tum")
+    summary = json.loads((tmp_path / "second.json").read_text())
+    counts = summary["counts"]
+    assert counts["held_map_used"] == 0 and counts["scans_held_map"] == 0
+    assert counts["held_map_apart_from_matches_mm"] > 1000 * HELD_MAP_AGREEMENT
+    assert counts["scans_smoothed"] == len(poses) and counts["smoothing_converged"] == 1
+    assert any("solved in the saved map" in warning["message"] for warning in summary["warnings"])
     assert position_errors(poses, logs.in_map_frame(logs.second_truth)).max() < MAP_TOLERANCE
 
 

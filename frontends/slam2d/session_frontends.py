@@ -6,11 +6,15 @@
   new, gets its pose (`stamps_ns`, `estimates`).
 - `LocalizingLaserFrontend`: every scan goes to a `MapLocalizer` over the saved keyframes; the saved map
   is never changed. Scans never placed in the map have no pose: they are counted (`ScanLocalizations`),
-  never given a made-up one. Once the log is read, the stretches tracked or predicted between map matches
-  are smoothed (`frontends.slam2d.localization_smoothing`): the trajectory given is the smoothed one, the
-  per-scan states and match quality stay as measured online. A fast laser's scans are localized at the
-  mapping's cadence (`frontends.slam2d.cadence`) while the run is placed; the scans between are posed
-  between the localized ones around them, after the smoothing.
+  never given a made-up one. Every scan also goes to the run's own SLAM, resumed on the saved keyframe
+  graph and placed where the localizer first placed the run. Once the log is read, that SLAM's joint graph
+  is solved with the saved keyframes held (`frontends.slam2d.held_map`), and its poses are the trajectory
+  given, where it agrees with the localizer's map matches (`HELD_MAP_AGREEMENT`); otherwise the
+  stretches tracked or predicted between map matches are smoothed (`frontends.slam2d.
+  localization_smoothing`) and the smoothed trajectory is given. The per-scan states and match quality
+  stay as measured online. A fast laser's scans are localized at the mapping's cadence
+  (`frontends.slam2d.cadence`) while the run is placed; the scans between are posed between the localized
+  ones around them, after the smoothing.
 
 In both, the new log's wheel odometry starts anywhere: it is used for the motion between scans only.
 """
@@ -45,6 +49,7 @@ from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.deskew import along_motion, interpolated
 from frontends.slam2d.frontend import LaserFrontend
+from frontends.slam2d.held_map import HELD_MAP_AGREEMENT, HeldMapScans, held_map_scans, held_map_trajectory
 from frontends.slam2d.localization import LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
@@ -208,6 +213,14 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self._saved_grid: OccupancyGrid | None = None
         """The saved map's occupancy grid, at its own keyframe poses (`map_export`)."""
         self._smoothing: SmoothedTrajectory | None = None
+        self._held = LaserSlam2D.resume(saved.keyframe_scans, saved.keyframe_poses, saved.constraints,
+                                        self.config, placed_by_caller=True)
+        """The run's own SLAM on the saved keyframe graph, placed by `_localizer` (`frontends.slam2d.
+        held_map`)."""
+        self._held_map: HeldMapScans | None = None
+        self._held_map_apart = float("nan")
+        """The median distance (m) between the held-map poses and the localizer's matched ones."""
+        self._held_map_used = False
 
     def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
                  odometry_interval: float, point_times: FloatArray | None) -> ScanEstimate:
@@ -216,11 +229,13 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         due = self._cadence.due(stamp_ns)
         last = self._found[-1] if self._found else None
         if not due and last is not None and last.localized and (last.matched or last.tracked):
+            self._held.add_scan(stamp_ns, points, odometry, odometry_interval, point_times)
             pose = self._predicted(stamp_ns, odometry)
             self._poses.append(pose)
             self._between.append(index)
             return ScanEstimate(index, stamp_ns, pose.copy(), False, -1, (), between=True)
         found = self._localizer.localize(stamp_ns, points, odometry, odometry_interval, point_times)
+        self._held.add_scan(stamp_ns, points, odometry, odometry_interval, point_times, located=found)
         self._cadence.matched(stamp_ns)
         self._found.append(found)
         self._localized_scans.append(index)
@@ -269,6 +284,10 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         poses, smoothed = online.copy(), np.zeros(count, dtype=bool)
         poses[given], smoothed[given] = self._smoothing.poses, self._smoothing.smoothed
         self._pose_between(poses, smoothed, given)
+        held = self._held_map_poses(online, columns["matched"])
+        if held is not None:
+            by_held_map = np.isfinite(held[:, 0]) & (columns["localized"] | recovered)
+            poses[by_held_map], smoothed[by_held_map] = held[by_held_map], False
         self._localizations = ScanLocalizations(
             np.array(self._stamps, dtype=np.int64), poses, columns["localized"], columns["matched"],
             recovered, columns["score"], columns["inlier_fraction"], columns["rms"],
@@ -286,6 +305,24 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
                                               columns["matched"][examined], self.saved.keyframe_poses[:, :2])
         self._crossings = checked_wall_crossings(self._log.path, "scans", poses[:, :2],
                                                  self.map_export(self.saved.keyframe_poses))
+
+    def _held_map_poses(self, online: FloatArray, matched: BoolArray) -> FloatArray | None:
+        """(S, 3) each scan's pose by the held-map solution (NaN before the run was placed), or None when
+        there is none to give: the run never placed, or the solution does not agree with the localizer's
+        map matches (`held_map_trajectory`; a warning says when it lies too far from them)."""
+        try:
+            self._held_map = held_map_scans(self._held, self.saved.keyframe_poses)
+        except MapPlacementError:
+            return None
+        trajectory = held_map_trajectory(self._held_map, np.array(self._stamps, dtype=np.int64), online,
+                                         matched)
+        self._held_map_apart = trajectory.apart
+        if trajectory.apart > HELD_MAP_AGREEMENT:
+            warnings.warn(f"{self._log.path}: the run's own keyframe graph, solved in the saved map, lies "
+                          f"{trajectory.apart:.2f} m (median) from the scans matched to the map one by "
+                          "one: the trajectory is the one matched scan by scan", LogWarning, stacklevel=2)
+        self._held_map_used = trajectory.agrees
+        return trajectory.poses if trajectory.agrees else None
 
     def _pose_between(self, poses: FloatArray, smoothed: BoolArray, given: IntArray) -> None:
         """The scans between two given to the localizer, in place: between the two (smoothed) poses around
@@ -326,7 +363,23 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
                 "scans_smoothed": 0 if found.smoothed is None else int(np.sum(found.smoothed)),
                 "scans_on_saved_path": self._on_path[0], "scans_on_saved_path_unmatched": self._on_path[1],
                 "saved_map_wall_crossings": self._crossings.crossings,
-                "smoothing_converged": int(self._smoothing.converged)}
+                "smoothing_converged": int(self._smoothing.converged),
+                **self._held_map_counts(found)}
+
+    def _held_map_counts(self, found: ScanLocalizations) -> dict[str, int]:
+        """The held-map solution's part of `counts`: whether it gave the trajectory, the scans it posed,
+        the new keyframes and their constraints to the saved ones, the distance (mm, median) to the
+        localizer's map matches."""
+        held = self._held_map
+        if held is None:
+            return {"held_map_used": 0}
+        posed = int(np.sum(found.has_pose[len(found.stamps_ns) - len(held.stamps_ns):]))
+        return {"held_map_used": int(self._held_map_used),
+                "scans_held_map": posed if self._held_map_used else 0, "held_map_keyframes": held.keyframes,
+                "held_map_old_new_constraints": held.old_new_constraints,
+                "held_map_converged": int(held.converged),
+                "held_map_apart_from_matches_mm": -1 if np.isnan(self._held_map_apart)
+                else round(1000 * self._held_map_apart)}
 
     def loop_closures(self) -> dict[str, Any]:
         return {"accepted": 0, "rejected": 0, "candidates": {"accepted": 0, "unconfirmed": 0}}
