@@ -604,6 +604,14 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
             + f"; median match score {_or_dash(found['score']['median'])}, "
               f"inliers {_or_dash(found['inlier_fraction']['median'])}",
         ]
+        counts = summary.get("counts", {})
+        if counts.get("held_map_used"):
+            lines.append(f"  trajectory: the run's own keyframe graph ({counts['held_map_keyframes']} "
+                         f"keyframes, {counts['held_map_old_new_constraints']} constraints to the saved "
+                         f"ones) solved in the saved map, {counts['held_map_apart_from_matches_mm']} mm "
+                         "(median) from the scans matched to it")
+        elif "held_map_used" in counts:
+            lines.append("  trajectory: the scans localized one by one, smoothed")
     elif stats.scans is not None:
         what = "point clouds" if summary["sensor"] == "cloud" else "scans"
         lines = [f"{name}: {stats.scans} {what} on {summary['topic']}, odometry "

@@ -149,6 +149,7 @@ def test_map_with_an_initial_pose_tracks_from_the_first_scan(logs: Logs, tmp_pat
                         "--initial-pose", ",".join(f"{value:.6f}" for value in start))
     assert result.exit_code == 0, result.stderr
     assert "localized in" in result.stderr and "  0 global fixes;" in result.stderr
+    assert "trajectory: the run's own keyframe graph (" in result.stderr
     summary = json.loads((tmp_path / "inside.json").read_text())
     assert summary["localization"]["global_fixes"] == []
     assert summary["per_scan"]["state"] == "m" * len(logs.inside_truth)
