@@ -10,7 +10,7 @@ DIR holds the logs of MOLAorg/mola_test_datasets `datasets/radish/` (`<name>.clf
 runs): with its odometry (the reference: no ground truth but ACES's relations), and lidar-only as
 recorded, with 15 % of its scans left out (seed 1) and with every stamp moved by up to ±30 ms (seed 0).
 Printed per run: the median / 95 % / largest distance (m) of every scan from the reference's estimate of
-it after a rigid fit of the two trajectories (`sessions_bench.rigid_alignment`), loop closures, and for
+it after a rigid fit of the two trajectories (`optimizer.se2.rigid_fit`), loop closures, and for
 ACES the relations error (translation m, rotation deg).
 
 With `--sessions`, each lidar-only log as recorded is also cut in two (`cut_log.py`), its first half
@@ -34,7 +34,6 @@ sys.path.insert(0, str(REPO))
 
 from benchmarks.carmen_log import read_carmen, stamp_offsets, write_mcap  # noqa: E402
 from benchmarks.cut_log import cut  # noqa: E402
-from benchmarks.sessions_bench import rigid_alignment  # noqa: E402
 from optimizer import se2  # noqa: E402
 from pipeline.api import KNOWN_ERRORS, replay  # noqa: E402
 from pipeline.evaluation import evaluate_files  # noqa: E402
@@ -97,7 +96,7 @@ def distances_from(reference: dict[int, np.ndarray], stamps: list[int], poses: n
     """Each scan's distance from the reference's pose of it (by stamp) after a rigid fit of the two."""
     both = [k for k, stamp in enumerate(stamps) if stamp in reference]
     mine, theirs = poses[both], np.array([reference[stamps[k]] for k in both])
-    moved = se2.compose(rigid_alignment(mine, theirs), mine)
+    moved = se2.compose(se2.rigid_fit(mine, theirs), mine)
     return np.hypot(*(moved[:, :2] - theirs[:, :2]).T)
 
 

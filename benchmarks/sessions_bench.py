@@ -189,17 +189,6 @@ def map_scans(slam: LaserSlam2D, scans: list[LogScan]) -> tuple[Slam2DGraph, Flo
     return frontend, optimized(frontend)
 
 
-def rigid_alignment(source: FloatArray, target: FloatArray) -> FloatArray:
-    """The SE(2) transform T minimising Σ |T·source_i − target_i|² over positions (Umeyama, no scale)."""
-    mean_s, mean_t = source[:, :2].mean(axis=0), target[:, :2].mean(axis=0)
-    a, b = source[:, :2] - mean_s, target[:, :2] - mean_t
-    angle = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]),
-                       np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
-    c, s = np.cos(angle), np.sin(angle)
-    shift = mean_t - np.array([c * mean_s[0] - s * mean_s[1], s * mean_s[0] + c * mean_s[1]])
-    return np.array([shift[0], shift[1], angle])
-
-
 @dataclass(frozen=True, eq=False)
 class Mapped:
     """One log mapped whole and its first half mapped alone (shared by (a) and (b))."""
@@ -300,7 +289,7 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
         carried = reference
     else:
         map_poses = first_keyframes
-        to_map = rigid_alignment(full_keyframes[:shared], first_keyframes)
+        to_map = se2.rigid_fit(full_keyframes[:shared], first_keyframes)
         reference = se2.compose(to_map, reference)
         residual = np.hypot(*(se2.compose(to_map, full_keyframes[:shared])[:, :2] - first_keyframes[:, :2]).T)
     second = without_origin(scans[half:])
@@ -433,7 +422,7 @@ def continue_agreement_row(name: str, mapped: Mapped) -> tuple[str, ...]:
     reference = full.scan_poses(mapped.full_keyframes)
     _, in_full, in_joint = np.intersect1d(full.scan_stamps_ns, joint.scan_stamps_ns, return_indices=True)
     poses = joint.scan_poses(joint_keyframes)[in_joint]
-    moved = se2.compose(rigid_alignment(poses, reference[in_full]), poses)
+    moved = se2.compose(se2.rigid_fit(poses, reference[in_full]), poses)
     errors = np.hypot(*(moved[:, :2] - reference[in_full, :2]).T)
     old = mapped.first.graph.num_poses
     graph = joint.graph

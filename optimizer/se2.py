@@ -142,3 +142,16 @@ def compose_chain(steps: FloatArray, start: FloatArray | None = None) -> FloatAr
     poses[1:, 1] = y0 + np.cumsum(dy)
     poses[:, 2] = wrap_angle(theta)
     return poses
+
+
+def rigid_fit(source: FloatArray, target: FloatArray) -> FloatArray:
+    """The pose T minimising Σ |T·p_i − q_i|² over the positions p_i of `source` and q_i of `target`
+    ((N, 2+) each, headings ignored): the least-squares rigid alignment (Umeyama's, without scale)."""
+    source, target = np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    mean_s, mean_t = source[:, :2].mean(axis=0), target[:, :2].mean(axis=0)
+    a, b = source[:, :2] - mean_s, target[:, :2] - mean_t
+    angle = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]),
+                       np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+    c, s = np.cos(angle), np.sin(angle)
+    shift = mean_t - np.array([c * mean_s[0] - s * mean_s[1], s * mean_s[0] + c * mean_s[1]])
+    return np.array([shift[0], shift[1], angle])

@@ -70,7 +70,7 @@ def solve_with_map_held(graph: PoseGraph, held_poses: FloatArray) -> HeldMapSolu
     nodes_from = np.concatenate([np.zeros(int(crossing.sum()), dtype=np.int64), edge_from[new] - held + 1])
     nodes_to = np.concatenate([edge_to[crossing], edge_to[new]]) - held + 1
     information = np.concatenate([graph.information[crossing], graph.information[new]])
-    onto_map = _rigid_fit(graph.poses[:held], held_poses)
+    onto_map = se2.rigid_fit(graph.poses[:held], held_poses)
     start = np.vstack([np.zeros((1, 3)), se2.compose(onto_map, graph.poses[held:])])
     reduced = PoseGraph.build(np.arange(len(start)), start, nodes_from, nodes_to, measurements, information,
                               check_information=False)
@@ -134,14 +134,3 @@ def held_map_trajectory(held: HeldMapScans, stamps_ns: IntArray, located: FloatA
         return HeldMapTrajectory(poses, float("nan"), False)
     apart = float(np.median(np.hypot(*(poses[both, :2] - located[both, :2]).T)))
     return HeldMapTrajectory(poses, apart, held.converged and apart <= HELD_MAP_AGREEMENT)
-
-
-def _rigid_fit(source: FloatArray, target: FloatArray) -> FloatArray:
-    """The SE(2) transform T minimising Σ |T·source_i − target_i|² over the positions (Umeyama, no scale)."""
-    mean_source, mean_target = source[:, :2].mean(axis=0), target[:, :2].mean(axis=0)
-    a, b = source[:, :2] - mean_source, target[:, :2] - mean_target
-    angle = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]),
-                       np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
-    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
-    shift = mean_target - rotation @ mean_source
-    return np.array([shift[0], shift[1], angle])
