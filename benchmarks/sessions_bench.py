@@ -282,6 +282,7 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     if not np.array_equal(full.scan_keyframes[:half], first.scan_keyframes):
         raise SystemExit(f"{name}: the full run's first half made other keyframes than the half run")
     reference = full.scan_poses(full_keyframes)[half:]
+    in_full_frame = reference
     carried, near_map = carried_into_map(reference, full_keyframes[:shared], first_keyframes)
     if full_run_poses:
         map_poses = full_keyframes[:shared]
@@ -311,10 +312,13 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     smoothed_errors[localized] = np.hypot(*(smoothed.poses[localized, :2] - reference[localized, :2]).T)
     given_errors = np.full(len(second), np.nan)
     given_errors[localized] = np.hypot(*(given[localized, :2] - reference[localized, :2]).T)
+    # As `evo_ape -a` measures it: the trajectory moved onto the reference by its own best fit.
+    scored = localized & settled
+    onto_full = se2.rigid_fit(given[scored], in_full_frame[scored])
+    self_aligned = np.hypot(*(se2.compose(onto_full, given[scored])[:, :2] - in_full_frame[scored, :2]).T)
     first_fix = next((r.index for r in results if r.global_fix), -1)
     fix_seconds = (stamps[first_fix] - stamps[0]) * 1e-9 if first_fix >= 0 else float("nan")
     # Where the first half saw the place well: the reference pose puts the scan on the map's walls.
-    scored = localized & settled
     localizer = localized_run.localizer
     covered = map_fit(localizer.map.grid, second, reference, localizer.config.matching.max_range)[scored]
     covered = covered >= COVERED_FIT
@@ -326,6 +330,7 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
     shares = [f"{100 * (state & settled).sum() / settled.sum():.1f}" for state in states.values()]
     return (name, "full-run poses" if full_run_poses else "half map", f"{len(second)}", f"{fix_seconds:.1f}",
             f"{100 * localized[settled].mean():.1f}", error_figures(given_errors[scored]),
+            error_figures(self_aligned),
             f"{'yes' if held.agrees else 'no'} ({held.apart:.3f})", *shares, error_figures(errors[scored]),
             *(error_figures(errors[state & settled]) for state in states.values()),
             error_figures(smoothed_errors[scored]),
@@ -363,6 +368,7 @@ def error_figures(errors: FloatArray) -> str:
 LOCALIZATION_HEADER = (
     "| log | map | scans | first fix after (s) | localized after 10 s (%) "
     "| error, as replay gives it (held map, else smoothed): median / 95 % (m) "
+    "| the same, aligned on itself (evo_ape -a) (m) "
     "| held map given (median distance from the map matches, m) | map-matched (%) "
     "| tracked on the rolling map (%) | predicted by odometry (%) | error, localized: median / 95 % (m) "
     "| map-matched (m) | tracked (m) | predicted (m) "

@@ -16,7 +16,7 @@ import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,6 +28,9 @@ from optimizer.solve import OptimizationResult, optimize
 from pipeline import recording
 from pipeline.recording import IterationSink
 from pipeline.replay_graph import optimization_recorder, record_optimization
+
+if TYPE_CHECKING:
+    from frontends.slam2d.held_map import HeldMapProblem, HeldMapSolution, HeldMapSolver
 
 IterationCallback = Callable[[Iteration], None]
 
@@ -60,6 +63,8 @@ def optimize_keyframes(
     keyframe_scans: Sequence[NDArray[np.float64]] | None = None,
     wheel_odometry: NDArray[np.float64] | None = None,
     on_final: Callable[[NDArray[np.float64]], None] | None = None,
+    first_recorded: int = 0,
+    walls_color: tuple[int, ...] = recording.MAP_COLOR,
 ) -> KeyframeOptimization:
     """Optimize `from_odometry`'s constraints with `method` from the odometry and the online estimates
     (and first from `wheel_odometry`, (K, 3) keyframe poses, when given), logging every iteration of each
@@ -67,16 +72,19 @@ def optimize_keyframes(
     estimates. With `keyframe_scans` (each keyframe's 2D points in its own frame) the walls are recorded
     moving with the keyframes, and the blueprint frames the final map. `on_final` gets the final poses
     before the recording of the iterations is flushed (sending the moving walls: 0.2 s on UAL), so that
-    the map can be made meanwhile."""
+    the map can be made meanwhile. Poses before `first_recorded` are optimized but neither recorded nor
+    returned (a held map's origin, `held_map_solver`); the walls are drawn in `walls_color`."""
     started = time.perf_counter()
     first_start = from_odometry.poses if wheel_odometry is None else wheel_odometry
     recording.log_run_properties(stream, {
         "method": method,
-        "keyframes": from_odometry.num_poses,
+        "keyframes": from_odometry.num_poses - first_recorded,
         "constraints": from_odometry.num_edges,
         "loop_closures": int((~from_odometry.is_odometry).sum()),
     }, name=recording.OPTIMIZATION_PROPERTY)
     sinks: list[IterationSink] = [] if sink is None else [sink]
+    if keyframe_scans is not None:
+        keyframe_scans = keyframe_scans[first_recorded:]
     legend, still_move = None, None
     if keyframe_scans is not None:
         # Imported here: the 2D map's recording builds on the laser frontend, which clouds never load.
@@ -84,8 +92,9 @@ def optimize_keyframes(
 
         # Log replays draw the trajectory only when it moved as much as the walls must to be redrawn.
         legend, still_move = scans.LEGEND_ROWS, map2d.SHOWN_MOVE
-        sinks.append(map2d.KeyframeMapRecorder(stream, keyframe_scans))
-    recorder = optimization_recorder(stream, from_odometry, first_start, legend=legend, still_move=still_move)
+        sinks.append(map2d.KeyframeMapRecorder(stream, keyframe_scans, walls_color))
+    recorder = optimization_recorder(stream, _recorded_part(from_odometry, first_recorded),
+                                     first_start[first_recorded:], legend=legend, still_move=still_move)
     starts = {"odometry": from_odometry.poses, "online": online.poses}
     if wheel_odometry is not None:
         starts = {WHEEL_ODOMETRY_START: np.asarray(wheel_odometry, dtype=np.float64), **starts}
@@ -96,7 +105,7 @@ def optimize_keyframes(
         method, iterations, robust = CHAIN_METHOD, None, None
     optimization = optimize(from_odometry, method=method, iterations=iterations, starts=starts,
                             robust=robust)
-    run = record_optimization(optimization, recorder, sinks, on_iteration, on_final)
+    run = record_optimization(optimization, recorder, sinks, on_iteration, on_final, first_recorded)
     if keyframe_scans is not None:
         bounds = map2d.placed_bounds(keyframe_scans, run.final_poses)
         recording.send_blueprint(stream, scans.log_replay_blueprint(bounds))
@@ -106,6 +115,35 @@ def optimize_keyframes(
     if chain:
         result = dataclasses.replace(result, reason=f"{CHAIN_REASON} ({result.reason})")
     return KeyframeOptimization(trace, run.final_poses, result, record_seconds)
+
+
+def _recorded_part(graph: PoseGraph, first: int) -> PoseGraph:
+    """`graph` from pose `first` on, with the constraints among those poses."""
+    if first == 0:
+        return graph
+    kept = (graph.edge_from >= first) & (graph.edge_to >= first)
+    return PoseGraph(graph.poses[first:], graph.edge_from[kept] - first, graph.edge_to[kept] - first,
+                     graph.measurements[kept], graph.information[kept], graph.vertex_ids[first:])
+
+
+def held_map_solver(stream: Any, method: str, iterations: int | None,
+                    on_iteration: IterationCallback | None = None, robust: str | None = None,
+                    walls_color: tuple[int, ...] = recording.MAP_COLOR) -> HeldMapSolver:
+    """A `frontends.slam2d.held_map.HeldMapSolver` that optimizes as a replay's keyframe graph is
+    optimized, from the odometry chain and the online estimate, and records every iteration of the new
+    keyframes: their walls (in `walls_color`) moving into the saved map (its origin, pose 0, left out)."""
+
+    def solve(problem: HeldMapProblem) -> HeldMapSolution:
+        from frontends.slam2d.held_map import HeldMapSolution  # the laser frontend: clouds never load it
+
+        starts = problem.starts()
+        optimized = optimize_keyframes(
+            stream, problem.graph.with_poses(starts["odometry"]), problem.graph.with_poses(starts["online"]),
+            method, iterations, on_iteration, robust=robust, keyframe_scans=problem.keyframe_scans,
+            first_recorded=1, walls_color=walls_color)
+        return HeldMapSolution(optimized.poses, optimized.result.converged)
+
+    return solve
 
 
 CHAIN_METHOD = "gn"

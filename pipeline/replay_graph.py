@@ -204,11 +204,12 @@ def optimization_recorder(stream: Any, graph: PoseGraph, initial_poses: NDArray[
 def record_optimization(optimization: Optimization, recorder: recording.IterationRecorder,
                         sinks: Sequence[recording.IterationSink] = (),
                         on_iteration: ProgressCallback | None = None,
-                        on_final: Callable[[NDArray[np.float64]], None] | None = None
-                        ) -> RecordedOptimization:
+                        on_final: Callable[[NDArray[np.float64]], None] | None = None,
+                        first_recorded: int = 0) -> RecordedOptimization:
     """Run `optimization`, adding every iteration to `recorder` and `sinks` (flushed at the end) and
     passing it to `on_iteration`, timing the optimizer apart from the rest. `on_final` gets the final
-    poses as soon as the last iteration is known, before the recorder and the sinks are flushed."""
+    poses as soon as the last iteration is known, before the recorder and the sinks are flushed. Poses
+    before `first_recorded` are left out of all of it (and of the final poses): a held map's origin."""
     started = time.perf_counter()
     trace: list[IterationRecord] = []
     optimize_time: dict[str, float] = {}
@@ -220,6 +221,8 @@ def record_optimization(optimization: Optimization, recorder: recording.Iteratio
         if iteration is None:
             break
         stage_seconds = time.perf_counter() - step_started
+        if first_recorded:
+            iteration = dataclasses.replace(iteration, poses=iteration.poses[first_recorded:])
         optimize_time[iteration.stage] = optimize_time.get(iteration.stage, 0.0) + stage_seconds
         step = recorder.add(iteration)
         for sink in sinks:

@@ -20,7 +20,9 @@ point-cloud sessions):
   ContinuingLidarFrontend`); everything else is as above, and the trajectory, the graph, the map and the
   new session hold both runs;
 - `map`: localization only (`LocalizingLaserFrontend`, `LocalizingLidarFrontend`): the measurements
-  stream through the localizer and the recording as in step 2, nothing is optimized, and the outputs are
+  stream through the localizer and the recording as in step 2; the saved map's keyframes are not optimized
+  (of scans, the run's own keyframe graph is, with them held: `frontends.slam2d.held_map`, recorded as in
+  step 3 by `held_map_solver`), and the outputs are
   `<stem>.tum` (and `<stem>.kitti` for clouds: the measurements placed in the saved map, in its frame),
   `<stem>.json` (per-measurement match quality, `localization_summary`) and `<stem>.rrd` (the saved map
   with the new run on it); the saved map is not changed or written again.
@@ -52,7 +54,12 @@ from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, OptimizationResult
 from pipeline import recording
 from pipeline.errors import PipelineError
-from pipeline.keyframe_optimization import KeyframeOptimization, optimize_keyframes, wheel_odometry_start
+from pipeline.keyframe_optimization import (
+    KeyframeOptimization,
+    held_map_solver,
+    optimize_keyframes,
+    wheel_odometry_start,
+)
 from pipeline.map_files import map_server_pgm, map_server_yaml, picture_with_scale_bar
 from pipeline.outputs import (
     json_text,
@@ -189,6 +196,9 @@ class _Sensor:
     """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
     kitti_poses: bool = False
     """Also write the trajectory as KITTI poses (`<stem>.kitti`: 3×4 matrices, one line per measurement)."""
+    held_map_walls_color: tuple[int, ...] | None = None
+    """Its localization solves the run's own keyframe graph with the saved map held (`held_map_solver`):
+    that optimization is recorded, the new keyframes' walls in this colour."""
 
 
 @functools.cache
@@ -197,7 +207,7 @@ def _scan_sensor() -> _Sensor:
     # frontend's compiled kernels (0.3 s of start-up), nor a laser replay the 3D one.
     from frontends.slam2d import LaserFrontend
     from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
-    from pipeline.recording.scans import MapLocalizationRecording, ScanReplayRecording
+    from pipeline.recording.scans import NEW_RUN_WALLS_COLOR, MapLocalizationRecording, ScanReplayRecording
 
     return _Sensor(LaserFrontend, ScanReplayRecording, (
         _MapFile("map_png", "_map.png", lambda path, grid: write_png(path, picture_with_scale_bar(grid))),
@@ -205,7 +215,8 @@ def _scan_sensor() -> _Sensor:
         # The YAML names the PGM beside it, which only its suffix tells apart.
         _MapFile("map_yaml", "_map.yaml",
                  lambda path, grid: write_text(path, map_server_yaml(grid, path.with_suffix(".pgm").name))),
-    ), saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend, MapLocalizationRecording)
+    ), saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend, MapLocalizationRecording,
+        held_map_walls_color=NEW_RUN_WALLS_COLOR)
 
 
 @functools.cache
@@ -423,6 +434,10 @@ class _Run:
             stream = recording.create_recording(staged["rrd"], name=self.path.name,
                                                 with_map=sensor.recording.with_map)
             try:
+                if localizing and sensor.held_map_walls_color is not None:
+                    cast("LocalizingLaserFrontend", frontend).held_map_solver = held_map_solver(
+                        stream, self.method, self.iterations, self.on_iteration, self.robust,
+                        sensor.held_map_walls_color)
                 recorder = (sensor.localization_recording if localizing else sensor.recording)(
                     stream, frontend)  # type: ignore[arg-type]
                 result = self.through(frontend, topic, recorder, stream, timings, beside,

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -140,7 +141,6 @@ def test_map_localizes_a_log_in_the_saved_map_without_an_initial_pose(logs: Logs
     assert score.steps == matched
     np.testing.assert_allclose([row[0] for row in score.columns["Scalars:scalars"]],
                                [per_scan["score"][k] for k in matched], atol=1e-3)
-    assert "/optimizer/log10_chi2" not in entities  # nothing is optimized, no empty χ² plot
 
 
 def test_map_with_an_initial_pose_tracks_from_the_first_scan(logs: Logs, tmp_path: Path) -> None:
@@ -197,6 +197,31 @@ def test_map_writes_the_held_map_trajectory_and_keeps_the_online_states(logs: Lo
     worst = position_errors(poses, truth).max()
     assert worst < MAP_TOLERANCE
     assert worst < position_errors(online, truth).max(), "nearer the truth at its worst than the online poses"
+
+
+def test_map_records_the_held_map_solve_iteration_by_iteration(logs: Logs, tmp_path: Path) -> None:
+    """The recording plays the run's own keyframe graph solved with the saved map held on `iteration`, as a
+    log replay plays its optimization: the new keyframes' walls and trajectory move from the odometry chain
+    to where they end, which is where the written trajectory puts them; the saved map is static."""
+    start = logs.in_map_frame(logs.second_truth[0])
+    pipeline.replay(logs.second, out_dir=tmp_path, map=logs.session, initial_pose=tuple(start))
+    _, poses = tum_poses(tmp_path / "second.tum")
+    counts = json.loads((tmp_path / "second.json").read_text())["counts"]
+    entities = read_recording(tmp_path / "second.rrd")
+    assert entities["/world/saved_map"].static_rows == 1 and not entities["/world/saved_map"].steps
+    keyframes = sorted(path for path in entities if re.fullmatch(r"/world/keyframes/k\d{6}", path))
+    assert len(keyframes) == counts["held_map_keyframes"] > 1
+    assert all(entities[f"{path}/scan"].steps for path in keyframes), "each new keyframe's walls"
+    # A keyframe is the scan that made it: its last recorded pose is one of the poses written.
+    ends = np.array([entities[path].columns["Transform3D:translation"][-1][0][:2] for path in keyframes])
+    nearest = np.hypot(*(ends[:, None, :] - poses[None, :, :2]).transpose(2, 0, 1)).min(axis=1)
+    assert nearest.max() < 1e-4
+    trajectory = entities["/world/trajectory"]
+    first, last = (np.array(trajectory.columns["LineStrips2D:strips"][k][0]) for k in (0, -1))
+    assert len(first) == len(last) == len(keyframes)
+    assert np.abs(first - last).max() > 0.01, "the odometry chain, then the optimum: the keyframes moved"
+    chi2 = [row[0] for row in entities["/optimizer/log10_chi2"].columns["Scalars:scalars"]]
+    assert chi2[-1] < chi2[0]
 
 
 def test_map_keeps_the_scan_by_scan_trajectory_when_the_held_map_solution_disagrees(

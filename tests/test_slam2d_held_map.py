@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from frontends.errors import FrontendError
-from frontends.slam2d.held_map import solve_with_map_held
+from frontends.slam2d.held_map import held_map_problem, solve_held_map, solve_with_map_held
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints
 from frontends.slam2d.slam import LaserSlam2D
 from optimizer import se2
@@ -95,6 +95,29 @@ def test_the_saved_map_stays_where_it_was_saved_when_the_new_run_disagrees_with_
         pass
     np.testing.assert_allclose(held, tied_run.result.poses[SAVED + 1:], atol=1e-5)
     assert np.abs(held[:, :2] - free.result.poses[SAVED:, :2]).max() > 0.01, "not the free solution"
+
+
+def test_the_odometry_start_chains_the_new_keyframes_from_the_first_ones_online_pose() -> None:
+    """The held-map problem's poor start: each new keyframe reached from the one before by the constraint
+    between them (the first of two, as the SLAM adds its odometry first), from the first new keyframe's
+    online pose; the loop closures and the map play no part in it."""
+    poses = truth(seed=3)
+    edge_from, edge_to = edges()
+    first_new = np.flatnonzero(edge_from == SAVED)[0]
+    edge_from = np.insert(edge_from, first_new + 1, SAVED)
+    edge_to = np.insert(edge_to, first_new + 1, SAVED + 1)
+    measurements = se2.relative(poses[edge_from], poses[edge_to])
+    measurements[first_new + 1] += np.array([0.3, 0.2, 0.1])  # a second one between the two: not chained
+    online = poses.copy()
+    online[SAVED:] = se2.compose(np.array([0.4, -0.2, 0.15]), poses[SAVED:])  # the saved map as saved
+    problem = held_map_problem(graph_of(poses, edge_from, edge_to, measurements, online), poses[:SAVED])
+
+    np.testing.assert_array_equal(problem.odometry_start[0], np.zeros(3))
+    np.testing.assert_allclose(problem.odometry_start[1], online[SAVED], atol=1e-12)
+    chained = se2.compose(online[SAVED], se2.relative(poses[SAVED], poses[SAVED:]))
+    np.testing.assert_allclose(problem.odometry_start[1:], chained, atol=1e-9)
+    assert problem.graph.num_poses == NEW + 1 and len(problem.keyframe_scans) == NEW + 1
+    assert solve_held_map(problem).converged
 
 
 def test_constraints_between_saved_keyframes_do_not_matter() -> None:

@@ -16,6 +16,7 @@ keyframes are dropped (nothing they tie can move).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,8 +28,9 @@ from optimizer import se2
 from optimizer.graph import PoseGraph
 from optimizer.solve import DEFAULT_METHOD, optimize
 
-__all__ = ["HELD_MAP_AGREEMENT", "HeldMapScans", "HeldMapSolution", "HeldMapTrajectory", "held_map_scans",
-           "held_map_trajectory", "solve_with_map_held"]
+__all__ = ["HELD_MAP_AGREEMENT", "HeldMapProblem", "HeldMapScans", "HeldMapSolution", "HeldMapSolver",
+           "HeldMapTrajectory", "held_map_problem", "held_map_scans", "held_map_trajectory", "odometry_chain",
+           "solve_held_map", "solve_with_map_held"]
 
 HELD_MAP_AGREEMENT = 0.5
 """The median distance (m) at most between the held-map poses and a localizer's own poses of the scans it
@@ -47,10 +49,34 @@ class HeldMapSolution:
     one)."""
 
 
-def solve_with_map_held(graph: PoseGraph, held_poses: FloatArray) -> HeldMapSolution:
-    """The poses of keyframes `len(held_poses)`… of the joint `graph` (its first keyframes the saved map's),
-    optimized with the saved keyframes at `held_poses`, from the graph's own estimate moved rigidly onto
-    them (the online estimate of a resumed SLAM, whose optimizations moved the saved keyframes too).
+@dataclass(frozen=True, eq=False)
+class HeldMapProblem:
+    """A joint graph with its saved keyframes held, as a graph of its own: node 0 is the saved map's origin
+    (held by the optimizer, as every graph's first pose), node i > 0 the i-th new keyframe."""
+
+    graph: PoseGraph
+    """Its estimate is the online one: the joint graph's, moved rigidly onto the held keyframes."""
+    odometry_start: FloatArray
+    """(1 + new, 3) the new keyframes chained by their odometry constraints alone from the first one's
+    online pose: what the run believed before any loop closure and any match with the map (the paper's
+    poor start)."""
+    keyframe_scans: tuple[FloatArray, ...]
+    """Each node's points in its own frame (the origin's none), for a recording of the walls."""
+
+    def starts(self) -> dict[str, FloatArray]:
+        """The starts optimized, as a keyframe graph's final optimization has them (`optimizer.solve`):
+        the lowest final χ² wins."""
+        return {"odometry": self.odometry_start, "online": self.graph.poses}
+
+
+HeldMapSolver = Callable[[HeldMapProblem], HeldMapSolution]
+"""What optimizes a `HeldMapProblem` (`solve_held_map`, or one that also records the iterations)."""
+
+
+def held_map_problem(graph: PoseGraph, held_poses: FloatArray,
+                     keyframe_scans: Sequence[FloatArray] = ()) -> HeldMapProblem:
+    """The joint `graph` (its first keyframes the saved map's) with the saved keyframes held at
+    `held_poses`; `keyframe_scans`, when given, are every keyframe's points (saved ones first).
 
     Raises `FrontendError` when a constraint runs from a new keyframe to a saved one, or when no constraint
     ties the new keyframes to the saved ones."""
@@ -64,20 +90,46 @@ def solve_with_map_held(graph: PoseGraph, held_poses: FloatArray) -> HeldMapSolu
     if not crossing.any():
         raise FrontendError("no constraint ties the new keyframes to the saved map")
     new = (edge_from >= held) & (edge_to >= held)
-    # Node 0 is the map's origin, node i > 0 new keyframe held + i − 1.
     measurements = np.concatenate([se2.compose(held_poses[edge_from[crossing]], graph.measurements[crossing]),
                                    graph.measurements[new]])
     nodes_from = np.concatenate([np.zeros(int(crossing.sum()), dtype=np.int64), edge_from[new] - held + 1])
     nodes_to = np.concatenate([edge_to[crossing], edge_to[new]]) - held + 1
     information = np.concatenate([graph.information[crossing], graph.information[new]])
     onto_map = se2.rigid_fit(graph.poses[:held], held_poses)
-    start = np.vstack([np.zeros((1, 3)), se2.compose(onto_map, graph.poses[held:])])
-    reduced = PoseGraph.build(np.arange(len(start)), start, nodes_from, nodes_to, measurements, information,
+    online = np.vstack([np.zeros((1, 3)), se2.compose(onto_map, graph.poses[held:])])
+    reduced = PoseGraph.build(np.arange(len(online)), online, nodes_from, nodes_to, measurements, information,
                               check_information=False)
-    run = optimize(reduced, method=DEFAULT_METHOD, starts={"online": start})
+    scans = tuple(keyframe_scans[held:]) if len(keyframe_scans) else ((np.zeros((0, 2)),) * (len(online) - 1))
+    return HeldMapProblem(reduced, odometry_chain(reduced), (np.zeros((0, 2)), *scans))
+
+
+def odometry_chain(reduced: PoseGraph) -> FloatArray:
+    """The new keyframes (nodes 1…) chained by the constraints from each to the next, from node 1's pose
+    (the online motion where a step has no constraint); node 0, the origin, stays."""
+    poses = reduced.poses
+    steps = se2.relative(poses[1:-1], poses[2:])
+    forward = (reduced.edge_from >= 1) & (reduced.edge_to == reduced.edge_from + 1)
+    # The first constraint of each step, as the SLAM added it (its scan-matched odometry).
+    order = np.argsort(reduced.edge_from[forward], kind="stable")
+    step_of, first = np.unique(reduced.edge_from[forward][order] - 1, return_index=True)
+    steps[step_of] = reduced.measurements[forward][order][first]
+    return np.vstack([poses[:1], se2.compose_chain(steps, start=poses[1])])
+
+
+def solve_held_map(problem: HeldMapProblem) -> HeldMapSolution:
+    """`problem` optimized by the default method from its starts (`HeldMapProblem.starts`)."""
+    run = optimize(problem.graph, method=DEFAULT_METHOD, starts=problem.starts())
     for _ in run:
         pass
     return HeldMapSolution(np.array(run.result.poses[1:]), run.result.converged)
+
+
+def solve_with_map_held(graph: PoseGraph, held_poses: FloatArray,
+                        solver: HeldMapSolver = solve_held_map) -> HeldMapSolution:
+    """The poses of keyframes `len(held_poses)`… of the joint `graph` (its first keyframes the saved map's),
+    optimized by `solver` with the saved keyframes at `held_poses` (`held_map_problem`: raises
+    `FrontendError` when they cannot be held)."""
+    return solver(held_map_problem(graph, held_poses))
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,12 +147,13 @@ class HeldMapScans:
     """The constraints tying them to the saved keyframes (the placement's included)."""
 
 
-def held_map_scans(resumed: ResumedSlam2D, held_poses: FloatArray) -> HeldMapScans:
+def held_map_scans(resumed: ResumedSlam2D, held_poses: FloatArray,
+                   solver: HeldMapSolver = solve_held_map) -> HeldMapScans:
     """`resumed` (resumed on the saved keyframes at `held_poses`) finished, and its new scans posed by
-    `solve_with_map_held`. Raises `MapPlacementError` when the run was never placed."""
+    `solver`. Raises `MapPlacementError` when the run was never placed."""
     held_poses = np.asarray(held_poses, dtype=np.float64).reshape(-1, 3)
     joint = resumed.finish()
-    solution = solve_with_map_held(joint.graph, held_poses)
+    solution = solver(held_map_problem(joint.graph, held_poses, joint.keyframe_scans))
     keyframes = np.vstack([held_poses, solution.poses])
     graph, held = joint.graph, len(held_poses)
     crossing = int(np.sum((graph.edge_from < held) & (graph.edge_to >= held)))

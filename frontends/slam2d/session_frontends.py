@@ -49,7 +49,14 @@ from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.deskew import along_motion, interpolated
 from frontends.slam2d.frontend import LaserFrontend
-from frontends.slam2d.held_map import HELD_MAP_AGREEMENT, HeldMapScans, held_map_scans, held_map_trajectory
+from frontends.slam2d.held_map import (
+    HELD_MAP_AGREEMENT,
+    HeldMapScans,
+    HeldMapSolver,
+    held_map_scans,
+    held_map_trajectory,
+    solve_held_map,
+)
 from frontends.slam2d.localization import LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
@@ -217,6 +224,8 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
                                         self.config, placed_by_caller=True)
         """The run's own SLAM on the saved keyframe graph, placed by `_localizer` (`frontends.slam2d.
         held_map`)."""
+        self.held_map_solver: HeldMapSolver = solve_held_map
+        """What optimizes the held map's graph in `finish` (a replay's also records its iterations)."""
         self._held_map: HeldMapScans | None = None
         self._held_map_apart = float("nan")
         """The median distance (m) between the held-map poses and the localizer's matched ones."""
@@ -306,12 +315,18 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self._crossings = checked_wall_crossings(self._log.path, "scans", poses[:, :2],
                                                  self.map_export(self.saved.keyframe_poses))
 
+    @property
+    def held_map_solved(self) -> bool:
+        """Whether `finish` solved the run's own keyframe graph with the saved map held (the run was
+        placed), whether or not its trajectory was given."""
+        return self._held_map is not None
+
     def _held_map_poses(self, online: FloatArray, matched: BoolArray) -> FloatArray | None:
         """(S, 3) each scan's pose by the held-map solution (NaN before the run was placed), or None when
         there is none to give: the run never placed, or the solution does not agree with the localizer's
         map matches (`held_map_trajectory`; a warning says when it lies too far from them)."""
         try:
-            self._held_map = held_map_scans(self._held, self.saved.keyframe_poses)
+            self._held_map = held_map_scans(self._held, self.saved.keyframe_poses, self.held_map_solver)
         except MapPlacementError:
             return None
         trajectory = held_map_trajectory(self._held_map, np.array(self._stamps, dtype=np.int64), online,

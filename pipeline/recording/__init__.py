@@ -293,7 +293,8 @@ def map_view(
 
 def default_blueprint(
     *, bounds: Bounds | None = None, hidden: Sequence[str] = (), extra_tabs: Sequence[rrb.View] = (),
-    excluded: Sequence[str] = (), timeline: str = ITERATION_TIMELINE, side: Sequence[rrb.View] | None = None,
+    excluded: Sequence[str] = (), timeline: str = ITERATION_TIMELINE,
+    side: Sequence[rrb.View | rrb.Tabs] | None = None,
 ) -> rrb.Blueprint:
     """The map and graph in 2D (tabs: `extra_tabs` beside it) beside the `side` views (by default the χ²
     plot and the stage log) and the legend; the time panel on `timeline`."""
@@ -310,7 +311,7 @@ def chi2_views() -> list[rrb.View]:
             rrb.TextLogView(origin=STAGE_ENTITY, name="stages")]
 
 
-def layout(main: rrb.View | rrb.Tabs, side: Sequence[rrb.View], *, row_shares: Sequence[int],
+def layout(main: rrb.View | rrb.Tabs, side: Sequence[rrb.View | rrb.Tabs], *, row_shares: Sequence[int],
            column_shares: Sequence[int] = (3, 1), timeline: str = ITERATION_TIMELINE,
            play_state: Literal["following", "paused", "playing"] | None = "following") -> rrb.Blueprint:
     """`main` beside a column of the `side` views over the legend; the time panel on `timeline`, the side

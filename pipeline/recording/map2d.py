@@ -113,9 +113,11 @@ class KeyframeMapRecorder(PoseBatches):
 
     Used as the `IterationSink` of `pipeline.keyframe_optimization.optimize_keyframes`."""
 
-    def __init__(self, recording: rr.RecordingStream, scans: Sequence[FloatArray]) -> None:
+    def __init__(self, recording: rr.RecordingStream, scans: Sequence[FloatArray],
+                 color: tuple[int, ...] = MAP_COLOR) -> None:
         super().__init__(recording)
         self._scans = scans
+        self._color = color
         self._scans_logged = False
         self._last_sent: NDArray[np.float64] = np.full((len(scans), 3), np.nan)
 
@@ -131,7 +133,7 @@ class KeyframeMapRecorder(PoseBatches):
         # `rr.Points2D`'s components, the style's built once: the archetype validated every field of each
         # of a thousand keyframes' scans.
         radii = rr.components.RadiusBatch([MAP_POINT_RADIUS]).described(rr.Points2D.descriptor_radii())
-        colors = rr.components.ColorBatch([MAP_COLOR]).described(rr.Points2D.descriptor_colors())
+        colors = rr.components.ColorBatch([self._color]).described(rr.Points2D.descriptor_colors())
         draw_order = rr.components.DrawOrderBatch([MAP_DRAW_ORDER]).described(
             rr.Points2D.descriptor_draw_order())
         for index, scan in enumerate(self._scans):

@@ -27,16 +27,20 @@ from frontends.slam2d import LaserFrontend, OccupancyGrid, ScanEstimate, ScanInB
 from frontends.slam2d.session_frontends import LocalizingLaserFrontend
 from optimizer import se2
 from pipeline.recording import (
+    INITIAL_TRAJECTORY_COLOR,
+    ITERATION_TIMELINE,
     MAP_COLOR,
     MAP_DRAW_ORDER,
     MAP_POINT_RADIUS,
     MATCH_QUALITY_ENTITY,
     SCAN_TIMELINE,
     TIME_TIMELINE,
+    TRAJECTORY_COLOR,
     VIEWER_BACKGROUND,
     Bounds,
     FloatArray,
     IterationSink,
+    chi2_views,
     default_blueprint,
     log_legend,
     log_static_trajectory,
@@ -225,6 +229,16 @@ LOCALIZATION_LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
     "scan playback": (SCAN_COLOR, "tab: the new scans up to the cursor on `scan`/`time` at "
                                   "their poses when processed, robot trail (green)"),
 }
+NEW_RUN_WALLS_COLOR = SCAN_COLOR
+"""The new run's keyframe scans moving into the saved map (`--map`): the colour of its scans played back."""
+HELD_MAP_LEGEND_ROWS: dict[str, tuple[tuple[int, ...], str]] = {
+    "new run": (TRAJECTORY_COLOR, "on `iteration`: the new run's keyframes at that iteration of its graph "
+                                  "solved with the saved map held"),
+    "new walls": (NEW_RUN_WALLS_COLOR, "their scans at those poses"),
+    "start": (INITIAL_TRAJECTORY_COLOR, "the new run's odometry chain, the optimization's first start"),
+}
+HELD_MAP_NOTE = ("\nThe time panel's `iteration` plays the new run's keyframe graph solved with the saved "
+                 "map held, from each start; the trajectory written is the orange one.")
 
 
 def log_saved_map(recording: rr.RecordingStream, keyframe_scans: Sequence[FloatArray],
@@ -253,8 +267,11 @@ class MapLocalizationRecording(ScanReplayRecording):
     - `world/final_trajectory` (static): every localized scan's pose, drawn by default here.
     - `localization/score` and `localization/inlier_fraction` on `scan`: how well each matched scan fit the
       saved map (nothing for a scan whose pose is only the odometry's prediction).
-    The blueprint frames the saved map and the new trajectory and plots the match quality where a log
-    replay plots χ²; nothing is optimized, so there is no `iteration` timeline.
+    The blueprint frames the saved map and the new trajectory and plots the match quality beside χ². When
+    the run's own keyframe graph was solved with the saved map held (`frontends.slam2d.held_map`), its
+    iterations are on `iteration` as a log replay's (`pipeline.keyframe_optimization.held_map_solver`:
+    the new keyframes' walls moving into the saved map, which stays where it is), and the time panel opens
+    on it; otherwise on `scan`.
     """
 
     def __init__(self, recording: rr.RecordingStream, frontend: LocalizingLaserFrontend) -> None:
@@ -266,10 +283,16 @@ class MapLocalizationRecording(ScanReplayRecording):
         log_saved_map(self._recording, self._saved_scans, planar_poses)
         map2d.log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)
         log_final_trajectory(self._recording, estimates)
-        log_legend(self._recording, rows=LOCALIZATION_LEGEND_ROWS, note="")
+        held_map = self._localizer.held_map_solved
+        log_legend(self._recording, HELD_MAP_LEGEND_ROWS if held_map else None, rows=LOCALIZATION_LEGEND_ROWS,
+                   note=HELD_MAP_NOTE if held_map else "")
         bounds = map2d.placed_bounds(self._saved_scans, planar_poses, estimates)
         send_match_quality(self._recording, self._localizer.localizations, MATCH_SERIES_2D)
+        match_quality = rrb.TimeSeriesView(origin=MATCH_QUALITY_ENTITY, name="match quality per scan (scan)")
+        # A plot shows the time panel's timeline only: χ² (on `iteration`) and the match quality (on `scan`)
+        # share a tab strip rather than leave one plot empty.
+        chi2, stages = chi2_views()
         send_blueprint(self._recording, default_blueprint(
             bounds=bounds, extra_tabs=playback_views(bounds), excluded=PLAYBACK_ENTITIES,
-            timeline=SCAN_TIMELINE,
-            side=[rrb.TimeSeriesView(origin=MATCH_QUALITY_ENTITY, name="match quality per scan")]))
+            timeline=ITERATION_TIMELINE if held_map else SCAN_TIMELINE,
+            side=[rrb.Tabs(chi2, match_quality), stages] if held_map else [match_quality]))
