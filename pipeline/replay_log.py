@@ -103,7 +103,9 @@ SUMMARY_SCHEMA = "sgdslam.replay-log/3"
 class FrontendRecording(Protocol):
     """A frontend's part of the recording, beside the optimization's (`pipeline.recording`): its
     measurements, its final map and what it adds to the optimization's iterations. A localization's
-    recording (nothing is optimized) is only told of the measurements and the final map."""
+    recording (the saved keyframes are not optimized) is only told of the measurements and the final map
+    (a laser run's own graph, solved in the frontend with the saved map held, records through
+    `held_map_solver`)."""
 
     def measurement(self, measurement: Any, estimate: Any) -> None: ...
 
@@ -294,7 +296,7 @@ class LogReplayResult:
     chi2_per_iteration: tuple[tuple[str, int, float], ...]
     optimization: OptimizationResult | None
     """How the keyframe optimization ended (converged, why, every start and the winner); None when
-    localizing in a saved map (nothing is optimized)."""
+    localizing in a saved map (its keyframes are not optimized; the held map's solve is in `counts`)."""
     wall_time: dict[str, float]
     outputs: ReplayOutputs
     counts: dict[str, int]
@@ -515,7 +517,7 @@ class _Run:
                 timings: dict[str, float], beside: _WrittenBeside,
                 on_map: Callable[[Any], None]) -> _Optimized:
         """Stream the measurements through the frontend and the recording, then optimize its keyframe graph
-        (localizing in a saved map: nothing is optimized, the map's keyframe poses stand), make the map
+        (localizing in a saved map: the map's keyframe poses stand), make the map
         (`beside`, from the final poses on), hand it to `on_map` and record all of it; `timings` gets the
         seconds of each stage."""
         count = self.stream(frontend, recorder, timings)
