@@ -124,12 +124,11 @@ def solve_held_map(problem: HeldMapProblem) -> HeldMapSolution:
     return HeldMapSolution(np.array(run.result.poses[1:]), run.result.converged)
 
 
-def solve_with_map_held(graph: PoseGraph, held_poses: FloatArray,
-                        solver: HeldMapSolver = solve_held_map) -> HeldMapSolution:
+def solve_with_map_held(graph: PoseGraph, held_poses: FloatArray) -> HeldMapSolution:
     """The poses of keyframes `len(held_poses)`… of the joint `graph` (its first keyframes the saved map's),
-    optimized by `solver` with the saved keyframes at `held_poses` (`held_map_problem`: raises
-    `FrontendError` when they cannot be held)."""
-    return solver(held_map_problem(graph, held_poses))
+    optimized with the saved keyframes at `held_poses` (`held_map_problem`: raises `FrontendError` when
+    they cannot be held; `solve_held_map`)."""
+    return solve_held_map(held_map_problem(graph, held_poses))
 
 
 @dataclass(frozen=True, eq=False)

@@ -267,11 +267,11 @@ class MapLocalizationRecording(ScanReplayRecording):
     - `world/final_trajectory` (static): every localized scan's pose, drawn by default here.
     - `localization/score` and `localization/inlier_fraction` on `scan`: how well each matched scan fit the
       saved map (nothing for a scan whose pose is only the odometry's prediction).
-    The blueprint frames the saved map and the new trajectory and plots the match quality beside χ². When
-    the run's own keyframe graph was solved with the saved map held (`frontends.slam2d.held_map`), its
-    iterations are on `iteration` as a log replay's (`pipeline.keyframe_optimization.held_map_solver`:
-    the new keyframes' walls moving into the saved map, which stays where it is), and the time panel opens
-    on it; otherwise on `scan`.
+    The blueprint frames the saved map and the new trajectory and plots the match quality. When the run's
+    own keyframe graph was solved with the saved map held (`frontends.slam2d.held_map`), its iterations
+    are on `iteration` as a log replay's (`pipeline.keyframe_optimization.held_map_solver`: the new
+    keyframes' walls moving into the saved map, which stays where it is), the time panel opens on it and
+    χ² shares a tab strip with the match quality; otherwise the time panel opens on `scan`.
     """
 
     def __init__(self, recording: rr.RecordingStream, frontend: LocalizingLaserFrontend) -> None:
