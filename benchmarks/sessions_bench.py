@@ -1,7 +1,7 @@
 """Benchmark of sessions (issue 13): localization in a saved map, and mapping continued from one.
 
     python benchmarks/sessions_bench.py [--shared ../shared] [--logs ACES CSAIL "mumble loop"]
-        [--extra LOG ...] [--skip-continue] [--beam-times-sweep SECONDS]
+        [--extra LOG ...] [--skip-continue] [--repeats N] [--beam-times-sweep SECONDS]
 
 (a) Localization. Each log is cut in two at its middle scan. The first half is mapped (LaserSlam2D, then
     the default optimizer from the odometry and the online estimates, as `replay` does); the second half is
@@ -40,7 +40,8 @@
     its reference pose scores ≥ 0.5 on the map: the split is the reference's, not the localizer's), with their
     share; global fixes and local re-acquisitions; scans per second of the whole localization (localizer, held
     SLAM, smoothing and held-map solve; global search included) over process CPU time and over wall time (the
-    two differ on a loaded machine: CPU time is the localization's own cost). Last, for the scans within 3 m
+    two differ on a loaded machine: CPU time is the localization's own cost; with `--repeats N` the fastest
+    of N runs). Last, for the scans within 3 m
     of a first-half keyframe: the reference carried into the map through that keyframe (its pose relative to
     the keyframe in the full run, applied to the keyframe's pose in the map: where the map's own walls put the
     scan), how far that lies from the rigidly aligned reference (the map's disagreement with the full run
@@ -274,7 +275,7 @@ def localize_as_replay(saved: Slam2DGraph, map_poses: FloatArray, scans: list[Lo
                         time.process_time() - started_cpu, smoothing_cpu, held_cpu)
 
 
-def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tuple[str, ...]:
+def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool, repeats: int = 1) -> tuple[str, ...]:
     scans, full, full_keyframes = mapped.scans, mapped.full, mapped.full_keyframes
     first, first_keyframes = mapped.first, mapped.first_keyframes
     half = len(scans) // 2
@@ -294,7 +295,9 @@ def localization_row(name: str, mapped: Mapped, *, full_run_poses: bool) -> tupl
         reference = se2.compose(to_map, reference)
         residual = np.hypot(*(se2.compose(to_map, full_keyframes[:shared])[:, :2] - first_keyframes[:, :2]).T)
     second = without_origin(scans[half:])
-    localized_run = localize_as_replay(first, map_poses, second)
+    # The same localization each time (deterministic): the fastest is its cost on a machine at rest.
+    localized_run = min((localize_as_replay(first, map_poses, second) for _ in range(repeats)),
+                        key=lambda run: run.cpu_seconds)
     results, smoothed, held, given = (localized_run.results, localized_run.smoothed, localized_run.held,
                                       localized_run.given)
     seconds, cpu_seconds = localized_run.seconds, localized_run.cpu_seconds
@@ -495,6 +498,8 @@ def main() -> None:
     parser.add_argument("--extra", nargs="+", type=Path, default=[],
                         help="other 2D logs, benchmarked as CSAIL is (named by their file stem)")
     parser.add_argument("--skip-continue", action="store_true")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="localize each second half this many times; the fastest (CPU) is reported")
     parser.add_argument("--beam-times-sweep", type=float, default=0.0,
                         help="diagnostic: give every scan beam times as if swept over this many seconds "
                              "(`with_assumed_sweep`)")
@@ -508,7 +513,7 @@ def main() -> None:
             print(LOCALIZATION_HEADER)
             print("|---" * LOCALIZATION_HEADER.count(" | ") + "|---|")
             for full_run_poses in (False, True):
-                row = localization_row(name, mapped, full_run_poses=full_run_poses)
+                row = localization_row(name, mapped, full_run_poses=full_run_poses, repeats=args.repeats)
                 print("| " + " | ".join(row) + " |", flush=True)
             print()
             if name == "ACES" and not args.skip_continue:
