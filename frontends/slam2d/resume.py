@@ -125,8 +125,6 @@ class ResumedSlam2D(LaserSlam2D):
             self._scan_offsets = [np.asarray(o, dtype=np.float64) for o in scans.offsets]
         self._waiting: list[_WaitingScan] = []
         self._local_map = None
-        self._local_map_only_new = False
-        """The local map holds only the new run's own keyframes, `local_map_keyframes` of them or more."""
         self.scans_unplaced = 0
         """New scans seen before the stretch that was placed, left out of the graph."""
         self.placement: LocalizedScan | None = None
@@ -203,26 +201,17 @@ class ResumedSlam2D(LaserSlam2D):
         self._pose_between(pose)
 
     def _extend_local_map(self) -> None:
-        """Built again at every keyframe while it holds old keyframes (which ones changes as the robot
-        moves); once the run's own recent keyframes fill it, extended in place as a mapping's own is
-        (`LaserSlam2D._extend_local_map`: a grid stamped anew at every keyframe was a fifth of a
-        localization's time)."""
-        if self._local_map_only_new:
-            super()._extend_local_map()
-        else:
-            self._rebuild_local_map()
+        """Built again at every keyframe: which old keyframes it holds changes as the robot moves."""
+        self._rebuild_local_map()
 
     def _rebuild_local_map(self) -> None:
         """Recent new keyframes, topped up with the old keyframes nearest the robot."""
-        self._local_map_only_new = False
         if len(self._keyframe_poses) <= self._old_count:
             self._local_map = None
             return
         wanted = self.config.keyframes.local_map_keyframes
         count = len(self._keyframe_poses)
         recent = list(range(max(self._old_count, count - wanted), count))
-        self._local_map_first = recent[0]
-        self._local_map_only_new = len(recent) >= wanted
         old = self._keyframe_rows.rows()[: self._old_count]
         distance = np.hypot(*(old[:, :2] - self._keyframe_poses[-1][:2]).T)
         reach = 2.0 * self.config.matching.max_range
