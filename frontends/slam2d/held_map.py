@@ -35,7 +35,7 @@ __all__ = ["HELD_MAP_AGREEMENT", "HeldMapProblem", "HeldMapScans", "HeldMapSolut
 HELD_MAP_AGREEMENT = 0.5
 """The median distance (m) at most between the held-map poses and a localizer's own poses of the scans it
 matched to the saved map, for the former to be given (`held_map_trajectory`). The second halves of ACES,
-CSAIL, FR079, Intel and the mumble loop in their first halves' maps: 0.011–0.032 m
+CSAIL, FR079, Intel and the mumble loop in their first halves' maps: 0.011–0.033 m
 (`benchmarks/sessions_bench.py`); 0.5 m off, the two placed the run differently (a look-alike place), and
 the one matched scan by scan is the one to keep."""
 
