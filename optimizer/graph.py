@@ -91,6 +91,14 @@ class PoseGraph:
         return PoseGraph(poses, self.edge_from, self.edge_to, self.measurements, self.information,
                          self.vertex_ids)
 
+    def from_pose(self, first: int) -> PoseGraph:
+        """The poses from `first` on, with the constraints among them (renumbered from 0)."""
+        if first == 0:
+            return self
+        kept = (self.edge_from >= first) & (self.edge_to >= first)
+        return PoseGraph(self.poses[first:], self.edge_from[kept] - first, self.edge_to[kept] - first,
+                         self.measurements[kept], self.information[kept], self.vertex_ids[first:])
+
     @classmethod
     def build(
         cls,

@@ -93,7 +93,7 @@ def optimize_keyframes(
         # Log replays draw the trajectory only when it moved as much as the walls must to be redrawn.
         legend, still_move = scans.LEGEND_ROWS, map2d.SHOWN_MOVE
         sinks.append(map2d.KeyframeMapRecorder(stream, keyframe_scans, walls_color))
-    recorder = optimization_recorder(stream, _recorded_part(from_odometry, first_recorded),
+    recorder = optimization_recorder(stream, from_odometry.from_pose(first_recorded),
                                      first_start[first_recorded:], legend=legend, still_move=still_move)
     starts = {"odometry": from_odometry.poses, "online": online.poses}
     if wheel_odometry is not None:
@@ -117,15 +117,6 @@ def optimize_keyframes(
     return KeyframeOptimization(trace, run.final_poses, result, record_seconds)
 
 
-def _recorded_part(graph: PoseGraph, first: int) -> PoseGraph:
-    """`graph` from pose `first` on, with the constraints among those poses."""
-    if first == 0:
-        return graph
-    kept = (graph.edge_from >= first) & (graph.edge_to >= first)
-    return PoseGraph(graph.poses[first:], graph.edge_from[kept] - first, graph.edge_to[kept] - first,
-                     graph.measurements[kept], graph.information[kept], graph.vertex_ids[first:])
-
-
 def held_map_solver(stream: Any, method: str, iterations: int | None,
                     on_iteration: IterationCallback | None = None, robust: str | None = None,
                     walls_color: tuple[int, ...] = recording.MAP_COLOR) -> HeldMapSolver:
@@ -136,11 +127,10 @@ def held_map_solver(stream: Any, method: str, iterations: int | None,
     def solve(problem: HeldMapProblem) -> HeldMapSolution:
         from frontends.slam2d.held_map import HeldMapSolution  # the laser frontend: clouds never load it
 
-        starts = problem.starts()
         optimized = optimize_keyframes(
-            stream, problem.graph.with_poses(starts["odometry"]), problem.graph.with_poses(starts["online"]),
-            method, iterations, on_iteration, robust=robust, keyframe_scans=problem.keyframe_scans,
-            first_recorded=1, walls_color=walls_color)
+            stream, problem.graph.with_poses(problem.odometry_start), problem.graph, method, iterations,
+            on_iteration, robust=robust, keyframe_scans=problem.keyframe_scans, first_recorded=1,
+            walls_color=walls_color)
         return HeldMapSolution(optimized.poses, optimized.result.converged)
 
     return solve

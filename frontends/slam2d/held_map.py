@@ -25,12 +25,13 @@ from frontends.errors import FrontendError
 from frontends.protocol import BoolArray, FloatArray, IntArray
 from frontends.slam2d.resume import ResumedSlam2D
 from optimizer import se2
+from optimizer.benchmark_graphs import odometry_chain
 from optimizer.graph import PoseGraph
 from optimizer.solve import DEFAULT_METHOD, optimize
 
 __all__ = ["HELD_MAP_AGREEMENT", "HeldMapProblem", "HeldMapScans", "HeldMapSolution", "HeldMapSolver",
-           "HeldMapTrajectory", "held_map_problem", "held_map_scans", "held_map_trajectory", "odometry_chain",
-           "solve_held_map", "solve_with_map_held"]
+           "HeldMapTrajectory", "held_map_problem", "held_map_scans", "held_map_trajectory", "solve_held_map",
+           "solve_with_map_held"]
 
 HELD_MAP_AGREEMENT = 0.5
 """The median distance (m) at most between the held-map poses and a localizer's own poses of the scans it
@@ -100,20 +101,9 @@ def held_map_problem(graph: PoseGraph, held_poses: FloatArray,
     reduced = PoseGraph.build(np.arange(len(online)), online, nodes_from, nodes_to, measurements, information,
                               check_information=False)
     scans = tuple(keyframe_scans[held:]) if len(keyframe_scans) else ((np.zeros((0, 2)),) * (len(online) - 1))
-    return HeldMapProblem(reduced, odometry_chain(reduced), (np.zeros((0, 2)), *scans))
-
-
-def odometry_chain(reduced: PoseGraph) -> FloatArray:
-    """The new keyframes (nodes 1…) chained by the constraints from each to the next, from node 1's pose
-    (the online motion where a step has no constraint); node 0, the origin, stays."""
-    poses = reduced.poses
-    steps = se2.relative(poses[1:-1], poses[2:])
-    forward = (reduced.edge_from >= 1) & (reduced.edge_to == reduced.edge_from + 1)
-    # The first constraint of each step, as the SLAM added it (its scan-matched odometry).
-    order = np.argsort(reduced.edge_from[forward], kind="stable")
-    step_of, first = np.unique(reduced.edge_from[forward][order] - 1, return_index=True)
-    steps[step_of] = reduced.measurements[forward][order][first]
-    return np.vstack([poses[:1], se2.compose_chain(steps, start=poses[1])])
+    # The new keyframes chained from the first one's online pose (the origin stays where it is).
+    chain = np.vstack([online[:1], odometry_chain(reduced.from_pose(1))])
+    return HeldMapProblem(reduced, chain, (np.zeros((0, 2)), *scans))
 
 
 def solve_held_map(problem: HeldMapProblem) -> HeldMapSolution:
