@@ -72,6 +72,7 @@ import argparse
 import sys
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -86,6 +87,7 @@ from frontends.protocol import unmatched_on_saved_path  # noqa: E402
 from frontends.slam2d import read_odometry, scans_in_base_frame  # noqa: E402
 from frontends.slam2d.grid import LikelihoodGrid  # noqa: E402
 from frontends.slam2d.held_map import HeldMapTrajectory, held_map_scans, held_map_trajectory  # noqa: E402
+from frontends.slam2d.in_order_worker import InOrderWorker  # noqa: E402
 from frontends.slam2d.local_map import place  # noqa: E402
 from frontends.slam2d.localization import LocalizedScan, MapLocalizer  # noqa: E402
 from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans  # noqa: E402
@@ -260,9 +262,12 @@ def localize_as_replay(saved: Slam2DGraph, map_poses: FloatArray, scans: list[Lo
     resumed = LaserSlam2D.resume(saved.keyframe_scans, map_poses, SavedConstraints.of(saved.graph),
                                  placed_by_caller=True)
     results = []
+    beside = InOrderWorker("held-map")  # each scan's SLAM beside the next one's localizer, as in replay
     for s in scans:
         results.append(localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval, s.times))
-        resumed.add_scan(s.stamp_ns, s.points, s.odometry, s.interval, s.times, located=results[-1])
+        beside.submit(partial(resumed.add_scan, s.stamp_ns, s.points, s.odometry, s.interval, s.times,
+                              located=results[-1]))
+    beside.drain()
     smoothing_started = time.process_time()
     smoothed = smooth_scans(results)
     smoothing_cpu = time.process_time() - smoothing_started

@@ -22,6 +22,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -99,7 +100,7 @@ def _angles(center: float, window: SearchWindow) -> FloatArray:
     return center + window.angular_step * np.arange(-window.steps, window.steps + 1, dtype=np.float64)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _base_cells(
     points: FloatArray, x: float, y: float, angles: FloatArray, origin: FloatArray, resolution: float
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -118,7 +119,7 @@ def _base_cells(
     return cells_x, cells_y
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _exhaustive(
     values: NDArray[np.float32], cells_x: NDArray[np.int64], cells_y: NDArray[np.int64], reach: int
 ) -> tuple[int, int, int, float]:
@@ -246,7 +247,7 @@ def _top_level(
                 k += 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _child_scores(
     values: NDArray[np.float32],
     cells_x: NDArray[np.int64],
@@ -483,6 +484,7 @@ two threads on a scan of the synthetic hall: 117 000 reads 0.12 → 0.17 ms, 289
 
 _pool: tuple[int, int, ThreadPoolExecutor] | None = None
 """The worker threads: the process that started them (a forked child has none of them), how many."""
+_pool_lock = threading.Lock()
 
 
 def _rotation_shares(rotations: int, reads: int) -> list[NDArray[np.int64]]:
@@ -500,12 +502,13 @@ def _side_by_side(calls: list[Callable[[], T]]) -> list[T]:
     global _pool
     if len(calls) == 1:
         return [calls[0]()]
-    if _pool is None or _pool[0] != os.getpid() or _pool[1] < len(calls) - 1:
-        if _pool is not None and _pool[0] == os.getpid():
-            _pool[2].shutdown(wait=False)
-        _pool = (os.getpid(), len(calls) - 1,
-                 ThreadPoolExecutor(max_workers=len(calls) - 1, thread_name_prefix="correlative"))
-    others = [_pool[2].submit(call) for call in calls[1:]]
+    with _pool_lock:  # two trackers may search at once (`replay --map`: `frontends.slam2d.in_order_worker`)
+        if _pool is None or _pool[0] != os.getpid() or _pool[1] < len(calls) - 1:
+            if _pool is not None and _pool[0] == os.getpid():
+                _pool[2].shutdown(wait=False)
+            _pool = (os.getpid(), len(calls) - 1,
+                     ThreadPoolExecutor(max_workers=len(calls) - 1, thread_name_prefix="correlative"))
+        others = [_pool[2].submit(call) for call in calls[1:]]
     return [calls[0](), *(other.result() for other in others)]
 
 

@@ -112,7 +112,7 @@ def interpolated(start: FloatArray, end: FloatArray, fractions: FloatArray) -> F
 
 # Compiled: the SLAM calls these for every scan, on one pose or one scan's beams, where numpy's per-call
 # overhead was most of their cost (a simulated 40 Hz laser without odometry: 0.1 s of a 1.2 s replay).
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _arc_factors(theta: float) -> tuple[float, float]:
     """(sin θ / θ, (1 − cos θ) / θ) of the SE(2) exponential's V(θ), exact at and near θ = 0."""
     if theta == 0.0:
@@ -122,7 +122,7 @@ def _arc_factors(theta: float) -> tuple[float, float]:
     return math.sin(theta) / theta, sine_half * (sine_half / half)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _exp(times: FloatArray, vx: float, vy: float, turn_rate: float) -> FloatArray:
     """(N, 3) x, y, θ of exp(t·(vx, vy, ω)) for each of `times`."""
     poses = np.empty((times.shape[0], 3))
@@ -136,7 +136,7 @@ def _exp(times: FloatArray, vx: float, vy: float, turn_rate: float) -> FloatArra
     return poses
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _deskewed(points: FloatArray, times: FloatArray, vx: float, vy: float, turn_rate: float) -> FloatArray:
     moved = np.empty_like(points)
     for k in range(points.shape[0]):

@@ -114,7 +114,7 @@ def _stamped(low: FloatArray, high: FloatArray, origin: FloatArray, resolution: 
     return (top, bottom, left, right) if top < bottom and left < right else (0, 0, 0, 0)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _bounds(points: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Column minima and maxima of (N ≥ 1, 2) points, NaN when a column holds one (as numpy's)."""
     low = points[0].copy()
@@ -132,7 +132,7 @@ def _bounds(points: FloatArray) -> tuple[FloatArray, FloatArray]:
     return low, high
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _stamp(
     points: FloatArray,
     origin: FloatArray,
@@ -227,7 +227,7 @@ def stamp_more(grid: LikelihoodGrid, points: FloatArray, first_new: int, sigma: 
     return LikelihoodGrid(grid.origin, grid.resolution, grid.values, grid.pairing)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _stamp_more(
     points: FloatArray,
     first_new: int,
@@ -271,7 +271,7 @@ def max_pyramid(values: NDArray[np.float32], levels: int) -> list[NDArray[np.flo
     return [values, *_coarse_levels(values, levels)] if levels > 0 else [values]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _coarse_levels(values: NDArray[np.float32], levels: int) -> list[NDArray[np.float32]]:
     pyramid = []
     finer = values
@@ -281,7 +281,7 @@ def _coarse_levels(values: NDArray[np.float32], levels: int) -> list[NDArray[np.
     return pyramid
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _doubled_max(values: NDArray[np.float32], shift: int) -> NDArray[np.float32]:
     """max of values[y : y + 2·shift, x : x + 2·shift] from values holding the max over shift × shift;
     branch-free inner loops (the compiler vectorizes them), edges copied."""

@@ -34,7 +34,7 @@ FLATNESS = 0.3
 over 10–20 cm are near 0.1–0.2."""
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def scan_normals(points: FloatArray) -> FloatArray:
     """Normals (N, 2) of a bearing-ordered scan from neighbouring beams.
 
@@ -138,7 +138,7 @@ def refine_point_to_line(
     return IcpResult(pose, hessian, float(fraction), float(rms))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _icp(
     scan: FloatArray,
     pairing: NDArray[np.int32],

@@ -42,7 +42,7 @@ def one_per_cell_each(points: FloatArray, offsets: NDArray[np.int64],
     return _one_per_cell_each(points, np.asarray(offsets, dtype=np.int64), float(cell), False)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _one_per_cell_each(points: FloatArray, offsets: NDArray[np.int64], cell: float,
                        keep_last: bool) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
     keep = np.zeros(points.shape[0], dtype=np.bool_)
@@ -62,7 +62,7 @@ def _one_per_cell_each(points: FloatArray, offsets: NDArray[np.int64], cell: flo
     return keep, counts
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _one_per_cell(points: FloatArray, cell: float, keep_last: bool) -> NDArray[np.int64]:
     # One integer per cell, distinct for every cell within ±2³¹ cells (no map spans that many); computed
     # here rather than in numpy, whose four temporaries cost more than the table on a scan's few hundred
@@ -74,7 +74,7 @@ def _one_per_cell(points: FloatArray, cell: float, keep_last: bool) -> NDArray[n
     return _one_per_key(keys, keep_last)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _one_per_key(keys: NDArray[np.int64], keep_last: bool) -> NDArray[np.int64]:
     """What np.unique's first indices give (of the reversed keys, for the last), in linear time: an
     open-addressing table of the keys seen, each with the index kept for it."""

@@ -54,7 +54,7 @@ PLATEAU_SIGMA = 0.1
 and is left as ICP made it (a blob of a sample or two is the score's own width, not an ambiguity)."""
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _plateau_scores(values: NDArray[np.float32], origin: FloatArray, resolution: float, points: FloatArray,
                     pose: FloatArray, step: int, reach: int) -> FloatArray:
     """Mean likelihood of the points at `pose` shifted by (i, j)·`step` cells, i, j in [−reach, reach]:
@@ -104,7 +104,7 @@ def _plateau_scores(values: NDArray[np.float32], origin: FloatArray, resolution:
     return scores
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _coupled_plateau_scores(values: NDArray[np.float32], origin: FloatArray, resolution: float,
                             points: FloatArray, pose: FloatArray, step: int, reach: int,
                             heading_per_metre: FloatArray, heading_step: float) -> FloatArray:
@@ -200,7 +200,7 @@ def heading_coupling(information: FloatArray) -> FloatArray:
     return coupling if norm <= MAX_HEADING_PER_METRE else coupling * (MAX_HEADING_PER_METRE / norm)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _plateau_covariance(scores: FloatArray, threshold: float, spacing: float) -> FloatArray:
     """(2, 2) covariance (m²) of the sample offsets whose score reaches `threshold`."""
     reach = (scores.shape[0] - 1) // 2

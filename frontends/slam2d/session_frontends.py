@@ -25,6 +25,7 @@ import dataclasses
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -57,6 +58,7 @@ from frontends.slam2d.held_map import (
     held_map_trajectory,
     solve_held_map,
 )
+from frontends.slam2d.in_order_worker import InOrderWorker
 from frontends.slam2d.localization import LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
@@ -224,6 +226,9 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
                                         self.config, placed_by_caller=True)
         """The run's own SLAM on the saved keyframe graph, placed by `_localizer` (`frontends.slam2d.
         held_map`)."""
+        self._held_worker = InOrderWorker("held-map")
+        """Adds each scan to `_held` beside the localizer's work on the next one (`frontends.slam2d.
+        in_order_worker`)."""
         self.held_map_solver: HeldMapSolver = solve_held_map
         """What optimizes the held map's graph in `finish` (a replay's also records its iterations)."""
         self._held_map: HeldMapScans | None = None
@@ -238,13 +243,15 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         due = self._cadence.due(stamp_ns)
         last = self._found[-1] if self._found else None
         if not due and last is not None and last.localized and (last.matched or last.tracked):
-            self._held.add_scan(stamp_ns, points, odometry, odometry_interval, point_times)
+            self._held_worker.submit(partial(self._held.add_scan, stamp_ns, points, odometry,
+                                             odometry_interval, point_times))
             pose = self._predicted(stamp_ns, odometry)
             self._poses.append(pose)
             self._between.append(index)
             return ScanEstimate(index, stamp_ns, pose.copy(), False, -1, (), between=True)
         found = self._localizer.localize(stamp_ns, points, odometry, odometry_interval, point_times)
-        self._held.add_scan(stamp_ns, points, odometry, odometry_interval, point_times, located=found)
+        self._held_worker.submit(partial(self._held.add_scan, stamp_ns, points, odometry, odometry_interval,
+                                         point_times, located=found))
         self._cadence.matched(stamp_ns)
         self._found.append(found)
         self._localized_scans.append(index)
@@ -274,6 +281,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
 
     def finish(self) -> None:
         """Raises `MapPlacementError` when no scan could be placed in the saved map."""
+        self._held_worker.drain()
         if self._counts["scans"] == 0:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
         self._after_reading()

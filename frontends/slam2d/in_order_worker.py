@@ -1,0 +1,49 @@
+"""Calls run one after the other on a worker thread, in the order given, while the caller goes on.
+
+`replay --map` runs two trackers on every scan: the localizer in the saved map, and the run's own SLAM
+resumed on the saved graph, which takes the localizer's result of the same scan and gives nothing back
+before `finish`. The SLAM of scan i can then run beside the localizer of scan i + 1; their kernels let go of
+the GIL (numba's `nogil`), so a second core shares the work."""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+
+MAX_PENDING = 16
+"""Calls queued at most before `submit` waits for the oldest: the queue holds their arguments (scans)."""
+
+
+class InOrderWorker:
+    """One worker thread. A call that fails stops the ones after it (the state they would work on is
+    broken); its exception is raised by the next `submit` or `drain` after it."""
+
+    def __init__(self, name: str, max_pending: int = MAX_PENDING) -> None:
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
+        self._pending: deque[Future[None]] = deque()
+        self._max_pending = max_pending
+        self._failed = False
+        """Set by a failing call, on the worker thread: the calls after it, on the same thread, see it."""
+
+    def submit(self, call: Callable[[], object]) -> None:
+        while self._pending and (self._pending[0].done() or len(self._pending) >= self._max_pending):
+            self._pending.popleft().result()
+        self._pending.append(self._executor.submit(self._run, call))
+
+    def drain(self) -> None:
+        """Waits for every call submitted; the worker thread ends."""
+        try:
+            while self._pending:
+                self._pending.popleft().result()
+        finally:
+            self._executor.shutdown(wait=True)
+
+    def _run(self, call: Callable[[], object]) -> None:
+        if self._failed:
+            return
+        try:
+            call()
+        except BaseException:
+            self._failed = True
+            raise
