@@ -87,12 +87,12 @@ from frontends.protocol import unmatched_on_saved_path  # noqa: E402
 from frontends.slam2d import read_odometry, scans_in_base_frame  # noqa: E402
 from frontends.slam2d.grid import LikelihoodGrid  # noqa: E402
 from frontends.slam2d.held_map import HeldMapTrajectory, held_map_scans, held_map_trajectory  # noqa: E402
-from frontends.slam2d.in_order_worker import InOrderWorker  # noqa: E402
 from frontends.slam2d.local_map import place  # noqa: E402
 from frontends.slam2d.localization import LocalizedScan, MapLocalizer  # noqa: E402
 from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans  # noqa: E402
 from frontends.slam2d.resume import SavedConstraints, SavedScans  # noqa: E402
 from frontends.slam2d.slam import LaserSlam2D, Slam2DGraph  # noqa: E402
+from frontends.threads import InOrderWorker  # noqa: E402
 from optimizer import se2  # noqa: E402
 from optimizer.graph import PoseGraph  # noqa: E402
 from optimizer.solve import DEFAULT_METHOD, optimize  # noqa: E402

@@ -502,7 +502,7 @@ def _side_by_side(calls: list[Callable[[], T]]) -> list[T]:
     global _pool
     if len(calls) == 1:
         return [calls[0]()]
-    with _pool_lock:  # two trackers may search at once (`replay --map`: `frontends.slam2d.in_order_worker`)
+    with _pool_lock:  # two trackers may search at once (`replay --map`: `frontends.threads`)
         if _pool is None or _pool[0] != os.getpid() or _pool[1] < len(calls) - 1:
             if _pool is not None and _pool[0] == os.getpid():
                 _pool[2].shutdown(wait=False)

@@ -58,13 +58,13 @@ from frontends.slam2d.held_map import (
     held_map_trajectory,
     solve_held_map,
 )
-from frontends.slam2d.in_order_worker import InOrderWorker
 from frontends.slam2d.localization import LocalizedScan, MapLocalizer
 from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans
 from frontends.slam2d.occupancy import OccupancyGrid, occupancy_grid
 from frontends.slam2d.resume import ResumedSlam2D, SavedConstraints, SavedScans
 from frontends.slam2d.slam import LaserSlam2D, ScanEstimate
 from frontends.slam2d.wall_crossings import WallCrossings, checked_wall_crossings
+from frontends.threads import InOrderWorker
 from optimizer import se2
 from optimizer.graph import PoseGraph
 
@@ -227,8 +227,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         """The run's own SLAM on the saved keyframe graph, placed by `_localizer` (`frontends.slam2d.
         held_map`)."""
         self._held_worker = InOrderWorker("held-map")
-        """Adds each scan to `_held` beside the localizer's work on the next one (`frontends.slam2d.
-        in_order_worker`)."""
+        """Adds each scan to `_held` beside the localizer's work on the next one (`frontends.threads`)."""
         self.held_map_solver: HeldMapSolver = solve_held_map
         """What optimizes the held map's graph in `finish` (a replay's also records its iterations)."""
         self._held_map: HeldMapScans | None = None

@@ -18,7 +18,6 @@ Hypothesis confirmation and the χ² test after optimization live in `frontends.
 
 from __future__ import annotations
 
-import functools
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -29,6 +28,7 @@ from numpy.typing import NDArray
 
 from frontends.slam3d import se3
 from frontends.slam3d.config import LoopClosureConfig
+from frontends.threads import usable_cores
 
 # small_gicp's own libgomp reads the wait policy once, when it is loaded. By default its threads spin at
 # every barrier for a while before sleeping: beside another busy process (a batch's second job) a replay of
@@ -70,14 +70,7 @@ every start finely."""
 
 def registration_threads(config: LoopClosureConfig) -> int:
     """small_gicp's threads: `config.threads`, or with 0 every core this process may run on."""
-    return config.threads or _usable_cores()
-
-
-@functools.cache
-def _usable_cores() -> int:
-    if hasattr(os, "sched_getaffinity"):  # a process pinned to some cores (taskset, a container) uses those
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
+    return config.threads or usable_cores()
 
 
 # ------------------------------------------------------------------------------------------ descriptor

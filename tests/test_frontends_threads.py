@@ -1,4 +1,4 @@
-"""`frontends.slam2d.in_order_worker`: `replay --map`'s second tracker runs beside the first, in order."""
+"""`frontends.threads`: `replay --map`'s second tracker runs beside the first, in order."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ from functools import partial
 
 import pytest
 
-from frontends.slam2d.in_order_worker import InOrderWorker
+from frontends.threads import InOrderWorker
 
 
 def test_calls_run_in_the_order_given_on_another_thread() -> None:
     ran: list[tuple[int, str]] = []
-    worker = InOrderWorker("test")
+    worker = InOrderWorker("test", threaded=True)
 
     def call(k: int) -> None:
         time.sleep(0.002 if k < 5 else 0.0)  # early calls slower: the order comes from the queue
@@ -29,7 +29,7 @@ def test_calls_run_in_the_order_given_on_another_thread() -> None:
 def test_a_failure_is_raised_by_the_next_submit_and_later_calls_do_not_run() -> None:
     ran: list[int] = []
     started, release = threading.Event(), threading.Event()
-    worker = InOrderWorker("test", max_pending=4)
+    worker = InOrderWorker("test", max_pending=4, threaded=True)
 
     def fail() -> None:
         started.set()
@@ -49,7 +49,7 @@ def test_a_failure_is_raised_by_the_next_submit_and_later_calls_do_not_run() -> 
 
 
 def test_drain_raises_a_failure_of_the_last_calls() -> None:
-    worker = InOrderWorker("test")
+    worker = InOrderWorker("test", threaded=True)
     worker.submit(lambda: None)
     worker.submit(lambda: 1 / 0)
     with pytest.raises(ZeroDivisionError):
@@ -58,7 +58,7 @@ def test_drain_raises_a_failure_of_the_last_calls() -> None:
 
 def test_submit_waits_once_max_pending_calls_are_queued() -> None:
     release = threading.Event()
-    worker = InOrderWorker("test", max_pending=2)
+    worker = InOrderWorker("test", max_pending=2, threaded=True)
     worker.submit(lambda: release.wait(5.0))
     worker.submit(lambda: None)
     submitted = threading.Event()
@@ -74,3 +74,14 @@ def test_submit_waits_once_max_pending_calls_are_queued() -> None:
     assert submitted.wait(5.0)
     caller.join()
     worker.drain()
+
+
+def test_on_one_core_each_call_runs_at_once_in_the_caller() -> None:
+    ran: list[str] = []
+    worker = InOrderWorker("test", threaded=False)
+    worker.submit(lambda: ran.append(threading.current_thread().name))
+    assert ran == [threading.current_thread().name]  # before any drain
+    with pytest.raises(ZeroDivisionError):
+        worker.submit(lambda: 1 / 0)
+    worker.drain()
+
