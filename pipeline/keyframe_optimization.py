@@ -83,13 +83,12 @@ def optimize_keyframes(
         "loop_closures": int((~from_odometry.is_odometry).sum()),
     }, name=recording.OPTIMIZATION_PROPERTY)
     sinks: list[IterationSink] = [] if sink is None else [sink]
-    if keyframe_scans is not None:
-        keyframe_scans = keyframe_scans[first_recorded:]
     legend, still_move = None, None
     if keyframe_scans is not None:
         # Imported here: the 2D map's recording builds on the laser frontend, which clouds never load.
         from pipeline.recording import map2d, scans
 
+        keyframe_scans = keyframe_scans[first_recorded:]
         # Log replays draw the trajectory only when it moved as much as the walls must to be redrawn.
         legend, still_move = scans.LEGEND_ROWS, map2d.SHOWN_MOVE
         sinks.append(map2d.KeyframeMapRecorder(stream, keyframe_scans, walls_color))
