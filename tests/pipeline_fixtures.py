@@ -1,5 +1,5 @@
 """Fixtures shared by the pipeline tests: a small loop graph, a simulated drive written as a ROS 2 MCAP,
-and a reader that turns a recording (.rrd) back into Python values."""
+the first scans of a real MCAP log, and a reader that turns a recording (.rrd) back into Python values."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from mcap.reader import make_reader
+from mcap.writer import Writer
 from rerun.chunk import RrdReader
 from typer.testing import Result
 
@@ -136,6 +138,33 @@ DRIVE_SPEED = DRIVE_STEP / (SCAN_PERIOD_NS * 1e-9)
 
 
 START_NS = 1_700_000_000_000_000_000
+
+
+def write_log_start(log: Path, path: Path, scans: int, scan_topic: str = "/scan") -> Path:
+    """The first `scans` messages on `scan_topic` of the MCAP `log`, with everything logged before the next
+    one and every /tf_static message, written to `path` as they were (a real log, only shorter)."""
+    with log.open("rb") as stream:
+        rows = list(make_reader(stream).iter_messages(log_time_order=True))
+    scan_times = [message.log_time for _, channel, message in rows if channel.topic == scan_topic]
+    end = scan_times[scans] if scans < len(scan_times) else math.inf
+    with path.open("wb") as stream:
+        writer = Writer(stream)
+        writer.start(profile="ros2")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in rows:
+            if message.log_time >= end and channel.topic != "/tf_static":
+                continue
+            assert schema is not None
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                               schemas[schema.id])
+            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time,
+                               message.sequence)
+        writer.finish()
+    return path
 
 
 def laser_ranges(points: np.ndarray) -> np.ndarray:
