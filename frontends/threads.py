@@ -13,6 +13,8 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
+from numba import config as numba_config
+
 MAX_PENDING = 16
 """Calls queued at most before `submit` waits for the oldest: the queue holds their arguments (scans)."""
 
@@ -29,11 +31,12 @@ class InOrderWorker:
     """One worker thread. A call that fails stops the ones after it (the state they would work on is
     broken); its exception is raised by the next `submit` or `drain` after it.
 
-    `threaded` False (by default where this process has one core: handing the GIL back and forth would
-    only cost) runs each call at once in `submit`."""
+    `threaded` False runs each call at once in `submit`: by default where this process may use one thread
+    of numba's count (`NUMBA_NUM_THREADS`: the cores it may run on, or a batch worker's share of them, as
+    `pipeline.batch` sets it), where handing the GIL back and forth would only cost."""
 
     def __init__(self, name: str, max_pending: int = MAX_PENDING, threaded: bool | None = None) -> None:
-        self._threaded = usable_cores() > 1 if threaded is None else threaded
+        self._threaded = numba_config.NUMBA_NUM_THREADS > 1 if threaded is None else threaded  # type: ignore[attr-defined]
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
         self._pending: deque[Future[None]] = deque()
         self._max_pending = max_pending
