@@ -26,7 +26,7 @@ import shutil
 import signal
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
@@ -243,9 +243,12 @@ def _output_lock(directory: Path, stem: str) -> Iterator[None]:
 
 
 @contextmanager
-def staged_outputs_in(directory: Path, *targets: Path) -> Iterator[tuple[Path, ...]]:
+def staged_outputs_in(directory: Path, *targets: Path,
+                      inputs: Sequence[Path] = ()) -> Iterator[tuple[Path, ...]]:
     """`staged_outputs` for a run's outputs in `directory`, created if needed: a folder this call created
-    is removed again when the run fails (left alone if someone else wrote there meanwhile)."""
+    is removed again when the run fails (left alone if someone else wrote there meanwhile). `inputs`: the
+    files the run reads, which no output may replace (`refuse_replacing_inputs`)."""
+    refuse_replacing_inputs(targets, inputs)
     created = prepare_output_dir(directory)
     try:
         with staged_outputs(*targets) as temporaries:
@@ -255,6 +258,18 @@ def staged_outputs_in(directory: Path, *targets: Path) -> Iterator[tuple[Path, .
             with contextlib.suppress(OSError):
                 directory.rmdir()
         raise
+
+
+def refuse_replacing_inputs(targets: Sequence[Path], inputs: Sequence[Path]) -> None:
+    """Raise `OutputError` when one of `targets` is one of the run's `inputs` (the same file, whatever the
+    path: a graph replayed into its own folder, a session continued under its own name): publishing the
+    outputs would destroy the very file they were made from."""
+    for target in targets:
+        for source in inputs:
+            with contextlib.suppress(OSError):  # a target not there yet replaces nothing
+                if os.path.samefile(source, target):
+                    raise OutputError(f"{target}: is an input of this replay, and its output of the same "
+                                      "name would replace it; write the outputs into another folder (--out)")
 
 
 def output_stem(path: str | Path) -> str:

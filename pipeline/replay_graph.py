@@ -140,7 +140,7 @@ def replay_graph(
     graph_file = read_graph(path, repair_information=repair_information)
     loaded = time.perf_counter()
     outputs = ReplayOutputs.for_input(out_dir, path)
-    staged = staged_outputs_in(out_dir, *outputs.paths().values())
+    staged = staged_outputs_in(out_dir, *outputs.paths().values(), inputs=(path,))
     with staged as (g2o_temporary, json_temporary, rrd_temporary):
         run = _optimize_and_record(graph_file, rrd_temporary, method, iterations, progress, robust)
         optimized = time.perf_counter()

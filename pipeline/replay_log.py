@@ -426,7 +426,9 @@ class _Run:
         outputs = ReplayOutputs.for_input(out_dir, self.path, kind, self.mode)
         paths = outputs.paths()
         map_files = () if localizing else sensor.map_files
-        with staged_outputs_in(out_dir, *paths.values()) as staged_paths, _WrittenBeside() as beside:
+        inputs = (self.path,) if self.session is None else (self.path, self.session.path)
+        with (staged_outputs_in(out_dir, *paths.values(), inputs=inputs) as staged_paths,
+              _WrittenBeside() as beside):
             staged = dict(zip(paths, staged_paths, strict=True))
             if self.session is None:
                 frontend = sensor.frontend(log, topic, configs[kind], options)

@@ -70,7 +70,7 @@ def test_replay_of_a_log(tmp_path: Path) -> None:
 def test_config_may_be_a_toml_path(tmp_path: Path) -> None:
     config = tmp_path / "replay.toml"
     config.write_text("[optimizer]\nmethod = \"gauss-seidel\"\niterations = 3\n")
-    result = replay(write_loop_graph(tmp_path / "loop.g2o"), str(config), out_dir=tmp_path)
+    result = replay(write_loop_graph(tmp_path / "loop.g2o"), str(config), out_dir=tmp_path / "out")
     assert dict(result.stats.iterations) == {"gauss-seidel": 3}
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -258,6 +259,29 @@ def test_failed_run_does_not_clobber_previous_outputs(tmp_path: Path) -> None:
     assert {name: (out / name).read_bytes() for name in output_names(out)} == before
 
 
+@pytest.mark.parametrize("reached", ["same path", "hard link"])
+def test_a_graph_replayed_into_its_own_folder_is_refused_and_left_as_it_was(tmp_path: Path,
+                                                                           reached: str) -> None:
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    original = graph.read_bytes()
+    given = graph
+    if reached == "hard link":  # another name for the same file: its output would still replace it
+        (tmp_path / "elsewhere").mkdir()
+        given = tmp_path / "elsewhere" / "loop.g2o"
+        os.link(graph, given)
+    result = run_replay(given, "--out", graph.parent)
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [
+        f"replay: error: {graph}: is an input of this replay, and its output of the same name would replace "
+        "it; write the outputs into another folder (--out)"]
+    assert graph.read_bytes() == original
+    assert sorted(path.name for path in graph.parent.iterdir()) == sorted(
+        ["loop.g2o"] + ["elsewhere"] * (reached == "hard link"))  # no outputs, no lock or staging left
+    # Into another folder the same graph replays, and its input stays as it was.
+    assert run_replay(given, "--out", tmp_path / "out", "--quiet").exit_code == 0
+    assert graph.read_bytes() == original
+
+
 class _StoppedError(GraphError):
     pass
 
@@ -296,14 +320,14 @@ def test_failure_removes_an_output_folder_it_created(tmp_path: Path, monkeypatch
 
 def test_library_result_and_progress(tmp_path: Path) -> None:
     seen: list[tuple[str, int]] = []
-    result = replay_graph(write_loop_graph(tmp_path / "loop.g2o"), out_dir=tmp_path, method="sgd+gn",
+    result = replay_graph(write_loop_graph(tmp_path / "loop.g2o"), out_dir=tmp_path / "out", method="sgd+gn",
                           iterations=5, progress=lambda it: seen.append((it.stage, it.index)))
     assert seen == [(record.stage, record.index) for record in result.iterations]
     assert seen[:2] == [("initial", 0), ("sgd", 1)]
     assert result.iterations_per_stage["sgd"] == 5
     assert result.final_chi2 == pytest.approx(chi2(result.graph, result.poses), rel=1e-9)
     assert result.final_chi2 < result.initial_chi2
-    assert result.outputs.rrd == tmp_path / "loop.rrd"
+    assert result.outputs.rrd == tmp_path / "out" / "loop.rrd"
 
 
 def test_iteration_recorder_sends_batches_on_one_timeline(tmp_path: Path) -> None:

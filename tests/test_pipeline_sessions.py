@@ -307,6 +307,17 @@ def test_continue_maps_both_logs_into_one_trajectory_and_a_larger_session(logs: 
     assert len(entities["/world/trajectory"].steps) >= 2  # recorded iteration by iteration
 
 
+def test_continue_refuses_to_write_its_session_over_the_one_it_continues(logs: Logs, tmp_path: Path) -> None:
+    session = tmp_path / "second.session"  # where continuing `second` would write its new session
+    session.write_bytes(logs.session.read_bytes())
+    result = run_replay(logs.second, "--out", tmp_path, "--continue", session)
+    assert one_error_line(result) == (
+        f"replay: error: {session}: is an input of this replay, and its output of the same name would "
+        "replace it; write the outputs into another folder (--out)")
+    assert session.read_bytes() == logs.session.read_bytes()
+    assert file_names(tmp_path) == {"second.session"}
+
+
 @pytest.mark.parametrize("mode", ["--map", "--continue"])
 def test_a_swept_lidar_only_log_is_deskewed_in_a_saved_map(logs: Logs, tmp_path: Path, mode: str) -> None:
     # The second log again, its laser now sweeping its beams over 0.1 s at 1 m/s (1 rad/s in the corners),
