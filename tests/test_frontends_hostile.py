@@ -22,7 +22,7 @@ from frontends.slam2d.config import DataChecksConfig
 from frontends.slam2d.grid import MAX_LIKELIHOOD_CELLS, build_likelihood_grid
 from frontends.slam2d.log_input import read_odometry, scans_in_base_frame
 from frontends.slam2d.occupancy import MAX_MAP_CELLS, occupancy_grid
-from tests._frontends_fixtures import write_mcap_ros, write_rosbag1
+from tests._frontends_fixtures import ros2_mcap, write_mcap_ros, write_rosbag1
 from tests.hostile_fixtures import (
     CLOUD_LAYOUTS,
     DAMAGED,
@@ -278,6 +278,41 @@ def test_time_going_backwards_is_handled_without_numpy_warnings(tmp_path: Path) 
             late = dict(log.counts)
     assert kept == 40 and late == {"messages_late": 40}  # 20 scans, 20 odometry messages
     assert counts == {}
+
+
+def test_of_scans_stamped_alike_the_first_is_read_and_the_rest_counted_and_warned_of(tmp_path: Path) -> None:
+    # Scans 2k and 2k + 1 share a stamp; each scan's ranges tell which one it was.
+    path = scan_log(tmp_path / "twice.mcap", lambda i: np.full(360, 1.0 + 0.01 * i), count=40,
+                    stamp=lambda i: 10**18 + (i // 2) * 100_000_000)
+    with open_log(path) as log, pytest.warns(LogWarning, match=r"twice\.mcap: 20 scans skipped: each was "
+                                                               r"stamped the same as the one before it"):
+        scans = list(log.scans())
+        counts = dict(log.counts)
+    assert [scan.stamp_ns for scan in scans] == [10**18 + k * 100_000_000 for k in range(20)]
+    first_ranges = [float(np.median(np.hypot(*scan.points.T))) for scan in scans]
+    np.testing.assert_allclose(first_ranges, 1.0 + 0.02 * np.arange(20), atol=1e-5)
+    assert counts == {"scans_repeated_stamp": 20}
+
+
+def test_of_clouds_stamped_alike_the_first_is_read(tmp_path: Path) -> None:
+    path = tmp_path / "clouds.mcap"
+    stamps = [10**18, 10**18, 10**18 + 10**8, 10**18 + 2 * 10**8, 10**18 + 2 * 10**8, 10**18 + 2 * 10**8]
+    with ros2_mcap(path) as (messages, add):
+        types = messages.types
+        fields = [types["sensor_msgs/msg/PointField"](name=n, offset=4 * k, datatype=7, count=1)
+                  for k, n in enumerate("xyz")]
+        for index, stamp in enumerate(stamps):
+            points = np.full((4, 3), 1.0 + index, dtype=np.float32)  # each cloud tells which one it was
+            add("/points", "sensor_msgs/msg/PointCloud2", stamp, types["sensor_msgs/msg/PointCloud2"](
+                header=messages.header(stamp, "lidar"), height=1, width=4, fields=fields, is_bigendian=False,
+                point_step=12, row_step=48, data=np.frombuffer(points.tobytes(), dtype=np.uint8),
+                is_dense=True))
+    with open_log(path) as log, pytest.warns(LogWarning, match="3 clouds skipped"):
+        clouds = list(log.clouds())
+        counts = dict(log.counts)
+    assert [cloud.stamp_ns for cloud in clouds] == sorted(set(stamps))
+    assert [float(cloud.points[0, 0]) for cloud in clouds] == [1.0, 3.0, 4.0]
+    assert counts == {"clouds_repeated_stamp": 3}
 
 
 # --- bounded grids --------------------------------------------------------------------------------------

@@ -49,3 +49,18 @@ def test_evo_ape_between_two_of_our_files_is_their_offset(tmp_path: Path) -> Non
     assert result.stats["rmse"] == pytest.approx(0.5, abs=1e-9)
     aligned = main_ape.ape(reference, estimate, PoseRelation.translation_part, align=True)
     assert aligned.stats["rmse"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_log_with_scans_stamped_alike_replays_into_a_tum_file_evo_accepts(tmp_path: Path) -> None:
+    from pipeline import replay
+    from tests.hostile_fixtures import scan_log, walls
+
+    log = scan_log(tmp_path / "twice.mcap", walls, count=40,
+                   stamp=lambda i: START_NS + (i // 2) * 100_000_000)  # two scans a stamp
+    with pytest.warns(Warning, match="20 scans skipped"):
+        result = replay(log, out_dir=tmp_path / "out")
+    trajectory = file_interface.read_tum_trajectory_file(str(result.outputs["tum"]))
+    valid, details = trajectory.check()
+    assert valid, details
+    assert len(trajectory.timestamps) == 20
+    assert result.summary["counts"]["scans_repeated_stamp"] == 20

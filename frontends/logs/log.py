@@ -30,7 +30,7 @@ from frontends.logs.containers.detect import open_container
 from frontends.logs.converters import RangeLimits
 from frontends.logs.dispatch import DecodeOptions, Item, Kind, build_decoders, decode, message_kind
 from frontends.logs.guard import guarded_call, guarded_iter
-from frontends.logs.ordering import DEFAULT_MAX_ITEMS, DEFAULT_WINDOW_NS, by_stamp
+from frontends.logs.ordering import DEFAULT_MAX_ITEMS, DEFAULT_WINDOW_NS, by_stamp, first_of_each_stamp
 from frontends.logs.transforms import TransformTree
 from frontends.logs.types import Cloud3D, LogInfo, OdometryPose, Scan2D, Transform
 
@@ -177,9 +177,11 @@ class LogReader:
         window_ns: int = DEFAULT_WINDOW_NS,
         max_items: int = DEFAULT_MAX_ITEMS,
     ) -> Iterator[Scan2D]:
-        """The scans of the LaserScan topic (found by type unless given); options as for `messages`."""
+        """The scans of the LaserScan topic (found by type unless given), the first of each stamp
+        (`first_of_each_stamp`); options as for `messages`."""
         chosen = self.select_topic(("scan",), topic)
-        return self.messages([chosen], range_limits=range_limits, window_ns=window_ns, max_items=max_items)  # type: ignore[return-value]
+        scans = self.messages([chosen], range_limits=range_limits, window_ns=window_ns, max_items=max_items)
+        return first_of_each_stamp(scans, self.path, "scans", self.counts)  # type: ignore[arg-type]
 
     def clouds(
         self,
@@ -188,9 +190,10 @@ class LogReader:
         window_ns: int = DEFAULT_WINDOW_NS,
         max_items: int = DEFAULT_MAX_ITEMS,
     ) -> Iterator[Cloud3D]:
-        """The clouds of the PointCloud topic (found by type unless given)."""
+        """The clouds of the PointCloud topic (found by type unless given), the first of each stamp."""
         chosen = self.select_topic(("cloud",), topic)
-        return self.messages([chosen], window_ns=window_ns, max_items=max_items)  # type: ignore[return-value]
+        clouds = self.messages([chosen], window_ns=window_ns, max_items=max_items)
+        return first_of_each_stamp(clouds, self.path, "clouds", self.counts)  # type: ignore[arg-type]
 
     def transforms(
         self, *, window_ns: int = DEFAULT_WINDOW_NS, max_items: int = DEFAULT_MAX_ITEMS

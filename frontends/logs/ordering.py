@@ -94,3 +94,25 @@ def by_stamp(
             LogWarning,
             stacklevel=2,
         )
+
+
+def first_of_each_stamp(items: Iterable[T], path: Path, what: str,
+                        counts: MutableMapping[str, int] | None = None) -> Iterator[T]:
+    """Of stamp-sorted items (`by_stamp`), the first of each stamp: the outputs hold one pose per sensor
+    stamp (a TUM or KITTI file with a stamp twice is refused by the tools that read it), and a second
+    scan or cloud stamped alike (a driver that did not stamp it anew, a message recorded twice) says
+    nothing of when it was taken. The rest are counted in `counts["<what>_repeated_stamp"]` and a
+    `LogWarning` says how many at the end."""
+    last: int | None = None
+    repeated = 0
+    for item in items:
+        if item.stamp_ns == last:
+            repeated += 1
+            continue
+        last = item.stamp_ns
+        yield item
+    if repeated and counts is not None:
+        counts[f"{what}_repeated_stamp"] = counts.get(f"{what}_repeated_stamp", 0) + repeated
+    if repeated:
+        warnings.warn(f"{path}: {repeated} {what} skipped: each was stamped the same as the one before it "
+                      "(the first of each stamp kept)", LogWarning, stacklevel=2)
