@@ -37,6 +37,7 @@ import dataclasses
 import functools
 import json
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -46,7 +47,7 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeAlias, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.errors import MapExtentError
+from frontends.errors import LogWarning, MapExtentError
 from frontends.logs import LogReader, open_log
 from frontends.protocol import ContinuingFrontend, Estimate, FrontendOptions, LogFrontend, StreamedFrontend
 from optimizer.graph_files import write_g2o
@@ -318,6 +319,19 @@ class LogReplayResult:
         return planar.planar(self.poses)
 
 
+def _warn_if_stamps_go_back(path: Path, kind: str, frontend: LogFrontend, tum_name: str) -> None:
+    """A continued session's trajectory is the saved run's measurements, then the log's: warn when the
+    log's first stamp is not after the saved run's last (the same log again, or clocks that restart at 0,
+    as a simulator's do), since the TUM file's stamps then go back where the runs join."""
+    stamps, saved = frontend.stamps_ns, frontend.counts()["session_scans"]
+    if 0 < saved < len(stamps) and stamps[saved] <= stamps[saved - 1]:
+        what = "scans" if kind == "scan" else "clouds"
+        warnings.warn(f"{path}: its {what} (from {stamps[saved] / 1e9:.3f} s) do not come after the "
+                      f"session's (to {stamps[saved - 1] / 1e9:.3f} s): {tum_name} holds the session's "
+                      "first, then this log's, and its stamps go back where the two join (tools that want "
+                      "rising stamps, such as evo, read the two parts apart)", LogWarning, stacklevel=2)
+
+
 def replay_log(
     path: str | Path,
     *,
@@ -451,6 +465,8 @@ class _Run:
                 recording.close_recording(stream)
                 timings["record_close"] = time.perf_counter() - close_started
             write_started = time.perf_counter()
+            if self.mode == "continue":
+                _warn_if_stamps_go_back(self.path, kind, frontend, outputs.tum.name)
             write_tum(staged["tum"], frontend.stamps_ns, result.poses)
             if outputs.kitti is not None:
                 write_kitti_poses(staged["kitti"], result.poses)

@@ -307,6 +307,22 @@ def test_continue_maps_both_logs_into_one_trajectory_and_a_larger_session(logs: 
     assert len(entities["/world/trajectory"].steps) >= 2  # recorded iteration by iteration
 
 
+def test_continue_with_a_log_not_after_the_session_warns_that_the_stamps_go_back(logs: Logs,
+                                                                                   tmp_path: Path) -> None:
+    # The first log continued on its own session: its scans are the session's again, at the same stamps.
+    result = run_replay(logs.first, "--out", tmp_path, "--continue", logs.session, "--allow-unconverged")
+    assert result.exit_code == 0, result.stderr
+    warning = [line for line in result.stderr.splitlines() if "do not come after" in line]
+    assert len(warning) == 1 and warning[0].startswith(f"replay: warning: {logs.first}: its scans (from ")
+    assert "first.tum holds the session's first, then this log's" in warning[0]
+    stamps, _ = tum_poses(tmp_path / "first.tum")
+    first_stamps, _ = tum_poses(logs.session.with_suffix(".tum"))
+    old = len(first_stamps)
+    np.testing.assert_array_equal(stamps[:old], first_stamps)
+    assert stamps[old] < stamps[old - 1]  # where the two join
+    assert np.all(np.diff(stamps[old:]) > 0)
+
+
 def test_continue_refuses_to_write_its_session_over_the_one_it_continues(logs: Logs, tmp_path: Path) -> None:
     session = tmp_path / "second.session"  # where continuing `second` would write its new session
     session.write_bytes(logs.session.read_bytes())
