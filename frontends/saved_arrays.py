@@ -5,13 +5,16 @@ file's name in front of it."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
 from frontends.errors import FrontendError
+from optimizer.errors import OptimizerError
+
+T = TypeVar("T")
 
 
 class SavedArraysError(FrontendError):
@@ -71,3 +74,13 @@ def checked_members(arrays: Mapping[str, NDArray[Any]], sensor: str,
     if len(stamps) and (owners.min() < 0 or owners.max() >= keyframes):
         raise SavedArraysError(f"damaged session file ({sensor}s of keyframes that do not exist)")
     return stamps, owners
+
+
+def checked_graph(build: Callable[[], T]) -> T:
+    """What `build` makes of the saved constraints (a `PoseGraph`), which checks them as a graph file's
+    are (information positive definite, no constraint from a keyframe to itself): its `OptimizerError`
+    as a `SavedArraysError`, so that the session reader names the file."""
+    try:
+        return build()
+    except OptimizerError as error:
+        raise SavedArraysError(f"damaged session file ({error})") from error

@@ -400,19 +400,30 @@ def test_graph_inputs_and_batches_are_refused(logs: Logs, tmp_path: Path) -> Non
         pipeline.replay(graph, out_dir=out, continue_from=logs.session)
 
 
-@pytest.mark.parametrize("damage", ["cut", "newer"])
+@pytest.mark.parametrize("damage", ["cut", "newer", "information not positive definite",
+                                    "constraint from a keyframe to itself"])
 def test_a_damaged_or_newer_session_is_one_line_naming_it(logs: Logs, tmp_path: Path, damage: str) -> None:
     session = tmp_path / "bad.session"
+    saved = read_session(logs.session)
+    arrays = dict(saved.arrays)
     if damage == "cut":
         data = logs.session.read_bytes()
         session.write_bytes(data[: len(data) // 2])
-    else:
+    elif damage == "newer":
         with session.open("wb") as stream:
             write_session(stream, {"version": SESSION_VERSION + 1, "sensor_kind": "scan"}, {}, [])
+    else:  # a well-formed file whose graph a graph file would not be allowed to hold
+        if damage.startswith("information"):
+            arrays["information"] = -arrays["information"]
+        else:
+            arrays["edge_to"] = arrays["edge_from"].copy()
+        with session.open("wb") as stream:
+            write_session(stream, saved.header, arrays, saved.keyframe_points)
     out = tmp_path / "out"
     for option in ("--map", "--continue"):
         line = one_error_line(run_replay(logs.inside, "--out", out, option, session))
-        assert str(session) in line
+        assert line.startswith(f"replay: error: {session}: ")
+        assert "damaged session file (constraint 0" in line or damage in ("cut", "newer")
     assert file_names(out) == set()
     with pytest.raises(SessionError, match=r"bad\.session"):
         pipeline.replay(logs.inside, out_dir=out, map=session)

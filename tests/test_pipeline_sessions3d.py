@@ -30,7 +30,7 @@ from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
 from pipeline.cli import app
 from pipeline.errors import PipelineError
-from pipeline.session_file import SESSION_VERSION, SessionError, write_session
+from pipeline.session_file import SESSION_VERSION, SessionError, read_session, write_session
 from pipeline.trajectory_io import read_kitti_poses, read_tum
 from tests.lidar_world import Drive, Lidar, drive, planar_to_matrix, town_loop, write_cloud_log
 from tests.pipeline_fixtures import one_error_line, read_recording, write_drive
@@ -304,13 +304,18 @@ def test_a_log_never_placed_in_the_map_is_one_line_naming_it(logs: Logs, tmp_pat
     assert file_names(out) == set()
 
 
-@pytest.mark.parametrize("damage", ["cut", "newer", "no poses"])
+@pytest.mark.parametrize("damage", ["cut", "newer", "no poses", "information not positive definite"])
 def test_a_damaged_or_newer_cloud_session_is_one_line_naming_it(logs: Logs, tmp_path: Path,
                                                                 damage: str) -> None:
     session = tmp_path / "bad.session"
     if damage == "cut":
         data = logs.session.read_bytes()
         session.write_bytes(data[: len(data) // 2])
+    elif damage.startswith("information"):  # well-formed arrays, a graph no graph file may hold
+        saved = read_session(logs.session)
+        arrays = {**saved.arrays, "information": -saved.arrays["information"]}
+        with session.open("wb") as stream:
+            write_session(stream, saved.header, arrays, saved.keyframe_points)
     else:
         header = {"sensor_kind": "cloud", **({"version": SESSION_VERSION + 1} if damage == "newer" else {})}
         with session.open("wb") as stream:
@@ -318,7 +323,7 @@ def test_a_damaged_or_newer_cloud_session_is_one_line_naming_it(logs: Logs, tmp_
     out = tmp_path / "out"
     for option in ("--map", "--continue"):
         line = one_error_line(run_replay(logs.inside, "--out", out, option, session))
-        assert str(session) in line
+        assert line.startswith(f"replay: error: {session}: ")
     assert file_names(out) == set()
     with pytest.raises(SessionError, match=r"bad\.session"):
         pipeline.replay(logs.inside, out_dir=out, continue_from=session)

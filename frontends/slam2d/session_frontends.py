@@ -45,7 +45,7 @@ from frontends.protocol import (
     checked_on_saved_path,
     on_saved_path,
 )
-from frontends.saved_arrays import checked, checked_edges, checked_keyframes, checked_members
+from frontends.saved_arrays import checked, checked_edges, checked_graph, checked_keyframes, checked_members
 from frontends.slam2d.cadence import MatchCadence
 from frontends.slam2d.config import Slam2DConfig
 from frontends.slam2d.deskew import along_motion, interpolated
@@ -101,7 +101,7 @@ class SavedMap2D:
         edge_from, edge_to = checked_edges(arrays, keyframes)
         edges = len(edge_from)
         stamps, scan_keyframes = checked_members(arrays, "scan", keyframes)
-        return cls(
+        saved = cls(
             scans, poses,
             SavedConstraints(edge_from.astype(np.int64), edge_to.astype(np.int64),
                              checked("measurements", arrays, (edges, 3), np.floating),
@@ -110,6 +110,8 @@ class SavedMap2D:
             SavedScans(stamps.astype(np.int64), scan_keyframes.astype(np.int64),
                        checked("scan_offsets", arrays, (len(stamps), 3), np.floating)),
         )
+        checked_graph(saved.graph)
+        return saved
 
 
 OLD_NEW_CLOSURES_ON_PATH = 0.05

@@ -32,6 +32,7 @@ from frontends.saved_arrays import (
     SavedArraysError,
     checked,
     checked_edges,
+    checked_graph,
     checked_keyframes,
     checked_members,
 )
@@ -84,7 +85,9 @@ class SavedMap3D:
             checked("is_loop", arrays, (edges,), np.bool_),
             stamps.astype(np.int64), cloud_keyframes.astype(np.int64),
             checked("cloud_offsets", arrays, (len(stamps), 4, 4), np.floating))
-        return cls(graph, mount)
+        saved = cls(graph, mount)
+        checked_graph(saved.planar_graph)
+        return saved
 
     @property
     def keyframe_poses(self) -> FloatArray:
