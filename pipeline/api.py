@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 
 from frontends.errors import FrontendError
 from optimizer.errors import OptimizerError
-from pipeline.config import ReplayConfig, load_config
+from pipeline.config import ReplayConfig, config_from_mapping, load_config
 from pipeline.errors import PipelineError
 
 if TYPE_CHECKING:
@@ -126,7 +126,7 @@ IterationCallback = Callable[["Iteration"], None]
 
 def replay(
     path: str | Path,
-    config: ReplayConfig | str | Path | None = None,
+    config: ReplayConfig | Mapping[str, Any] | str | Path | None = None,
     *,
     out_dir: str | Path = DEFAULT_OUT_DIR,
     on_scan: ScanCallback | None = None,
@@ -139,7 +139,8 @@ def replay(
     recording every iteration, and write `<stem>.{g2o,json,rrd}` to `out_dir` (for a log also `.tum` and
     the map, `_map.png` or `.ply`).
 
-    `config` is a `ReplayConfig`, the path of a TOML configuration file, or None for the defaults.
+    `config` is a `ReplayConfig`, a mapping of sections as the TOML file holds them (`{"optimizer":
+    {"method": "sgd"}}`), the path of a TOML configuration file, or None for the defaults.
     `on_scan` is called with every scan's or cloud's estimate (`frontends.protocol.Estimate`) as the
     frontend processes it (logs only); `on_iteration` with every optimizer `Iteration`, the initial
     estimate first. A log's warnings are raised as `LogWarning`s once the replay is done.
@@ -155,6 +156,8 @@ def replay(
     path = Path(path)
     if config is None:
         config = ReplayConfig()
+    elif isinstance(config, Mapping):
+        config = config_from_mapping(config)
     elif not isinstance(config, ReplayConfig):
         config = load_config(config)
     if map is not None and continue_from is not None:

@@ -18,6 +18,7 @@ from optimizer.graph_files import read_graph
 from optimizer.iteration import Iteration
 from pipeline import ReplayConfig, replay
 from pipeline.api import input_kind
+from pipeline.errors import PipelineError
 from pipeline.outputs import output_stem
 from pipeline.trajectory_io import read_tum
 from tests.pipeline_fixtures import LOOP_POSES, loop_graph_text, write_drive, write_loop_graph
@@ -72,6 +73,16 @@ def test_config_may_be_a_toml_path(tmp_path: Path) -> None:
     config.write_text("[optimizer]\nmethod = \"gauss-seidel\"\niterations = 3\n")
     result = replay(write_loop_graph(tmp_path / "loop.g2o"), str(config), out_dir=tmp_path / "out")
     assert dict(result.stats.iterations) == {"gauss-seidel": 3}
+
+
+def test_config_may_be_a_mapping_of_sections_as_the_toml_file_holds_them(tmp_path: Path) -> None:
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    sections = {"optimizer": {"method": "gauss-seidel", "iterations": 3}}
+    result = replay(graph, sections, out_dir=tmp_path / "out")
+    assert dict(result.stats.iterations) == {"gauss-seidel": 3}
+    with pytest.raises(PipelineError, match=r"optimizer.*method"):
+        replay(graph, {"optimizer": {"method": "newton"}}, out_dir=tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
 
 
 def test_bad_input_raises_and_prints_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
