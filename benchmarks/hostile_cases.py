@@ -87,6 +87,14 @@ def _fifo_case(folder: Path) -> list[str]:
     return [str(path)]
 
 
+def _graph_in_out_folder(folder: Path) -> list[str]:
+    """A graph inside the folder `run_case` passes as --out: its output `graph.g2o` would replace it."""
+    (folder / "out").mkdir()
+    graph = folder / "out" / "graph.g2o"
+    graph.write_text(_GOOD_GRAPH)
+    return [str(graph)]
+
+
 def cases() -> list[Case]:
     # The damaged logs hold both a LaserScan and a PointCloud2 topic: name the scans, so that the replay
     # reads on into the damage instead of stopping at the choice of topic.
@@ -156,6 +164,7 @@ def cases() -> list[Case]:
         for options in (("--iterations", "2147483648"), ("--iterations", "-1"), ("--jobs", "100000"),
                         ("--method", "newton"), ("--robust", "huber"), ("--jobs", "0"))
     ]
+    battery += [Case("options", "graph-inside-the-out-folder", _graph_in_out_folder)]  # its .g2o replaced?
     battery += [
         Case("config values", text.replace("\n", " ").strip(), _config_case(text))
         for text in ("[matching]\nresolution = 1e-9\n", "[matching]\nmax_range = 1e300\n",
