@@ -339,11 +339,6 @@ _SECTION_COMMENTS = {
 }
 
 
-def default_config_toml() -> str:
-    """The defaults as TOML (what `replay --dump-config` prints)."""
-    return ReplayConfig().to_toml()
-
-
 # ------------------------------------------------------------------------------------------------ loading
 
 

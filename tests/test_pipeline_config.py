@@ -26,7 +26,6 @@ from pipeline.config import (
     SLAM3D_SECTIONS,
     ConfigError,
     ReplayConfig,
-    default_config_toml,
     is_angle_field,
     load_config,
 )
@@ -40,7 +39,7 @@ def write_config(tmp_path: Path, text: str, name: str = "replay.toml") -> Path:
 
 
 def test_defaults_round_trip_through_toml(tmp_path: Path) -> None:
-    path = write_config(tmp_path, default_config_toml())
+    path = write_config(tmp_path, ReplayConfig().to_toml())
     loaded = load_config(path)
     assert loaded == ReplayConfig()
     # The frontend gets exactly its own defaults back (degrees in the file, radians inside).
@@ -72,7 +71,7 @@ def test_sections_mirror_the_dataclasses() -> None:
 
 
 def test_the_file_has_a_section_per_frontend_setting_group() -> None:
-    text = default_config_toml()
+    text = ReplayConfig().to_toml()
     for header in ("[input]", "[optimizer]", "[slam2d.matching]", "[slam2d.loop_closure]",
                    "[slam3d.odometry]", "[slam3d.keyframes]", "[slam3d.loop_closure]"):
         assert f"\n{header}\n" in text, header

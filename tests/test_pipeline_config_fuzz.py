@@ -10,13 +10,13 @@ import tomli_w
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.config import ConfigError, ReplayConfig, default_config_toml, load_config
+from pipeline.config import ConfigError, ReplayConfig, load_config
 
 FUZZ_SETTINGS = settings(max_examples=60, deadline=None,
                          suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 SECTIONS = [name for name in ReplayConfig.model_fields] + ["slam2d", "slam3d", "nonsense"]
-DEFAULT_KEYS = {line.split("=")[0].strip() for line in default_config_toml().splitlines()
+DEFAULT_KEYS = {line.split("=")[0].strip() for line in ReplayConfig().to_toml().splitlines()
                 if "=" in line and not line.lstrip().startswith("#")}
 KEYS = [*sorted(DEFAULT_KEYS), "bogus", ""]
 VALUES = st.one_of(
@@ -63,6 +63,6 @@ def test_any_well_formed_toml(data: dict) -> None:
 @FUZZ_SETTINGS
 @given(st.integers(min_value=0, max_value=2000), st.integers(min_value=0, max_value=255))
 def test_one_byte_changed_in_the_defaults(position: int, value: int) -> None:
-    text = bytearray(default_config_toml().encode())
+    text = bytearray(ReplayConfig().to_toml().encode())
     text[position % len(text)] = value
     load_text(bytes(text))
