@@ -319,11 +319,11 @@ class LogReplayResult:
         return planar.planar(self.poses)
 
 
-def _warn_if_stamps_go_back(path: Path, kind: str, frontend: LogFrontend, tum_name: str) -> None:
-    """A continued session's trajectory is the saved run's measurements, then the log's: warn when the
-    log's first stamp is not after the saved run's last (the same log again, or clocks that restart at 0,
-    as a simulator's do), since the TUM file's stamps then go back where the runs join."""
-    stamps, saved = frontend.stamps_ns, frontend.counts()["session_scans"]
+def _warn_if_stamps_go_back(path: Path, kind: str, stamps: NDArray[np.int64], saved: int,
+                            tum_name: str) -> None:
+    """A continued session's trajectory is the saved run's `saved` measurements, then the log's: warn when
+    the log's first stamp is not after the saved run's last (the same log again, or clocks that restart at
+    0, as a simulator's do), since the TUM file's stamps then go back where the runs join."""
     if 0 < saved < len(stamps) and stamps[saved] <= stamps[saved - 1]:
         what = "scans" if kind == "scan" else "clouds"
         warnings.warn(f"{path}: its {what} (from {stamps[saved] / 1e9:.3f} s) do not come after the "
@@ -464,9 +464,11 @@ class _Run:
                 close_started = time.perf_counter()
                 recording.close_recording(stream)
                 timings["record_close"] = time.perf_counter() - close_started
-            write_started = time.perf_counter()
+            counts = frontend.counts()
             if self.mode == "continue":
-                _warn_if_stamps_go_back(self.path, kind, frontend, outputs.tum.name)
+                _warn_if_stamps_go_back(self.path, kind, frontend.stamps_ns, counts["session_scans"],
+                                        outputs.tum.name)
+            write_started = time.perf_counter()
             write_tum(staged["tum"], frontend.stamps_ns, result.poses)
             if outputs.kitti is not None:
                 write_kitti_poses(staged["kitti"], result.poses)
@@ -481,7 +483,7 @@ class _Run:
                 measurements=result.measurements, stamps_ns=frontend.stamps_ns, poses=result.poses,
                 keyframe_poses=result.keyframe_poses, chi2_per_iteration=result.trace,
                 optimization=result.optimization, wall_time=timings, outputs=outputs,
-                counts=frontend.counts(), loop_closures=frontend.loop_closures(), warnings=tally.as_json(),
+                counts=counts, loop_closures=frontend.loop_closures(), warnings=tally.as_json(),
                 settings=frontend.settings(), mode=self.mode,
                 session=None if self.session is None else self.session.path,
             )
