@@ -315,6 +315,33 @@ def test_of_clouds_stamped_alike_the_first_is_read(tmp_path: Path) -> None:
     assert counts == {"clouds_repeated_stamp": 3}
 
 
+def test_unstamped_scans_and_odometry_take_their_log_times(tmp_path: Path) -> None:
+    # A driver that never fills the header: every stamp 0. The fixture's log times are 10^18 + i * 0.1 s.
+    path = scan_log(tmp_path / "unstamped.mcap", walls, count=30, stamp=lambda i: 0,
+                    odometry=lambda i: (0.01 * i, 0.0, 0.0))
+    log_times = [10**18 + i * 100_000_000 for i in range(30)]
+    with open_log(path) as log, pytest.warns(LogWarning, match=r"unstamped\.mcap: 30 scans in frame "
+                                                               r"'base_link' had no stamp \(0\)"):
+        scans = list(log.scans())
+        odometry = list(log.odometry())
+        counts = dict(log.counts)
+    assert [scan.stamp_ns for scan in scans] == log_times
+    assert [pose.stamp_ns for pose in odometry] == log_times
+    assert counts == {"messages_stamped_by_log_time": 60}
+
+
+def test_a_clock_starting_at_zero_is_a_clock_not_unset_stamps(tmp_path: Path) -> None:
+    # A simulator's first scan is stamped 0, the next ones 0.1 s, 0.2 s, ...: the stamps are kept.
+    path = scan_log(tmp_path / "sim.mcap", walls, count=10, stamp=lambda i: i * 100_000_000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LogWarning)
+        with open_log(path) as log:
+            stamps = [scan.stamp_ns for scan in log.scans()]
+            counts = dict(log.counts)
+    assert stamps == [i * 100_000_000 for i in range(10)]
+    assert counts == {}
+
+
 # --- bounded grids --------------------------------------------------------------------------------------
 
 

@@ -64,3 +64,17 @@ def test_a_log_with_scans_stamped_alike_replays_into_a_tum_file_evo_accepts(tmp_
     assert valid, details
     assert len(trajectory.timestamps) == 20
     assert result.summary["counts"]["scans_repeated_stamp"] == 20
+
+
+def test_a_log_of_unstamped_scans_replays_one_pose_per_scan_at_its_log_time(tmp_path: Path) -> None:
+    from pipeline import replay
+    from tests.hostile_fixtures import scan_log, walls
+
+    log = scan_log(tmp_path / "unstamped.mcap", walls, count=40, stamp=lambda i: 0)
+    with pytest.warns(Warning, match="40 scans in frame 'base_link' had no stamp"):
+        result = replay(log, out_dir=tmp_path / "out")
+    trajectory = file_interface.read_tum_trajectory_file(str(result.outputs["tum"]))
+    valid, details = trajectory.check()
+    assert valid, details
+    np.testing.assert_allclose(trajectory.timestamps, 1e9 + np.arange(40) * 0.1, rtol=0, atol=1e-6)
+    assert result.summary["counts"]["messages_stamped_by_log_time"] == 40

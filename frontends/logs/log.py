@@ -30,7 +30,13 @@ from frontends.logs.containers.detect import open_container
 from frontends.logs.converters import RangeLimits
 from frontends.logs.dispatch import DecodeOptions, Item, Kind, build_decoders, decode, message_kind
 from frontends.logs.guard import guarded_call, guarded_iter
-from frontends.logs.ordering import DEFAULT_MAX_ITEMS, DEFAULT_WINDOW_NS, by_stamp, first_of_each_stamp
+from frontends.logs.ordering import (
+    DEFAULT_MAX_ITEMS,
+    DEFAULT_WINDOW_NS,
+    by_stamp,
+    first_of_each_stamp,
+    log_time_where_unstamped,
+)
 from frontends.logs.transforms import TransformTree
 from frontends.logs.types import Cloud3D, LogInfo, OdometryPose, Scan2D, Transform
 
@@ -167,7 +173,8 @@ class LogReader:
             return iter(())
         decoders = build_decoders(self.path, channels, DecodeOptions(RangeLimits(*range_limits)))
         raw = guarded_iter(self.path, self._container.messages({c.id for c in channels}))
-        return by_stamp(decode(self.path, raw, decoders), self.path, window_ns, max_items, counts=self.counts)
+        items = log_time_where_unstamped(decode(self.path, raw, decoders), self.path, self.counts)
+        return by_stamp(items, self.path, window_ns, max_items, counts=self.counts)
 
     def scans(
         self,

@@ -12,14 +12,15 @@ pass straight through.
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import warnings
-from collections.abc import Hashable, Iterable, Iterator, MutableMapping
+from collections.abc import Iterable, Iterator, MutableMapping
 from pathlib import Path
 from typing import Protocol, TypeVar
 
 from frontends.errors import LogWarning
-from frontends.logs.types import Transform
+from frontends.logs.types import Cloud3D, OdometryPose, Scan2D, Transform
 
 DEFAULT_WINDOW_NS = 2_000_000_000
 DEFAULT_IDLE_NS = 5_000_000_000
@@ -37,6 +38,66 @@ class Stamped(Protocol):
 T = TypeVar("T", bound=Stamped)
 
 
+_SOURCE_NAMES = {Scan2D: "scans", Cloud3D: "clouds", OdometryPose: "odometry poses", Transform: "transforms"}
+
+
+Source = tuple[type, str | None]
+
+
+def _source(item: Stamped) -> Source:
+    """What keeps its own stamps: one tf edge, or one sensor / odometry frame of one type."""
+    if isinstance(item, Transform):
+        return (Transform, item.child_frame)
+    return (type(item), getattr(item, "frame_id", None))
+
+
+def log_time_where_unstamped(items: Iterable[T], path: Path,
+                             counts: MutableMapping[str, int] | None = None) -> Iterator[T]:
+    """The items, those of a source whose stamps are unset (0, ROS's "no time": a driver or converter
+    that never filled the header) given their log time as stamp. Otherwise every scan after the first
+    would share its stamp, and the run would be one scan long. A source is unset when its first two
+    stamps are both 0; a first stamp of 0 followed by another (a simulator's clock starting at 0) is a
+    real stamp, so the first item of each source is held until its second comes (one item per source).
+    Items given their log time are counted in `counts["messages_stamped_by_log_time"]`, and a
+    `LogWarning` per source says so at the end."""
+    held: dict[Source, T] = {}
+    unset: dict[Source, int] = {}  # per unset source: items given their log time
+    decided: set[Source] = set()
+    for item in items:
+        if isinstance(item, Transform) and item.is_static:
+            yield item
+            continue
+        source = _source(item)
+        if source in unset:
+            if item.stamp_ns == 0:
+                unset[source] += 1
+                item = dataclasses.replace(item, stamp_ns=item.log_time_ns)  # type: ignore[type-var]
+            yield item
+        elif source in decided:
+            yield item
+        elif source in held:
+            first = held.pop(source)
+            if item.stamp_ns == 0:
+                unset[source] = 2
+                yield dataclasses.replace(first, stamp_ns=first.log_time_ns)  # type: ignore[type-var]
+                yield dataclasses.replace(item, stamp_ns=item.log_time_ns)  # type: ignore[type-var]
+            else:
+                decided.add(source)
+                yield first
+                yield item
+        elif item.stamp_ns == 0:
+            held[source] = item
+        else:
+            decided.add(source)
+            yield item
+    yield from held.values()  # a source of one item stamped 0: nothing says it is unset
+    for (kind, frame), number in unset.items():
+        if counts is not None:
+            counts["messages_stamped_by_log_time"] = counts.get("messages_stamped_by_log_time", 0) + number
+        warnings.warn(f"{path}: {number} {_SOURCE_NAMES.get(kind, 'messages')} in frame {frame!r} had no "
+                      "stamp (0): their log times were used instead", LogWarning, stacklevel=2)
+
+
 def by_stamp(
     items: Iterable[T],
     path: Path,
@@ -48,22 +109,18 @@ def by_stamp(
     """The items sorted by `stamp_ns` (ties keep arrival order), as long as none is more than `window_ns`
     of sensor time late within its own source. Dropped items are added to `counts["messages_late"]`."""
     heap: list[tuple[int, int, T]] = []
-    newest: dict[Hashable, int] = {}  # per source: newest stamp
-    last_seen: dict[Hashable, int] = {}  # per source: log time of its latest item
+    newest: dict[Source, int] = {}  # per source: newest stamp
+    last_seen: dict[Source, int] = {}  # per source: log time of its latest item
     released = -(2**63)
     now = -(2**63)
     late = 0
     arrival = 0
     push, pop = heapq.heappush, heapq.heappop
     for item in items:
-        # The source: one tf edge, or one sensor / odometry frame of one type.
-        if isinstance(item, Transform):
-            if item.is_static:
-                yield item
-                continue
-            source: Hashable = (Transform, item.child_frame)
-        else:
-            source = (type(item), getattr(item, "frame_id", None))
+        if isinstance(item, Transform) and item.is_static:
+            yield item
+            continue
+        source = _source(item)
         stamp = item.stamp_ns
         if stamp < released:
             late += 1
