@@ -112,6 +112,7 @@ def cases() -> list[Case]:
         "pairs-of-equal-stamps": lambda i: 10**18 + (i // 2) * 25_000_000,
         "bursts-of-ten-in-1-ms-a-second-apart": lambda i: 10**18 + (i // 10) * 10**9 + (i % 10) * 100_000,
         "40-Hz-jittered-by-half-an-interval": lambda i: 10**18 + i * 25_000_000 + (i * 7919 % 25) * 500_000,
+        "never-set-all-0": lambda i: 0,  # replayed at the log times
     }
     battery += [Case("scan stamps", name, _scan_case(ranges=walls, count=200, stamp=stamp,
                                                      odometry=lambda i: (0.01 * i, 0.0, 0.0)))
