@@ -51,6 +51,10 @@ def _source(item: Stamped) -> Source:
     return (type(item), getattr(item, "frame_id", None))
 
 
+def _at_log_time(item: T) -> T:
+    return dataclasses.replace(item, stamp_ns=item.log_time_ns)  # type: ignore[type-var]
+
+
 def log_time_where_unstamped(items: Iterable[T], path: Path,
                              counts: MutableMapping[str, int] | None = None) -> Iterator[T]:
     """The items, those of a source whose stamps are unset (0, ROS's "no time": a driver or converter
@@ -62,29 +66,28 @@ def log_time_where_unstamped(items: Iterable[T], path: Path,
     `LogWarning` per source says so at the end."""
     held: dict[Source, T] = {}
     unset: dict[Source, int] = {}  # per unset source: items given their log time
-    decided: set[Source] = set()
+    decided: set[Source] = set()  # stamped sources (the common case, tested first)
     for item in items:
         if isinstance(item, Transform) and item.is_static:
             yield item
             continue
         source = _source(item)
-        if source in unset:
+        if source in decided:
+            yield item
+        elif source in unset:
             if item.stamp_ns == 0:
                 unset[source] += 1
-                item = dataclasses.replace(item, stamp_ns=item.log_time_ns)  # type: ignore[type-var]
-            yield item
-        elif source in decided:
+                item = _at_log_time(item)
             yield item
         elif source in held:
             first = held.pop(source)
             if item.stamp_ns == 0:
                 unset[source] = 2
-                yield dataclasses.replace(first, stamp_ns=first.log_time_ns)  # type: ignore[type-var]
-                yield dataclasses.replace(item, stamp_ns=item.log_time_ns)  # type: ignore[type-var]
+                first, item = _at_log_time(first), _at_log_time(item)
             else:
                 decided.add(source)
-                yield first
-                yield item
+            yield first
+            yield item
         elif item.stamp_ns == 0:
             held[source] = item
         else:
