@@ -66,6 +66,39 @@ def graph_recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dic
     return folder / "out", {"result": result, "entities": read_recording(folder / "out" / "loop.rrd")}
 
 
+def test_the_recording_holds_the_opening_layout_and_the_final_framed_one(
+    graph_recording: tuple[Path, dict],
+) -> None:
+    out, _ = graph_recording
+    reader = RrdReader(out / "loop.rrd")
+    assert len(reader.recordings()) == 1
+    framed = []
+    for store in reader.blueprints():
+        entities = {chunk.entity_path for chunk in reader.stream(store=store)}
+        assert "/viewport" in entities
+        framed.append(any(entity.endswith("/VisualBounds2D") for entity in entities))
+    # The opening layout, and the final one framing the optimized map (only known at the end).
+    assert sorted(framed) == [False, True]
+
+
+def _recording_streams_alive() -> int:
+    tasks = Path("/proc/self/task").iterdir()
+    return sum(1 for task in tasks if (task / "comm").read_text().strip() == "RecordingStream")
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="counts threads through Linux's /proc")
+def test_replays_in_one_process_leave_no_recording_stream_behind(tmp_path: Path) -> None:
+    # A batch script replays log after log: every stream the recording made (its own and its blueprints'),
+    # with the threads and the recorded data it holds, must be gone when a replay returns.
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    alive = []
+    for run in range(3):
+        replay_graph(graph, out_dir=tmp_path / f"out{run}", method="sgd", iterations=2)
+        alive.append(_recording_streams_alive())
+    assert alive[1] == alive[0] and alive[2] == alive[0]
+    assert alive[0] <= 1  # at most rerun's own global stream, idle
+
+
 def test_a_graph_recording_has_only_our_timelines_and_its_properties(
     graph_recording: tuple[Path, dict],
 ) -> None:

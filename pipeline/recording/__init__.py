@@ -43,6 +43,7 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
+import rerun_bindings
 from numpy.typing import NDArray
 from rerun.components import LineStrip2DBatch
 from rerun.encodings import Vec2DBatch
@@ -185,9 +186,11 @@ def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.Rec
     else:
         blueprint = default_blueprint()
     try:
-        recording.save(path, default_blueprint=blueprint)
+        recording.save(path)
     except (OSError, RuntimeError) as error:
         raise OutputError(f"{path}: cannot write the recording: {_write_failure(path, error)}") from error
+    # What `save(path, default_blueprint=...)` does, without its leaked stream (see `_send_blueprint`).
+    _send_blueprint(recording, blueprint, make_active=False)
     _saved_to[id(recording)] = path
     # Only our timelines (`iteration`, `scan`, `time`): the SDK would add `log_time`/`log_tick` to every
     # temporal `log` call, a timeline a user would pick and find nearly empty.
@@ -226,6 +229,8 @@ def close_recording(recording: rr.RecordingStream) -> None:
                 if reason is not None:
                     raise OutputError(f"{where}: cannot write the recording: {reason}") from error
         recording.disconnect()
+        # The blueprint streams `_send_blueprint` disconnected are only freed by this sweep.
+        rerun_bindings.flush_and_cleanup_orphaned_recordings()
     except RuntimeError as error:  # rerun's file writer stopped; it says only that, not why
         reason = " ".join(str(error).split()) if path is None else _write_failure(path, error)
         raise OutputError(f"{where}: cannot write the recording: {reason}") from error
@@ -332,7 +337,25 @@ def layout(main: rrb.View | rrb.Tabs, side: Sequence[rrb.View | rrb.Tabs], *, ro
 
 def send_blueprint(recording: rr.RecordingStream, blueprint: rrb.Blueprint) -> None:
     """Replace the recording's default blueprint (once the final map, hence the framing, is known)."""
-    recording.send_blueprint(blueprint, make_active=True, make_default=True)
+    _send_blueprint(recording, blueprint, make_active=True)
+
+
+def _send_blueprint(recording: rr.RecordingStream, blueprint: rrb.Blueprint, *, make_active: bool) -> None:
+    """rerun's `send_blueprint`, as the recording's default blueprint, without its leak.
+
+    rerun 0.41 builds a blueprint in a stream of its own (`create_in_memory_blueprint`) that is never
+    freed: its memory sink and the stream keep each other alive, with two threads and the replay's data
+    they reference, 20-30 MB a replay in a batch script. Built in a stream we disconnect, it is freed.
+    The private names used here are pinned by the rerun-sdk bound in pyproject.toml."""
+    stream = rr.RecordingStream._from_native(rerun_bindings.new_blueprint(
+        application_id=APPLICATION_ID, make_default=False, make_thread_default=False, default_enabled=True))
+    try:
+        stream.set_time("blueprint", sequence=0)
+        blueprint._log_to_stream(stream)
+        rerun_bindings.send_blueprint(stream.memory_recording().storage, make_active, True,
+                                      recording=recording.to_native())
+    finally:
+        stream.disconnect()
 
 
 def world_bounds(*point_sets: NDArray[np.floating]) -> Bounds:
