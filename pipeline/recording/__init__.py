@@ -187,10 +187,10 @@ def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.Rec
         blueprint = default_blueprint()
     try:
         recording.save(path)
+        # What `save(path, default_blueprint=...)` does, without its leaked stream (see `_send_blueprint`).
+        _send_blueprint(recording, blueprint, make_active=False)
     except (OSError, RuntimeError) as error:
         raise OutputError(f"{path}: cannot write the recording: {_write_failure(path, error)}") from error
-    # What `save(path, default_blueprint=...)` does, without its leaked stream (see `_send_blueprint`).
-    _send_blueprint(recording, blueprint, make_active=False)
     _saved_to[id(recording)] = path
     # Only our timelines (`iteration`, `scan`, `time`): the SDK would add `log_time`/`log_tick` to every
     # temporal `log` call, a timeline a user would pick and find nearly empty.
@@ -345,8 +345,9 @@ def _send_blueprint(recording: rr.RecordingStream, blueprint: rrb.Blueprint, *, 
 
     rerun 0.41 builds a blueprint in a stream of its own (`create_in_memory_blueprint`) that is never
     freed: its memory sink and the stream keep each other alive, with two threads and the replay's data
-    they reference, 20-30 MB a replay in a batch script. Built in a stream we disconnect, it is freed.
-    The private names used here are pinned by the rerun-sdk bound in pyproject.toml."""
+    they reference, 13-19 MB a replay in a batch script (benchmarks/batch_memory.py). Built in a stream
+    we disconnect, it is freed. The private names used here are pinned by the rerun-sdk bound in
+    pyproject.toml."""
     stream = rr.RecordingStream._from_native(rerun_bindings.new_blueprint(
         application_id=APPLICATION_ID, make_default=False, make_thread_default=False, default_enabled=True))
     try:
