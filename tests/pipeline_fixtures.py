@@ -310,3 +310,9 @@ def modules_a_fresh_replay_loads(log: Path, out: Path, prefixes: tuple[str, ...]
     assert run.returncode == 0, run.stdout + run.stderr
     assert (out / f"{log.stem}.tum").exists()
     return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def recording_streams_alive() -> int:
+    """The rerun recording streams alive in this process: one `RecordingStream` thread each (Linux)."""
+    tasks = Path("/proc/self/task").iterdir()
+    return sum(1 for task in tasks if (task / "comm").read_text().strip() == "RecordingStream")

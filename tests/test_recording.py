@@ -21,7 +21,7 @@ from pipeline import recording
 from pipeline.keyframe_optimization import optimize_keyframes, wheel_odometry_start
 from pipeline.recording import map2d, scans
 from pipeline.replay_graph import replay_graph
-from tests.pipeline_fixtures import LOOP_POSES, read_recording, write_loop_graph
+from tests.pipeline_fixtures import LOOP_POSES, read_recording, recording_streams_alive, write_loop_graph
 
 OUR_TIMELINES = {"iteration", "scan", "time"}
 
@@ -81,11 +81,6 @@ def test_the_recording_holds_the_opening_layout_and_the_final_framed_one(
     assert sorted(framed) == [False, True]
 
 
-def _recording_streams_alive() -> int:
-    tasks = Path("/proc/self/task").iterdir()
-    return sum(1 for task in tasks if (task / "comm").read_text().strip() == "RecordingStream")
-
-
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="counts threads through Linux's /proc")
 def test_replays_in_one_process_leave_no_recording_stream_behind(tmp_path: Path) -> None:
     # A batch script replays log after log: every stream the recording made (its own and its blueprints'),
@@ -94,7 +89,7 @@ def test_replays_in_one_process_leave_no_recording_stream_behind(tmp_path: Path)
     alive = []
     for run in range(3):
         replay_graph(graph, out_dir=tmp_path / f"out{run}", method="sgd", iterations=2)
-        alive.append(_recording_streams_alive())
+        alive.append(recording_streams_alive())
     # Never more than after the first (fewer if an earlier test's streams were swept meanwhile).
     assert max(alive[1:]) <= alive[0]
 
