@@ -566,6 +566,7 @@ def main() -> None:
         help="do not byte-compile our packages first (processes then compile what has no cached bytecode)",
     )
     args = parser.parse_args()
+    args.shared = args.shared.resolve()  # the timed processes run in the repository's parent folder
     if args.bytecode:
         compile_bytecode()
     results: dict[str, object] = {"bytecode_compiled_first": args.bytecode}

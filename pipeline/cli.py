@@ -156,8 +156,9 @@ Examples:
 \b
 Outputs, in DIR: <stem>.g2o (optimised poses), <stem>.json (counts, chi2 per iteration, wall time per
 stage), <stem>.rrd (every iteration on the timeline `iteration`) and, for logs, <stem>.tum (one pose per
-scan or cloud at its sensor stamp), the map: <stem>_map.png (laser scans) or <stem>.ply (point
-clouds), and <stem>.session (what --map and --continue start from). Sessions (scans or clouds, one log
+scan or cloud at its sensor stamp), the map: <stem>_map.png with the map_server pair <stem>_map.pgm
+and .yaml (laser scans), or <stem>.ply and .pcd with the poses as KITTI <stem>.kitti (point clouds),
+and <stem>.session (what --map and --continue start from). Sessions (scans or clouds, one log
 at a time): --map localizes the log in the saved map without changing it and writes <stem>.tum (every scan
 placed in the map, in its frame; scans never placed are counted in the JSON, not written), <stem>.json
 (per-scan match quality) and <stem>.rrd (the saved map with the new run on it); --continue maps on from
