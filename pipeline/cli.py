@@ -702,18 +702,28 @@ Examples:
 Read from the log's summary or index, not its messages: instant even on gigabyte logs.
 --json prints one object:
 {{"path", "container", "start_ns", "end_ns", "topics": [{{"name", "type", "count"}}, ...]}}.
+Of a session (`replay info recordings/run.session`): what wrote it, the map's sensor, keyframes, scans or
+clouds placed, constraints, loop closures and the logs it was made from; with --json
+{{"path", "container": "session", "format", "version", "software_version", "topic", "sensor_frame",
+"base_frame", "source", "continued_from", "sensor_kind", "keyframes", "measurements", "constraints",
+"loop_closures"}}.
 Exit code {EXIT_ERROR} on bad input: one line naming the file."""
 
 
 @app.command("info", epilog=_INFO_EPILOG)
 def info(
     log: Annotated[Path, typer.Argument(
-        metavar="LOG", show_default=False, help="An MCAP file, a ROS 1 bag or a ROS 2 bag directory.")],
+        metavar="LOG", show_default=False,
+        help="An MCAP file, a ROS 1 bag or a ROS 2 bag directory, or a .session a replay wrote.")],
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object on stdout.")] = False,
 ) -> None:
-    """Show a log's topics, message types, counts, rates and time span."""
+    """Show a log's topics, message types, counts, rates and time span, or what a session holds."""
     from frontends.logs import open_log
+    from pipeline.session_file import is_session_file
 
+    if is_session_file(log):
+        _session_info(log, as_json)
+        return
     try:
         with open_log(log) as reader:
             summary = reader.info()
@@ -735,6 +745,31 @@ def info(
         has_rate = duration > 0 and topic.count > 1
         rate = f"{(topic.count - 1) / duration:8.2f} Hz" if has_rate else "       - Hz"
         lines.append(f"  {topic.name:<{width}}  {topic.type:<{type_width}}  {topic.count:>9}  {rate}")
+    typer.echo("\n".join(lines))
+
+
+def _session_info(path: Path, as_json: bool) -> None:
+    from pipeline.session_file import SENSOR_WORDS, describe_session
+
+    try:
+        described = describe_session(path)
+    except KNOWN_ERRORS as error:
+        _fail(error)
+    if as_json:
+        typer.echo(json.dumps(described))
+        return
+    kind, sources = described["sensor_kind"], (described["source"] or {}).get("files", [])
+    lines = [f"{path}: session (format {described['version']}, written by sgdslam "
+             f"{described['software_version']}): a map of {SENSOR_WORDS[kind]} on {described['topic']} "
+             f"({described['sensor_frame']} in {described['base_frame'] or 'its own frame'})",
+             f"  {described['keyframes']} keyframes and {described['measurements']} {kind}s placed; "
+             f"{described['constraints']} constraints ({described['loop_closures']} loop closures)"]
+    lines += [f"  from {file['path']} ({file['bytes']} bytes, sha256 {file['sha256']})" for file in sources]
+    earlier = described["continued_from"]
+    while earlier:  # each continuation names the session it continued, and that one its own
+        logs = ", ".join(file["path"] for file in (earlier.get("source") or {}).get("files", []))
+        lines.append(f"  continuing {earlier['path']} (from {logs or 'a log not recorded'})")
+        earlier = earlier.get("continued_from")
     typer.echo("\n".join(lines))
 
 

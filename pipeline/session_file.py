@@ -204,6 +204,36 @@ def _array(path: Path, topic: str, data: bytes) -> NDArray[Any]:
 SENSOR_WORDS = {"scan": "2D laser scans", "cloud": "3D point clouds"}
 
 
+def is_session_file(path: Path) -> bool:
+    """Whether `path` is an MCAP file of the session profile: its header record (opcode 1, after the magic)
+    names the profile first, as a 4-byte length and the string."""
+    try:
+        with path.open("rb") as stream:
+            start = stream.read(len(MCAP_MAGIC) + 13 + len(SESSION_FORMAT))
+    except OSError:
+        return False
+    profile = len(MCAP_MAGIC) + 9  # after the magic, the opcode and the record's 8-byte length
+    return (start.startswith(MCAP_MAGIC) and start[len(MCAP_MAGIC)] == 1
+            and start[profile : profile + 4] == len(SESSION_FORMAT).to_bytes(4, "little")
+            and start[profile + 4 :] == SESSION_FORMAT.encode())
+
+
+def describe_session(path: str | Path) -> dict[str, Any]:
+    """What `replay info` tells of a session file: what wrote it, what its map was made of and from which
+    logs, and its size (keyframes, scans or clouds placed, constraints, loop closures)."""
+    path = Path(path)
+    content = read_session(path)
+    kind = session_sensor_kind(path, content)
+    header, arrays = content.header, content.arrays
+    stamps = arrays.get(f"{kind}_stamps_ns", np.empty(0))
+    is_loop = arrays.get("is_loop", np.empty(0, dtype=bool))
+    named = ("format", "version", "software_version", "topic", "sensor_frame", "base_frame", "source",
+             "continued_from")
+    return {"path": str(path), "container": "session", **{key: header.get(key) for key in named},
+            "sensor_kind": kind, "keyframes": len(content.keyframe_points), "measurements": len(stamps),
+            "constraints": len(is_loop), "loop_closures": int(np.count_nonzero(is_loop))}
+
+
 def session_sensor_kind(path: Path, content: SessionContent) -> str:
     """"scan" or "cloud": what the session's map was made of."""
     kind = content.header.get("sensor_kind")

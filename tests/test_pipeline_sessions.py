@@ -13,6 +13,7 @@ seen from the first log's first pose is what every pose written must match.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import re
@@ -307,6 +308,33 @@ def test_continue_maps_both_logs_into_one_trajectory_and_a_larger_session(logs: 
     assert len(entities["/world/trajectory"].steps) >= 2  # recorded iteration by iteration
 
 
+def test_info_describes_a_session_and_the_one_it_continued(logs: Logs, tmp_path: Path) -> None:
+    result = run_replay("info", logs.session, "--json")
+    assert result.exit_code == 0, result.output
+    described = json.loads(result.stdout)
+    saved = read_session(logs.session)
+    assert described["container"] == "session" and described["sensor_kind"] == "scan"
+    assert described["keyframes"] == len(saved.keyframe_points)
+    assert described["measurements"] == len(logs.first_truth), "every scan of the log, placed"
+    assert described["loop_closures"] == int(saved.arrays["is_loop"].sum())
+    (source,) = described["source"]["files"]
+    assert source["path"] == str(logs.first.resolve())
+    assert source["sha256"] == hashlib.sha256(logs.first.read_bytes()).hexdigest()
+    text = run_replay("info", logs.session)
+    assert text.exit_code == 0
+    assert text.stdout.startswith(f"{logs.session}: session") and "2D laser scans on /scan" in text.stdout
+    assert f"{len(saved.keyframe_points)} keyframes and {len(logs.first_truth)} scans placed" in text.stdout
+
+    continued = tmp_path / "twice.session"
+    with continued.open("wb") as stream:  # what a --continue writes: the header names the session continued
+        write_session(stream, {**saved.header, "continued_from": {
+            "path": str(logs.session), "source": saved.header["source"], "continued_from": None}},
+            saved.arrays, saved.keyframe_points)
+    text = run_replay("info", continued)
+    assert text.exit_code == 0
+    assert f"continuing {logs.session} (from {logs.first.resolve()})" in text.stdout
+
+
 def test_continue_with_a_log_not_after_the_session_warns_that_the_stamps_go_back(logs: Logs,
                                                                                    tmp_path: Path) -> None:
     # The first log continued on its own session: its scans are the session's again, at the same stamps.
@@ -425,6 +453,8 @@ def test_a_damaged_or_newer_session_is_one_line_naming_it(logs: Logs, tmp_path: 
         assert line.startswith(f"replay: error: {session}: ")
         assert "damaged session file (constraint 0" in line or damage in ("cut", "newer")
     assert file_names(out) == set()
+    if damage in ("cut", "newer"):  # unreadable: `replay info` says so in one line too
+        assert one_error_line(run_replay("info", session)).startswith(f"replay: error: {session}: ")
     with pytest.raises(SessionError, match=r"bad\.session"):
         pipeline.replay(logs.inside, out_dir=out, map=session)
 
