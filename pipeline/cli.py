@@ -758,19 +758,27 @@ def _session_info(path: Path, as_json: bool) -> None:
     if as_json:
         typer.echo(json.dumps(described))
         return
-    kind, sources = described["sensor_kind"], (described["source"] or {}).get("files", [])
+    kind = described["sensor_kind"]
     lines = [f"{path}: session (format {described['version']}, written by sgdslam "
              f"{described['software_version']}): a map of {SENSOR_WORDS[kind]} on {described['topic']} "
              f"({described['sensor_frame']} in {described['base_frame'] or 'its own frame'})",
              f"  {described['keyframes']} keyframes and {described['measurements']} {kind}s placed; "
              f"{described['constraints']} constraints ({described['loop_closures']} loop closures)"]
-    lines += [f"  from {file['path']} ({file['bytes']} bytes, sha256 {file['sha256']})" for file in sources]
+    lines += [f"  from {file.get('path')} ({file.get('bytes')} bytes, sha256 {file.get('sha256')})"
+              for file in _source_files(described)]
     earlier = described["continued_from"]
-    while earlier:  # each continuation names the session it continued, and that one its own
-        logs = ", ".join(file["path"] for file in (earlier.get("source") or {}).get("files", []))
-        lines.append(f"  continuing {earlier['path']} (from {logs or 'a log not recorded'})")
+    while isinstance(earlier, dict):  # each continuation names the session it continued, and that one its own
+        logs = ", ".join(str(file.get("path")) for file in _source_files(earlier))
+        lines.append(f"  continuing {earlier.get('path')} (from {logs or 'a log not recorded'})")
         earlier = earlier.get("continued_from")
     typer.echo("\n".join(lines))
+
+
+def _source_files(entry: dict[str, Any]) -> list[dict[str, Any]]:
+    """The source log files a session header's entry names (a header edited by hand may name them oddly)."""
+    source = entry.get("source")
+    files = source.get("files") if isinstance(source, dict) else None
+    return [file for file in files if isinstance(file, dict)] if isinstance(files, list) else []
 
 
 _EVALUATE_EPILOG = f"""\b

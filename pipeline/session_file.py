@@ -207,15 +207,16 @@ SENSOR_WORDS = {"scan": "2D laser scans", "cloud": "3D point clouds"}
 def is_session_file(path: Path) -> bool:
     """Whether `path` is an MCAP file of the session profile: its header record (opcode 1, after the magic)
     names the profile first, as a 4-byte length and the string."""
+    profile = SESSION_FORMAT.encode()
+    expected = MCAP_MAGIC + b"\x01"  # the magic, then the header record's opcode
+    profile_at = len(expected) + 8  # after the record's 8-byte length
     try:
         with path.open("rb") as stream:
-            start = stream.read(len(MCAP_MAGIC) + 13 + len(SESSION_FORMAT))
-    except OSError:
+            start = stream.read(profile_at + 4 + len(profile))
+    except OSError:  # a folder (a ROS 2 bag), or unreadable: the log reader says what it is
         return False
-    profile = len(MCAP_MAGIC) + 9  # after the magic, the opcode and the record's 8-byte length
-    return (start.startswith(MCAP_MAGIC) and start[len(MCAP_MAGIC)] == 1
-            and start[profile : profile + 4] == len(SESSION_FORMAT).to_bytes(4, "little")
-            and start[profile + 4 :] == SESSION_FORMAT.encode())
+    return (start.startswith(expected)
+            and start[profile_at:] == len(profile).to_bytes(4, "little") + profile)
 
 
 def describe_session(path: str | Path) -> dict[str, Any]:

@@ -334,6 +334,14 @@ def test_info_describes_a_session_and_the_one_it_continued(logs: Logs, tmp_path:
     assert text.exit_code == 0
     assert f"continuing {logs.session} (from {logs.first.resolve()})" in text.stdout
 
+    edited = tmp_path / "edited.session"  # a header edited by hand: said as it is, not a traceback
+    with edited.open("wb") as stream:
+        write_session(stream, {**saved.header, "source": {"files": ["a.mcap"]}, "continued_from": "old"},
+                      saved.arrays, saved.keyframe_points)
+    text = run_replay("info", edited)
+    assert text.exit_code == 0 and text.exception is None
+    assert "from " not in text.stdout and "continuing" not in text.stdout
+
 
 def test_continue_with_a_log_not_after_the_session_warns_that_the_stamps_go_back(logs: Logs,
                                                                                    tmp_path: Path) -> None:
