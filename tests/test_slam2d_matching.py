@@ -19,7 +19,7 @@ from frontends.slam2d.correlative import (
     prepare_branch_and_bound,
 )
 from frontends.slam2d.grid import LikelihoodGrid, build_likelihood_grid, max_pyramid
-from frontends.slam2d.icp import refine_point_to_line, scan_normals
+from frontends.slam2d.icp import _solve_3x3, refine_point_to_line, scan_normals
 from tests.laser_world import between, box, long_corridor, simulate_scan, square_loop, transform_points, wall
 
 RESOLUTION = 0.05
@@ -273,6 +273,32 @@ def test_icp_recovers_a_small_transform_between_two_scans_of_a_room(hall_scans: 
     assert result.inlier_fraction > 0.9
     assert result.rms < 0.05  # 1 cm noise, plus the few pairs across doors and occlusions
     assert np.all(np.linalg.eigvalsh(result.information) > 0.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(hnp.arrays(np.float64, (3, 3), elements=st.floats(-1e3, 1e3)),
+       hnp.arrays(np.float64, 3, elements=st.floats(-1e3, 1e3)))
+def test_icp_3x3_solve_agrees_with_numpy_where_the_matrix_is_regular(matrix: np.ndarray,
+                                                                     rhs: np.ndarray) -> None:
+    """ICP's step solve, written out (numba's `np.linalg.solve` binding took half the kernel's compile
+    time), must give what LAPACK gives wherever the system is well posed."""
+    if np.linalg.cond(matrix) > 1e8:
+        return
+    solution = rhs.copy()
+    assert _solve_3x3(matrix.copy(), solution)
+    np.testing.assert_allclose(matrix @ solution, rhs, atol=1e-6 * (1.0 + np.abs(rhs).max()))
+    np.testing.assert_allclose(solution, np.linalg.solve(matrix, rhs), rtol=1e-6,
+                               atol=1e-9 * (1.0 + np.abs(solution).max()))
+
+
+def test_icp_3x3_solve_pivots_past_a_zero_and_refuses_a_singular_matrix() -> None:
+    needs_pivot = np.array([[0.0, 2.0, 1.0], [3.0, 0.0, 1.0], [1.0, 1.0, 0.0]])  # a zero first pivot
+    rhs = np.array([1.0, 2.0, 3.0])
+    solution = rhs.copy()
+    assert _solve_3x3(needs_pivot.copy(), solution)
+    np.testing.assert_allclose(solution, np.linalg.solve(needs_pivot, rhs), rtol=1e-12)
+    singular = np.array([[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [0.0, 0.0, 1.0]])
+    assert not _solve_3x3(singular.copy(), rhs.copy())
 
 
 @pytest.mark.parametrize("heading", [0.0, 0.7, -2.0])

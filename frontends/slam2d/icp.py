@@ -159,6 +159,8 @@ def _icp(
     hessian = np.zeros((3, 3))
     gradient = np.zeros(3)
     row = np.zeros(3)
+    regularized = np.empty((3, 3))
+    step = np.empty(3)
     inverse_variance = 1.0 / (sigma * sigma)
     scale2 = (2.0 * sigma) ** 2
     paired = 0
@@ -167,7 +169,9 @@ def _icp(
     for _ in range(iterations):
         c = math.cos(pose[2])
         s = math.sin(pose[2])
-        hessian[:] = prior_information
+        for a in range(3):  # element by element: an array assignment compiles numba's shape checks (1-3 s)
+            for b in range(3):
+                hessian[a, b] = prior_information[a, b]
         offset_theta = se2.wrap_scalar(pose[2] - prior[2])
         for a in range(3):
             gradient[a] = (
@@ -221,10 +225,48 @@ def _icp(
                 residual_count += 1
         if paired < 3:
             break
-        step = np.linalg.solve(hessian + 1e-9 * np.eye(3), -gradient)
+        for a in range(3):
+            for b in range(3):
+                regularized[a, b] = hessian[a, b]
+            regularized[a, a] += 1e-9
+            step[a] = -gradient[a]
+        if not _solve_3x3(regularized, step):
+            break
         pose += step
         pose[2] = se2.wrap_scalar(pose[2])
         if abs(step[0]) + abs(step[1]) < tolerance and abs(step[2]) < tolerance:
             break
     rms = math.sqrt(squared_sum / residual_count) if residual_count > 0 else math.inf
     return pose, hessian, paired, rms
+
+
+@njit(cache=True, nogil=True)
+def _solve_3x3(matrix: FloatArray, rhs: FloatArray) -> bool:
+    """Overwrite `rhs` with matrix⁻¹·rhs by LU with partial pivoting, as LAPACK's `gesv` solves it; False
+    where a pivot is exactly zero (singular). Written out: `np.linalg.solve` compiles numba's LAPACK binding
+    and its shape checks, half of the ICP kernel's compilation (4 of 8 s on a fresh install)."""
+    a = matrix  # factorised in place
+    for column in range(3):
+        pivot = column
+        for r in range(column + 1, 3):
+            if abs(a[r, column]) > abs(a[pivot, column]):
+                pivot = r
+        if a[pivot, column] == 0.0:
+            return False
+        if pivot != column:
+            for k in range(3):
+                a[column, k], a[pivot, k] = a[pivot, k], a[column, k]
+            rhs[column], rhs[pivot] = rhs[pivot], rhs[column]
+        reciprocal = 1.0 / a[column, column]
+        for r in range(column + 1, 3):
+            a[r, column] *= reciprocal
+            for k in range(column + 1, 3):
+                a[r, k] -= a[r, column] * a[column, k]
+    for r in range(1, 3):  # L (unit diagonal)
+        for k in range(r):
+            rhs[r] -= a[r, k] * rhs[k]
+    for column in range(2, -1, -1):  # U, column by column
+        rhs[column] /= a[column, column]
+        for r in range(column):
+            rhs[r] -= rhs[column] * a[r, column]
+    return True
