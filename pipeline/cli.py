@@ -35,6 +35,7 @@ from typer.core import TyperCommand, TyperGroup
 
 from optimizer.robust import KERNELS
 from optimizer.solve import DEFAULT_ITERATIONS, MAX_ITERATIONS, METHODS
+from optimizer.warmup import warming_up
 from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, input_kind
 from pipeline.bundled import SAMPLE_DESCRIPTION, sample_log
 from pipeline.errors import PipelineError
@@ -437,7 +438,11 @@ def _run_inputs(inputs: Sequence[Path], config: ReplayConfig, out: Path, *, jobs
     arrow_without_pandas()
     pooled = ray is not None or (jobs > 1 and len(inputs) > 1)
     bars = len(inputs) if several or pooled else 0
-    with _python_warnings_off(), _progress_display(not quiet and sys.stderr.isatty(), bars) as display:
+    interactive = not quiet and sys.stderr.isatty()
+    # Someone watching a log's replay on a fresh install waits for its kernels to compile: the optimizer's
+    # compile on the other core meanwhile (`optimizer.warmup`); batches and scripts don't need it.
+    warm_up = interactive and not pooled and any(input_kind(path) == "log" for path in inputs)
+    with _python_warnings_off(), _progress_display(interactive, bars) as display, warming_up(warm_up):
         if pooled:
             try:
                 return run_batch(inputs, config, out_dir=out, jobs=jobs, ray=ray, on_done=display.finished)
