@@ -6,7 +6,7 @@ compiling the laser frontend's kernels, then ~13 s compiling the optimizer's at 
 one after the other. The optimizer's do not depend on the log: `python -m optimizer.warmup MARKER`
 compiles them on the other core while the frontend compiles its own (numba's compiler lock is per
 process), and the replay then loads them from the cache (numba looks there at a kernel's first call).
-The bundled sample's first replay took 18.5 s instead of 30–36 s.
+The bundled sample's first interactive replay took 18–22 s instead of 30–36 s.
 
 `MARKER` is a file written once every kernel is cached (`marker_path`: named after what numba's cache is
 keyed on), so that later replays do not start the process again.
