@@ -293,6 +293,7 @@ def _branch_and_bound(
     reach: int,
     top_scores: FloatArray,
     keys: NDArray[np.int64],
+    top_order: NDArray[np.int64],
     min_score: float,
     exclude_x: int,
     exclude_y: int,
@@ -301,7 +302,9 @@ def _branch_and_bound(
     """The best leaf above `min_score`, skipping translations within `exclude_radius` cells of
     (exclude_x, exclude_y) (a negative radius excludes nothing); `levels[top]` is the coarsest level
     (`levels` may hold more, `PYRAMID_SLOTS`); `top_scores` and `keys` are `_top_level`'s, shared by every
-    search of the same points on the same pyramid."""
+    search of the same points on the same pyramid, and `top_order` the indices of `top_scores` in ascending
+    order (sorted by the caller, in numpy: a sort in here compiled numba's quicksort, 2 of this kernel's 4 s
+    of compilation on a fresh install)."""
     span = 1 << top
     count = top_scores.shape[0]
     scores = top_scores.copy()
@@ -318,7 +321,7 @@ def _branch_and_bound(
     stack_level = np.empty(capacity, dtype=np.int64)
     stack_score = np.empty(capacity)
     size = 0
-    for k in np.argsort(scores):
+    for k in top_order:
         if scores[k] <= min_score:  # would be pruned when popped
             continue
         stack_a[size] = keys[k, 0]
@@ -391,6 +394,8 @@ class BranchAndBoundSearch:
     parts: tuple[slice, ...]
     """Rows of `top_scores` and `top_keys` searched side by side (`_side_by_side`), a share of the
     rotations each."""
+    top_orders: tuple[NDArray[np.int64], ...]
+    """Each part's rows of `top_scores` in ascending order of score (where scores tie, in row order)."""
 
     def best(self, min_score: float, exclude: tuple[FloatArray, float] | None = None) -> Match | None:
         """`match_branch_and_bound` of these points with this `min_score` and `exclude`."""
@@ -406,9 +411,9 @@ class BranchAndBoundSearch:
         padded = self.pyramid + (self.pyramid[-1],) * max(PYRAMID_SLOTS - len(self.pyramid), 0)
         found = _side_by_side([
             partial(_branch_and_bound, padded, top, self.cells_x, self.cells_y, self.reach,
-                    self.top_scores[part], self.top_keys[part], float(min_score), exclude_x, exclude_y,
-                    exclude_radius)
-            for part in self.parts
+                    self.top_scores[part], self.top_keys[part], order, float(min_score), exclude_x,
+                    exclude_y, exclude_radius)
+            for part, order in zip(self.parts, self.top_orders, strict=True)
         ])
         # The best of the parts; of equal scores the first rotation's, whatever thread finished first.
         a, tx, ty, score = max(found, key=lambda f: (f[3], -f[0]))
@@ -472,8 +477,9 @@ def prepare_branch_and_bound(
                 top_keys[part])
         for share, part in zip(rotations, parts, strict=True)
     ])
+    top_orders = tuple(np.argsort(top_scores[part], kind="stable") for part in parts)
     return BranchAndBoundSearch(np.asarray(center, dtype=np.float64), grid.resolution, angles, reach, pyramid,
-                                cells_x, cells_y, top_scores, top_keys, parts)
+                                cells_x, cells_y, top_scores, top_keys, parts, top_orders)
 
 
 SIDE_BY_SIDE_READS = 250_000
