@@ -109,9 +109,9 @@ def warming_up(enabled: bool) -> Iterator[None]:
     try:
         yield
     finally:
-        if process is not None and process.poll() is None:
-            process.terminate()
         if process is not None:
+            if process.poll() is None:
+                process.terminate()
             process.wait()
 
 

@@ -244,7 +244,10 @@ def _icp(
 def _solve_3x3(matrix: FloatArray, rhs: FloatArray) -> bool:
     """Overwrite `rhs` with matrix⁻¹·rhs by LU with partial pivoting, as LAPACK's `gesv` solves it; False
     where a pivot is exactly zero (singular). Written out: `np.linalg.solve` compiles numba's LAPACK binding
-    and its shape checks, half of the ICP kernel's compilation (4 of 8 s on a fresh install)."""
+    and its shape checks, half of the ICP kernel's compilation (4 of 8 s on a fresh install). Not the
+    optimizer's Cholesky (`optimizer.gauss_seidel._solve_3x3_spd`): its positive-definiteness test refuses
+    the nearly singular systems of a corridor (a rank-2 Hessian plus the 1e-9 regularisation), which LAPACK
+    solved, and the matches there would change."""
     a = matrix  # factorised in place
     for column in range(3):
         pivot = column
