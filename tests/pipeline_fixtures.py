@@ -180,7 +180,7 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                 part: slice | None = None, later_ns: int = 0, seed: int = 7,
                 sweep: float = 0.0, scan_period_ns: int = SCAN_PERIOD_NS,
                 odometry_topic: bool = True, multi_echo: bool = False,
-                world: World | None = None) -> np.ndarray:
+                world: World | None = None, upside_down: bool = False) -> np.ndarray:
     """Drive the simulated building's loop (or `world`'s route) at 1 m/s, writing /scan, /odom, /tf and
     /tf_static; returns the truth (base poses) per scan. `part`: only these scans of the drive, as a log
     recorded `later_ns` later whose wheel odometry starts at its own origin (a second recording of the same
@@ -188,7 +188,9 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
     (time_increment set), each from where the robot is then; 0: all at the stamp (time_increment 0).
     `scan_period_ns`: a faster laser, the robot as fast (`DRIVE_SPEED`; not with `sweep`). `odometry_topic`
     False: the odometry only in /tf. `multi_echo`: the scans as sensor_msgs/MultiEchoLaserScan, each return
-    its beam's first echo. `world`: another building's route and walls (not with `sweep`)."""
+    its beam's first echo. `world`: another building's route and walls (not with `sweep`). `upside_down`:
+    the laser is mounted rolled by π (tf says so): it sees the world mirrored, its bearings turning
+    clockwise in the base frame (not with `sweep`)."""
     rng = np.random.default_rng(seed)
     world = world or square_loop()
     truth = drive(world, DRIVE_SPEED * scan_period_ns * 1e-9)[:scans]
@@ -199,8 +201,11 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
     with ros2_mcap(path) as (messages, add):
         types = messages.types
 
-        def transform(stamp: int, parent: str, child: str, pose: np.ndarray) -> object:
+        def transform(stamp: int, parent: str, child: str, pose: np.ndarray, rolled: bool = False) -> object:
+            # Rolled by π about x after the yaw: q_yaw ⊗ (1, 0, 0, 0) in (x, y, z, w).
             q = quaternion_from_yaw(float(pose[2]))
+            if rolled:
+                q = (q[3], q[2], -q[1], -q[0])
             return types["geometry_msgs/msg/TransformStamped"](
                 header=messages.header(stamp, parent),
                 child_frame_id=child,
@@ -215,7 +220,7 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
             "tf2_msgs/msg/TFMessage",
             START_NS,
             types["tf2_msgs/msg/TFMessage"](
-                transforms=[transform(START_NS, "base_link", "laser", LASER_MOUNT)]
+                transforms=[transform(START_NS, "base_link", "laser", LASER_MOUNT, rolled=upside_down)]
             ),
         )
         for k, pose in enumerate(truth):
@@ -258,6 +263,8 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
             else:
                 points = simulate_scan(world.segments, se2.compose(pose, LASER_MOUNT), beams=BEAMS,
                                        max_range=20.0, range_noise=0.01, rng=rng)
+                if upside_down:  # its y axis points the other way
+                    points = points * np.array([1.0, -1.0])
             ranges: object = laser_ranges(points)
             scan_type = "sensor_msgs/msg/LaserScan"
             if multi_echo:  # each return the first of its echoes, a weaker one 1.5 m behind it second
