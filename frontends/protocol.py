@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.errors import FrontendError, LogFileError, LogWarning, MapPlacementError
-from frontends.logs import LogReader, TransformTree
+from frontends.logs import LogReader, TransformTree, tf_frame
 from optimizer.graph import PoseGraph
 
 FloatArray = NDArray[np.float64]
@@ -38,9 +38,14 @@ class FrontendOptions:
     """What the user may choose beside the frontend's own settings."""
 
     base_frame: str | None = None
-    """The vehicle frame poses are of; None: from the log (see `default_base_frame`)."""
+    """The vehicle frame poses are of, named as tf2 names it (`tf_frame`: "/base_link" is "base_link");
+    None: from the log (see `default_base_frame`)."""
     odometry_topic: str | None = None
     """The odometry topic (when the log has several)."""
+
+    def __post_init__(self) -> None:
+        if self.base_frame is not None:
+            object.__setattr__(self, "base_frame", tf_frame(self.base_frame))
 
 
 def default_base_frame(tree: TransformTree, sensor_frame: str) -> str:

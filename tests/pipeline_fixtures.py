@@ -180,7 +180,8 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                 part: slice | None = None, later_ns: int = 0, seed: int = 7,
                 sweep: float = 0.0, scan_period_ns: int = SCAN_PERIOD_NS,
                 odometry_topic: bool = True, multi_echo: bool = False,
-                world: World | None = None, upside_down: bool = False) -> np.ndarray:
+                world: World | None = None, upside_down: bool = False, scan_frame: str = "laser",
+                mount_on_tf: bool = True) -> np.ndarray:
     """Drive the simulated building's loop (or `world`'s route) at 1 m/s, writing /scan, /odom, /tf and
     /tf_static; returns the truth (base poses) per scan. `part`: only these scans of the drive, as a log
     recorded `later_ns` later whose wheel odometry starts at its own origin (a second recording of the same
@@ -190,7 +191,8 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
     False: the odometry only in /tf. `multi_echo`: the scans as sensor_msgs/MultiEchoLaserScan, each return
     its beam's first echo. `world`: another building's route and walls (not with `sweep`). `upside_down`:
     the laser is mounted rolled by π (tf says so): it sees the world mirrored, its bearings turning
-    clockwise in the base frame (not with `sweep`)."""
+    clockwise in the base frame (not with `sweep`). `scan_frame`: the frame the scans name (tf names the
+    laser "laser"). `mount_on_tf` False: no /tf_static, tf does not say where the laser sits."""
     rng = np.random.default_rng(seed)
     world = world or square_loop()
     truth = drive(world, DRIVE_SPEED * scan_period_ns * 1e-9)[:scans]
@@ -215,14 +217,15 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                 ),
             )
 
-        add(
-            "/tf_static",
-            "tf2_msgs/msg/TFMessage",
-            START_NS,
-            types["tf2_msgs/msg/TFMessage"](
-                transforms=[transform(START_NS, "base_link", "laser", LASER_MOUNT, rolled=upside_down)]
-            ),
-        )
+        if mount_on_tf:
+            add(
+                "/tf_static",
+                "tf2_msgs/msg/TFMessage",
+                START_NS,
+                types["tf2_msgs/msg/TFMessage"](
+                    transforms=[transform(START_NS, "base_link", "laser", LASER_MOUNT, rolled=upside_down)]
+                ),
+            )
         for k, pose in enumerate(truth):
             stamp = START_NS + later_ns + k * scan_period_ns
             if with_odometry:
@@ -273,7 +276,7 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                 ranges = [echo(echoes=np.array([r, r + 1.5] if np.isfinite(r) else [], np.float32))
                           for r in laser_ranges(points)]
             scan = types[scan_type](
-                header=messages.header(stamp, "laser"),
+                header=messages.header(stamp, scan_frame),
                 angle_min=0.0,
                 angle_max=float(2 * math.pi * (BEAMS - 1) / BEAMS),
                 angle_increment=float(2 * math.pi / BEAMS),

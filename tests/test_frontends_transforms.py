@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from frontends.errors import LogWarning, TransformLookupError
-from frontends.logs import OdometryPose, Scan2D, Transform, TransformTree, open_log, rotations
+from frontends.logs import Cloud3D, OdometryPose, Scan2D, Transform, TransformTree, open_log, rotations
 from frontends.logs.ordering import by_stamp
 from tests._frontends_fixtures import ScanListLog, ros2_mcap
 
@@ -221,6 +221,33 @@ def test_laser_scans_default_to_the_frame_that_moves_as_clouds_do() -> None:
     assert mount is not None and mount.parent_frame == "base_footprint"
     assert moved.frame_id == "base_footprint"
     np.testing.assert_allclose(moved.points, points + np.array([0.2, 0.0]))
+
+
+def test_frames_are_named_as_tf2_names_them_without_a_leading_slash() -> None:
+    """tf1 named frames "/odom"; tf2 drops one leading slash on every lookup (`stripSlash`). A log mixing
+    both (old bags, tf1-era drivers) is one tree."""
+    from frontends.protocol import FrontendOptions
+    from frontends.slam2d.log_input import scans_in_base_frame
+
+    identity = np.array([0.0, 0.0, 0.0, 1.0])
+    tree = TransformTree().extend([
+        Transform("/odom", "/base_link", 0, 0, np.zeros(3), identity, False),
+        Transform("base_link", "/laser", 0, 0, np.array([0.2, 0.0, 0.3]), identity, True),
+    ])
+    points = np.array([[1.0, 0.0], [0.0, 2.0]])
+    scan = Scan2D(0, 0, "/laser", points, np.array([1.0, 2.0]), np.array([0.0, math.pi / 2]), 2)
+    assert scan.frame_id == "laser"
+    [(moved, mount)] = list(scans_in_base_frame(ScanListLog([scan]), "/scan", tree, None,  # type: ignore[arg-type]
+                                                 min_points=1))
+    assert mount is not None and (mount.parent_frame, mount.child_frame) == ("base_link", "laser")
+    np.testing.assert_allclose(moved.points, points + np.array([0.2, 0.0]))
+    odometry = OdometryPose(0, 0, "/odom", "/base_link", np.zeros(3), identity)
+    assert (odometry.frame_id, odometry.child_frame_id) == ("odom", "base_link")
+    assert Cloud3D(0, 0, "/velodyne", np.zeros((0, 3), np.float32), None).frame_id == "velodyne"
+    assert FrontendOptions(base_frame="/base_link").base_frame == "base_link"
+    # One slash, as tf2: "//x" is "/x"; a frame without one is left as it is.
+    assert Transform("//map", "a/b", 0, 0, np.zeros(3), identity, True).parent_frame == "/map"
+    assert Transform("//map", "a/b", 0, 0, np.zeros(3), identity, True).child_frame == "a/b"
 
 
 def _tf_odometry_log(path: Path) -> Path:

@@ -158,6 +158,34 @@ def test_a_laser_mounted_upside_down_replays_as_one_mounted_upright(tmp_path: Pa
     assert _max_position_error(read_tum(out / "rolled.tum").planar(), truth) < 0.15
 
 
+def test_frames_named_the_tf1_way_are_the_frames_tf2_names_without_the_slash(tmp_path: Path) -> None:
+    """The laser's driver stamps "/laser" (tf1's names) while tf says "laser": tf2 drops the leading slash
+    on every lookup, so in ROS the scans sit on the base; here too, and `--base-frame /base_link` names the
+    same frame. Read as two frames, the poses would be the laser's (25 cm ahead of the base)."""
+    path, out = tmp_path / "tf1.mcap", tmp_path / "out"
+    truth = write_drive(path, scan_frame="/laser")
+    result = CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet", "--base-frame", "/base_link"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "tf1.json").read_text())
+    assert (summary["sensor_frame"], summary["base_frame"]) == ("laser", "base_link")
+    assert summary["counts"]["scans_with_tf_mount"] == len(truth) and summary["warnings"] == []
+    assert _max_position_error(read_tum(out / "tf1.tum").planar(), truth) < 0.15
+
+
+def test_odometry_of_a_frame_tf_does_not_link_to_the_laser_is_a_warning(tmp_path: Path) -> None:
+    """No tf says where the laser sits on the robot whose odometry the log holds: the poses are the laser's
+    (`base_frame` null), its motion taken from the odometry of base_link; the summary says so."""
+    path, out = tmp_path / "unmounted.mcap", tmp_path / "out"
+    write_drive(path, scans=40, mount_on_tf=False)
+    result = CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "unmounted.json").read_text())
+    assert (summary["sensor_frame"], summary["base_frame"]) == ("laser", None)
+    [warning] = summary["warnings"]
+    assert warning["message"].startswith("tf gives no path from the laser's frame laser to the odometry's "
+                                         "base_link: the odometry was taken as the laser's own motion")
+
+
 def test_a_laser_replay_never_imports_the_3d_frontend(tmp_path: Path) -> None:
     # Start-up: every `replay` pays its imports; the 3D frontend (KISS-ICP, scipy's rotations) is for
     # logs of clouds. A fresh process, as other tests of this session may have imported it.

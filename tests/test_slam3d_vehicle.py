@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from frontends.errors import LogWarning
 from frontends.logs import Cloud3D, OdometryPose, Transform, TransformTree
 from frontends.protocol import default_base_frame
 from frontends.slam3d import LidarFrontend, LidarSlam3D, se3
@@ -244,3 +245,21 @@ def test_odometry_comes_from_tf_only_when_tf_has_a_moving_edge() -> None:
     assert with_odometry.odometry_reads == 1 and prior is not None and len(prior) == 3
     assert frontend.odometry_topic == "tf odom -> base_link"  # what the summary names
     np.testing.assert_allclose(prior.at(150)[:3, 3], [0.75, 0.0, 0.0])
+
+
+def test_odometry_of_a_frame_tf_does_not_link_to_the_lidar_is_left_out_with_a_warning() -> None:
+    """The LiDAR sits on a rig tf does not attach to base_link, whose odometry tf holds: the poses are the
+    rig's, which no odometry describes; the odometry is not used, and a warning says so."""
+    moving = [Transform("odom", "base_link", stamp, 0, np.array([0.5 * k, 0.0, 0.0]), IDENTITY_Q, False)
+              for k, stamp in enumerate((0, 100, 200))]
+    log = _TfOnlyLog(_edge("rig", "lidar", (0.0, 0.0, 1.0), IDENTITY_Q, True), *moving)
+    frontend = LidarFrontend(log, "/points")  # type: ignore[arg-type]
+    mount = lidar_mount(frontend._tree, "lidar", 0)
+    assert frontend._prior is not None and mount is not None and mount.base_frame == "rig"
+    with pytest.warns(LogWarning, match="tf gives no path from the poses' frame rig .* to the odometry's "
+                                        "base_link: the odometry was not used"):
+        assert frontend._prior_of_base(mount, 0) is None
+    linked = _TfOnlyLog(_edge("base_link", "lidar", (0.0, 0.0, 1.0), IDENTITY_Q, True), *moving)
+    linked_frontend = LidarFrontend(linked, "/points")  # type: ignore[arg-type]
+    linked_mount = lidar_mount(linked_frontend._tree, "lidar", 0)
+    assert linked_mount is not None and linked_frontend._prior_of_base(linked_mount, 0) is not None

@@ -12,7 +12,7 @@ streams by sensor time, `guard` bounds what one message may claim.
 
 from frontends.logs.log import ODOMETRY_FRAME, LogReader, open_log
 from frontends.logs.transforms import TransformTree
-from frontends.logs.types import Cloud3D, LogInfo, OdometryPose, Scan2D, TopicInfo, Transform
+from frontends.logs.types import Cloud3D, LogInfo, OdometryPose, Scan2D, TopicInfo, Transform, tf_frame
 
 __all__ = ["ODOMETRY_FRAME", "Cloud3D", "LogInfo", "LogReader", "OdometryPose", "Scan2D", "TopicInfo",
-           "Transform", "TransformTree", "open_log"]
+           "Transform", "TransformTree", "open_log", "tf_frame"]

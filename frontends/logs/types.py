@@ -2,7 +2,8 @@
 
 Times are integer nanoseconds since the epoch: `stamp_ns` is the sensor stamp (ROS `header.stamp`,
 Foxglove `timestamp`), the time of record; `log_time_ns` is when the recorder wrote the message.
-Rotations are unit quaternions in (x, y, z, w) order. Arrays are read-only.
+Rotations are unit quaternions in (x, y, z, w) order. Arrays are read-only. Frame ids are named as tf2
+names them (`tf_frame`): without tf1's leading slash.
 """
 
 from __future__ import annotations
@@ -15,6 +16,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.logs import rotations
+
+
+def tf_frame(frame_id: str) -> str:
+    """`frame_id` as tf2 names it: without a leading slash. tf1 named frames "/base_link"; tf2 drops the
+    slash on every lookup, so a log whose driver stamps "laser" while its tf says "/laser" (or the other way
+    round: old bags, tf1-era drivers) is one tree in ROS, and must be here."""
+    return frame_id[1:] if frame_id.startswith("/") else frame_id
+
+
+def _tf_named(item: Any, *fields: str) -> None:
+    """Rename the frame-id `fields` of a frozen dataclass `item` as tf2 names them (`tf_frame`)."""
+    for name in fields:
+        frame_id = getattr(item, name)
+        if frame_id.startswith("/"):
+            object.__setattr__(item, name, tf_frame(frame_id))
 
 
 def _frozen(array: NDArray[Any]) -> NDArray[Any]:
@@ -52,6 +68,7 @@ class Scan2D:
                 f"Scan2D arrays disagree: points {self.points.shape}, ranges {self.ranges.shape}, "
                 f"bearings {self.bearings.shape}, point_times {times_shape}"
             )
+        _tf_named(self, "frame_id")
         _frozen(self.points)
         _frozen(self.ranges)
         _frozen(self.bearings)
@@ -112,6 +129,7 @@ class Cloud3D:
                     f"Cloud3D point_times {self.point_times.shape} do not match points {self.points.shape}"
                 )
             _frozen(self.point_times)
+        _tf_named(self, "frame_id")
         _frozen(self.points)
 
     @property
@@ -137,6 +155,7 @@ class OdometryPose:
     def __post_init__(self) -> None:
         if self.translation.shape != (3,) or self.rotation.shape != (4,):
             raise ValueError("OdometryPose needs translation (3,) and rotation (4,)")
+        _tf_named(self, "frame_id", "child_frame_id")
         _frozen(self.translation)
         _frozen(self.rotation)
 
@@ -173,6 +192,7 @@ class Transform:
     def __post_init__(self) -> None:
         if self.translation.shape != (3,) or self.rotation.shape != (4,):
             raise ValueError("Transform needs translation (3,) and rotation (4,)")
+        _tf_named(self, "parent_frame", "child_frame")
         _frozen(self.translation)
         _frozen(self.rotation)
 

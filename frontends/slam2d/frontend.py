@@ -164,10 +164,17 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
 
     def _after_reading(self) -> None:
         """What the whole log says. No scan placed on a base by tf, and no base named by the user: the poses
-        are the laser's, and the result says so (`base_frame` None), as the LiDAR frontend's does. Beam
-        times ignored (`_beam_times`): a warning."""
+        are the laser's, and the result says so (`base_frame` None), as the LiDAR frontend's does; with
+        wheel odometry of another frame, a warning: its motion was taken as the laser's. Beam times ignored
+        (`_beam_times`): a warning."""
         if not self._counts["scans_with_tf_mount"] and self._requested_base_frame is None:
             self.base_frame = None
+            odometry_frame = None if self.odometry is None else self.odometry.child_frame
+            if odometry_frame and self.sensor_frame and odometry_frame != self.sensor_frame:
+                warnings.warn(f"{self._log.path}: tf gives no path from the laser's frame "
+                              f"{self.sensor_frame} to the odometry's {odometry_frame}: the odometry was "
+                              "taken as the laser's own motion (a laser off the robot's centre moves "
+                              "otherwise in turns), and the poses are the laser's", LogWarning, stacklevel=2)
         ignored = self._counts["scans_beam_times_ignored"]
         if ignored:
             warnings.warn(f"{self._log.path}: {ignored} scans on {self._topic} said their beams took up to "

@@ -3,13 +3,14 @@ graph, every cloud's 3D pose and a point map out."""
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.errors import FrontendError, LogFileError
+from frontends.errors import FrontendError, LogFileError, LogWarning
 from frontends.logs import ODOMETRY_FRAME, Cloud3D, LogReader, TransformTree
 from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, SessionArrays
 from frontends.slam3d.config import Slam3DConfig
@@ -82,12 +83,18 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         return LidarSlam3D(self.config, sensor_to_base=sensor_to_base)
 
     def _prior_of_base(self, mount: LidarMount, stamp_ns: int) -> OdometryPrior | None:
-        """The odometry as poses of the mount's base frame; None when tf cannot relate the two."""
+        """The odometry as poses of the mount's base frame; None, and a warning, when tf cannot relate the
+        two (the odometry is then not used)."""
         prior = self._prior
         if prior is None or not prior.child_frame or prior.child_frame == mount.base_frame:
             return prior
         link = self._tree.sensor_mount(prior.child_frame, mount.base_frame, stamp_ns)
-        return None if link is None else prior.rebase(link.matrix())
+        if link is None:
+            warnings.warn(f"{self._log.path}: tf gives no path from the poses' frame {mount.base_frame} "
+                          f"(the LiDAR's base) to the odometry's {prior.child_frame}: the odometry was not "
+                          "used", LogWarning, stacklevel=2)
+            return None
+        return prior.rebase(link.matrix())
 
     def _keyframe_poses(self, planar_poses: FloatArray) -> FloatArray:
         """3D keyframe poses of a planar optimum: lifted, then polished in SE(3) (computed once)."""
