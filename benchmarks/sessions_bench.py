@@ -86,7 +86,12 @@ from frontends.logs import open_log  # noqa: E402
 from frontends.protocol import unmatched_on_saved_path  # noqa: E402
 from frontends.slam2d import read_odometry, scans_in_base_frame  # noqa: E402
 from frontends.slam2d.grid import LikelihoodGrid  # noqa: E402
-from frontends.slam2d.held_map import HeldMapTrajectory, held_map_scans, held_map_trajectory  # noqa: E402
+from frontends.slam2d.held_map import (  # noqa: E402
+    HeldMapTrajectory,
+    HeldOdometry,
+    held_map_scans,
+    held_map_trajectory,
+)
 from frontends.slam2d.local_map import place  # noqa: E402
 from frontends.slam2d.localization import LocalizedScan, MapLocalizer  # noqa: E402
 from frontends.slam2d.localization_smoothing import SmoothedTrajectory, smooth_scans  # noqa: E402
@@ -263,9 +268,13 @@ def localize_as_replay(saved: Slam2DGraph, map_poses: FloatArray, scans: list[Lo
                                  placed_by_caller=True)
     results = []
     beside = InOrderWorker("held-map")  # each scan's SLAM beside the next one's localizer, as in replay
+    odometry_of = HeldOdometry()
     for s in scans:
         results.append(localizer.localize(s.stamp_ns, s.points, s.odometry, s.interval, s.times))
-        beside.submit(partial(resumed.add_scan, s.stamp_ns, s.points, s.odometry, s.interval, s.times,
+        odometry, interval, restart = odometry_of.of(s.odometry, s.interval, results[-1])
+        if restart:
+            beside.submit(resumed.odometry_restarts)
+        beside.submit(partial(resumed.add_scan, s.stamp_ns, s.points, odometry, interval, s.times,
                               located=results[-1]))
     beside.drain()
     smoothing_started = time.process_time()

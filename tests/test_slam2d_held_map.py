@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from frontends.errors import FrontendError
-from frontends.slam2d.held_map import held_map_problem, solve_held_map, solve_with_map_held
+from frontends.slam2d.held_map import HeldOdometry, held_map_problem, solve_held_map, solve_with_map_held
+from frontends.slam2d.localization import LocalizedScan
 from frontends.slam2d.resume import MapPlacementError, SavedConstraints
 from frontends.slam2d.slam import LaserSlam2D
 from optimizer import se2
@@ -156,3 +157,31 @@ def test_a_run_placed_by_its_caller_needs_the_callers_localization() -> None:
     resumed = LaserSlam2D.resume(scans, poses, constraints, placed_by_caller=True)
     with pytest.raises(MapPlacementError, match="without its localization"):
         resumed.add_scan(1, scans[0])
+
+
+def _found(index: int, pose: tuple[float, float, float], *, localized: bool = True,
+           matched: bool = True) -> LocalizedScan:
+    return LocalizedScan(index, index, np.array(pose), localized, matched, 0.9, 1.0, 0.01, np.eye(3))
+
+
+def test_the_run_s_own_slam_takes_the_map_matches_as_odometry_where_the_wheels_measured_nothing() -> None:
+    """`HeldOdometry`: the wheels' odometry as it is; without it, once the localizer has placed the run,
+    each scan it matched to the saved map at its map pose (the map measured the motion), nothing for a scan
+    it did not match; the SLAM's odometry restarts wherever the source changes (two frames)."""
+    held = HeldOdometry()
+    wheels = np.array([5.0, 1.0, 0.2])
+    # Before the run is placed: no map pose to give, whatever the localizer says of the scan.
+    assert held.of(None, 0.0, _found(0, (np.nan, np.nan, np.nan), localized=False, matched=False)) == (
+        None, 0.0, False)
+    odometry, interval, restart = held.of(wheels, 0.1, _found(1, (1.0, 2.0, 0.3)))
+    assert odometry is wheels and interval == 0.1 and not restart
+    # The wheels stop: a matched scan's map pose, exactly, the odometry restarted first.
+    odometry, interval, restart = held.of(None, 0.0, _found(2, (1.5, 2.0, 0.3)))
+    assert odometry is not None and restart and interval == 0.0
+    np.testing.assert_array_equal(odometry, [1.5, 2.0, 0.3])
+    # Still no wheels: the next map pose, no restart (one frame); a scan not matched gets none.
+    assert not held.of(None, 0.0, _found(3, (2.0, 2.0, 0.3)))[2]
+    assert held.of(None, 0.0, _found(4, (2.5, 2.0, 0.3), matched=False)) == (None, 0.0, False)
+    # The wheels again: restart back into their frame.
+    odometry, _, restart = held.of(wheels, 0.1, _found(5, (3.0, 2.0, 0.3)))
+    assert odometry is wheels and restart

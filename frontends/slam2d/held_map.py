@@ -23,6 +23,7 @@ import numpy as np
 
 from frontends.errors import FrontendError
 from frontends.protocol import BoolArray, FloatArray, IntArray
+from frontends.slam2d.localization import LocalizedScan
 from frontends.slam2d.resume import ResumedSlam2D
 from optimizer import se2
 from optimizer.benchmark_graphs import odometry_chain
@@ -30,8 +31,8 @@ from optimizer.graph import PoseGraph
 from optimizer.solve import DEFAULT_METHOD, optimize
 
 __all__ = ["HELD_MAP_AGREEMENT", "HeldMapProblem", "HeldMapScans", "HeldMapSolution", "HeldMapSolver",
-           "HeldMapTrajectory", "held_map_problem", "held_map_scans", "held_map_trajectory", "solve_held_map",
-           "solve_with_map_held"]
+           "HeldMapTrajectory", "HeldOdometry", "held_map_problem", "held_map_scans", "held_map_trajectory",
+           "solve_held_map", "solve_with_map_held"]
 
 HELD_MAP_AGREEMENT = 0.5
 """The median distance (m) at most between the held-map poses and a localizer's own poses of the scans it
@@ -39,6 +40,33 @@ matched to the saved map, for the former to be given (`held_map_trajectory`). Th
 CSAIL, FR079, Intel and the mumble loop in their first halves' maps: 0.011–0.033 m
 (`benchmarks/sessions_bench.py`); 0.5 m off, the two placed the run differently (a look-alike place), and
 the one matched scan by scan is the one to keep."""
+
+
+class HeldOdometry:
+    """The odometry the run's own SLAM gets with each scan given to the localizer (`of`): the wheels';
+    without them, once the run is placed, the scan's pose in the saved map where the localizer matched it
+    there. The map measures the motion the wheels did not: without it, the SLAM of MIT's Killian Court log,
+    localized in its own map, slid 2.5 m sideways through 20 scans without odometry along a corridor of
+    look-alike doors, while the map matches stayed within 0.1 m of the full run."""
+
+    def __init__(self) -> None:
+        self._placed = False
+        self._source: str | None = None
+        """Where the last odometry given came from: "wheels" or "map"."""
+
+    def of(self, odometry: FloatArray | None, interval: float,
+           found: LocalizedScan) -> tuple[FloatArray | None, float, bool]:
+        """The SLAM's odometry for a scan with wheel `odometry` (None: none) interpolated over `interval`
+        (s) that the localizer `found`, its interval, and whether the SLAM's odometry restarts first (the
+        source changed: the wheels' frame is not the map's)."""
+        source = "wheels" if odometry is not None else "map" if self._placed and found.matched else None
+        restart = source is not None and self._source is not None and source != self._source
+        if source is not None:
+            self._source = source
+        self._placed = self._placed or found.localized
+        if source == "map":
+            return found.pose.copy(), 0.0, restart
+        return odometry, interval, restart
 
 
 @dataclass(frozen=True, eq=False)

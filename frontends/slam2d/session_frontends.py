@@ -54,6 +54,7 @@ from frontends.slam2d.held_map import (
     HELD_MAP_AGREEMENT,
     HeldMapScans,
     HeldMapSolver,
+    HeldOdometry,
     held_map_scans,
     held_map_trajectory,
     solve_held_map,
@@ -236,6 +237,7 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         self._held_map_apart = float("nan")
         """The median distance (m) between the held-map poses and the localizer's matched ones."""
         self._held_map_used = False
+        self._held_odometry = HeldOdometry()
 
     def _process(self, stamp_ns: int, points: FloatArray, odometry: FloatArray | None,
                  odometry_interval: float, point_times: FloatArray | None) -> ScanEstimate:
@@ -251,7 +253,10 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
             self._between.append(index)
             return ScanEstimate(index, stamp_ns, pose.copy(), False, -1, (), between=True)
         found = self._localizer.localize(stamp_ns, points, odometry, odometry_interval, point_times)
-        self._held_worker.submit(partial(self._held.add_scan, stamp_ns, points, odometry, odometry_interval,
+        held_odometry, held_interval, restart = self._held_odometry.of(odometry, odometry_interval, found)
+        if restart:
+            self._held_worker.submit(self._held.odometry_restarts)
+        self._held_worker.submit(partial(self._held.add_scan, stamp_ns, points, held_odometry, held_interval,
                                          point_times, located=found))
         self._cadence.matched(stamp_ns)
         self._found.append(found)
