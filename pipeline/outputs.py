@@ -4,6 +4,8 @@ good files.
 A run's outputs are written into a hidden staging folder inside the output folder (same file system),
 flushed to disk (files, then the folder), and only then renamed into place one after another, with SIGINT
 and SIGTERM held back until the last rename, so an interruption leaves the old outputs or the new ones.
+A rename that fails (an output made read-only meanwhile) puts back the outputs it had already replaced,
+which waited in the staging folder; a folder where an output would go is refused before the run.
 A run killed outright (SIGKILL, power loss) leaves its staging folder behind: the next run writing the
 same outputs cleans it up, and finishes its renames first if it was killed while publishing (a `.complete`
 marker says the staged set was whole). A lock per output name (`.<stem>.lock`, removed afterwards) makes a
@@ -40,6 +42,8 @@ if TYPE_CHECKING:
 
 _STAGING = ".staging-"
 _COMPLETE = ".complete"
+_REPLACED = ".replaced"
+"""The folder in a staging folder where the outputs being replaced wait until every new one is in place."""
 _HELD_SIGNALS = {signal.SIGINT, signal.SIGTERM, signal.SIGALRM}
 """The stop signals, and the alarm that retries a lost interrupt (`install_stop_signals`)."""
 INTERRUPT_RETRY_SECONDS = 0.05
@@ -72,6 +76,7 @@ def staged_outputs(*targets: Path) -> Iterator[tuple[Path, ...]]:
     if any(target.parent != directory for target in targets):
         raise ValueError("staged outputs must share one folder")
     stem = targets[0].stem
+    refuse_folders_as_targets(targets)
     with _output_lock(directory, stem):
         _recover_stale_staging(directory, stem)
         staging = directory / f".{stem}{_STAGING}{os.getpid()}-{secrets.token_hex(4)}"
@@ -122,11 +127,48 @@ def _publish(staging: Path, temporaries: tuple[Path, ...], targets: tuple[Path, 
     except OSError as error:
         raise _folder_error(targets[0].parent, error) from error
     with stop_signals_held():
-        for temporary, target in zip(temporaries, targets, strict=True):
-            with writing(target):
-                os.replace(temporary, target)
+        refuse_folders_as_targets(targets)
+        replaced = staging / _REPLACED
+        published: list[tuple[Path, Path | None]] = []  # (target, its previous file in `replaced`, if any)
+        try:
+            replaced.mkdir()
+            for temporary, target in zip(temporaries, targets, strict=True):
+                with writing(target):
+                    previous = replaced / target.name if os.path.lexists(target) else None
+                    if previous is not None:
+                        os.replace(target, previous)
+                    published.append((target, previous))
+                    os.replace(temporary, target)
+        except (OSError, OutputError) as error:
+            _put_back(staging, published)
+            if isinstance(error, OutputError):
+                raise
+            raise _folder_error(targets[0].parent, error) from error
         with contextlib.suppress(OSError):
             _fsync_path(targets[0].parent)
+
+
+def _put_back(staging: Path, published: Sequence[tuple[Path, Path | None]]) -> None:
+    """Undo a failed publication: the previous outputs it had moved aside return, the new ones it had put
+    where there was none are removed. The set is no longer complete: a run killed meanwhile must not be
+    finished by the next."""
+    with contextlib.suppress(OSError):
+        (staging / _COMPLETE).unlink()
+    for target, previous in reversed(published):
+        with contextlib.suppress(OSError):
+            if previous is None:
+                target.unlink()
+            else:
+                os.replace(previous, target)
+
+
+def refuse_folders_as_targets(targets: Sequence[Path]) -> None:
+    """Raise `OutputError` when a folder stands where an output would go: a file cannot replace it, and
+    finding out only while publishing would waste the run."""
+    for target in targets:
+        if target.is_dir() and not target.is_symlink():
+            raise OutputError(f"{target}: is a folder; the output of that name cannot replace it (move it, "
+                              "or write the outputs into another folder with --out)")
 
 
 @contextmanager
@@ -200,7 +242,7 @@ def _recover_stale_staging(directory: Path, stem: str) -> None:
     for staging in directory.glob(f".{stem}{_STAGING}*"):
         if (staging / _COMPLETE).is_file():
             for staged in staging.iterdir():
-                if staged.name != _COMPLETE:
+                if staged.name not in (_COMPLETE, _REPLACED):
                     with contextlib.suppress(OSError):
                         os.replace(staged, directory / staged.name)
         shutil.rmtree(staging, ignore_errors=True)

@@ -40,6 +40,41 @@ def test_staged_outputs_keep_old_files_and_remove_temporaries_on_failure(tmp_pat
     assert [path.name for path in tmp_path.iterdir()] == ["a.rrd"]
 
 
+def test_a_rename_failing_while_publishing_puts_every_earlier_output_back(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    targets = (tmp_path / "a.g2o", tmp_path / "a.json", tmp_path / "a.session", tmp_path / "a.tum")
+    for target in targets[:3]:
+        target.write_text(f"old {target.suffix}")  # a.tum is new in this run
+    real_replace = os.replace
+
+    def failing_on_the_session(source: str | os.PathLike[str], destination: str | os.PathLike[str]) -> None:
+        if Path(destination) == targets[2] and Path(source).parent.name.startswith(".a.staging-"):
+            raise PermissionError(1, "Operation not permitted", str(destination))
+        real_replace(source, destination)
+
+    monkeypatch.setattr(os, "replace", failing_on_the_session)
+    with pytest.raises(OutputError, match=r"a\.session: cannot write the file: Operation not permitted"):
+        with staged_outputs(targets[3], *targets[:3]) as temporaries:
+            for temporary in temporaries:
+                temporary.write_text("new")
+    # The new a.tum and a.g2o, a.json published before the failure are gone, the old files back.
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["a.g2o", "a.json", "a.session"]
+    assert [target.read_text() for target in targets[:3]] == ["old .g2o", "old .json", "old .session"]
+
+
+def test_a_folder_where_an_output_would_go_is_refused_before_the_run(tmp_path: Path) -> None:
+    (tmp_path / "a.json").write_text("old")
+    (tmp_path / "a.session").mkdir()
+    ran = False
+    with pytest.raises(OutputError, match=r"a\.session: is a folder"):
+        with staged_outputs(tmp_path / "a.json", tmp_path / "a.session"):
+            ran = True
+    assert not ran
+    assert (tmp_path / "a.json").read_text() == "old" and (tmp_path / "a.session").is_dir()
+
+
 @pytest.mark.parametrize("during", ["staging folder", "lock file"])
 @pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM", "SIGALRM"])
 def test_a_stop_signal_during_the_clean_up_is_held_until_it_is_done(
@@ -105,12 +140,15 @@ def test_the_next_run_cleans_up_after_a_killed_one(tmp_path: Path) -> None:
     (publishing / "b.json").write_text("new json")
     (publishing / ".complete").write_text("")
     (tmp_path / "b.g2o").write_text("new g2o")
+    (publishing / ".replaced").mkdir()  # the previous b.g2o, moved aside for the new one
+    (publishing / ".replaced" / "b.g2o").write_text("old g2o")
     with staged_outputs(tmp_path / "a.g2o") as (temporary,):
         temporary.write_text("a")
     with staged_outputs(tmp_path / "b.rrd") as (temporary,):
         temporary.write_text("b")
     assert sorted(path.name for path in tmp_path.iterdir()) == ["a.g2o", "a.json", "b.g2o", "b.json", "b.rrd"]
     assert (tmp_path / "a.json").read_text() == "old" and (tmp_path / "b.json").read_text() == "new json"
+    assert (tmp_path / "b.g2o").read_text() == "new g2o"
 
 
 def test_errors_name_the_output_not_the_hidden_copy(tmp_path: Path) -> None:
