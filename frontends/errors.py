@@ -20,6 +20,10 @@ class MapPlacementError(FrontendError):
     """The continued run never matched the saved map: its keyframes cannot join the old graph."""
 
 
+class EmptySavedMapError(FrontendError):
+    """A saved map to localize in or continue holds nothing to match against."""
+
+
 class LogFileError(FrontendError):
     """A log could not be read: names the file, and the message index when one message is at fault.
 

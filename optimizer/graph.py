@@ -162,13 +162,13 @@ INTEL graph's condition numbers (up to 2.4e11) pass comfortably."""
 
 
 def not_positive_definite(information: FloatArray) -> NDArray[np.bool_]:
-    """Mask of the (M, 3, 3) information matrices that are not symmetric positive definite."""
+    """Mask of the (M, n, n) information matrices that are not symmetric positive definite."""
     if len(information) == 0:
         return np.zeros(0, dtype=bool)
     asymmetric = np.abs(information - np.swapaxes(information, 1, 2)).max(axis=(1, 2)) > (
         SPD_TOLERANCE * np.abs(information).max(axis=(1, 2)))
     eigenvalues = np.linalg.eigvalsh(information)  # ascending, batched over constraints
-    return asymmetric | ~(eigenvalues[:, 0] > SPD_TOLERANCE * eigenvalues[:, 2])
+    return asymmetric | ~(eigenvalues[:, 0] > SPD_TOLERANCE * eigenvalues[:, -1])
 
 
 def _check_information(information: FloatArray, edge_from_ids: IntArray, edge_to_ids: IntArray) -> None:

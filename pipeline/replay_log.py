@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeAlias, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.errors import LogWarning, MapExtentError
+from frontends.errors import EmptySavedMapError, LogWarning, MapExtentError
 from frontends.logs import LogReader, open_log
 from frontends.protocol import ContinuingFrontend, Estimate, FrontendOptions, LogFrontend, StreamedFrontend
 from optimizer.graph_files import write_g2o
@@ -76,6 +76,7 @@ from pipeline.recording import IterationSink
 from pipeline.session_file import (
     SENSOR_WORDS,
     SessionContent,
+    SessionError,
     read_session,
     saved_map_2d,
     saved_map_3d,
@@ -180,6 +181,8 @@ class SessionStart:
             verb = "continue" if self.mode == "continue" else "localize in"
             raise MapExtentError(f"{self.path}: this saved map is too large to {verb}: {error} (maps beyond "
                                  "that are not supported yet)") from error
+        except EmptySavedMapError as error:
+            raise SessionError(f"{self.path}: {error}") from error
 
 
 @dataclass(frozen=True)

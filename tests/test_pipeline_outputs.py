@@ -55,10 +55,10 @@ def test_a_rename_failing_while_publishing_puts_every_earlier_output_back(
         real_replace(source, destination)
 
     monkeypatch.setattr(os, "replace", failing_on_the_session)
-    with pytest.raises(OutputError, match=r"a\.session: cannot write the file: Operation not permitted"):
-        with staged_outputs(targets[3], *targets[:3]) as temporaries:
-            for temporary in temporaries:
-                temporary.write_text("new")
+    with (pytest.raises(OutputError, match=r"a\.session: cannot write the file: Operation not permitted"),
+          staged_outputs(targets[3], *targets[:3]) as temporaries):
+        for temporary in temporaries:
+            temporary.write_text("new")
     # The new a.tum and a.g2o, a.json published before the failure are gone, the old files back.
     assert sorted(path.name for path in tmp_path.iterdir()) == ["a.g2o", "a.json", "a.session"]
     assert [target.read_text() for target in targets[:3]] == ["old .g2o", "old .json", "old .session"]
@@ -68,9 +68,9 @@ def test_a_folder_where_an_output_would_go_is_refused_before_the_run(tmp_path: P
     (tmp_path / "a.json").write_text("old")
     (tmp_path / "a.session").mkdir()
     ran = False
-    with pytest.raises(OutputError, match=r"a\.session: is a folder"):
-        with staged_outputs(tmp_path / "a.json", tmp_path / "a.session"):
-            ran = True
+    with (pytest.raises(OutputError, match=r"a\.session: is a folder"),
+          staged_outputs(tmp_path / "a.json", tmp_path / "a.session")):
+        ran = True
     assert not ran
     assert (tmp_path / "a.json").read_text() == "old" and (tmp_path / "a.session").is_dir()
 

@@ -467,6 +467,39 @@ def test_a_damaged_or_newer_session_is_one_line_naming_it(logs: Logs, tmp_path: 
         pipeline.replay(logs.inside, out_dir=out, map=session)
 
 
+def rewritten_session(session: Path, folder: Path, keyframe_points: list[np.ndarray]) -> Path:
+    """`session` with other keyframe scans, written into `folder`."""
+    saved = read_session(session)
+    rewritten = folder / "rewritten.session"
+    with rewritten.open("wb") as stream:
+        write_session(stream, dict(saved.header), dict(saved.arrays), keyframe_points)
+    return rewritten
+
+
+@pytest.mark.parametrize("mode", ["--map", "--continue"])
+def test_a_session_keyframe_without_points_is_no_obstacle(logs: Logs, tmp_path: Path, mode: str) -> None:
+    """A keyframe whose scan holds no point (a laser that saw nothing) is stored as such; the saved map
+    around it still serves."""
+    points = list(read_session(logs.session).keyframe_points)
+    session = rewritten_session(logs.session, tmp_path, [np.zeros((0, 2)), *points[1:]])
+    result = run_replay(logs.inside, "--out", tmp_path / "out", "--quiet", mode, session)
+    assert result.exit_code == 0, result.output  # type: ignore[attr-defined]
+    _, poses = tum_poses(tmp_path / "out" / "inside.tum")
+    truth = logs.in_map_frame(logs.inside_truth)
+    if mode == "--continue":  # the session's scans first
+        poses = poses[-len(truth):]
+    assert np.median(position_errors(poses, truth)) < MAP_TOLERANCE
+
+
+def test_a_session_without_a_usable_scan_is_one_line_naming_it(logs: Logs, tmp_path: Path) -> None:
+    points = read_session(logs.session).keyframe_points
+    session = rewritten_session(logs.session, tmp_path, [p[:3] for p in points])  # too few to match
+    for mode in ("--map", "--continue"):
+        line = one_error_line(run_replay(logs.inside, "--out", tmp_path / "out", mode, session))
+        assert line.startswith(f"replay: error: {session}: ") and "nothing to localize in" in line
+    assert file_names(tmp_path / "out") == set()
+
+
 def test_a_session_of_the_other_sensor_kind_is_refused(logs: Logs, tmp_path: Path) -> None:
     session = tmp_path / "clouds.session"
     with session.open("wb") as stream:

@@ -277,6 +277,25 @@ def test_continue_corrects_the_clouds_before_the_placement_by_loop_closures(logs
 # ----------------------------------------------------------------------------------------- refusals
 
 
+@pytest.mark.parametrize("damage", ["information zero", "no cloud"])
+def test_a_session_with_nothing_to_use_is_one_line_naming_it(logs: Logs, tmp_path: Path, damage: str) -> None:
+    saved = read_session(logs.session)
+    arrays, clouds = dict(saved.arrays), list(saved.keyframe_points)
+    if damage == "information zero":  # singular: a 3D constraint could not be projected onto the plane
+        arrays["information"] = np.zeros_like(arrays["information"])
+    else:
+        clouds = [cloud[:0] for cloud in clouds]
+    session = tmp_path / "bad.session"
+    with session.open("wb") as stream:
+        write_session(stream, dict(saved.header), arrays, clouds)
+    for mode in ("--map", "--continue"):
+        line = one_error_line(run_replay(logs.inside, "--out", tmp_path / "out", mode, session))
+        assert line.startswith(f"replay: error: {session}: ")
+        assert ("not symmetric positive definite" if damage == "information zero"
+                else "no keyframe cloud") in line
+    assert file_names(tmp_path / "out") == set()
+
+
 def test_sessions_of_the_other_sensor_kind_are_refused(logs: Logs, tmp_path: Path) -> None:
     laser_log = tmp_path / "laser.mcap"
     write_drive(laser_log, part=slice(0, 5))

@@ -52,7 +52,7 @@ from typing import cast
 
 import numpy as np
 
-from frontends.errors import FrontendError, MapExtentError
+from frontends.errors import EmptySavedMapError, MapExtentError
 from frontends.protocol import FloatArray, IntArray, LocalizedMeasurement
 from frontends.slam2d.cadence import ScanRate
 from frontends.slam2d.config import (
@@ -138,7 +138,7 @@ def _in_frame(information: FloatArray, heading: float) -> FloatArray:
     return rotation.T @ information @ rotation
 
 
-class EmptyMapError(FrontendError):
+class EmptyMapError(EmptySavedMapError):
     """A saved map to localize in has no keyframe with enough points to match against."""
 
 

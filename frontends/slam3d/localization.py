@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.errors import FrontendError
+from frontends.errors import EmptySavedMapError
 from frontends.protocol import FloatArray, IntArray, LocalizedMeasurement
 from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
@@ -83,8 +83,14 @@ class LocalizedCloud(LocalizedMeasurement):
     """… and those poses (M, 4, 4)."""
 
 
-class EmptyCloudMapError(FrontendError):
+class EmptyCloudMapError(EmptySavedMapError):
     """A saved map to localize in has no keyframe cloud."""
+
+
+def require_clouds(keyframe_clouds: Sequence[NDArray[np.floating]]) -> None:
+    """Raise `EmptyCloudMapError` unless some keyframe cloud holds a point."""
+    if not any(len(cloud) for cloud in keyframe_clouds):
+        raise EmptyCloudMapError("the saved map has no keyframe cloud to localize in")
 
 
 class CloudLocalizer:
@@ -96,8 +102,7 @@ class CloudLocalizer:
     def __init__(self, keyframe_clouds: Sequence[NDArray[np.floating]], keyframe_poses: FloatArray,
                  config: Slam3DConfig, settings: CloudLocalizationConfig | None = None, *,
                  initial_pose: Sequence[float] | None = None) -> None:
-        if len(keyframe_clouds) == 0 or not any(len(cloud) for cloud in keyframe_clouds):
-            raise EmptyCloudMapError("the saved map has no keyframe cloud to localize in")
+        require_clouds(keyframe_clouds)
         self.config = config
         self.settings = settings or CloudLocalizationConfig()
         self._clouds = [np.asarray(cloud, dtype=np.float64) for cloud in keyframe_clouds]

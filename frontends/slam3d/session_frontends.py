@@ -39,11 +39,16 @@ from frontends.saved_arrays import (
 from frontends.slam3d import planar, se3
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.frontend import MAP_VOXEL, LidarFrontend
-from frontends.slam3d.localization import CloudLocalizationConfig, CloudLocalizer, LocalizedCloud
+from frontends.slam3d.localization import (
+    CloudLocalizationConfig,
+    CloudLocalizer,
+    LocalizedCloud,
+    require_clouds,
+)
 from frontends.slam3d.odometry import OdometryStep, downsample
 from frontends.slam3d.resume import ResumedLidarSlam3D, SavedGraph3D
 from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
-from optimizer.graph import PoseGraph
+from optimizer.graph import PoseGraph, not_positive_definite
 
 __all__ = ["CloudLocalizations", "ContinuingLidarFrontend", "LocalizingLidarFrontend", "SavedMap3D"]
 
@@ -76,12 +81,20 @@ class SavedMap3D:
         edges = len(edge_from)
         stamps, cloud_keyframes = checked_members(arrays, "cloud", keyframes)
         mount = checked("sensor_to_base", arrays, (4, 4), np.floating) if "sensor_to_base" in arrays else None
+        information = checked("information", arrays, (edges, 6, 6), np.floating)
+        # (the planar graph checks its own, projected from these: a singular one cannot be projected)
+        bad = not_positive_definite(information)
+        if bad.any():
+            first = int(np.argmax(bad))
+            raise SavedArraysError(f"damaged session file (constraint {first} ({edge_from[first]} → "
+                                   f"{edge_to[first]}): its information matrix is not symmetric positive "
+                                   "definite)")
         graph = SavedGraph3D(
             clouds, poses,
             checked("keyframe_stamps_ns", arrays, (keyframes,), np.integer).astype(np.int64),
             edge_from.astype(np.int64), edge_to.astype(np.int64),
             checked("relative", arrays, (edges, 4, 4), np.floating),
-            checked("information", arrays, (edges, 6, 6), np.floating),
+            information,
             checked("is_loop", arrays, (edges,), np.bool_),
             stamps.astype(np.int64), cloud_keyframes.astype(np.int64),
             checked("cloud_offsets", arrays, (len(stamps), 4, 4), np.floating))
@@ -113,6 +126,7 @@ class ContinuingLidarFrontend(LidarFrontend):
     def __init__(self, log: LogReader, topic: str, saved: SavedMap3D, config: Slam3DConfig | None = None,
                  options: FrontendOptions | None = None,
                  localization: CloudLocalizationConfig | None = None) -> None:
+        require_clouds(saved.graph.keyframe_clouds)  # now, not at the first cloud: before the log is read
         super().__init__(log, topic, config, options)
         self.saved = saved
         self._localization = localization

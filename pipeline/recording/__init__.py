@@ -361,8 +361,9 @@ def _send_blueprint(recording: rr.RecordingStream, blueprint: rrb.Blueprint, *, 
 
 def world_bounds(*point_sets: NDArray[np.floating]) -> Bounds:
     """The (x_min, y_min, x_max, y_max) of the finite 2D points in all `point_sets`."""
-    points = np.concatenate([np.asarray(s, dtype=np.float64).reshape(len(s), -1)[:, :2] for s in point_sets]
-                            + [np.zeros((0, 2))])
+    arrays = [np.asarray(s, dtype=np.float64) for s in point_sets]
+    # (a keyframe scan may hold no point: numpy cannot infer the width of an empty array's rows)
+    points = np.concatenate([a.reshape(len(a), -1)[:, :2] for a in arrays if a.size] + [np.zeros((0, 2))])
     points = points[np.all(np.isfinite(points), axis=1)]
     if len(points) == 0:
         points = np.zeros((1, 2))
