@@ -40,7 +40,13 @@ from pipeline.api import (
 )
 from pipeline.config import ReplayConfig
 from pipeline.errors import PipelineError
-from pipeline.outputs import install_stop_signals, output_stem, recover_outputs, stop_signals_held
+from pipeline.outputs import (
+    install_stop_signals,
+    output_stem,
+    raised_by_interrupt,
+    recover_outputs,
+    stop_signals_held,
+)
 
 if TYPE_CHECKING:  # multiprocessing and the process pool are imported only by a run of several inputs
     from concurrent.futures import Future, ProcessPoolExecutor
@@ -140,6 +146,8 @@ def run_one(
     except KNOWN_ERRORS as error:
         return BatchOutcome.failure(path, error)
     except Exception as error:
+        if raised_by_interrupt(error):  # a stop signal, not this input's failure: the batch stops
+            raise KeyboardInterrupt from error
         if not catch_unexpected:
             raise
         return BatchOutcome.failure(path, error, unexpected=True)

@@ -844,7 +844,7 @@ def main() -> NoReturn:
     """Console-script entry point."""
     from threadpoolctl import threadpool_limits
 
-    from pipeline.outputs import install_stop_signals
+    from pipeline.outputs import install_stop_signals, raised_by_interrupt
 
     # Our linear algebra is many small vectors and 3×3 blocks: BLAS threads only add hand-off latency,
     # and on a busy machine their spinning made one 10k-element dot product take 8 ms instead of 5 µs.
@@ -867,12 +867,16 @@ def main() -> NoReturn:
         code = EXIT_INTERRUPTED
     except Exception as error:
         # A bad option or value (click's UsageError family, whichever click typer uses): one line naming
-        # it, like bad input. Anything else is a bug and keeps its traceback.
-        if not (hasattr(error, "format_message") and hasattr(error, "exit_code")):
+        # it, like bad input; a stop signal that a callback from C turned into another error: an
+        # interrupt. Anything else is a bug and keeps its traceback.
+        if raised_by_interrupt(error):
+            code = EXIT_INTERRUPTED
+        elif hasattr(error, "format_message") and hasattr(error, "exit_code"):
+            message = " ".join(error.format_message().split())
+            typer.echo(f"{PROGRAM}: error: {message} (see {PROGRAM} --help)", err=True)
+            code = EXIT_ERROR
+        else:
             raise
-        message = " ".join(error.format_message().split())
-        typer.echo(f"{PROGRAM}: error: {message} (see {PROGRAM} --help)", err=True)
-        code = EXIT_ERROR
     except SystemExit as exit_:
         code = exit_.code
     if terminated and code == EXIT_INTERRUPTED:

@@ -217,6 +217,20 @@ def install_stop_signals(handler: Callable[[int, FrameType | None], None]) -> No
     sys.unraisablehook = retry_interrupt
 
 
+def raised_by_interrupt(error: BaseException) -> bool:
+    """Whether `error` stands for a stop signal: a `KeyboardInterrupt`, or an error it caused where Python
+    code was called back from C (numba's dispatcher wraps it as `SystemError: ... returned a result with an
+    exception set`)."""
+    seen: set[int] = set()
+    current: BaseException | None = error
+    while current is not None and id(current) not in seen:
+        if isinstance(current, KeyboardInterrupt):
+            return True
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return False
+
+
 def _folder_error(directory: Path, error: OSError) -> OutputError:
     return OutputError(f"{directory}: cannot write in the folder: {error.strerror or error}")
 

@@ -108,6 +108,48 @@ def test_a_stop_signal_before_the_command_runs_is_a_quiet_interrupt(
     assert "Traceback" not in capsys.readouterr().err
 
 
+def _interrupt_inside_a_callback_from_c() -> None:
+    """What numba's dispatcher raises when a stop signal's KeyboardInterrupt leaves a Python callback it
+    made (its `_numba_unpickle`, seen in 3 of 21 Ctrl-Cs of a CSAIL replay)."""
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt as interrupt:
+        raise SystemError("<function _numba_unpickle> returned a result with an exception set") from interrupt
+
+
+@pytest.mark.parametrize("inputs", [1, 2])
+def test_an_interrupt_that_a_callback_from_c_wrapped_is_still_a_quiet_interrupt(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path,
+        inputs: int) -> None:
+    import pipeline.cli as cli
+    from pipeline import batch
+
+    def exit_code(code: int) -> None:
+        raise SystemExit(code)
+
+    def replay(*_args: object, **_kwargs: object) -> None:
+        _interrupt_inside_a_callback_from_c()
+
+    stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGALRM)
+    previous = {number: signal.getsignal(number) for number in stop_signals}
+    monkeypatch.setattr(cli, "_exit_now", exit_code)
+    monkeypatch.setattr(batch, "replay", replay)
+    names = ["a.g2o", "b.g2o"][:inputs]
+    monkeypatch.setattr(sys, "argv", ["replay", *(str(tmp_path / name) for name in names),
+                                      "--out", str(tmp_path / "out")])
+    for name in names:
+        (tmp_path / name).write_text("VERTEX_SE2 0 0 0 0\n")
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            cli.main()
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    # Not a traceback, nor "a.g2o failed" and a batch going on to b.g2o: the command stops as after Ctrl-C.
+    assert stopped.value.code == 130
+    assert "Traceback" not in capsys.readouterr().err
+
+
 # --- a batch's workers stop with their parent ------------------------------------------------------------
 
 BATCH_STEMS = ("north", "south")
