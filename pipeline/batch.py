@@ -257,15 +257,41 @@ def _stop_pool(pool: ProcessPoolExecutor, inputs: list[Path], out_dir: Path) -> 
     deadline = time.monotonic() + STOP_GRACE_S
     for worker in workers:
         worker.join(max(0.0, deadline - time.monotonic()))
-    killed = [worker for worker in workers if worker.is_alive()]
-    for worker in killed:
-        with contextlib.suppress(OSError, ValueError):
-            worker.kill()
-    for worker in killed:  # until they are gone: a killed worker's lock holds until its process ends
-        worker.join(STOP_GRACE_S)
+    # A forkserver's workers are its children, not ours: once a signal to the whole process group has
+    # ended the forkserver, `join` and `is_alive` say they ended while they may still be cleaning up.
+    running = _wait_until_gone([worker.pid for worker in workers if worker.pid is not None], deadline)
+    for pid in running:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
+    # until they are gone: a killed worker's lock holds until its process ends
+    _wait_until_gone(running, time.monotonic() + STOP_GRACE_S)
     # Not only after the killed ones: a worker that died otherwise mid-write (the OS's OOM killer) left its
     # staging folder and lock too.
     remove_partial_outputs(out_dir, {output_stem(path) for path in inputs})
+
+
+def _wait_until_gone(pids: Sequence[int], deadline: float) -> list[int]:
+    """Wait until none of these processes runs any more, or until `deadline` (`time.monotonic`); the ones
+    still running."""
+    running = [pid for pid in pids if _running(pid)]
+    while running and time.monotonic() < deadline:
+        time.sleep(0.01)
+        running = [pid for pid in running if _running(pid)]
+    return running
+
+
+def _running(pid: int) -> bool:
+    """Whether process `pid` exists and has not ended (a zombie waiting to be reaped has)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:  # Linux: the state letter follows the command name, which is in parentheses
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
 
 
 def remove_partial_outputs(out_dir: Path, stems: set[str]) -> list[str]:
