@@ -284,12 +284,12 @@ def run(
     session_options = _session_options(map_session, continue_session, initial_pose, sources,
                                        several=inputs_from is not None or ray_address is not None)
     ray = _ray_options(ray_address, cpus_per_task, retries, jobs)
-    _refuse_options_without_use(sources, inputs_from, overrides["input"])
     for key in overrides["optimizer"] if map_session is not None else ():
         _fail(PipelineError(f"{_option(key)} has nothing to optimize with --map (localization only: the "
                             "saved map is not changed)"))
     if inputs_from is not None:
         sources += _listed_inputs(inputs_from, out)
+    _refuse_options_without_use(sources, overrides["input"])
     from pipeline.batch import refuse_clashing_outputs
 
     with sample_log() if not sources else contextlib.nullcontext() as sample:
@@ -329,12 +329,9 @@ def _option(key: str) -> str:
     return "--" + key.replace("_", "-")
 
 
-def _refuse_options_without_use(sources: Sequence[Path], inputs_from: Path | None,
-                                input_options: dict[str, Any]) -> None:
-    """Options that apply to no input named on the command line are errors, not silently ignored.
+def _refuse_options_without_use(sources: Sequence[Path], input_options: dict[str, Any]) -> None:
+    """Options that apply to none of the inputs (named or listed) are errors, not silently ignored.
     `input_options`: the [input] keys given as options."""
-    if inputs_from is not None:  # what the list holds is not known yet
-        return
     kinds = {input_kind(path) for path in sources} if sources else {"log"}  # no input: the sample log
     if "graph" not in kinds and "repair_information" in input_options:
         _fail(PipelineError("--repair-information applies to pose-graph inputs only, and no input is one"))

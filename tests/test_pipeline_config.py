@@ -264,12 +264,19 @@ def test_a_bad_config_file_is_a_one_line_error_before_anything_runs(tmp_path: Pa
 
 def test_options_that_apply_to_no_input_are_refused_in_one_line(tmp_path: Path) -> None:
     graph = write_loop_graph(tmp_path / "loop.g2o")
+    graph_list, log_list = tmp_path / "graphs.txt", tmp_path / "logs.txt"
+    graph_list.write_text(f"{graph}\n")
+    (tmp_path / "run.mcap").write_bytes(b"")  # a list names existing inputs; its kind is told by the path
+    log_list.write_text(f"{tmp_path / 'run.mcap'}\n")
     cases = [
         ((tmp_path / "run.mcap", "--repair-information"), "--repair-information", "pose-graph inputs only"),
         (("--repair-information",), "--repair-information", "pose-graph inputs only"),  # the sample log
         ((graph, "--scan-topic", "/scan"), "--scan-topic", "logs only"),
         ((graph, "--odom-topic", "/odom"), "--odom-topic", "logs only"),
         ((graph, "--base-frame", "base_link"), "--base-frame", "logs only"),
+        # the inputs listed in a file count as those named
+        (("--inputs", graph_list, "--odom-topic", "/odom"), "--odom-topic", "logs only"),
+        (("--inputs", log_list, "--repair-information"), "--repair-information", "pose-graph inputs only"),
     ]
     for args, option, reason in cases:
         result = run_replay(*args, "--out", tmp_path / "out")
