@@ -53,6 +53,7 @@ from optimizer.solve import (
     LARGEST_FOR_EXTRA_STAGES,
     MAX_ITERATIONS,
     METHODS,
+    ROBUST_METHODS,
 )
 from pipeline.errors import PipelineError
 
@@ -264,6 +265,15 @@ class OptimizerSection(_Section):
     def robust_kernel(self) -> str | None:
         return None if self.robust == "none" else self.robust
 
+    @model_validator(mode="after")
+    def _robust_with_its_methods(self) -> OptimizerSection:
+        # Here, not only in the optimizer: a log whose graph has no loop closure is never optimized, and
+        # whether a setting is refused must not depend on what the data turns out to hold.
+        if self.robust != "none" and self.method not in ROBUST_METHODS:
+            raise ValueError(f"robust = {self.robust!r} works with the methods {', '.join(ROBUST_METHODS)}, "
+                             f"not {self.method!r}")
+        return self
+
     @model_validator(mode="before")
     @classmethod
     def _derive_iterations(cls, data: Any) -> Any:
@@ -404,7 +414,7 @@ def _config_error(error: ValidationError, path: str | Path | None, text: str | N
     else:
         message = first["msg"][:1].lower() + first["msg"][1:]
         message = message.removeprefix("value error, ")
-        if first["type"] != "missing":
+        if first["type"] != "missing" and not isinstance(first["input"], Mapping):  # (a whole section's)
             message += f", got {first['input']!r}"
     more = error.error_count() - 1
     if more:

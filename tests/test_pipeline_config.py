@@ -287,6 +287,21 @@ def test_options_that_apply_to_no_input_are_refused_in_one_line(tmp_path: Path) 
     assert "--repair-information" not in mixed.stderr  # it applies to the graph: accepted
 
 
+def test_a_robust_kernel_with_a_method_without_one_is_refused_whatever_the_input(tmp_path: Path) -> None:
+    """Refused before any input is read: a log whose graph has no loop closure is never optimized, and
+    accepted the setting before (a graph, or a log with loops, refused it)."""
+    path = write_config(tmp_path, '[optimizer]\nmethod = "gn"\nrobust = "cauchy"\n')
+    reason = "works with the methods sgd+gn, sgd, not 'gn'"
+    cases = ((("--config", path), f"{path}:1"), (("--robust", "dcs", "--method", "gn"), "configuration"))
+    for args, where in cases:
+        result = run_replay("--dump-config", *args)
+        assert result.exit_code == 2, result.output  # type: ignore[attr-defined]
+        kernel = "cauchy" if args[0] == "--config" else "dcs"
+        assert result.stderr.splitlines() == [  # type: ignore[attr-defined]
+            f"replay: error: {where}: optimizer: robust = '{kernel}' {reason}"]
+    assert run_replay("--dump-config", "--robust", "dcs").exit_code == 0  # type: ignore[attr-defined]
+
+
 def test_a_retired_setting_says_it_is_fixed_now(tmp_path: Path) -> None:
     graph = write_loop_graph(tmp_path / "loop.g2o")
     path = write_config(tmp_path, "[slam2d.loop_closure]\nmin_score = 0.6\nquery_thinning = 0.2\n")
