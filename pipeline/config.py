@@ -143,6 +143,11 @@ _AT_MOST: dict[tuple[str, str], str] = {
 }
 """A search step must not exceed the window it steps through."""
 
+_BELOW: dict[tuple[str, str], str] = {
+    ("slam3d.odometry", "min_range"): "max_range",
+}
+"""A key that must be less than another of its section (declared before it): a range that keeps nothing."""
+
 _MODEL_CONFIG = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 """Strict: a string or boolean is not a number and a number is not a boolean (an int is a fine float)."""
 
@@ -169,10 +174,10 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
         fields[item.name] = (annotation, Field(default, **_bounds(section, item.name)))
 
     validators: dict[str, Any] = {}
-    for rules, at_least in ((_AT_LEAST, True), (_AT_MOST, False)):
+    for rules, relation in ((_AT_LEAST, "at least"), (_AT_MOST, "at most"), (_BELOW, "less than")):
         for (rule_section, key), other in rules.items():
             if rule_section == section:
-                validators[f"_{key}_against_{other}"] = _order_check(key, other, at_least=at_least)
+                validators[f"_{key}_against_{other}"] = _order_check(key, other, relation)
     derived = {key: (other, getattr(defaults, key)) for (s, key), other in _AT_LEAST.items() if s == section}
     if derived:
         validators["_derived_defaults"] = model_validator(mode="before")(_derive_at_least(derived))
@@ -183,13 +188,20 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
     return model
 
 
-def _order_check(key: str, other: str, *, at_least: bool) -> Any:
-    """A validator of `key`: at least (or at most) `other`, when that passed its own validation."""
+_ORDERS: dict[str, Callable[[float, float], bool]] = {
+    "at least": lambda value, bound: value >= bound,
+    "at most": lambda value, bound: value <= bound,
+    "less than": lambda value, bound: value < bound,
+}
+
+
+def _order_check(key: str, other: str, relation: str) -> Any:
+    """A validator of `key`: in `relation` (`_ORDERS`) to `other`, when that passed its own validation."""
+    holds = _ORDERS[relation]
 
     def check(cls: type, value: float, info: ValidationInfo) -> float:
         bound = info.data.get(other)  # absent when it failed its own validation: reported there
-        if bound is not None and (value < bound if at_least else value > bound):
-            relation = "at least" if at_least else "at most"
+        if bound is not None and not holds(value, bound):
             raise ValueError(f"must be {relation} {other} ({bound:g})")
         return value
 

@@ -279,3 +279,21 @@ def test_a_base_frame_tf_does_not_link_is_a_one_line_error_naming_the_log(tmp_pa
     assert line == (f"replay: error: {path}: tf does not link base frame 'base_footprnt' to the LiDAR frame "
                     "'lidar' (frames in tf: base_link, lidar)")
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_ranges_that_keep_no_point_are_refused_naming_the_setting(tmp_path: Path) -> None:
+    """A LiDAR range window that keeps nothing: refused with the settings when it is empty, and by the
+    replay when it keeps none of this log's points (not identity poses and an empty map, exit 0)."""
+    from frontends.errors import UnusableLogError
+    from pipeline import replay
+    from pipeline.config import ConfigError, config_from_mapping
+
+    with pytest.raises(ConfigError, match=r"min_range: must be less than max_range \(10\)"):
+        config_from_mapping({"slam3d": {"odometry": {"min_range": 50.0, "max_range": 10.0}}})
+    path = tmp_path / "street.mcap"
+    write_cloud_log(path, drive(town_loop(), sweeps=3, step=0.5, lidar=Lidar(columns=360)))
+    # the town's nearest surfaces stand metres from the LiDAR
+    config = config_from_mapping({"slam3d": {"odometry": {"max_range": 0.5}}})
+    with pytest.raises(UnusableLogError, match=r"street\.mcap: no cloud on .* kept a point between"):
+        replay(path, config, out_dir=tmp_path / "out")
+    assert not (tmp_path / "out").exists()

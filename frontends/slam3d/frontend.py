@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends.errors import FrontendError, LogFileError, LogWarning
+from frontends.errors import FrontendError, LogFileError, LogWarning, UnusableLogError
 from frontends.logs import ODOMETRY_FRAME, Cloud3D, LogReader, TransformTree
 from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, SessionArrays
 from frontends.slam3d.config import Slam3DConfig
@@ -112,6 +112,12 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         if self._slam is None:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no point clouds")
         self._result = self._finished(self._slam.finish)
+        if not any(len(cloud) for cloud in self._result.keyframe_clouds):
+            odometry = self.config.odometry
+            raise UnusableLogError(
+                self._log.path, f"no cloud on {self._topic} kept a point between min_range "
+                f"({odometry.min_range:g} m) and max_range ({odometry.max_range:g} m) of [slam3d.odometry]: "
+                "nothing to map")
 
     def keyframe_graph(self, planar_poses: FloatArray | None = None) -> PoseGraph:
         return self.result.planar_graph(planar_poses)
