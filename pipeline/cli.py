@@ -722,15 +722,19 @@ def info(
     """Show a log's topics, message types, counts, rates and time span, or what a session holds."""
     from frontends.logs import open_log
     from pipeline.session_file import is_session_file
+    from pipeline.warning_tally import WarningTally, tallied_warnings, warning_lines
 
     if is_session_file(log):
         _session_info(log, as_json)
         return
+    tally = WarningTally(log)
     try:
-        with open_log(log) as reader:
+        with tallied_warnings(tally), open_log(log) as reader:
             summary = reader.info()
     except KNOWN_ERRORS as error:
         _fail(error)
+    for line in warning_lines(PROGRAM, log, tally.as_json()):  # (a truncated log: what is left is listed)
+        typer.echo(line, err=True)
     if as_json:
         typer.echo(json.dumps(summary.to_json_dict()))
         return

@@ -394,6 +394,18 @@ def test_info_on_a_file_that_is_not_a_log_is_a_one_line_error(tmp_path: Path) ->
     assert result.output.strip().count("\n") == 0 and str(path) in result.output
 
 
+def test_info_on_a_truncated_log_warns_in_one_line_and_lists_what_is_left(tmp_path: Path) -> None:
+    whole, cut = tmp_path / "whole.mcap", tmp_path / "cut.mcap"
+    write_drive(whole, scans=40)
+    data = whole.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    result = CliRunner().invoke(app, ["info", str(cut)])
+    assert result.exit_code == 0, result.output
+    warnings = result.stderr.splitlines()
+    assert len(warnings) == 1 and warnings[0].startswith(f"replay: warning: {cut}: file is truncated")
+    assert result.stdout.startswith(f"{cut}: mcap")
+
+
 def test_a_map_picture_failing_on_its_own_thread_is_one_line_and_keeps_the_old_outputs(
     drive_log: tuple[Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
