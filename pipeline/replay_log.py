@@ -456,9 +456,11 @@ class _Run:
                                                 with_map=sensor.recording.with_map)
             try:
                 if localizing and sensor.held_map_walls_color is not None:
+                    # The default optimizer, whatever [optimizer] says: that section is the map's, which
+                    # --map does not change; this solve is a step of the localization (its convergence
+                    # decides which trajectory is written).
                     cast("LocalizingLaserFrontend", frontend).held_map_solver = held_map_solver(
-                        stream, self.method, self.iterations, self.on_iteration, self.robust,
-                        sensor.held_map_walls_color)
+                        stream, DEFAULT_METHOD, None, self.on_iteration, None, sensor.held_map_walls_color)
                 recorder = (sensor.localization_recording if localizing else sensor.recording)(
                     stream, frontend)  # type: ignore[arg-type]
                 result = self.through(frontend, topic, recorder, stream, timings, beside,

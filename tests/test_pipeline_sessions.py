@@ -250,6 +250,37 @@ def test_map_keeps_the_scan_by_scan_trajectory_when_the_held_map_solution_disagr
     assert position_errors(poses, logs.in_map_frame(logs.second_truth)).max() < MAP_TOLERANCE
 
 
+def test_map_solves_the_run_s_own_graph_with_the_default_optimizer_whatever_the_config_says(
+        logs: Logs, tmp_path: Path) -> None:
+    """--map refuses --method: a config file's [optimizer] must not steer it either (sgd alone, a fixed
+    number of iterations, never converges, and the held map's trajectory was silently dropped)."""
+    from pipeline.config import config_from_mapping
+
+    start = tuple(logs.in_map_frame(logs.second_truth[0]))
+    pipeline.replay(logs.second, out_dir=tmp_path / "default", map=logs.session, initial_pose=start)
+    sgd = config_from_mapping({"optimizer": {"method": "sgd", "iterations": 3}})
+    pipeline.replay(logs.second, sgd, out_dir=tmp_path / "sgd", map=logs.session, initial_pose=start)
+    counts = json.loads((tmp_path / "sgd" / "second.json").read_text())["counts"]
+    assert counts["held_map_converged"] == 1 and counts["held_map_used"] == 1
+    written = [(tmp_path / run / "second.tum").read_bytes() for run in ("default", "sgd")]
+    assert written[0] == written[1]
+
+
+def test_map_warns_when_the_held_map_solve_did_not_converge(logs: Logs, tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    real = session_frontends.held_map_scans
+
+    def unconverged(*args: object) -> HeldMapScans:
+        return dataclasses.replace(real(*args), converged=False)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(session_frontends, "held_map_scans", unconverged)
+    start = logs.in_map_frame(logs.second_truth[0])
+    with pytest.warns(LogWarning, match="solved in the saved map, did not converge"):
+        pipeline.replay(logs.second, out_dir=tmp_path, map=logs.session, initial_pose=tuple(start))
+    counts = json.loads((tmp_path / "second.json").read_text())["counts"]
+    assert counts["held_map_used"] == 0 and counts["scans_smoothed"] > 0
+
+
 @pytest.mark.parametrize("mode", ["map", "continue"])
 def test_a_log_never_placed_in_the_map_is_one_line_naming_it_and_publishes_nothing(logs: Logs, tmp_path: Path,
                                                                                    mode: str) -> None:

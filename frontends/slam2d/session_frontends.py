@@ -346,7 +346,11 @@ class LocalizingLaserFrontend(SavedMapLocalization[ScanLocalizations], LaserFron
         trajectory = held_map_trajectory(self._held_map, np.array(self._stamps, dtype=np.int64), online,
                                          matched)
         self._held_map_apart = trajectory.apart
-        if trajectory.apart > HELD_MAP_AGREEMENT:
+        if not self._held_map.converged:
+            warnings.warn(f"{self._log.path}: the run's own keyframe graph, solved in the saved map, did "
+                          "not converge: the trajectory is the one matched scan by scan", LogWarning,
+                          stacklevel=2)
+        elif trajectory.apart > HELD_MAP_AGREEMENT:
             warnings.warn(f"{self._log.path}: the run's own keyframe graph, solved in the saved map, lies "
                           f"{trajectory.apart:.2f} m (median) from the scans matched to the map one by "
                           "one: the trajectory is the one matched scan by scan", LogWarning, stacklevel=2)
