@@ -162,10 +162,12 @@ def test_map_with_an_initial_pose_tracks_from_the_first_scan(logs: Logs, tmp_pat
 
 
 
-def test_map_warns_when_no_scan_matched_the_saved_map(logs: Logs, tmp_path: Path) -> None:
-    """An initial pose a kilometre off the map: every scan is tracked on the log's own scans, none matches
-    the map. The run ends, but says so (before: exit 0, no warning, every scan "with a pose")."""
-    start = logs.in_map_frame(logs.inside_truth[0]) + np.array([1000.0, 1000.0, 0.0])
+@pytest.mark.parametrize("offset", [1000.0, 1e20])
+def test_map_warns_when_no_scan_matched_the_saved_map(logs: Logs, tmp_path: Path, offset: float) -> None:
+    """An initial pose a kilometre (or absurdly far) off the map: every scan is tracked on the log's own
+    scans, none matches the map. The run ends, but says so (before: exit 0, no warning, every scan "with a
+    pose"; 1e20 m off, a loop search of the run's own SLAM built a grid from the saved map to the run)."""
+    start = logs.in_map_frame(logs.inside_truth[0]) + np.array([offset, offset, 0.0])
     result = run_replay(logs.inside, "--out", tmp_path, "--map", logs.session,
                         "--initial-pose", ",".join(f"{value:.6f}" for value in start))
     assert result.exit_code == 0, result.stderr

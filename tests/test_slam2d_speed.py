@@ -206,7 +206,7 @@ def test_a_loop_submap_is_built_again_only_when_its_keyframes_moved_or_its_margi
     for k in range(8):
         pose = np.array([5.0 + 0.4 * k, 9.0, 0.05 * k])
         slam.add_scan(k * 200_000_000, simulate_scan(world, pose)[:, :2], odometry=pose)
-    around = range(1, 6)
+    around = tuple(range(1, 6))
 
     def built_now(margin: float) -> Submap:
         return Submap.of([slam._keyframes[k] for k in around], [slam._keyframe_poses[k] for k in around],
@@ -222,7 +222,25 @@ def test_a_loop_submap_is_built_again_only_when_its_keyframes_moved_or_its_margi
     moved = slam._loop_submap(around, 4.0)
     assert moved is not wider
     np.testing.assert_array_equal(moved.grid.values, built_now(4.0).grid.values)
-    assert slam._loop_submap(range(2, 6), 4.0) is not moved  # other keyframes: another submap
+    assert slam._loop_submap(tuple(range(2, 6)), 4.0) is not moved  # other keyframes: another submap
+
+
+def test_a_loop_submap_leaves_out_neighbours_by_index_that_are_far_in_space() -> None:
+    """The seam of a resumed session: the saved map's last keyframes and the new run's first are neighbours
+    by index, not in space (a run placed 10⁶ m away, by a wrong --initial-pose, built a grid from one to
+    the other and failed). Within one run, every neighbour stays."""
+    world = square_loop().segments
+    slam = LaserSlam2D()
+    for k in range(8):
+        pose = np.array([5.0 + 0.4 * k, 9.0, 0.05 * k])
+        slam.add_scan(k * 200_000_000, simulate_scan(world, pose)[:, :2], odometry=pose)
+    current = 7 + slam.config.loop_closure.min_separation_keyframes  # as if that many keyframes followed
+    assert slam._loop_submap_members(4, current, 3.0) == tuple(range(8))
+    for k in range(4):  # the saved map's keyframes, far from the run that resumed on them
+        slam._keyframe_poses[k] = slam._keyframe_poses[k] + np.array([1e6, 0.0, 0.0])
+    assert slam._loop_submap_members(4, current, 3.0) == (4, 5, 6, 7)
+    assert slam._loop_submap_members(2, current, 3.0) == (0, 1, 2, 3)
+    slam._loop_submap(slam._loop_submap_members(5, current, 3.0), 3.0)  # a grid of a few metres
 
 
 def test_a_keyframe_placed_from_its_cache_is_placed_as_by_place() -> None:

@@ -266,9 +266,9 @@ class LaserSlam2D:
         """While the wheel odometry repeats its last value: the motion tracked since it last changed."""
         self._deskewer = ScanDeskewer()
         self._local_map: Submap | None = None
-        self._loop_submaps: dict[tuple[int, int], tuple[FloatArray, float, Submap]] = {}
-        """The last loop searches' submaps by their keyframes (first, stop), with those keyframes' poses and
-        the margin they were built with (`_loop_submap`)."""
+        self._loop_submaps: dict[tuple[int, ...], tuple[FloatArray, float, Submap]] = {}
+        """The last loop searches' submaps by their keyframes, with those keyframes' poses and the margin
+        they were built with (`_loop_submap`)."""
         self._failed_wide_searches: dict[int, int] = {}
         """Candidates searched beyond the fine window in vain, each with the keyframe that searched them
         (`_searched_wide_in_vain`); forgotten when the poses move."""
@@ -744,11 +744,8 @@ class LaserSlam2D:
         (`match_beyond`)."""
         settings = self.config.loop_closure
         matching = self.config.matching
-        around = range(
-            max(0, candidate - settings.submap_keyframes),
-            min(current - settings.min_separation_keyframes, candidate + settings.submap_keyframes) + 1,
-        )
-        submap = self._loop_submap(around, fine_radius + 1.0)
+        submap = self._loop_submap(self._loop_submap_members(candidate, current, fine_radius + 1.0),
+                                   fine_radius + 1.0)
         here = self._keyframe_poses[current]
         query = self._query_points(current)
         window = SearchWindow(fine_radius, settings.angular_window, settings.angular_step)
@@ -770,17 +767,32 @@ class LaserSlam2D:
         information = self._loop_information(query, submap, refined)
         return _LoopHypothesis(candidate, current, z, information, correction)
 
-    def _loop_submap(self, around: range, margin: float) -> Submap:
-        """The submap of the keyframes `around` with `margin`: the one a recent search built while none of
-        them moved (`LOOP_SUBMAPS_KEPT_CELLS`), else built now."""
+    def _loop_submap_members(self, candidate: int, current: int, margin: float) -> tuple[int, ...]:
+        """The keyframes of `candidate`'s submap for a search from `current`: its neighbours by index, not
+        too recent, within reach of it (a submap with `margin`)."""
+        settings = self.config.loop_closure
+        around = range(
+            max(0, candidate - settings.submap_keyframes),
+            min(current - settings.min_separation_keyframes, candidate + settings.submap_keyframes) + 1,
+        )
+        # Neighbours by index are neighbours in space within one run, not across the seam of a resumed
+        # session (the saved map's last keyframe, the new run's first): those out of the candidate's reach
+        # share no wall with it and would only stretch the grid between two places.
+        reach = 2.0 * self.config.matching.max_range + margin
+        centre = self._keyframe_poses[candidate][:2]
+        return tuple(k for k in around if math.hypot(*(self._keyframe_poses[k][:2] - centre)) <= reach)
+
+    def _loop_submap(self, members: tuple[int, ...], margin: float) -> Submap:
+        """The submap of these keyframes with `margin`: the one a recent search built while none of them
+        moved (`LOOP_SUBMAPS_KEPT_CELLS`), else built now."""
         matching = self.config.matching
-        poses = np.array([self._keyframe_poses[k] for k in around])
-        key = (around.start, around.stop)
+        poses = np.array([self._keyframe_poses[k] for k in members])
+        key = members
         kept = self._loop_submaps.pop(key, None)
         if kept is not None and kept[1] == margin and np.array_equal(kept[0], poses):
             submap = kept[2]
         else:
-            submap = Submap.of([self._keyframes[k] for k in around], list(poses),
+            submap = Submap.of([self._keyframes[k] for k in members], list(poses),
                                resolution=matching.resolution, likelihood_sigma=matching.likelihood_sigma,
                                margin=margin, pairing_distance=matching.icp_max_distance)
         if submap.grid.values.size <= LOOP_SUBMAPS_KEPT_CELLS:
