@@ -157,9 +157,7 @@ class SessionStart:
              initial_pose: Sequence[float] | None = None) -> SessionStart:
         """Read the session file (`SessionError` naming it when it is damaged or from a newer version)."""
         # `pipeline.api.replay`, the one caller, has refused an initial pose without "map" already.
-        pose = None if initial_pose is None else tuple(float(value) for value in initial_pose)
-        if pose is not None and (len(pose) != 3 or not all(np.isfinite(pose))):
-            raise PipelineError(f"the initial pose must be three finite numbers x, y, yaw; got {pose}")
+        pose = None if initial_pose is None else _three_finite_numbers(initial_pose)
         return cls(Path(path), mode, read_session(Path(path)), pose)
 
     def frontend_for(self, sensor: _Sensor, kind: str, log: LogReader, topic: str, config: Any,
@@ -183,6 +181,20 @@ class SessionStart:
                                  "that are not supported yet)") from error
         except EmptySavedMapError as error:
             raise SessionError(f"{self.path}: {error}") from error
+
+
+def _three_finite_numbers(values: object) -> tuple[float, float, float]:
+    """(x, y, yaw) of a sequence of three finite numbers (a string is not one: "123" would read as 1, 2,
+    3); `PipelineError` otherwise."""
+    try:
+        if isinstance(values, str | bytes) or len(values) != 3:  # type: ignore[arg-type]
+            raise TypeError
+        x, y, yaw = (float(value) for value in values)  # type: ignore[attr-defined]
+        if np.all(np.isfinite((x, y, yaw))):
+            return x, y, yaw
+    except (TypeError, ValueError):
+        pass
+    raise PipelineError(f"the initial pose must be three finite numbers x, y, yaw; got {values!r}")
 
 
 @dataclass(frozen=True)

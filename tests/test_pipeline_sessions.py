@@ -570,8 +570,9 @@ def test_the_api_refuses_what_the_command_refuses(logs: Logs, tmp_path: Path) ->
         pipeline.replay(logs.inside, out_dir=tmp_path, map=logs.session, continue_from=logs.session)
     with pytest.raises(PipelineError, match="initial pose"):
         pipeline.replay(logs.inside, out_dir=tmp_path, continue_from=logs.session, initial_pose=(0, 0, 0))
-    with pytest.raises(PipelineError, match="three finite numbers"):
-        pipeline.replay(logs.inside, out_dir=tmp_path, map=logs.session, initial_pose=(0.0, math.nan, 0.0))
+    for pose in ((0.0, math.nan, 0.0), "1,2,3", "123", (1.0, 2.0), ("x", 0, 0), 5.0):
+        with pytest.raises(PipelineError, match="three finite numbers"):
+            pipeline.replay(logs.inside, out_dir=tmp_path, map=logs.session, initial_pose=pose)  # type: ignore[arg-type]
     assert file_names(tmp_path) == set()
     assert issubclass(MapPlacementError, FrontendError)
 
