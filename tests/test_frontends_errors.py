@@ -64,6 +64,15 @@ def test_directory_without_a_log(tmp_path: Path) -> None:
         open_log(tmp_path)
 
 
+def test_a_directory_with_logs_of_two_kinds_is_refused_not_guessed(tmp_path: Path) -> None:
+    """A bag and an MCAP side by side (a recording and its conversion, or two runs): which one was meant
+    is the user's to say, as with two MCAP files (before: the bag, silently)."""
+    write_rosbag1(tmp_path / "building.bag")
+    write_mcap_ros(tmp_path / "corridor.mcap")
+    with pytest.raises(LogFileError, match=r"more than one kind .*: building\.bag, corridor\.mcap; name one"):
+        open_log(tmp_path)
+
+
 def test_ros2_bag_missing_its_storage_file(tmp_path: Path) -> None:
     bag = write_rosbag2(tmp_path / "bag")
     (bag / "bag.db3").unlink()

@@ -96,6 +96,10 @@ def _checked_rosbag2(directory: Path) -> Rosbag2Container:
 def _open_directory(path: Path) -> Container:
     if (path / "metadata.yaml").exists():
         return _checked_rosbag2(path)
+    kinds = [pattern for pattern in ("*.bag", "*.db3", "*.mcap") if any(path.glob(pattern))]
+    if len(kinds) > 1:  # which one was meant is not ours to guess
+        names = ", ".join(sorted(f.name for pattern in kinds for f in path.glob(pattern)))
+        raise LogFileError(path, f"logs of more than one kind and no metadata.yaml: {names}; name one")
     bags = sorted(path.glob("*.bag"), key=_split_order)
     if bags:
         for bag in bags:
