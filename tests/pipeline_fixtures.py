@@ -181,7 +181,7 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                 sweep: float = 0.0, scan_period_ns: int = SCAN_PERIOD_NS,
                 odometry_topic: bool = True, multi_echo: bool = False,
                 world: World | None = None, upside_down: bool = False, scan_frame: str = "laser",
-                mount_on_tf: bool = True) -> np.ndarray:
+                mount_on_tf: bool = True, odometry_clock_ns: int = 0) -> np.ndarray:
     """Drive the simulated building's loop (or `world`'s route) at 1 m/s, writing /scan, /odom, /tf and
     /tf_static; returns the truth (base poses) per scan. `part`: only these scans of the drive, as a log
     recorded `later_ns` later whose wheel odometry starts at its own origin (a second recording of the same
@@ -192,7 +192,8 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
     its beam's first echo. `world`: another building's route and walls (not with `sweep`). `upside_down`:
     the laser is mounted rolled by π (tf says so): it sees the world mirrored, its bearings turning
     clockwise in the base frame (not with `sweep`). `scan_frame`: the frame the scans name (tf names the
-    laser "laser"). `mount_on_tf` False: no /tf_static, tf does not say where the laser sits."""
+    laser "laser"). `mount_on_tf` False: no /tf_static, tf does not say where the laser sits.
+    `odometry_clock_ns`: the odometry (/odom and its /tf) stamped on a clock this far from the laser's."""
     rng = np.random.default_rng(seed)
     world = world or square_loop()
     truth = drive(world, DRIVE_SPEED * scan_period_ns * 1e-9)[:scans]
@@ -232,7 +233,7 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                 q = quaternion_from_yaw(float(odometry[k, 2]))
                 covariance = np.zeros(36)
                 odom = types["nav_msgs/msg/Odometry"](
-                    header=messages.header(stamp, "odom"),
+                    header=messages.header(stamp + odometry_clock_ns, "odom"),
                     child_frame_id="base_link",
                     pose=types["geometry_msgs/msg/PoseWithCovariance"](
                         pose=types["geometry_msgs/msg/Pose"](
@@ -258,7 +259,7 @@ def write_drive(path: Path, *, with_odometry: bool = True, scans: int | None = N
                     "tf2_msgs/msg/TFMessage",
                     stamp,
                     types["tf2_msgs/msg/TFMessage"](
-                        transforms=[transform(stamp, "odom", "base_link", odometry[k])]
+                        transforms=[transform(stamp + odometry_clock_ns, "odom", "base_link", odometry[k])]
                     ),
                 )
             if sweep:

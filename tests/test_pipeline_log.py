@@ -184,6 +184,28 @@ def test_odometry_of_a_frame_tf_does_not_link_to_the_laser_is_a_warning(tmp_path
     [warning] = summary["warnings"]
     assert warning["message"].startswith("tf gives no path from the laser's frame laser to the odometry's "
                                          "base_link: the odometry was taken as the laser's own motion")
+    # Scans that name no frame at all: the same, and said so (before: no warning).
+    write_drive(path, scans=40, mount_on_tf=False, scan_frame="")
+    assert CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet"]).exit_code == 0
+    [warning] = json.loads((out / "unmounted.json").read_text())["warnings"]
+    assert warning["message"].startswith("tf gives no path from the scans, which name no frame (frame_id "
+                                         "empty), to the odometry's base_link")
+
+
+def test_odometry_on_another_clock_than_the_scans_is_a_warning(tmp_path: Path) -> None:
+    """Odometry stamped in seconds since boot beside a laser in epoch time covers none of the scans: the
+    run is matched without it, and the summary says so (before: silently)."""
+    path, out = tmp_path / "clocks.mcap", tmp_path / "out"
+    truth = write_drive(path, scans=40, odometry_clock_ns=-START_NS + 5 * 10**9)
+    result = CliRunner().invoke(app, [str(path), "--out", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "clocks.json").read_text())
+    assert summary["counts"]["scans_with_odometry"] == 0
+    [warning] = summary["warnings"]
+    assert warning["message"].startswith("the odometry on /odom covers none of the 40 scans' stamps (it runs "
+                                         "from 5.000 to ")
+    assert "another clock?" in warning["message"]
+    assert _max_position_error(read_tum(out / "clocks.tum").planar(), truth) < 0.15  # matched alone
 
 
 def test_a_laser_replay_never_imports_the_3d_frontend(tmp_path: Path) -> None:

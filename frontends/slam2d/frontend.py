@@ -161,6 +161,20 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
         self._after_reading()
         self._result = self._finished(self._slam.finish)
+        self._warn_if_odometry_missed_every_scan()
+
+    def _warn_if_odometry_missed_every_scan(self) -> None:
+        """Odometry that covers none of the scans' stamps (stamped on another clock: time since boot
+        beside the laser's epoch time) was not used at all: a warning, not a silent run without it."""
+        track = self.odometry
+        if track is None or self._counts["scans_with_odometry"] or not len(track.stamps_ns):
+            return
+        scans = self.result.scan_stamps_ns
+        warnings.warn(f"{self._log.path}: the odometry on {self.odometry_topic} covers none of the "
+                      f"{len(scans)} scans' stamps (it runs from {track.stamps_ns[0] * 1e-9:.3f} to "
+                      f"{track.stamps_ns[-1] * 1e-9:.3f} s, the scans from {scans[0] * 1e-9:.3f} to "
+                      f"{scans[-1] * 1e-9:.3f} s; another clock?): the scans were matched without it",
+                      LogWarning, stacklevel=2)
 
     def _after_reading(self) -> None:
         """What the whole log says. No scan placed on a base by tf, and no base named by the user: the poses
@@ -170,11 +184,13 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
         if not self._counts["scans_with_tf_mount"] and self._requested_base_frame is None:
             self.base_frame = None
             odometry_frame = None if self.odometry is None else self.odometry.child_frame
-            if odometry_frame and self.sensor_frame and odometry_frame != self.sensor_frame:
-                warnings.warn(f"{self._log.path}: tf gives no path from the laser's frame "
-                              f"{self.sensor_frame} to the odometry's {odometry_frame}: the odometry was "
-                              "taken as the laser's own motion (a laser off the robot's centre moves "
-                              "otherwise in turns), and the poses are the laser's", LogWarning, stacklevel=2)
+            if odometry_frame and odometry_frame != self.sensor_frame:
+                laser = (f"the laser's frame {self.sensor_frame}" if self.sensor_frame
+                         else "the scans, which name no frame (frame_id empty),")
+                warnings.warn(f"{self._log.path}: tf gives no path from {laser} to the odometry's "
+                              f"{odometry_frame}: the odometry was taken as the laser's own motion (a laser "
+                              "off the robot's centre moves otherwise in turns), and the poses are the "
+                              "laser's", LogWarning, stacklevel=2)
         ignored = self._counts["scans_beam_times_ignored"]
         if ignored:
             warnings.warn(f"{self._log.path}: {ignored} scans on {self._topic} said their beams took up to "
