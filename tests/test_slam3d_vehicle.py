@@ -263,3 +263,18 @@ def test_odometry_of_a_frame_tf_does_not_link_to_the_lidar_is_left_out_with_a_wa
     linked_frontend = LidarFrontend(linked, "/points")  # type: ignore[arg-type]
     linked_mount = lidar_mount(linked_frontend._tree, "lidar", 0)
     assert linked_mount is not None and linked_frontend._prior_of_base(linked_mount, 0) is not None
+
+
+def test_odometry_that_covers_none_of_the_clouds_is_a_warning(corner_drive: Drive) -> None:
+    """Odometry on another clock than the LiDAR (seconds since boot beside epoch time) never gives a prior:
+    the clouds are registered without it, and a warning says why (before: silently)."""
+    moving = [Transform("odom", "base_link", stamp, 0, np.array([0.5 * k, 0.0, 0.0]), IDENTITY_Q, False)
+              for k, stamp in enumerate((0, 100, 200))]
+    log = _TfOnlyLog(_edge("base_link", "lidar", (0.0, 0.0, 1.0), IDENTITY_Q, True), *moving)
+    frontend = LidarFrontend(log, "/points")  # type: ignore[arg-type]
+    stamps = [10**18 + k * 10**8 for k in range(6)]
+    for stamp, points in zip(stamps, corner_drive.clouds, strict=False):
+        frontend.add(Cloud3D(stamp, stamp, "lidar", points.astype(np.float32), None))
+    with pytest.warns(LogWarning, match=r"the odometry covers none of the 6 clouds' stamps \(it runs from "
+                                        r"0\.000 to 0\.000 s, the clouds from 1000000000\.000"):
+        frontend.finish()

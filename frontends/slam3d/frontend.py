@@ -46,6 +46,7 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         super().__init__(log, topic, config or Slam3DConfig(), options)
         self._slam: LidarSlam3D | None = None
         self._clouds = 0
+        self._clouds_with_odometry = 0
         self._points = 0
         self._map_points: int | None = None
         self._prior = _odometry_prior(log, self.odometry_topic, self._tree)
@@ -76,6 +77,7 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         self._clouds += 1
         self._points += len(measurement.points)
         odometry_pose = None if self._prior is None else self._prior.at(measurement.stamp_ns)
+        self._clouds_with_odometry += odometry_pose is not None
         return self._slam.add_cloud(measurement, odometry_pose)
 
     def _make_slam(self, sensor_to_base: FloatArray) -> LidarSlam3D:
@@ -112,6 +114,13 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         if self._slam is None:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no point clouds")
         self._result = self._finished(self._slam.finish)
+        prior = self._prior
+        if prior is not None and len(prior.stamps_ns) and not self._clouds_with_odometry:
+            odometry_s, clouds = prior.stamps_ns * 1e-9, self._result.cloud_stamps_ns * 1e-9
+            warnings.warn(f"{self._log.path}: the odometry covers none of the {self._clouds} clouds' stamps "
+                          f"(it runs from {odometry_s[0]:.3f} to {odometry_s[-1]:.3f} s, the clouds from "
+                          f"{clouds[0]:.3f} to {clouds[-1]:.3f} s; another clock?): the clouds were "
+                          "registered without it", LogWarning, stacklevel=2)
         if not any(len(cloud) for cloud in self._result.keyframe_clouds):
             odometry = self.config.odometry
             raise UnusableLogError(
