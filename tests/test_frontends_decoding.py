@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from frontends.errors import LogWarning
 from frontends.logs import converters
 from frontends.logs.converters import BearingTable, RangeLimits
 from frontends.logs.decoding import ros_wire
@@ -90,6 +91,8 @@ def test_point_cloud_big_endian_rows_with_padding() -> None:
         ("t", 6, "I", [0, 50_000_000, 99_000_000], [0.0, 0.05, 0.099]),  # Ouster: uint32 ns after it
         # Hesai / Robosense: float64 s since the epoch; this cloud is stamped 5 s + 250 ns after it.
         ("timestamp", 8, "d", [5.0, 5.05, 5.1], [-250e-9, 0.05 - 250e-9, 0.1 - 250e-9]),
+        # livox_ros_driver2: float64 ns since the epoch (read as seconds, the stamp would lie 5·10⁹ s off)
+        ("timestamp", 8, "d", [5e9 + 250, 5.05e9 + 250, 5.099e9 + 250], [0.0, 0.05, 0.099]),
     ],
 )
 def test_point_times_become_seconds_after_the_stamp(
@@ -108,6 +111,21 @@ def test_point_times_become_seconds_after_the_stamp(
     cloud = decode_cloud(STORE2, message)
     assert cloud.point_times is not None and cloud.point_times.dtype == np.float64
     np.testing.assert_allclose(cloud.point_times, seconds, atol=1e-6)
+
+
+@pytest.mark.parametrize("values", [
+    [1000.0, 1000.05, 1000.1],  # seconds since boot beside an epoch stamp (as nanoseconds: a 0.1 ns sweep)
+    [1.7e9, 1.7e9 + 0.05, 1.7e9 + 0.1],  # epoch seconds, the cloud stamped 5 s after the epoch
+])
+def test_point_times_on_another_clock_are_dropped_with_a_warning(values: list[float]) -> None:
+    """Deskewing by them would carry the cloud's pose along the motion to where the stamp seems to be:
+    10⁹ s away (a trajectory 10¹⁰ m off, before)."""
+    data = b"".join(struct.pack("<fffd", 1.0, 2.0, 3.0, v) for v in values)
+    message = point_cloud(STORE2, [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("timestamp", 12, 8)], data, 3,
+                          point_step=20, row_step=60)
+    with pytest.warns(LogWarning, match=r"point times \(timestamp\) lie too far from their cloud's stamp"):
+        cloud = decode_cloud(STORE2, message)
+    assert cloud.point_times is None and len(cloud.points) == 3
 
 
 def test_point_cloud_without_xyz_is_refused() -> None:

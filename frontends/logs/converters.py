@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -15,6 +16,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from frontends.errors import LogWarning
 from frontends.logs import rotations
 from frontends.logs.decoding import foxglove
 from frontends.logs.decoding.ros_wire import (
@@ -219,20 +221,43 @@ def foxglove_laser_scan(
     )
 
 
-def _point_times(raw: NDArray[Any], stamp_ns: int) -> NDArray[np.float64]:
-    """A time field → seconds relative to the stamp. Integer fields are nanoseconds, float fields seconds.
-    Times nearer the stamp than zero are absolute (since the epoch, e.g. Hesai) and get it subtracted;
-    the others are already relative (Velodyne, Ouster, Livox)."""
+MAX_STAMP_TO_SWEEP_S = 1.0
+MAX_STAMP_TO_SWEEP_SWEEPS = 10.0
+"""A cloud's stamp lies within a second and within ten sweep lengths of its points' times (sensors stamp a
+sweep at its start, its end or when they publish it); times farther off are in another unit or on another
+clock, and deskewing by them would carry the cloud's pose that far along the motion."""
+
+
+def _point_times(raw: NDArray[Any], stamp_ns: int, field: str) -> NDArray[np.float64] | None:
+    """A time field → seconds relative to the stamp. Integer fields are nanoseconds; float fields seconds,
+    else nanoseconds (livox_ros_driver2's float64 `timestamp`), whichever puts the stamp within reach of
+    the times (`MAX_STAMP_TO_SWEEP_S`). Times nearer the stamp than zero are absolute (since the epoch, e.g.
+    Hesai) and get it subtracted; the others are already relative (Velodyne, Ouster, Livox). None, and a
+    warning, when no reading fits the stamp: the cloud is read as if it had no times."""
     integer = raw.dtype.kind in "iu"
-    stamp = stamp_ns if integer else stamp_ns * 1e-9
     sample = raw[:: max(1, raw.shape[0] // 64)].astype(np.float64)
     reference = float(np.nanmedian(sample)) if sample.size and not np.isnan(sample).all() else 0.0
-    absolute = abs(reference - stamp) < abs(reference)
-    if integer:
-        nanoseconds = (raw.astype(np.int64) - stamp_ns) if absolute else raw.astype(np.int64)
-        return nanoseconds.astype(np.float64) * 1e-9
-    seconds: NDArray[np.float64] = raw.astype(np.float64)
-    return seconds - stamp if absolute else seconds
+    for seconds_per_unit in (1e-9,) if integer else (1.0, 1e-9):
+        stamp = stamp_ns * 1e-9 / seconds_per_unit
+        absolute = abs(reference - stamp) < abs(reference)
+        if integer:
+            nanoseconds = (raw.astype(np.int64) - stamp_ns) if absolute else raw.astype(np.int64)
+            times = nanoseconds.astype(np.float64) * 1e-9
+        else:
+            values = raw.astype(np.float64)
+            times = (values - stamp if absolute else values) * seconds_per_unit
+        finite = times[np.isfinite(times)]
+        if not finite.size:
+            return times
+        first, last = float(finite.min()), float(finite.max())
+        reach = min(MAX_STAMP_TO_SWEEP_S, MAX_STAMP_TO_SWEEP_SWEEPS * (last - first))
+        if first == last or first - reach <= 0.0 <= last + reach:  # (no span: no deskewing by them anyway)
+            return times
+    units = "" if integer else ", read as seconds or as nanoseconds"
+    warnings.warn(f"cloud point times ({field}) lie too far from their cloud's stamp{units} (more than "
+                  f"{MAX_STAMP_TO_SWEEP_S:g} s or {MAX_STAMP_TO_SWEEP_SWEEPS:g} sweeps; another clock, or a "
+                  "stamp missing?): those clouds were read without them", LogWarning, stacklevel=2)
+    return None
 
 
 def _cloud(
@@ -283,7 +308,7 @@ def _cloud(
     if time_name is not None:
         code, offset = layout[time_name]
         raw = np.ndarray((height, width), code, data, offset, (row_step, point_step)).reshape(count)
-        times = _point_times(raw, stamp_ns)
+        times = _point_times(raw, stamp_ns, time_name)
     finite = (np.abs(points) <= MAX_CLOUD_COORDINATE).all(axis=1)  # NaN compares False: dropped too
     if not finite.all():
         points = points[finite]
