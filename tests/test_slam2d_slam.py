@@ -228,3 +228,12 @@ def test_a_slow_lasers_next_scan_is_no_gap() -> None:
     assert after_gap(gap_widening(settings, 10 * interval), 10 * interval, typical_interval_ns=interval)
     assert after_gap(widening, interval, typical_interval_ns=0.0)
     assert not after_gap(gap_widening(settings, 100_000_000), 100_000_000, typical_interval_ns=0.0)
+
+
+def test_a_dense_laser_is_as_accurate_as_a_sparse_one() -> None:
+    """4 000 beams a scan (a 0.09° laser): matched with every point, the near walls outweighed the rest and
+    the matches claimed 11× the information of a 360-beam scan's; the drive erred by 0.026 m median, 0.11 m
+    at worst (0.013 / 0.04 m with 1 440 beams). One point per half grid cell is matched now: 0.013 / 0.043."""
+    run = simulate_run(square_loop(), step=0.4, beams=4000, seed=3)
+    errors = position_errors(run_slam(run, with_odometry=True).final_scan_poses, run.truth)
+    assert np.median(errors) < 0.018 and errors.max() < 0.07

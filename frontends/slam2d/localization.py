@@ -77,6 +77,7 @@ from frontends.slam2d.slam import (
     ODOMETRY_BRANCH_AND_BOUND_LEVELS,
     LaserSlam2D,
     match_without_odometry,
+    points_to_match,
     predicted_motion,
 )
 from frontends.slam2d.stage_times import StageTimes
@@ -345,10 +346,7 @@ class MapLocalizer:
         the motion between scans is used), interpolated between messages `odometry_interval` seconds
         apart."""
         matching = self.config.matching
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        in_range = np.einsum("ij,ij->i", points, points) <= matching.max_range**2
-        points = np.ascontiguousarray(points[in_range])
-        times = None if point_times is None or not matching.deskew else np.asarray(point_times)[in_range]
+        points, times = points_to_match(points, point_times, matching)
         index = self._count
         self._count += 1
         self._rate.add(int(stamp_ns))

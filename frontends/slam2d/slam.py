@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from frontends.growing_rows import GrowingRows
 from frontends.loop_closing import Constraints, HypothesisPool, is_small, optimize_and_prune, path_lengths
@@ -36,6 +36,7 @@ from frontends.slam2d.config import (
     SMALL_CORRECTION_ANGULAR,
     SMALL_CORRECTION_LINEAR,
     UNRELIABLE_ODOMETRY_SCALE,
+    MatchingConfig,
     OdometryConfig,
     Slam2DConfig,
 )
@@ -181,6 +182,20 @@ def predicted_motion(settings: OdometryConfig, last_odometry: FloatArray | None,
     return motion, np.diag([sigma_linear**-2, sigma_linear**-2, sigma_angular**-2])
 
 
+def points_to_match(points: ArrayLike, point_times: ArrayLike | None,
+                    matching: MatchingConfig) -> tuple[FloatArray, FloatArray | None]:
+    """A scan's points (N, 2) as the trackers match them, with their times (None without, or when not
+    deskewing): those within `max_range`, one per half cell of the matching grid (as the local map keeps
+    them). A dense laser's extra points near the robot would otherwise outweigh the rest of the scan in
+    every match, and its matches claim an information that grows with the beam count: a simulated drive
+    of 4 000 beams a scan erred by 0.026 m median against 0.013 at 1 440; thinned, 0.013."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    kept = np.flatnonzero(np.einsum("ij,ij->i", points, points) <= matching.max_range**2)
+    kept = kept[one_per_cell(points[kept], 0.5 * matching.resolution)]
+    times = None if point_times is None or not matching.deskew else np.asarray(point_times)[kept]
+    return np.ascontiguousarray(points[kept]), times
+
+
 def match_without_odometry(
     points: FloatArray, grid: LikelihoodGrid, prior: FloatArray, window: SearchWindow, *,
     narrow_first: bool = True
@@ -322,10 +337,7 @@ class LaserSlam2D:
         if not due and self._local_map is not None and self._last_matched is not None:
             return self._add_scan_between(int(stamp_ns), self._motion_since_matched(int(stamp_ns), odometry))
         matching = self.config.matching
-        points = np.asarray(points, dtype=np.float64)
-        in_range = np.einsum("ij,ij->i", points, points) <= matching.max_range**2
-        points = points[in_range]
-        times = None if point_times is None or not matching.deskew else np.asarray(point_times)[in_range]
+        points, times = points_to_match(points, point_times, matching)
         index = len(self._scan_stamps)
         new_loops: tuple[tuple[int, int], ...] = ()
         if not self._keyframe_poses:
