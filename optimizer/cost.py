@@ -9,6 +9,7 @@ from numba import njit, prange
 from numpy.typing import NDArray
 
 from optimizer import se2
+from optimizer.errors import GraphError
 from optimizer.graph import PoseGraph, read_only
 
 FloatArray = NDArray[np.float64]
@@ -45,6 +46,8 @@ def chi2(graph: PoseGraph, poses: FloatArray | None = None) -> float:
     the bit, whatever the threads."""
     # Read-only as the graph's own: one compiled signature of the kernel for both.
     poses = graph.poses if poses is None else read_only(np.ascontiguousarray(poses, dtype=np.float64))
+    if poses.shape != (graph.num_poses, 3):  # the kernels index them by the constraints' ends, unchecked
+        raise GraphError(f"poses must be ({graph.num_poses}, 3) for this graph, got {poses.shape}")
     edges = graph.num_edges
     if edges < CHI2_PARALLEL_MIN:
         return float(_chi2_kernel(poses, graph.edge_from, graph.edge_to, graph.measurements,

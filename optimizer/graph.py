@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -120,10 +120,10 @@ class PoseGraph:
           positive definite and disconnected graphs are errors (`check_information=False` skips the
           information check, for callers that have just made it themselves with better messages).
         """
-        vertex_ids = np.asarray(vertex_ids, dtype=np.int64).reshape(-1)
+        vertex_ids = _integer_ids(vertex_ids, "vertex ids")
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-        edge_from_ids = np.asarray(edge_from_ids, dtype=np.int64).reshape(-1)
-        edge_to_ids = np.asarray(edge_to_ids, dtype=np.int64).reshape(-1)
+        edge_from_ids = _integer_ids(edge_from_ids, "constraint ends")
+        edge_to_ids = _integer_ids(edge_to_ids, "constraint ends")
         measurements = np.asarray(measurements, dtype=np.float64).reshape(-1, 3)
         information = np.asarray(information, dtype=np.float64).reshape(-1, 3, 3)
         if len(vertex_ids) != len(poses):
@@ -153,6 +153,20 @@ class PoseGraph:
         _check_connected(len(sorted_ids), edge_from, edge_to)
         return cls(poses, edge_from.astype(np.int64), edge_to.astype(np.int64), measurements.copy(),
                    information.copy(), sorted_ids.copy())
+
+
+def _integer_ids(ids: ArrayLike, what: str) -> IntArray:
+    """`ids` as int64; `GraphError` for one that is not a whole number (1.7 would become 1 unnoticed)."""
+    given = np.asarray(ids).reshape(-1)
+    if given.dtype.kind not in "iub":
+        try:
+            values = given.astype(np.float64)
+        except (TypeError, ValueError):
+            raise GraphError(f"{what} must be integers, got {given.dtype}") from None
+        whole = np.isfinite(values) & (values == np.round(values))
+        if not whole.all():
+            raise GraphError(f"{what} must be integers, got {given[np.argmin(whole)]!r}")
+    return given.astype(np.int64)
 
 
 SPD_TOLERANCE = 16.0 * np.finfo(np.float64).eps

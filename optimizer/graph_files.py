@@ -11,6 +11,7 @@ g2o `I11 I12 I13 I22 I23 I33` (xx xy xθ yy yθ θθ), TORO `xx xy yy θθ xθ y
 
 from __future__ import annotations
 
+import re
 from collections import deque
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -115,7 +116,8 @@ def read_graph(path: str | Path, *, repair_information: bool = False) -> GraphFi
     Every problem is raised as a GraphFileError naming the file, and the line when one is at fault.
     """
     path = Path(path)
-    blocks, skipped, format_name = _scan(path, _read_bytes(path))
+    data = _read_bytes(path)
+    blocks, skipped, format_name = _scan(path, data)
     vertex_tag, edge_tag, information_order = _FORMATS[format_name]
     vertices, edges = blocks[vertex_tag], blocks[edge_tag]
 
@@ -135,7 +137,26 @@ def read_graph(path: str | Path, *, repair_information: bool = False) -> GraphFi
                                 check_information=False)  # just checked, with the file's line numbers
     except GraphError as error:
         raise GraphFileError(path, str(error)) from error
+    if _FIX in skipped:  # held as the file says: the optimizer holds the first pose, and only that one
+        _check_fixed(path, data, int(graph.vertex_ids[0]))
+        skipped = {tag: count for tag, count in skipped.items() if tag != _FIX}
     return GraphFile(graph, path, format_name, skipped, initialised, repaired)
+
+
+_FIX = "FIX"
+_FIX_LINE = re.compile(rb"^[ \t]*FIX(?:[ \t]+([^\r\n#]*))?", re.MULTILINE)
+
+
+def _check_fixed(path: Path, data: bytes, first_id: int) -> None:
+    """Raise `GraphFileError` at the first FIX line that holds another pose than the graph's first: the
+    optimizer anchors that one alone, and would move the others, solving another problem than the file's."""
+    for match in _FIX_LINE.finditer(data):
+        tokens = (match.group(1) or b"").split()
+        if tokens != [str(first_id).encode()] * len(tokens) or not tokens:
+            raise GraphFileError(path, f"FIX {b' '.join(tokens).decode(errors='replace')}: only the graph's "
+                                       f"first pose (id {first_id}) is held fixed here, which the optimizer "
+                                       "anchors; other fixed poses are not supported",
+                                 line=data.count(b"\n", 0, match.start()) + 1)
 
 
 def write_g2o(path: str | Path, graph: PoseGraph, poses: FloatArray | None = None) -> None:
@@ -312,7 +333,8 @@ def _describe_bad_fields(tag: str, text: str, expected: int) -> str:
 def _ids(path: Path, block: _Block, count: int) -> IntArray:
     """The first `count` columns of a block as integer ids."""
     raw = block.values[:, :count]
-    integral = (raw == np.round(raw)) & (np.abs(raw) <= _LARGEST_EXACT_ID)
+    # Strictly below: 2^53 + 1 reads as 2^53, which would pass for another id unnoticed.
+    integral = (raw == np.round(raw)) & (np.abs(raw) < _LARGEST_EXACT_ID)
     rows_ok = integral.all(axis=1)
     if not rows_ok.all():
         row = int(np.argmin(rows_ok))

@@ -236,7 +236,7 @@ class Optimization:
         self._polish_cap = (iterations if self._method.descent is None and iterations is not None
                             else polish_iterations)
         self._starts: dict[str, FloatArray] = {}
-        for name, poses in (starts or {ESTIMATE: graph.poses}).items():
+        for name, poses in ({ESTIMATE: graph.poses} if starts is None else starts).items():
             poses = np.asarray(poses, dtype=np.float64)
             if poses.shape != graph.poses.shape:
                 raise OptimizerError(f"start {name!r}: expected poses of shape {graph.poses.shape}, "

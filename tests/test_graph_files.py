@@ -60,7 +60,7 @@ def test_tiny_file_is_parsed(tmp_path: Path, vertex: str, edge: str, upper: str,
 
     assert result.format == format_name
     assert result.path == path
-    assert result.skipped == {"FIX": 1, "EQUIV": 1, "ROBOTLASER1": 1}
+    assert result.skipped == {"EQUIV": 1, "ROBOTLASER1": 1}  # FIX 10: the first pose, anchored: held
     assert not result.initialised_from_odometry
     np.testing.assert_array_equal(graph.vertex_ids, [10, 20, 35])
     np.testing.assert_allclose(graph.poses, [[0, 0, 0], [1, 0, 0.5], [2, 1, -0.25]], rtol=0, atol=1e-15)
@@ -147,6 +147,7 @@ GOOD_EDGE = "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1"
     ("VERTEX_SE2 1 nan 0 0", "non-finite"),
     ("EDGE_SE2 0 1 1 0 0 inf 0 0 1 0 1", "non-finite"),
     ("VERTEX_SE2 1.5 0 0 0", "integers"),
+    ("VERTEX_SE2 9007199254740993 0 0 0", "integers (below 2^53)"),  # 2^53 + 1: parsed, it would be 2^53
     ("EDGE_SE2", "without values"),
     ("EDGE_SE2 1 1 1 0 0 1 0 0 1 0 1", "to itself"),
     ("VERTEX_SE2 0 3 3 3", "defined again (first on line 1)"),
@@ -173,6 +174,17 @@ def test_first_bad_line_of_the_file_is_reported(tmp_path: Path) -> None:
     with pytest.raises(GraphFileError, match="'x' is not a number") as caught:
         read_graph(path)
     assert caught.value.line == 22
+
+
+@pytest.mark.parametrize("fix", ["FIX 0 3", "FIX 3", "FIX"])
+def test_a_pose_fixed_other_than_the_first_is_refused_not_moved(tmp_path: Path, fix: str) -> None:
+    """The optimizer anchors the first pose and moves every other: a file holding another fixed states a
+    problem it would not solve (skipped before, the fixed pose moved)."""
+    lines = ["VERTEX_SE2 0 0 0 0", "VERTEX_SE2 3 1 0 0", GOOD_EDGE.replace(" 0 1 ", " 0 3 ", 1), fix]
+    path = _write(tmp_path, "\n".join(lines) + "\n")
+    with pytest.raises(GraphFileError, match=r"only the graph's first pose \(id 0\) is held fixed") as caught:
+        read_graph(path)
+    assert caught.value.line == 4
 
 
 @pytest.mark.parametrize("content", [b"", b"  \n\n", b"# only a comment\n", b"FIX 0\nEQUIV 1 2\n"])

@@ -69,6 +69,13 @@ def test_ids_are_remapped_in_increasing_order() -> None:
     np.testing.assert_array_equal(graph.edge_to, [1, 2])
 
 
+@pytest.mark.parametrize(("vertex_ids", "edge_to"), [([0, 1.7], [1.7]), ([0, 0.5], [0.5]), ([0, 1], [1.2])])
+def test_ids_that_are_not_whole_numbers_are_errors(vertex_ids: list[float], edge_to: list[float]) -> None:
+    # 1.7 became id 1 (a graph that matched by accident), 0.5 a "duplicate" of 0.
+    with pytest.raises(GraphError, match="must be integers"):
+        PoseGraph.build(vertex_ids, np.zeros((2, 3)), [0], edge_to, [[1.0, 0.0, 0.0]], _information(1))
+
+
 def test_reversing_a_constraint_twice_gives_it_back() -> None:
     z = np.array([[1.0, -0.5, 0.7]])
     info = np.array([[[5.0, 1.0, 0.5], [1.0, 3.0, -0.2], [0.5, -0.2, 2.0]]])
@@ -155,6 +162,15 @@ def test_chi2_by_hand_and_theta_wrapping() -> None:
     graph = PoseGraph.build([0, 1], poses, [0], [1], [[1.0, 0.0, 0.0]], _information(1))
     assert _close(edge_errors(graph)[0], np.array([-0.5, 0.2, 0.0]), 1e-12)
     assert edge_chi2(graph)[0] == pytest.approx(4 * 0.25 + 9 * 0.04)
+
+
+@pytest.mark.parametrize("shape", [(1, 3), (3, 3), (2, 2), (6,)])
+def test_chi2_of_poses_that_do_not_fit_the_graph_is_an_error(shape: tuple[int, ...]) -> None:
+    # The kernels index the poses by the constraints' ends: fewer rows were read out of bounds (nan or
+    # another graph's number, no error).
+    graph = PoseGraph.build([0, 1], np.zeros((2, 3)), [0], [1], [[1.0, 0.0, 0.0]], _information(1))
+    with pytest.raises(GraphError, match=r"poses must be \(2, 3\)"):
+        chi2(graph, np.zeros(shape))
 
 
 @settings(max_examples=30)

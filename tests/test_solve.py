@@ -168,6 +168,12 @@ def test_bad_arguments_raise_our_error() -> None:
         _ = optimize(graph).result
 
 
+def test_no_starts_given_is_an_error_not_the_graph_s_own_estimate() -> None:
+    # An empty mapping is a caller's mistake, not a request for the default (None).
+    with pytest.raises(OptimizerError, match="no starting estimate given"):
+        optimize(_poor_start_world(0).graph, starts={})
+
+
 def test_a_robust_kernel_goes_with_the_sgd_methods_only() -> None:
     graph = _poor_start_world(0).graph
     with pytest.raises(OptimizerError, match=r"unknown|kernel"):
