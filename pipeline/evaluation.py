@@ -183,12 +183,22 @@ def nearest_pose(stamps_ns: IntArray, wanted_ns: IntArray, tolerance_ns: int) ->
     before = np.clip(after - 1, 0, len(ordered) - 1)
     after = np.clip(after, 0, len(ordered) - 1)
     before = np.searchsorted(ordered, ordered[before], side="left")
-    gap_before = np.abs(wanted_ns - ordered[before])
-    gap_after = np.abs(ordered[after] - wanted_ns)
+    gap_before = _distance(wanted_ns, ordered[before])
+    gap_after = _distance(ordered[after], wanted_ns)
     use_after = gap_after < gap_before
     chosen = np.where(use_after, after, before)
     gap = np.where(use_after, gap_after, gap_before)
     return np.where(gap <= tolerance_ns, order[chosen], -1)
+
+
+def _distance(a: IntArray, b: IntArray) -> IntArray:
+    """|a − b| of int64 stamps, the largest int64 where it does not fit (stamps centuries apart would
+    otherwise wrap round to a few nanoseconds)."""
+    with np.errstate(over="ignore"):
+        difference = a - b
+    overflowed = ((a ^ b) & (a ^ difference)) < 0
+    distance = np.abs(difference)
+    return np.where(overflowed | (distance < 0), np.iinfo(np.int64).max, distance)
 
 
 def evaluate_files(

@@ -183,6 +183,9 @@ def test_nearest_pose_rules() -> None:
     assert nearest_pose(stamps, wanted, 20).tolist() == [1, 1, 2, 2, 0, 0, 4, 4, -1]
     assert nearest_pose(stamps, wanted, 0).tolist() == [-1, -1, 2, -1, -1, -1, -1, -1, -1]
     assert nearest_pose(np.array([], dtype=np.int64), wanted, 5).tolist() == [-1] * len(wanted)
+    # Stamps at the two ends of int64: 584 years apart, not 1 ns (the difference wrapped round before).
+    extremes = np.array([np.iinfo(np.int64).min], dtype=np.int64)
+    assert nearest_pose(extremes, np.array([np.iinfo(np.int64).max], dtype=np.int64), 10).tolist() == [-1]
 
 
 def test_bad_arrays_are_value_errors(relations: Relations) -> None:
