@@ -172,6 +172,8 @@ def write_toro(path: str | Path, graph: PoseGraph, poses: FloatArray | None = No
 # --------------------------------------------------------------------------------------------- reading
 
 
+MAX_GRAPH_LINE_CHARS = 4096
+"""Longest pose-graph line read: 11 numbers at full precision take under 300 characters."""
 MAX_GRAPH_FILE_BYTES = 4 << 30
 """Largest graph file read: a 10⁶-pose, 2·10⁶-constraint g2o file is 190 MB, so some 20 times that."""
 
@@ -206,6 +208,8 @@ def _scan(path: Path, data: bytes) -> tuple[dict[str, _Block], dict[str, int], s
     """Group the lines by tag, count the skipped ones and tell the format. The result holds a block for
     both graph tags of the format (an empty one when the file has no such line)."""
     grouped = _group_plain(data)
+    if grouped is None:
+        _refuse_long_graph_lines(path, data)
     groups, skipped = grouped if grouped is not None else _group_lines(path, _decode(path, data))
 
     first_line = {name: min((int(groups[tag].lines[0]) for tag in tags[:2] if len(groups[tag].lines)),
@@ -259,12 +263,23 @@ def _group_plain(data: bytes) -> tuple[dict[str, _Group], dict[str, int]] | None
                                                  for tag in tags))
     if scanned is None:
         return None
-    skipped: dict[str, int] = {}
-    for tag in scanned.other_tags:
-        if tag in _3D_TAGS or tag.startswith(_3D_TAG_PREFIXES):
-            return None  # an error, which the line-by-line reader names with its line
-        skipped[tag] = skipped.get(tag, 0) + 1
-    return {tag: _Group(group.lines, group.values, []) for tag, group in scanned.tags.items()}, skipped
+    if any(tag in _3D_TAGS or tag.startswith(_3D_TAG_PREFIXES) for tag in scanned.other_tags):
+        return None  # an error, which the line-by-line reader names with its line
+    return ({tag: _Group(group.lines, group.values, []) for tag, group in scanned.tags.items()},
+            dict(scanned.other_tags))
+
+
+def _refuse_long_graph_lines(path: Path, data: bytes) -> None:
+    """Raise `GraphFileError` at the first pose-graph line longer than `MAX_GRAPH_LINE_CHARS`, before the
+    line-by-line reader copies and splits it (a 50 MB line took 1.5 GB; a line may be as long as the file)."""
+    ends = np.flatnonzero(np.frombuffer(data, dtype=np.uint8) == ord("\n"))
+    starts = np.concatenate([[0], ends + 1])
+    lengths = np.append(ends, len(data)) - starts
+    for line in np.flatnonzero(lengths > MAX_GRAPH_LINE_CHARS).tolist():
+        tag = data[starts[line]:starts[line] + 64].split(maxsplit=1)[:1]
+        if tag and tag[0].decode(errors="replace") in _GRAPH_TAGS:
+            raise GraphFileError(path, f"{tag[0].decode()} line of {int(lengths[line])} bytes; a pose-graph "
+                                       f"line holds at most {_EDGE_FIELDS} numbers", line=line + 1)
 
 
 def _group_lines(path: Path, text: str) -> tuple[dict[str, _Group], dict[str, int]]:

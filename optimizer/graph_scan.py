@@ -41,12 +41,11 @@ class ScannedTag:
 
 @dataclass(frozen=True)
 class ScannedFile:
-    """What the fast path found: the graph tags' lines, and the tags of all other lines with their line
-    numbers (blank lines and comments excluded)."""
+    """What the fast path found: the graph tags' lines, and how many lines each other tag has (blank lines
+    and comments excluded), in the order of their first lines."""
 
     tags: dict[str, ScannedTag]
-    other_tags: list[str]
-    other_lines: IntArray
+    other_tags: dict[str, int]
 
 
 def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]) -> ScannedFile | None:
@@ -88,11 +87,31 @@ def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]
         else:
             scanned[tag] = ScannedTag(np.concatenate([lines for lines, _ in parts]),
                                       np.concatenate([values for _, values in parts]))
-    others = len(tags)
-    other_tags = [data[first:stop].decode("ascii") for piece in scanned_pieces
-                  for first, stop in piece.other_spans[:, :piece.counts[others, 0]].T.tolist()]
-    other_lines = np.concatenate([piece.line_numbers(others) for piece in scanned_pieces])
-    return ScannedFile(scanned, other_tags, other_lines)
+    return ScannedFile(scanned, _other_tag_counts(raw, scanned_pieces, len(tags)))
+
+
+def _other_tag_counts(raw: NDArray[np.uint8], pieces: list[_Piece], others: int) -> dict[str, int]:
+    """Tag → lines of the tags that are not the graph's, counted by a hash of each line's tag (not one
+    Python string a line: a file of millions of short unknown lines took 60 times its size)."""
+    spans = np.concatenate([piece.other_spans[:, :piece.counts[others, 0]] for piece in pieces], axis=1)
+    if not spans.shape[1]:
+        return {}
+    _, first, counts = np.unique(_span_hashes(raw, spans), return_index=True, return_counts=True)
+    order = np.argsort(first)
+    return {bytes(raw[spans[0, k]:spans[1, k]]).decode("ascii"): int(count)
+            for k, count in zip(first[order].tolist(), counts[order].tolist(), strict=True)}
+
+
+@njit(cache=True, nogil=True)
+def _span_hashes(raw: np.ndarray, spans: np.ndarray) -> np.ndarray:
+    """FNV-1a (64 bits) of the bytes of each span (first, stop): equal tags, equal hashes."""
+    hashes = np.empty(spans.shape[1], dtype=np.uint64)
+    for k in range(spans.shape[1]):
+        value = np.uint64(14695981039346656037)
+        for i in range(spans[0, k], spans[1, k]):
+            value = (value ^ np.uint64(raw[i])) * np.uint64(1099511628211)
+        hashes[k] = value
+    return hashes
 
 
 @dataclass(frozen=True)
@@ -275,6 +294,8 @@ def _scan(raw: np.ndarray, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expect
                 i += 1
             if i == stop:
                 break
+            if tokens == expected[tag]:
+                return -1  # more numbers than the tag holds: at once, not after the whole line
             token_end = _number_end(raw, i, stop)
             if token_end < 0:
                 return -1

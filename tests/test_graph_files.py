@@ -176,6 +176,24 @@ def test_first_bad_line_of_the_file_is_reported(tmp_path: Path) -> None:
     assert caught.value.line == 22
 
 
+def test_a_pose_graph_line_of_a_megabyte_is_refused_by_its_length(tmp_path: Path) -> None:
+    """Parsed whole, such a line took 20-30 times its size in memory (a 2 GB line, under the file size
+    bound, would have exhausted it); it holds at most 11 numbers."""
+    path = _write(tmp_path, "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1" + " 10" * 400_000 + "\n")
+    with pytest.raises(GraphFileError, match=r"EDGE_SE2 line of 1200012 bytes; a pose-graph line holds "
+                                             r"at most 11 numbers") as caught:
+        read_graph(path)
+    assert caught.value.line == 2
+
+
+def test_many_lines_of_other_tags_are_counted_by_tag(tmp_path: Path) -> None:
+    others = ["XY 1", "ROBOTLASER1 3 4", "XY"] * 50_000
+    lines = ["VERTEX_SE2 0 0 0 0", "VERTEX_SE2 1 1 0 0", GOOD_EDGE, *others]
+    result = read_graph(_write(tmp_path, "\n".join(lines) + "\nPARAMS_SE2OFFSET 0 0 0 0\n"))
+    assert result.skipped == {"XY": 100_000, "ROBOTLASER1": 50_000, "PARAMS_SE2OFFSET": 1}
+    assert list(result.skipped) == ["XY", "ROBOTLASER1", "PARAMS_SE2OFFSET"]  # as they first appear
+
+
 @pytest.mark.parametrize("fix", ["FIX 0 3", "FIX 3", "FIX"])
 def test_a_pose_fixed_other_than_the_first_is_refused_not_moved(tmp_path: Path, fix: str) -> None:
     """The optimizer anchors the first pose and moves every other: a file holding another fixed states a
