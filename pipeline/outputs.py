@@ -252,13 +252,15 @@ def recover_outputs(directory: Path, stem: str) -> None:
 
 def _recover_stale_staging(directory: Path, stem: str) -> None:
     """Clean up what a killed run writing these outputs left (the caller holds their lock): finish the
-    renames of a set it had completed, delete any other staging folder."""
+    renames of a set it had completed, put back what one killed while undoing a failed publication had
+    moved aside (`_put_back`), delete the staging folder."""
     for staging in directory.glob(f".{stem}{_STAGING}*"):
-        if (staging / _COMPLETE).is_file():
-            for staged in staging.iterdir():
-                if staged.name not in (_COMPLETE, _REPLACED):
-                    with contextlib.suppress(OSError):
-                        os.replace(staged, directory / staged.name)
+        complete = (staging / _COMPLETE).is_file()
+        moved = staging / _REPLACED
+        for staged in staging.iterdir() if complete else moved.glob("*") if moved.is_dir() else ():
+            if staged.name not in (_COMPLETE, _REPLACED):
+                with contextlib.suppress(OSError):
+                    os.replace(staged, directory / staged.name)
         shutil.rmtree(staging, ignore_errors=True)
 
 

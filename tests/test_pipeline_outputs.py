@@ -151,6 +151,20 @@ def test_the_next_run_cleans_up_after_a_killed_one(tmp_path: Path) -> None:
     assert (tmp_path / "b.g2o").read_text() == "new g2o"
 
 
+def test_a_run_killed_while_undoing_a_failed_publication_is_undone_by_the_next(tmp_path: Path) -> None:
+    # The set no longer complete (its marker removed first), c.g2o already back, c.json not yet.
+    (tmp_path / "c.g2o").write_text("old g2o")
+    (tmp_path / "c.json").write_text("new json")
+    undoing = tmp_path / ".c.staging-125-abcd"
+    (undoing / ".replaced").mkdir(parents=True)
+    (undoing / ".replaced" / "c.json").write_text("old json")
+    (undoing / "c.rrd").write_text("new rrd, never published")
+    with staged_outputs(tmp_path / "c.tum") as (temporary,):
+        temporary.write_text("c")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["c.g2o", "c.json", "c.tum"]
+    assert (tmp_path / "c.json").read_text() == "old json"
+
+
 def test_errors_name_the_output_not_the_hidden_copy(tmp_path: Path) -> None:
     from pipeline.outputs import write_text
 
