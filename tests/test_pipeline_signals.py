@@ -78,25 +78,16 @@ def test_a_stopped_replay_leaves_old_or_new_outputs(city: Path, tmp_path: Path, 
     assert _state(city, out) in ("old", "new")
 
 
-@pytest.mark.parametrize("signal_number", [signal.SIGINT, signal.SIGTERM])
-def test_a_stop_signal_before_the_command_runs_is_a_quiet_interrupt(
-        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], signal_number: int) -> None:
-    """The signal lands while the BLAS thread limit is being set, before typer can turn it into Abort."""
-    import threadpoolctl
-
+def _exit_code_of_main(monkeypatch: pytest.MonkeyPatch) -> int:
+    """`replay`'s entry point run here (its exit raised, not made), with the stop signals' handlers it
+    installs put back afterwards."""
     import pipeline.cli as cli
-
-    @contextlib.contextmanager
-    def signalled_on_entry(**_limits: object):  # type: ignore[no-untyped-def]
-        os.kill(os.getpid(), signal_number)
-        yield
 
     def exit_code(code: int) -> None:
         raise SystemExit(code)
 
     stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGALRM)
     previous = {number: signal.getsignal(number) for number in stop_signals}
-    monkeypatch.setattr(threadpoolctl, "threadpool_limits", signalled_on_entry)
     monkeypatch.setattr(cli, "_exit_now", exit_code)
     try:
         with pytest.raises(SystemExit) as stopped:
@@ -104,7 +95,23 @@ def test_a_stop_signal_before_the_command_runs_is_a_quiet_interrupt(
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-    assert stopped.value.code == 128 + signal_number
+    return int(stopped.value.code)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("signal_number", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_signal_before_the_command_runs_is_a_quiet_interrupt(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], signal_number: int) -> None:
+    """The signal lands while the BLAS thread limit is being set, before typer can turn it into Abort."""
+    import threadpoolctl
+
+
+    @contextlib.contextmanager
+    def signalled_on_entry(**_limits: object):  # type: ignore[no-untyped-def]
+        os.kill(os.getpid(), signal_number)
+        yield
+
+    monkeypatch.setattr(threadpoolctl, "threadpool_limits", signalled_on_entry)
+    assert _exit_code_of_main(monkeypatch) == 128 + signal_number
     assert "Traceback" not in capsys.readouterr().err
 
 
@@ -121,32 +128,19 @@ def _interrupt_inside_a_callback_from_c() -> None:
 def test_an_interrupt_that_a_callback_from_c_wrapped_is_still_a_quiet_interrupt(
         monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path,
         inputs: int) -> None:
-    import pipeline.cli as cli
     from pipeline import batch
-
-    def exit_code(code: int) -> None:
-        raise SystemExit(code)
 
     def replay(*_args: object, **_kwargs: object) -> None:
         _interrupt_inside_a_callback_from_c()
 
-    stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGALRM)
-    previous = {number: signal.getsignal(number) for number in stop_signals}
-    monkeypatch.setattr(cli, "_exit_now", exit_code)
     monkeypatch.setattr(batch, "replay", replay)
     names = ["a.g2o", "b.g2o"][:inputs]
     monkeypatch.setattr(sys, "argv", ["replay", *(str(tmp_path / name) for name in names),
                                       "--out", str(tmp_path / "out")])
     for name in names:
         (tmp_path / name).write_text("VERTEX_SE2 0 0 0 0\n")
-    try:
-        with pytest.raises(SystemExit) as stopped:
-            cli.main()
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
     # Not a traceback, nor "a.g2o failed" and a batch going on to b.g2o: the command stops as after Ctrl-C.
-    assert stopped.value.code == 130
+    assert _exit_code_of_main(monkeypatch) == 130
     assert "Traceback" not in capsys.readouterr().err
 
 
