@@ -91,27 +91,19 @@ def scan_graph_bytes(data: bytes, tags: tuple[str, ...], fields: tuple[int, ...]
 
 
 def _other_tag_counts(raw: NDArray[np.uint8], pieces: list[_Piece], others: int) -> dict[str, int]:
-    """Tag → lines of the tags that are not the graph's, counted by a hash of each line's tag (not one
-    Python string a line: a file of millions of short unknown lines took 60 times its size)."""
-    spans = np.concatenate([piece.other_spans[:, :piece.counts[others, 0]] for piece in pieces], axis=1)
-    if not spans.shape[1]:
-        return {}
-    _, first, counts = np.unique(_span_hashes(raw, spans), return_index=True, return_counts=True)
-    order = np.argsort(first)
-    return {bytes(raw[spans[0, k]:spans[1, k]]).decode("ascii"): int(count)
-            for k, count in zip(first[order].tolist(), counts[order].tolist(), strict=True)}
+    """Tag → lines of the tags that are not the graph's, in the order of their first lines: the scanner
+    counts them per distinct tag (one Python string a line took 60 times a file of short unknown lines)."""
+    counted: dict[str, int] = {}
+    for piece in pieces:
+        for k in range(int(piece.counts[others, 0])):
+            tag = bytes(raw[piece.other_tags[0, k]:piece.other_tags[1, k]]).decode("ascii")
+            counted[tag] = counted.get(tag, 0) + int(piece.other_tags[2, k])
+    return counted
 
 
-@njit(cache=True, nogil=True)
-def _span_hashes(raw: np.ndarray, spans: np.ndarray) -> np.ndarray:
-    """FNV-1a (64 bits) of the bytes of each span (first, stop): equal tags, equal hashes."""
-    hashes = np.empty(spans.shape[1], dtype=np.uint64)
-    for k in range(spans.shape[1]):
-        value = np.uint64(14695981039346656037)
-        for i in range(spans[0, k], spans[1, k]):
-            value = (value ^ np.uint64(raw[i])) * np.uint64(1099511628211)
-        hashes[k] = value
-    return hashes
+MAX_OTHER_TAGS = 256
+"""Distinct tags other than the graph's that the fast path counts; a file with more goes to the
+line-by-line reader."""
 
 
 @dataclass(frozen=True)
@@ -123,12 +115,13 @@ class _Piece:
     counts: IntArray
     lines: IntArray
     first_tokens: IntArray
-    other_spans: IntArray
+    other_tags: IntArray
+    """(3, `MAX_OTHER_TAGS`): each distinct other tag's first span (start, stop, in the file) and lines."""
     values: FloatArray
     lines_before: int
 
     def line_numbers(self, tag: int) -> IntArray:
-        """The file's line numbers of tag `tag`'s lines in this piece (the last tag: other lines)."""
+        """The file's line numbers of tag `tag`'s lines in this piece."""
         return self.lines[tag, :self.counts[tag, 0]] + self.lines_before
 
     def tag_rows(self, tag: int, fields: int) -> tuple[IntArray, FloatArray]:
@@ -171,14 +164,14 @@ def _scan_piece(raw: NDArray[np.uint8], bounds: tuple[int, int], line_bound: int
     piece = raw[first:stop]
     num_tags = len(expected)
     # Upper bounds: untouched pages of np.empty are never made resident, so only what is used costs memory.
-    counts = np.zeros((num_tags + 1, 2), dtype=np.int64)  # rows, tokens of each tag; last row: others
-    lines = np.empty((num_tags + 1, line_bound), dtype=np.int64)
+    counts = np.zeros((num_tags + 1, 2), dtype=np.int64)  # rows, tokens of each tag; last: distinct others
+    lines = np.empty((num_tags, line_bound), dtype=np.int64)
     first_tokens = np.empty((num_tags, line_bound), dtype=np.int64)
-    other_spans = np.empty((2, line_bound), dtype=np.int64)
+    other_tags = np.zeros((3, MAX_OTHER_TAGS), dtype=np.int64)
     token_bytes = np.empty(len(piece), dtype=np.uint8)
     wide = len(piece) >= 2**31
     offsets = np.empty(len(piece) // 2 + 2, dtype=np.int64 if wide else np.int32)
-    token_count = _scan(piece, tag_bytes, tag_bounds, expected, counts, lines, first_tokens, other_spans,
+    token_count = _scan(piece, tag_bytes, tag_bounds, expected, counts, lines, first_tokens, other_tags,
                         token_bytes, offsets)
     if token_count < 0:
         return None
@@ -187,8 +180,8 @@ def _scan_piece(raw: NDArray[np.uint8], bounds: tuple[int, int], line_bound: int
         [None, pa.py_buffer(offsets[:token_count + 1]), pa.py_buffer(token_bytes[:offsets[token_count]])])
     del token_bytes, offsets
     values = pc.cast(strings, pa.float64()).to_numpy(zero_copy_only=False)  # every token, in piece order
-    other_spans += first
-    return _Piece(counts, lines, first_tokens, other_spans, values, lines_before)
+    other_tags[:2] += first
+    return _Piece(counts, lines, first_tokens, other_tags, values, lines_before)
 
 
 @njit(cache=True, inline="always")
@@ -229,15 +222,40 @@ def _number_end(raw: np.ndarray, first: int, stop: int) -> int:
     return k
 
 
+@njit(cache=True, inline="always")
+def _count_other_tag(raw: np.ndarray, first: int, stop: int, other_tags: np.ndarray,
+                     distinct: np.ndarray) -> bool:
+    """Count one line of the tag `raw[first:stop]` in `other_tags` (its first span and its lines, a column
+    per distinct tag; `distinct[0, 0]` of them); False when the table is full."""
+    length = stop - first
+    for k in range(distinct[0, 0]):
+        start = other_tags[0, k]
+        if other_tags[1, k] - start == length:
+            same = True
+            for c in range(length):
+                if raw[start + c] != raw[first + c]:
+                    same = False
+                    break
+            if same:
+                other_tags[2, k] += 1
+                return True
+    k = distinct[0, 0]
+    if k == other_tags.shape[1]:
+        return False
+    other_tags[0, k], other_tags[1, k], other_tags[2, k] = first, stop, 1
+    distinct[0, 0] = k + 1
+    return True
+
+
 @njit(cache=True, nogil=True)
 def _scan(raw: np.ndarray, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expected: np.ndarray,
-          counts: np.ndarray, lines: np.ndarray, first_tokens: np.ndarray, other_spans: np.ndarray,
+          counts: np.ndarray, lines: np.ndarray, first_tokens: np.ndarray, other_tags: np.ndarray,
           token_bytes: np.ndarray, offsets: np.ndarray) -> int:
     """One pass over the file (or whole lines of it); -1 as soon as a line is not plain, else the number
-    of tokens. Per tag t
-    (row t of `counts`, `lines`, `first_tokens`; the last row of `counts` and `lines`: other lines) it
-    counts rows and writes their line numbers and first tokens; every token goes to `token_bytes`, end
-    to end, with its end in `offsets` (an Arrow string array's layout)."""
+    of tokens. Per tag t (row t of `counts`, `lines`, `first_tokens`) it counts rows and writes their line
+    numbers and first tokens; every token goes to `token_bytes`, end to end, with its end in `offsets` (an
+    Arrow string array's layout). Other tags are counted in `other_tags` (`_count_other_tag`; how many
+    distinct ones in the last row of `counts`)."""
     num_tags = expected.shape[0]
     token_count = 0
     offsets[0] = 0
@@ -280,11 +298,8 @@ def _scan(raw: np.ndarray, tag_bytes: np.ndarray, tag_bounds: np.ndarray, expect
                     tag = t
                     break
         if tag < 0:
-            row = counts[num_tags, 0]
-            lines[num_tags, row] = line
-            other_spans[0, row] = tag_first
-            other_spans[1, row] = i
-            counts[num_tags, 0] += 1
+            if not _count_other_tag(raw, tag_first, i, other_tags, counts[num_tags:]):
+                return -1  # more distinct tags than the table holds
             position = next_position
             continue
         tokens = 0

@@ -192,6 +192,10 @@ def test_many_lines_of_other_tags_are_counted_by_tag(tmp_path: Path) -> None:
     result = read_graph(_write(tmp_path, "\n".join(lines) + "\nPARAMS_SE2OFFSET 0 0 0 0\n"))
     assert result.skipped == {"XY": 100_000, "ROBOTLASER1": 50_000, "PARAMS_SE2OFFSET": 1}
     assert list(result.skipped) == ["XY", "ROBOTLASER1", "PARAMS_SE2OFFSET"]  # as they first appear
+    # More distinct tags than the fast path counts: the line-by-line reader counts them alike.
+    many = read_graph(_write(tmp_path, "\n".join(lines[:3] + [f"TAG{k} 1" for k in range(300)] * 2) + "\n",
+                             name="many.g2o"))
+    assert many.skipped == {f"TAG{k}": 2 for k in range(300)}
 
 
 @pytest.mark.parametrize("fix", ["FIX 0 3", "FIX 3", "FIX"])
