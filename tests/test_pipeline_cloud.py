@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -297,3 +298,29 @@ def test_ranges_that_keep_no_point_are_refused_naming_the_setting(tmp_path: Path
     with pytest.raises(UnusableLogError, match=r"street\.mcap: no cloud on .* kept a point between"):
         replay(path, config, out_dir=tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_log_whose_clouds_cannot_be_registered_is_one_line_naming_it_and_skipped_clouds_are_warned_of(
+        tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    street = drive(town_loop(), sweeps=8, step=0.5, lidar=Lidar(columns=360))
+    few = tmp_path / "few.mcap"
+    write_cloud_log(few, dataclasses.replace(street, clouds=tuple(c[:50] for c in street.clouds),
+                                             times=tuple(t[:50] for t in street.times)))
+    result = CliRunner().invoke(app, [str(few), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [f"replay: error: {few}: none of the 8 clouds had the 100 points "
+                                          "spread over more than a voxel needed to register it"]
+    one_bad = tmp_path / "one_bad.mcap"
+    clouds = list(street.clouds)
+    clouds[4] = clouds[4][:1].repeat(len(clouds[4]), axis=0)  # every point at one spot
+    write_cloud_log(one_bad, dataclasses.replace(street, clouds=tuple(clouds)))
+    result = CliRunner().invoke(app, [str(one_bad), "--out", str(tmp_path / "out"), "--quiet"])
+    assert result.exit_code == 0, result.output
+    warnings = json.loads((tmp_path / "out" / "one_bad.json").read_text())["warnings"]
+    assert [w["message"] for w in warnings] == [
+        "1 of the 8 clouds on /points had fewer than 100 points spread over more than a voxel to register: "
+        "each was given the pose of the last registered cloud"]

@@ -120,6 +120,11 @@ def test_a_cloud_with_too_few_points_is_not_registered(corner_drive: Drive) -> N
     assert first is not None
     assert odometry.register(corner_drive.clouds[1][:49]) is None
     np.testing.assert_array_equal(odometry.pose, first.pose)
+    # As many points as a full cloud, every one at the same spot (a sensor fault): no geometry to register
+    # (before: registered, the pose extrapolated and tilting a degree a cloud).
+    one_spot = np.tile(corner_drive.clouds[1][:1], (len(corner_drive.clouds[1]), 1))
+    assert odometry.register(one_spot) is None
+    np.testing.assert_array_equal(odometry.pose, first.pose)
 
 
 def test_the_mount_pitch_does_not_leak_into_the_base_trajectory() -> None:

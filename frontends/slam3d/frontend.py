@@ -15,7 +15,7 @@ from frontends.logs import ODOMETRY_FRAME, Cloud3D, LogReader, TransformTree
 from frontends.protocol import FloatArray, FrontendOptions, IntArray, LogFrontendBase, SessionArrays
 from frontends.slam3d.config import Slam3DConfig
 from frontends.slam3d.pose_graph3d import PolishResult
-from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, Slam3DGraph
+from frontends.slam3d.slam import CloudEstimate, LidarSlam3D, NothingRegisteredError, Slam3DGraph
 from frontends.slam3d.vehicle import LidarMount, OdometryPrior, lidar_mount
 from optimizer.graph import PoseGraph
 
@@ -113,7 +113,16 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
     def finish(self) -> None:
         if self._slam is None:
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no point clouds")
-        self._result = self._finished(self._slam.finish)
+        try:
+            self._result = self._finished(self._slam.finish)
+        except NothingRegisteredError as error:
+            raise UnusableLogError(self._log.path, str(error)) from None
+        untracked = self._result.clouds_untracked
+        if untracked:
+            needed = self.config.odometry.min_points
+            warnings.warn(f"{self._log.path}: {untracked} of the {self._clouds} clouds on {self._topic} had "
+                          f"fewer than {needed} points spread over more than a voxel to register: each was "
+                          "given the pose of the last registered cloud", LogWarning, stacklevel=2)
         prior = self._prior
         if prior is not None and len(prior.stamps_ns) and not self._clouds_with_odometry:
             odometry_s, clouds = prior.stamps_ns * 1e-9, self._result.cloud_stamps_ns * 1e-9

@@ -126,6 +126,13 @@ class Odometry(Protocol):
     ) -> OdometryStep | None: ...
 
 
+def _has_extent(points: NDArray[np.floating], voxel: float) -> bool:
+    """Whether the points span at least one voxel of the map in some direction: every point in one spot
+    (a sensor fault) holds no geometry to register, however many there are."""
+    extent = np.max(points, axis=0) - np.min(points, axis=0)
+    return bool(np.max(extent) >= voxel)
+
+
 class KissOdometry:
     """Feed clouds in time order with `register`."""
 
@@ -146,10 +153,11 @@ class KissOdometry:
         motion_guess: NDArray[np.float64] | None = None,
     ) -> OdometryStep | None:
         """Register one cloud, (N, 3) points in the sensor frame with optional times (s, relative to the
-        stamp); None (and nothing changes) when it has fewer than `min_points` points. `motion_guess`
+        stamp); None (and nothing changes) when it has fewer than `min_points` points, or all of them lie
+        within one voxel. `motion_guess`
         (4×4, the sensor's motion since the previous registered cloud, stamp to stamp) replaces the
         constant-velocity prediction."""
-        if len(points) < self.config.min_points:
+        if len(points) < self.config.min_points or not _has_extent(points, self.config.map_voxel_size):
             return None
         times, stamp_fraction = self._sweep_times(points, point_times)
         if motion_guess is not None:

@@ -161,6 +161,10 @@ class _LoopHypothesis:
     """Planar: matched pose ∘ estimated pose⁻¹ of the current keyframe (how far the match moves the map)."""
 
 
+class NothingRegisteredError(FrontendError):
+    """No cloud of the run could be registered (too few points, or all in one spot)."""
+
+
 class LidarSlam3D:
     """Feed clouds in time order with `add_cloud`; `finish` returns the keyframe graph.
 
@@ -448,9 +452,9 @@ class LidarSlam3D:
         """Final online optimization, and the keyframe graph with every cloud's offset from its keyframe.
         Raises `FrontendError` when no cloud could be registered."""
         if not self._keyframe_poses:
-            raise FrontendError(
+            raise NothingRegisteredError(
                 f"none of the {self._clouds_seen} clouds had the {self.config.odometry.min_points} points "
-                "needed to register it"
+                "spread over more than a voxel needed to register it"
             )
         if self._pending_loops:
             self.optimize_online()
