@@ -29,8 +29,10 @@ def batch_inputs(source: Path, *, exclude: Path | None = None) -> list[Path]:
 def read_input_list(path: Path) -> list[Path]:
     """The paths in a text file, one a line, blank lines and lines starting with `#` skipped. Relative paths
     are taken from the current folder, as they would be on the command line."""
+    if path.suffix.lower() in INPUT_SUFFIXES or _starts_like_a_graph(path):
+        raise PipelineError(f"{path}: a log or pose graph, not a list of inputs: name it as an input itself")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # (a byte-order mark, as Windows editors write)
     except (OSError, UnicodeDecodeError) as error:
         reason = error.strerror if isinstance(error, OSError) and error.strerror else error
         raise PipelineError(f"{path}: cannot read the input list: {reason}") from error
@@ -38,29 +40,48 @@ def read_input_list(path: Path) -> list[Path]:
     return [Path(entry) for entry in entries if entry and not entry.startswith("#")]
 
 
+def _starts_like_a_graph(path: Path) -> bool:
+    from pipeline.api import input_kind
+
+    return path.is_file() and input_kind(path) == "graph"
+
+
 def find_inputs(directory: Path, *, exclude: Path | None = None) -> list[Path]:
     """The logs and pose graphs under `directory`, in sorted order: files with an input suffix and ROS 2 bag
     folders (holding `metadata.yaml`, taken whole). Hidden files and folders are skipped (our own
-    temporaries among them), and so is `exclude` (the output folder, whose `.g2o` files are results)."""
+    temporaries among them), and so is `exclude` (the output folder, whose `.g2o` files are results; when it
+    is the searched folder itself, the pose graphs a replay wrote there, beside their `.json` summaries).
+    Folder symlinks are followed, each real folder once."""
     if (directory / ROS2_BAG_MARKER).is_file():
         return [directory]
     excluded = exclude.resolve() if exclude is not None else None
     found: list[Path] = []
-    for folder, subfolders, files in os.walk(directory, onerror=_raise_walk_error):
+    seen: set[Path] = set()
+    for folder, subfolders, files in os.walk(directory, onerror=_raise_walk_error, followlinks=True):
         here = Path(folder)
+        seen.add(here.resolve())
         kept = []
         for name in sorted(subfolders):
             child = here / name
-            if name.startswith(".") or (excluded is not None and child.resolve() == excluded):
-                continue
+            real = child.resolve()
+            if name.startswith(".") or real == excluded or real in seen:
+                continue  # (a symlink back up the tree would loop)
+            seen.add(real)
             if (child / ROS2_BAG_MARKER).is_file():
                 found.append(child)
             else:
                 kept.append(name)
         subfolders[:] = kept  # os.walk descends into what is left, in this order
+        outputs_here = here.resolve() == excluded
         found.extend(here / name for name in sorted(files)
-                     if not name.startswith(".") and Path(name).suffix.lower() in INPUT_SUFFIXES)
+                     if not name.startswith(".") and Path(name).suffix.lower() in INPUT_SUFFIXES
+                     and not (outputs_here and _a_replay_output(here / name)))
     return sorted(found)
+
+
+def _a_replay_output(path: Path) -> bool:
+    """Whether `path` is a pose graph a replay wrote (its summary `.json` beside it)."""
+    return path.suffix.lower() == ".g2o" and path.with_suffix(".json").is_file()
 
 
 def _raise_walk_error(error: OSError) -> None:

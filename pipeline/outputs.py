@@ -334,7 +334,7 @@ def output_stem(path: str | Path) -> str:
     """What a replay names its outputs after (`<stem>.rrd`, …): a folder's name (a ROS 2 bag), otherwise
     the file's stem (whether or not it exists yet)."""
     path = Path(path)
-    return path.name if path.is_dir() else path.stem
+    return path.resolve().name if path.is_dir() else path.stem  # resolved: `.` names its folder
 
 
 @contextmanager

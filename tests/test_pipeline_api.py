@@ -110,7 +110,8 @@ def test_inputs_are_told_apart_by_suffix_and_content(tmp_path: Path) -> None:
     for tag in ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT", "VERTEX3"):
         (tmp_path / "poses.txt").write_text(f"{tag} 0 0 0 0 0 0 0 1\n")
         assert input_kind(tmp_path / "poses.txt") == "graph"
-    assert [output_stem(path) for path in (toro, bag)] == ["graph", "rosbag2_run"]
+    assert [output_stem(path) for path in (toro, bag, bag / ".", bag / "..")] == [
+        "graph", "rosbag2_run", "rosbag2_run", tmp_path.name]  # `replay .` in the bag: not ".rrd", "_map.png"
 
 
 def test_import_pipeline_stays_light() -> None:

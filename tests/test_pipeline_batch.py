@@ -178,6 +178,32 @@ def test_inputs_from_a_list_or_a_folder(tmp_path: Path) -> None:
         batch_inputs(tmp_path / "missing.txt")
 
 
+def test_input_lists_and_folders_as_users_have_them(tmp_path: Path) -> None:
+    # A list saved with a byte-order mark (Windows editors): the first name is not '\ufeff/data/a.mcap'.
+    listing = tmp_path / "inputs.txt"
+    listing.write_bytes("\ufeff/data/a.mcap\n".encode())
+    assert batch_inputs(listing) == [Path("/data/a.mcap")]
+    # A pose graph given as the list (its 440 lines were 440 missing inputs).
+    graph = write_loop_graph(tmp_path / "loop.graph")
+    with pytest.raises(PipelineError, match="a log or pose graph, not a list of inputs"):
+        batch_inputs(graph)
+    # A folder symlinked into the searched one is searched (once, a link back up is not followed).
+    fleet, elsewhere = tmp_path / "fleet", tmp_path / "elsewhere"
+    (fleet / "robot1").mkdir(parents=True)
+    elsewhere.mkdir()
+    (fleet / "robot1" / "a.mcap").write_text("")
+    (elsewhere / "b.mcap").write_text("")
+    (fleet / "robot2").symlink_to(elsewhere)
+    (elsewhere / "up").symlink_to(fleet)
+    assert batch_inputs(fleet) == [fleet / "robot1" / "a.mcap", fleet / "robot2" / "b.mcap"]
+    # The searched folder is the output folder too: a replay's own graphs (a summary beside) are results.
+    (fleet / "robot1" / "a.g2o").write_text("")
+    (fleet / "robot1" / "a.json").write_text("{}")
+    (fleet / "robot1" / "c.g2o").write_text("")
+    assert batch_inputs(fleet / "robot1", exclude=fleet / "robot1") == [fleet / "robot1" / "a.mcap",
+                                                                          fleet / "robot1" / "c.g2o"]
+
+
 def test_command_reads_inputs_from_a_folder_and_refuses_an_empty_one(tmp_path: Path) -> None:
     fleet = tmp_path / "fleet"
     fleet.mkdir()
