@@ -16,7 +16,6 @@ it never prints or exits. The heavy modules (rerun, numba) are imported on the f
 
 from __future__ import annotations
 
-from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -208,6 +207,7 @@ def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: S
                      session: SessionStart | None = None) -> ReplayResult:
     from optimizer.cost import chi2
     from pipeline import replay_log as module
+    from pipeline.replay_graph import iterations_per_stage
 
     detail = module.replay_log(path, out_dir=out_dir, topic=config.input.scan_topic,
                                odometry_topic=config.input.odom_topic, base_frame=config.input.base_frame,
@@ -225,7 +225,7 @@ def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: S
                        else detail.loop_closures["accepted"]),
         loop_closures_rejected=0 if optimization is None else detail.loop_closures["rejected"],
         scans=detail.measurements,
-        iterations=dict(Counter(stage for stage, _, _ in detail.chi2_per_iteration[1:])),
+        iterations=iterations_per_stage(stage for stage, _, _ in detail.chi2_per_iteration),
         chi2_initial=chi2_final if optimization is None else detail.chi2_per_iteration[0][2],
         chi2_final=chi2_final,
         wall_time_s=dict(detail.wall_time),

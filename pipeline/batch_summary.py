@@ -3,8 +3,9 @@
 
 A row: `input`, `kind` ("log" or "graph"), `status` ("ok" or "failed"), `error`, `host` (the machine that
 replayed it; null when unknown: its worker died) and, when it succeeded (null otherwise), its counts,
-`chi2_initial`/`chi2_final` (null when not finite), `iterations` per optimizer stage and `wall_time_s`
-per pipeline stage (maps), and `time_total_s`.
+`chi2_initial`/`chi2_final` (null when not finite), `converged` and `stop_reason` (a run that did not
+converge succeeded too, and says so here), `iterations` per optimizer stage and `wall_time_s` per
+pipeline stage (maps), and `time_total_s`.
 
 Library code: builds and writes the table; the command decides when.
 """
@@ -38,6 +39,7 @@ def summary_row(outcome: BatchOutcome) -> dict[str, Any]:
             "loop_closures": stats.loop_closures, "loop_closures_rejected": stats.loop_closures_rejected,
             "scans": stats.scans,
             "chi2_initial": _finite(stats.chi2_initial), "chi2_final": _finite(stats.chi2_final),
+            "converged": bool(stats.converged), "stop_reason": stats.stop_reason,
             # Arrow maps are lists of (key, value) pairs
             "iterations": [(stage, int(count)) for stage, count in stats.iterations.items()],
             "wall_time_s": list(times.items()), "time_total_s": times.get("total")}
@@ -56,6 +58,7 @@ def summary_table(outcomes: Sequence[BatchOutcome]) -> pa.Table:
         ("host", pa.string()), ("poses", pa.int64()), ("constraints", pa.int64()),
         ("loop_closures", pa.int64()), ("loop_closures_rejected", pa.int64()), ("scans", pa.int64()),
         ("chi2_initial", pa.float64()), ("chi2_final", pa.float64()),
+        ("converged", pa.bool_()), ("stop_reason", pa.string()),
         ("iterations", pa.map_(pa.string(), pa.int64())),
         ("wall_time_s", pa.map_(pa.string(), pa.float64())),
         ("time_total_s", pa.float64()),

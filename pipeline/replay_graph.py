@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -101,12 +101,17 @@ class GraphReplayResult:
     def iterations_per_stage(self) -> dict[str, int]:
         """Number of iterations of each optimizer stage over every candidate, in the order they ran (without
         the starting estimates and the selection)."""
-        return dict(Counter(record.stage for record in self.iterations
-                            if record.stage not in ("initial", "selected")))
+        return iterations_per_stage(record.stage for record in self.iterations)
 
     @property
     def num_loop_closures(self) -> int:
         return int(np.count_nonzero(~self.graph.is_odometry))
+
+
+def iterations_per_stage(stages: Iterable[str]) -> dict[str, int]:
+    """How many of these recorded iterations each optimizer stage ran, in order of appearance: the
+    starting estimates ("initial") and the selection of the best candidate are none."""
+    return dict(Counter(stage for stage in stages if stage not in ("initial", "selected")))
 
 
 def replay_graph(

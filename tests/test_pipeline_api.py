@@ -62,6 +62,10 @@ def test_replay_of_a_log(tmp_path: Path) -> None:
     assert result.stamps_ns is not None and len(result.stamps_ns) == DRIVE_SCANS
     assert result.stats.scans == DRIVE_SCANS
     assert result.stats.poses == result.graph.num_poses
+    # Optimizer stages only, as for a pose graph: not the starting estimates' "initial" or the "selected".
+    stages = json.loads(result.outputs["json"].read_text())["chi2_per_iteration"]
+    assert result.stats.iterations and set(result.stats.iterations) <= {s["stage"] for s in stages}
+    assert not {"initial", "selected"} & set(result.stats.iterations)
     assert {"tum", "g2o", "json", "rrd"} <= set(result.outputs)
     trajectory = read_tum(result.outputs["tum"])  # the file holds what the result says
     np.testing.assert_array_equal(trajectory.stamps_ns, result.stamps_ns)

@@ -81,6 +81,9 @@ def test_parallel_jobs_keep_going_past_a_failure(
     assert dict(rows[2]["iterations"]) == {"sgd": 3}
     assert rows[2]["chi2_final"] == graph_entry["chi2_final"] <= rows[2]["chi2_initial"]
     assert rows[2]["time_total_s"] == dict(rows[2]["wall_time_s"])["total"] > 0
+    # sgd alone runs a fixed number of iterations: the table says it did not converge, as the JSON does
+    assert rows[2]["converged"] is graph_entry["converged"] is False
+    assert rows[2]["stop_reason"] == graph_entry["stop_reason"]
     assert rows[1]["error"] == entries[1]["error"]
     assert rows[1]["poses"] is None and rows[1]["wall_time_s"] is None
     assert {row["host"] for row in rows} == {socket.gethostname()}
