@@ -215,26 +215,54 @@ STOP_GRACE_S = 5.0
 
 def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, workers: int,
                  on_done: OutcomeCallback | None) -> list[BatchOutcome]:
+    """The inputs in a pool of `workers` processes. A worker that dies (killed, out of memory) breaks the
+    pool, and every input not finished by then with it: those go to a fresh pool, once more each; an
+    input lost twice failed."""
+    outcomes: list[BatchOutcome | None] = [None] * len(inputs)
+    pending = list(range(len(inputs)))
+    for attempt in range(MAX_POOL_ATTEMPTS):
+        lost = _pool_round(inputs, pending, config, out_dir, workers, outcomes, on_done,
+                           last=attempt == MAX_POOL_ATTEMPTS - 1)
+        if not lost:
+            break
+        pending = lost
+    return [outcome for outcome in outcomes if outcome is not None]
+
+
+MAX_POOL_ATTEMPTS = 2
+"""Pools an input may be lost with before it counts as failed (its own worker dying, or another's)."""
+
+
+def _pool_round(inputs: list[Path], indices: list[int], config: ReplayConfig, out_dir: Path, workers: int,
+                outcomes: list[BatchOutcome | None], on_done: OutcomeCallback | None, *,
+                last: bool) -> list[int]:
+    """Run `inputs[indices]` in one pool, filling `outcomes`; the indices lost with a broken pool (failed
+    instead on the `last` round)."""
     from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
 
     from numba import config as numba_config
 
-    outcomes: list[BatchOutcome | None] = [None] * len(inputs)
     # numba's count (NUMBA_NUM_THREADS, else the cores), shared by the workers.
     threads = max(1, numba_config.NUMBA_NUM_THREADS // workers)  # type: ignore[attr-defined]
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=pool_context(), initializer=_init_worker,
-                               initargs=(threads,))
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(indices)), mp_context=pool_context(),
+                               initializer=_init_worker, initargs=(threads,))
+    lost: list[int] = []
     try:
         futures: dict[Future[BatchOutcome], int] = {
-            pool.submit(_run_in_worker, path, config, out_dir): index for index, path in enumerate(inputs)
+            pool.submit(_run_in_worker, inputs[index], config, out_dir): index for index in indices
         }
         for future in as_completed(futures):
             index = futures[future]
             try:
                 outcome = future.result()
-            except Exception as error:  # the worker died (killed, out of memory) or the result did not pickle
-                outcome = BatchOutcome(inputs[index], input_kind(inputs[index]),
-                                       error=f"worker process failed: {one_line(error)}")
+            except BrokenProcessPool as error:
+                if not last:
+                    lost.append(index)
+                    continue
+                outcome = _worker_failure(inputs[index], error)
+            except Exception as error:  # the result did not pickle
+                outcome = _worker_failure(inputs[index], error)
             outcomes[index] = outcome
             if on_done is not None:
                 on_done(outcome)
@@ -242,8 +270,15 @@ def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, worker
         with stop_signals_held(redeliver=False):  # a second Ctrl-C must not cut the clean-up short
             _stop_pool(pool, inputs, out_dir)
         raise
-    pool.shutdown(wait=True)
-    return [outcome for outcome in outcomes if outcome is not None]
+    if lost:  # a dead worker may have left its staging folder and lock
+        _stop_pool(pool, [inputs[index] for index in lost], out_dir)
+    else:
+        pool.shutdown(wait=True)
+    return sorted(lost)
+
+
+def _worker_failure(path: Path, error: BaseException) -> BatchOutcome:
+    return BatchOutcome(path, input_kind(path), error=f"worker process failed: {one_line(error)}")
 
 
 def _stop_pool(pool: ProcessPoolExecutor, inputs: list[Path], out_dir: Path) -> None:

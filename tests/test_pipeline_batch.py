@@ -305,3 +305,43 @@ def test_a_stopped_pool_cleans_up_after_workers_that_exited_on_their_own(tmp_pat
     batch._stop_pool(StoppedPool(), [tmp_path / "run.g2o"], tmp_path)  # type: ignore[arg-type]
     assert sorted(path.name for path in tmp_path.iterdir()) == ["run.g2o"]
     assert (tmp_path / "run.g2o").read_text() == "the previous run's output"
+
+
+def test_a_worker_that_dies_loses_its_pool_s_inputs_once_not_the_batch(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A worker killed (out of memory) breaks the process pool, and every input not finished with it: they
+    go to a fresh pool once more (before: all six of a batch failed); lost twice, an input failed."""
+    import concurrent.futures
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    from pipeline import batch
+
+    rounds: list[list[str]] = []
+
+    class OnePoolDies:
+        """In place of ProcessPoolExecutor: the first pool breaks with every input; later ones run them."""
+
+        def __init__(self, *_args: object, **_kwargs: object) -> None:
+            rounds.append([])
+
+        def submit(self, _function: object, path: Path, *_args: object) -> Future[object]:
+            rounds[-1].append(path.name)
+            future: Future[object] = Future()
+            if len(rounds) == 1 or path.name == "killer.g2o":
+                future.set_exception(BrokenProcessPool("A process in the process pool was terminated"))
+            else:
+                future.set_result(batch.BatchOutcome(path, "graph"))
+            return future
+
+        def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+            pass
+
+    monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", OnePoolDies)
+    monkeypatch.setattr(batch, "_pool_processes", lambda pool: [])
+    names = ["a.g2o", "killer.g2o", "b.g2o"]
+    outcomes = batch._run_in_pool([tmp_path / name for name in names], ReplayConfig(), tmp_path, 2, None)
+    assert rounds == [names, names]
+    died = "worker process failed: A process in the process pool was terminated"
+    assert [(outcome.input_path.name, outcome.error) for outcome in outcomes] == [
+        ("a.g2o", None), ("killer.g2o", died), ("b.g2o", None)]
