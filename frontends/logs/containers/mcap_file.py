@@ -126,6 +126,8 @@ class McapContainer:
         self.path = path
         self._summary = self._read_summary()
         self._linear: _LinearScan | None = None
+        self._warned: set[str] = set()
+        """The truncation notes already given (a replay reads the log several times)."""
 
     def close(self) -> None:
         """Nothing to free: every pass opens and closes its own file handle."""
@@ -181,7 +183,8 @@ class McapContainer:
             self._linear = _LinearScan(
                 definitions, counts, start if counts else 0, end, reader.truncation_note()
             )
-            if self._linear.truncation is not None:
+            if self._linear.truncation is not None and self._linear.truncation not in self._warned:
+                self._warned.add(self._linear.truncation)
                 warnings.warn(f"{self.path}: {self._linear.truncation}", LogWarning, stacklevel=4)
         return self._linear
 
@@ -215,16 +218,15 @@ class McapContainer:
             return
         channels = self._summary_channels(summary) if summary is not None else None
         reader = _LinearReader(self.path, _Definitions())
-        read = 0
         for log_time, channel_id, data in reader.records(channel_ids):
             channel = (
                 channels[channel_id] if channels is not None else reader.definitions.channels[channel_id]
             )
-            read += 1
             yield RawMessage(channel, log_time, data)
         note = reader.truncation_note()
-        if note is not None:
-            warnings.warn(f"{self.path}: {note}; {read} messages read", LogWarning, stacklevel=2)
+        if note is not None and note not in self._warned:  # once, not once per pass over the log
+            self._warned.add(note)
+            warnings.warn(f"{self.path}: {note}", LogWarning, stacklevel=2)
 
     def _indexed_messages(self, summary: Summary, channel_ids: Set[int]) -> Iterator[RawMessage]:
         channels = self._summary_channels(summary)

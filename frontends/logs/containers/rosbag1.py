@@ -289,6 +289,8 @@ class Rosbag1Container:
         self.files = files
         self._bags = [_BagFile(file, i) for i, file in enumerate(files)]
         self._linear: tuple[dict[int, Channel], dict[int, int], int, int] | None = None
+        self._warned: set[tuple[Path, str]] = set()
+        """The truncation notes already given (a replay reads the log several times)."""
 
     def close(self) -> None:
         """Nothing to free: every pass opens and closes its own file handle."""
@@ -373,12 +375,11 @@ class Rosbag1Container:
                 continue
             reader = _LinearBagReader(bag)
             found: dict[int, Channel] = {}
-            intact = 0
             for log_time, channel_id, data in reader.records(wanted, found):
-                intact += 1
                 yield RawMessage(found[channel_id], log_time, data)
-            if reader.note is not None:
-                warnings.warn(f"{bag.path}: {reader.note}; {intact} messages read", LogWarning, stacklevel=2)
+            if reader.note is not None and (bag.path, reader.note) not in self._warned:  # once, not per pass
+                self._warned.add((bag.path, reader.note))
+                warnings.warn(f"{bag.path}: {reader.note}", LogWarning, stacklevel=2)
 
 
 class _LinearBagReader:
