@@ -47,6 +47,7 @@ from pipeline.outputs import (
     recover_outputs,
     stop_signals_held,
 )
+from pipeline.warning_tally import with_notes
 
 if TYPE_CHECKING:  # multiprocessing and the process pool are imported only by a run of several inputs
     from concurrent.futures import Future, ProcessPoolExecutor
@@ -82,7 +83,7 @@ class BatchOutcome:
 
     @classmethod
     def failure(cls, path: Path, error: BaseException, *, unexpected: bool = False) -> BatchOutcome:
-        message = one_line(error)
+        message = with_notes(error)
         if unexpected:
             message = f"internal error: {type(error).__name__}: {message}"
         trace = "".join(traceback.format_exception(error)) if unexpected else None

@@ -85,7 +85,7 @@ from pipeline.session_file import (
     write_session_file,
 )
 from pipeline.trajectory_io import write_kitti_poses, write_tum
-from pipeline.warning_tally import WarningTally, reissue, tallied_warnings
+from pipeline.warning_tally import WHILE_READING, WarningTally, reissue, tallied_warnings
 
 if TYPE_CHECKING:  # loaded by the first log of their sensor kind only (`_scan_sensor`, `_cloud_sensor`)
     from frontends.slam2d import Slam2DConfig
@@ -375,6 +375,11 @@ def replay_log(
     try:
         with tallied_warnings(tally), open_log(path) as log:
             return run.replay(log, Path(out_dir), topic, options, {"scan": slam2d, "cloud": slam3d}, tally)
+    except Exception as error:
+        # What went wrong before may be the cause (a truncated log has no topics left): said with it.
+        for item in tally.as_json():
+            error.add_note(f"{WHILE_READING}{item['message']}")
+        raise
     finally:
         reissue(path, tally.as_json())
 

@@ -52,6 +52,16 @@ def tallied_warnings(tally: WarningTally) -> Iterator[WarningTally]:
         yield tally
 
 
+WHILE_READING = "while reading: "
+"""How a replay that failed notes the warnings before its error (`BaseException.add_note`)."""
+
+
+def with_notes(error: BaseException) -> str:
+    """The error on one line, with the warnings its replay noted before it (`WHILE_READING`)."""
+    notes = [note for note in getattr(error, "__notes__", ()) if note.startswith(WHILE_READING)]
+    return one_line("; ".join([str(error), *notes]))
+
+
 def with_count(message: str, count: int) -> str:
     return message if count == 1 else f"{message} ({count} times)"
 

@@ -428,6 +428,18 @@ def test_info_on_a_truncated_log_warns_in_one_line_and_lists_what_is_left(tmp_pa
     assert result.stdout.startswith(f"{cut}: mcap")
 
 
+def test_a_log_cut_before_its_scans_fails_in_one_line_that_says_it_was_cut(tmp_path: Path) -> None:
+    """The error alone ('no LaserScan or PointCloud topic; the log has: no topics') hid the cause, which
+    only `replay info` printed."""
+    whole, cut = tmp_path / "whole.mcap", tmp_path / "cut.mcap"
+    write_drive(whole, scans=40)
+    cut.write_bytes(whole.read_bytes()[:200])
+    result = CliRunner().invoke(app, [str(cut), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2
+    [line] = result.stderr.splitlines()
+    assert line.startswith(f"replay: error: {cut}: ") and "; while reading: file is truncated" in line
+
+
 def test_a_map_picture_failing_on_its_own_thread_is_one_line_and_keeps_the_old_outputs(
     drive_log: tuple[Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
