@@ -63,6 +63,8 @@ def run_batch_on_ray(
     stems = {output_stem(path) for path in inputs}
     started_here = _connect(ray, options.address)
     try:
+        if started_here and options.address in (None, LOCAL_ADDRESS):
+            _refuse_tasks_larger_than_this_machine(ray, options.cpus_per_task)
         prepare_output_dir(out_dir)  # here, not by a task: a failed replay removes a folder it created
         return _run_tasks(ray, list(inputs), config, out_dir, options, on_done, replay_one)
     finally:
@@ -90,6 +92,15 @@ def _connect(ray: ModuleType, address: str | None) -> bool:
         where = "start a local Ray runtime" if local else f"connect to the Ray cluster at {address}"
         raise PipelineError(f"cannot {where}: {one_line(error)}") from error
     return True
+
+
+def _refuse_tasks_larger_than_this_machine(ray: ModuleType, cpus_per_task: float) -> None:
+    """A local runtime has this machine's CPUs and never more: a task wanting more would wait forever,
+    silently. (A cluster may grow to fit it: not checked there.)"""
+    cpus = float(ray.cluster_resources().get("CPU", 0.0))
+    if cpus_per_task > cpus:
+        raise PipelineError(f"--cpus-per-task {cpus_per_task:g}: the local Ray runtime has {cpus:g} CPUs; a "
+                            "task asking for more would never start")
 
 
 def _run_tasks(ray: ModuleType, inputs: list[Path], config: ReplayConfig, out_dir: Path, options: RayOptions,

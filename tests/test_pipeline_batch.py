@@ -345,3 +345,15 @@ def test_a_worker_that_dies_loses_its_pool_s_inputs_once_not_the_batch(
     died = "worker process failed: A process in the process pool was terminated"
     assert [(outcome.input_path.name, outcome.error) for outcome in outcomes] == [
         ("a.g2o", None), ("killer.g2o", died), ("b.g2o", None)]
+
+
+def test_a_local_ray_runtime_refuses_tasks_larger_than_the_machine() -> None:
+    """`--ray --cpus-per-task 4` on a 2-CPU machine waited forever, printing nothing."""
+    from types import SimpleNamespace
+
+    from pipeline.ray_batch import _refuse_tasks_larger_than_this_machine
+
+    two_cpus = SimpleNamespace(cluster_resources=lambda: {"CPU": 2.0, "memory": 1e9})
+    _refuse_tasks_larger_than_this_machine(two_cpus, 2.0)  # type: ignore[arg-type]
+    with pytest.raises(PipelineError, match=r"--cpus-per-task 4: the local Ray runtime has 2 CPUs"):
+        _refuse_tasks_larger_than_this_machine(two_cpus, 4.0)  # type: ignore[arg-type]
