@@ -42,6 +42,8 @@ class FrontendOptions:
     None: from the log (see `default_base_frame`)."""
     odometry_topic: str | None = None
     """The odometry topic (when the log has several)."""
+    base_frame_origin: str = ""
+    """Where `base_frame` comes from when not from the user (said in the error when tf does not link it)."""
 
     def __post_init__(self) -> None:
         if self.base_frame is not None:
@@ -366,6 +368,7 @@ class LogFrontendBase(Generic[ConfigT, ResultT]):
         self.sensor_frame = ""
         self.base_frame: str | None = options.base_frame
         self._requested_base_frame = options.base_frame
+        self._base_frame_origin = options.base_frame_origin
         self._result: ResultT | None = None
 
     def _odometry_read(self, parent_frame: str, child_frame: str) -> None:
@@ -386,8 +389,10 @@ class LogFrontendBase(Generic[ConfigT, ResultT]):
         """The error for a base frame the user named that tf does not link to the sensor's frame: poses of
         the sensor given as poses of a misspelt base would be silently wrong."""
         known = ", ".join(sorted(self._tree.frames)) or "none"
-        return LogFileError(self._log.path, f"tf does not link base frame {self._requested_base_frame!r} to "
-                                            f"the {sensor} frame {sensor_frame!r} (frames in tf: {known})")
+        base = repr(self._requested_base_frame) + (f" ({self._base_frame_origin})" if self._base_frame_origin
+                                                   else "")
+        return LogFileError(self._log.path, f"tf does not link base frame {base} to the {sensor} frame "
+                                            f"{sensor_frame!r} (frames in tf: {known})")
 
     @property
     def result(self) -> ResultT:

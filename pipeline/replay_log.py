@@ -169,6 +169,12 @@ class SessionStart:
                                 f"{SENSOR_WORDS[kind]} ({topic}): a session continues or localizes logs of "
                                 "its own kind")
         saved = sensor.saved_map(self.path, self.content)
+        saved_base = self.content.header.get("base_frame")
+        if options.base_frame is None and isinstance(saved_base, str) and saved_base:
+            # The saved poses are of that frame: a log tf does not tie to it is refused (one line naming the
+            # frames), not placed with its sensor's poses beside the saved map's base poses.
+            options = dataclasses.replace(options, base_frame=saved_base, base_frame_origin=(
+                f"the frame {self.path.name}'s poses are of; --base-frame names another"))
         try:
             if self.mode == "continue":
                 return sensor.continuing(log, topic, saved, config, options)

@@ -296,6 +296,20 @@ def test_a_session_with_nothing_to_use_is_one_line_naming_it(logs: Logs, tmp_pat
     assert file_names(tmp_path / "out") == set()
 
 
+@pytest.mark.parametrize("mode", ["--map", "--continue"])
+def test_a_log_tf_does_not_tie_to_the_session_s_base_frame_is_refused(logs: Logs, tmp_path: Path,
+                                                                       mode: str) -> None:
+    """The saved poses are of base_link; a log without tf gives its LiDAR's poses, which were joined to
+    them without a word (the continued .tum mixed the two frames, 1.9 m apart in height)."""
+    bare = tmp_path / "bare.mcap"
+    write_cloud_log(bare, logs.inside_drive, with_mount=False, later_ns=HOUR_NS)
+    line = one_error_line(run_replay(bare, "--out", tmp_path / "out", mode, logs.session))
+    assert line == (f"replay: error: {bare}: tf does not link base frame 'base_link' (the frame "
+                    "first.session's poses are of; --base-frame names another) to the LiDAR frame 'lidar' "
+                    "(frames in tf: none)")
+    assert file_names(tmp_path / "out") == set()
+
+
 def test_sessions_of_the_other_sensor_kind_are_refused(logs: Logs, tmp_path: Path) -> None:
     laser_log = tmp_path / "laser.mcap"
     write_drive(laser_log, part=slice(0, 5))
