@@ -122,9 +122,12 @@ def refuse_clashing_outputs(paths: Sequence[Path], out_dir: str | Path) -> None:
     first_with_stem: dict[str, Path] = {}
     for path in paths:
         first = first_with_stem.setdefault(output_stem(path), path)
-        if first is not path:
-            raise PipelineError(f"{first} and {path} would write the same outputs ({output_stem(path)}.*) in "
-                                f"{out_dir}; replay them into different folders (--out)")
+        if first is path:
+            continue
+        if Path(first).resolve() == Path(path).resolve():
+            raise PipelineError(f"{path} is listed twice (as {first} and {path}): name each input once")
+        raise PipelineError(f"{first} and {path} would write the same outputs ({output_stem(path)}.*) in "
+                            f"{out_dir}; replay them into different folders (--out)")
 
 
 def run_one(

@@ -122,6 +122,9 @@ def test_inputs_with_the_same_stem_are_refused_before_running(tmp_path: Path) ->
     assert not (tmp_path / "out").exists()
     with pytest.raises(PipelineError, match="same outputs"):
         run_batch([first, second], out_dir=tmp_path / "out")
+    # The same file twice: not "replay them into different folders"
+    with pytest.raises(PipelineError, match=r"is listed twice .*: name each input once"):
+        run_batch([first, tmp_path / "a" / ".." / "a" / "loop.g2o"], out_dir=tmp_path / "out")
 
 
 def test_a_bug_in_one_input_is_reported_with_its_traceback(
