@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import socket
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
@@ -86,12 +87,30 @@ def _connect(ray: ModuleType, address: str | None) -> bool:
     if local:
         # A runtime for this machine alone: nothing in it needs to listen beyond the loopback interface.
         settings["_node_ip_address"] = "127.0.0.1"
+    where = "start a local Ray runtime" if local else f"connect to the Ray cluster at {address}"
+    if not local and address is not None:
+        _check_reachable(address, where)
     try:
         ray.init(address=LOCAL_ADDRESS if local else address, **settings)
     except Exception as error:  # ConnectionError, RuntimeError, ValueError…: Ray's errors vary by cause
-        where = "start a local Ray runtime" if local else f"connect to the Ray cluster at {address}"
         raise PipelineError(f"cannot {where}: {one_line(error)}") from error
     return True
+
+
+CONNECT_TIMEOUT_S = 10.0
+"""How long a cluster's address may take to accept a connection before it is taken as unreachable."""
+
+
+def _check_reachable(address: str, where: str) -> None:
+    """`PipelineError` when nothing accepts a connection at `address` ("host:port" or "ray://host:port";
+    "auto" is Ray's to find): `ray.init` retries such an address for minutes, silently."""
+    host, separator, port = address.removeprefix("ray://").rpartition(":")
+    if not separator or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as error:
+        raise PipelineError(f"cannot {where}: {error.strerror or error}") from error
 
 
 def _refuse_tasks_larger_than_this_machine(ray: ModuleType, cpus_per_task: float) -> None:

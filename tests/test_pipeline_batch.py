@@ -360,3 +360,18 @@ def test_a_local_ray_runtime_refuses_tasks_larger_than_the_machine() -> None:
     _refuse_tasks_larger_than_this_machine(two_cpus, 2.0)  # type: ignore[arg-type]
     with pytest.raises(PipelineError, match=r"--cpus-per-task 4: the local Ray runtime has 2 CPUs"):
         _refuse_tasks_larger_than_this_machine(two_cpus, 4.0)  # type: ignore[arg-type]
+
+
+def test_a_ray_address_where_nothing_listens_is_one_line_at_once(tmp_path: Path) -> None:
+    """`ray.init` retried such an address for minutes (killed after 400 s), printing Ray's own lines."""
+    pytest.importorskip("ray", reason="needs the ray extra: pip install '.[ray]'")
+    import socket as sockets
+
+    with sockets.socket() as probe:  # a port nothing listens on: bound, then closed
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    graph = write_loop_graph(tmp_path / "loop.g2o")
+    result = run_replay(graph, "--ray", f"127.0.0.1:{port}", "--out", tmp_path / "out")
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [
+        f"replay: error: cannot connect to the Ray cluster at 127.0.0.1:{port}: Connection refused"]
