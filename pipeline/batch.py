@@ -252,6 +252,7 @@ def _pool_round(inputs: list[Path], indices: list[int], config: ReplayConfig, ou
     pool = ProcessPoolExecutor(max_workers=min(workers, len(indices)), mp_context=pool_context(),
                                initializer=_init_worker, initargs=(threads,))
     lost: list[int] = []
+    broken: list[Path] = []
     try:
         futures: dict[Future[BatchOutcome], int] = {
             pool.submit(_run_in_worker, inputs[index], config, out_dir): index for index in indices
@@ -261,6 +262,7 @@ def _pool_round(inputs: list[Path], indices: list[int], config: ReplayConfig, ou
             try:
                 outcome = future.result()
             except BrokenProcessPool as error:
+                broken.append(inputs[index])
                 if not last:
                     lost.append(index)
                     continue
@@ -274,8 +276,8 @@ def _pool_round(inputs: list[Path], indices: list[int], config: ReplayConfig, ou
         with stop_signals_held(redeliver=False):  # a second Ctrl-C must not cut the clean-up short
             _stop_pool(pool, inputs, out_dir)
         raise
-    if lost:  # a dead worker may have left its staging folder and lock
-        _stop_pool(pool, [inputs[index] for index in lost], out_dir)
+    if broken:  # a dead worker may have left its staging folder and lock
+        _stop_pool(pool, broken, out_dir)
     else:
         pool.shutdown(wait=True)
     return sorted(lost)
