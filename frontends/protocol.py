@@ -385,6 +385,20 @@ class LogFrontendBase(Generic[ConfigT, ResultT]):
         except MapPlacementError as error:
             raise MapPlacementError(f"{self._log.path}: {error}") from None
 
+    def _warn_if_odometry_covered_nothing(self, odometry_stamps_ns: IntArray, stamps_ns: IntArray, used: int,
+                                          measurements: str, done: str, source: str = "") -> None:
+        """Odometry that covers none of the measurements' stamps (stamped on another clock: time since boot
+        beside the sensor's epoch time) was not used at all (`used` of them got it): a warning, not a silent
+        run without it. `measurements` ("scans"), what was `done` to them without it, the odometry's
+        `source` (" on /odom")."""
+        if used or not len(odometry_stamps_ns) or not len(stamps_ns):
+            return
+        odometry, own = odometry_stamps_ns * 1e-9, stamps_ns * 1e-9
+        warnings.warn(f"{self._log.path}: the odometry{source} covers none of the {len(own)} {measurements}' "
+                      f"stamps (it runs from {odometry[0]:.3f} to {odometry[-1]:.3f} s, the {measurements} "
+                      f"from {own[0]:.3f} to {own[-1]:.3f} s; another clock?): the {measurements} were "
+                      f"{done} without it", LogWarning, stacklevel=3)
+
     def _unlinked_base_frame(self, sensor_frame: str, sensor: str) -> LogFileError:
         """The error for a base frame the user named that tf does not link to the sensor's frame: poses of
         the sensor given as poses of a misspelt base would be silently wrong."""

@@ -161,20 +161,10 @@ class LaserFrontend(LogFrontendBase[Slam2DConfig, Slam2DGraph]):
             raise FrontendError(f"{self._log.path}: topic {self._topic} has no scans")
         self._after_reading()
         self._result = self._finished(self._slam.finish)
-        self._warn_if_odometry_missed_every_scan()
-
-    def _warn_if_odometry_missed_every_scan(self) -> None:
-        """Odometry that covers none of the scans' stamps (stamped on another clock: time since boot
-        beside the laser's epoch time) was not used at all: a warning, not a silent run without it."""
-        track = self.odometry
-        if track is None or self._counts["scans_with_odometry"] or not len(track.stamps_ns):
-            return
-        scans = self.result.scan_stamps_ns
-        warnings.warn(f"{self._log.path}: the odometry on {self.odometry_topic} covers none of the "
-                      f"{len(scans)} scans' stamps (it runs from {track.stamps_ns[0] * 1e-9:.3f} to "
-                      f"{track.stamps_ns[-1] * 1e-9:.3f} s, the scans from {scans[0] * 1e-9:.3f} to "
-                      f"{scans[-1] * 1e-9:.3f} s; another clock?): the scans were matched without it",
-                      LogWarning, stacklevel=2)
+        if self.odometry is not None:
+            self._warn_if_odometry_covered_nothing(self.odometry.stamps_ns, self.result.scan_stamps_ns,
+                                                   self._counts["scans_with_odometry"], "scans", "matched",
+                                                   f" on {self.odometry_topic}")
 
     def _after_reading(self) -> None:
         """What the whole log says. No scan placed on a base by tf, and no base named by the user: the poses

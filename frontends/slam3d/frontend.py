@@ -123,13 +123,9 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
             warnings.warn(f"{self._log.path}: {untracked} of the {self._clouds} clouds on {self._topic} had "
                           f"fewer than {needed} points spread over more than a voxel to register: each was "
                           "given the pose of the last registered cloud", LogWarning, stacklevel=2)
-        prior = self._prior
-        if prior is not None and len(prior.stamps_ns) and not self._clouds_with_odometry:
-            odometry_s, clouds = prior.stamps_ns * 1e-9, self._result.cloud_stamps_ns * 1e-9
-            warnings.warn(f"{self._log.path}: the odometry covers none of the {self._clouds} clouds' stamps "
-                          f"(it runs from {odometry_s[0]:.3f} to {odometry_s[-1]:.3f} s, the clouds from "
-                          f"{clouds[0]:.3f} to {clouds[-1]:.3f} s; another clock?): the clouds were "
-                          "registered without it", LogWarning, stacklevel=2)
+        if self._prior is not None:
+            self._warn_if_odometry_covered_nothing(self._prior.stamps_ns, self._result.cloud_stamps_ns,
+                                                   self._clouds_with_odometry, "clouds", "registered")
         if not any(len(cloud) for cloud in self._result.keyframe_clouds):
             odometry = self.config.odometry
             raise UnusableLogError(
