@@ -138,6 +138,32 @@ def test_wheel_odometry_guides_the_registration_through_a_jump_in_speed() -> Non
     assert guided[-1] < 0.1 * np.linalg.norm(expected[-1])
 
 
+@pytest.mark.parametrize("jump", [
+    homogeneous(np.eye(3), np.array([5.0, 0.0, 0.0])),  # a 5 m jump (a reset, a glitch)
+    homogeneous(rotation_z(math.radians(30.0)), np.zeros(3)),  # a 30° jump in heading
+], ids=["5 m", "30 deg"])
+def test_a_jump_in_the_wheel_odometry_is_not_taken_as_motion(jump: np.ndarray) -> None:
+    # the odometry is right but for one jump halfway: every pose after it is moved by `jump`, so one
+    # guessed motion is metres (or 30°) off, which ICP cannot undo from there
+    run = drive(town_loop(), sweeps=30, step=0.8, ramp=5, lidar=Lidar(columns=360))
+    truth = planar_to_matrix(run.base_poses)
+    wheel = truth.copy()
+    wheel[15:] = jump @ wheel[15:]
+    expected = se3.relative(truth[0], truth)[:, :2, 3]
+
+    def errors(odometry: np.ndarray) -> tuple[np.ndarray, int]:
+        slam = LidarSlam3D(sensor_to_base=run.mount)
+        poses = [slam.add_cloud(Cloud3D(k, k, "lidar", run.clouds[k], run.times[k].astype(np.float64)),
+                                odometry[k]).pose for k in range(len(truth))]
+        estimated = se3.relative(poses[0], np.array(poses))[:, :2, 3]
+        return np.linalg.norm(estimated - expected, axis=1), slam.finish().odometry_guesses_overruled
+
+    clean, clean_overruled = errors(truth)
+    jumped, overruled = errors(wheel)
+    assert (clean_overruled, overruled) == (0, 1)
+    assert jumped.max() < clean.max() + 0.05
+
+
 # ------------------------------------------------------------------------------------------ deskewing
 
 

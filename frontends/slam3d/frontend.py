@@ -123,6 +123,12 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
             warnings.warn(f"{self._log.path}: {untracked} of the {self._clouds} clouds on {self._topic} had "
                           f"fewer than {needed} points spread over more than a voxel to register: each was "
                           "given the pose of the last registered cloud", LogWarning, stacklevel=2)
+        overruled = self._result.odometry_guesses_overruled
+        if overruled:
+            warnings.warn(f"{self._log.path}: at {overruled} of the {self._clouds} clouds the odometry's "
+                          f"motion ({self.odometry_topic or 'tf'}) was far from the LiDAR's and fit the map "
+                          "much worse (a jump in the odometry?): those clouds were registered without it",
+                          LogWarning, stacklevel=2)
         if self._prior is not None:
             self._warn_if_odometry_covered_nothing(self._prior.stamps_ns, self._result.cloud_stamps_ns,
                                                    self._clouds_with_odometry, "clouds", "registered")
@@ -163,6 +169,7 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
         counts = {"clouds": self._clouds, "points_per_cloud": round(self._points / max(self._clouds, 1)),
                   "clouds_in_trajectory": len(result.cloud_stamps_ns),
                   "clouds_untracked": result.clouds_untracked,
+                  "clouds_odometry_overruled": result.odometry_guesses_overruled,
                   **self._log.counts, "keyframes": result.num_keyframes, "constraints": len(result.edge_from)}
         if self._map_points is not None:
             counts["map_points"] = self._map_points

@@ -113,6 +113,9 @@ class OdometryStep:
     points_pose: FloatArray
     """4×4 pose of the frame `points` are in: the sensor at the last point's time when deskewed."""
     deskewed: bool
+    guess_overruled: bool = False
+    """The motion guess was not used: registering from the constant-velocity prediction fit the map
+    clearly better (`KissOdometry._guess_fits`)."""
 
 
 class Odometry(Protocol):
@@ -131,6 +134,12 @@ def _has_extent(points: NDArray[np.floating], voxel: float) -> bool:
     (a sensor fault) holds no geometry to register, however many there are."""
     extent = np.max(points, axis=0) - np.min(points, axis=0)
     return bool(np.max(extent) >= voxel)
+
+
+GUESS_OUTLIER_RATIO = 0.5
+"""A motion guess far from the LiDAR's prediction is dropped when registering from the prediction leaves at
+most this fraction of the points that the guess leaves unmatched (within σ of the map): a clearly better
+fit, not a tie."""
 
 
 class KissOdometry:
@@ -160,8 +169,10 @@ class KissOdometry:
         if len(points) < self.config.min_points or not _has_extent(points, self.config.map_voxel_size):
             return None
         times, stamp_fraction = self._sweep_times(points, point_times)
-        if motion_guess is not None:
-            self._kiss.last_delta = np.array(motion_guess, dtype=np.float64)
+        guess = None if motion_guess is None else np.array(motion_guess, dtype=np.float64)
+        overruled = guess is not None and not self._guess_fits(points, guess)
+        if guess is not None and not overruled:
+            self._kiss.last_delta = guess
         # The motion the deskewing assumes (read before registering replaces it), as a twist.
         twist = se3.log(np.array(self._kiss.last_delta, dtype=np.float64))
         frame = np.ascontiguousarray(points, dtype=np.float64)
@@ -174,7 +185,44 @@ class KissOdometry:
         if stamp_fraction is not None and stamp_fraction != 1.0:
             pose = end_pose @ se3.exp((stamp_fraction - 1.0) * twist)
         self._pose = pose
-        return OdometryStep(pose, np.asarray(deskewed), end_pose, stamp_fraction is not None)
+        return OdometryStep(pose, np.asarray(deskewed), end_pose, stamp_fraction is not None, overruled)
+
+    def _guess_fits(self, points: NDArray[np.floating], motion_guess: FloatArray) -> bool:
+        """Whether to register from the motion guess rather than the constant-velocity prediction.
+
+        Wheel or INS odometry can jump (a reset, a glitch, a wrong message): a guess metres or tens of
+        degrees from the LiDAR's own prediction lies beyond ICP's correspondence distance (3σ of KISS-ICP's
+        adaptive threshold), where ICP cannot undo it and the trajectory keeps the jump. Only then are both
+        starts tried (their ICP is rerun by `register_frame`, so the cost is that of rare disagreements):
+        the guess loses when registering from the prediction leaves at most `GUESS_OUTLIER_RATIO` of its
+        unmatched points. Where the scene cannot tell the two apart (a featureless corridor) both fit
+        alike and the odometry is kept.
+        """
+        kiss = self._kiss
+        if kiss.local_map.empty():
+            return True
+        predicted = kiss.last_pose @ kiss.last_delta
+        guessed = kiss.last_pose @ motion_guess
+        frame = kiss.preprocessor.preprocess(np.ascontiguousarray(points, dtype=np.float64), NO_TIMES,
+                                             np.eye(4))
+        source = voxel_down_sample(frame, self.config.map_voxel_size * 1.5)
+        between = se3.relative(predicted, guessed)
+        moved = se3.transform_points(between, source) - source
+        sigma = float(kiss.adaptive_threshold.get_threshold())
+        if len(source) == 0 or float(np.median(np.linalg.norm(moved, axis=1))) <= 3.0 * sigma:
+            return True
+        from scipy.spatial import cKDTree  # here: only a disagreement needs it
+
+        map_points = cKDTree(kiss.local_map.point_cloud())
+        unmatched = []
+        for start in (guessed, predicted):
+            pose = kiss.registration.align_points_to_map(
+                points=source, voxel_map=kiss.local_map, initial_guess=start,
+                max_correspondance_distance=3.0 * sigma, kernel=sigma,
+            )
+            distance, _ = map_points.query(se3.transform_points(pose, source), distance_upper_bound=sigma)
+            unmatched.append(float(np.mean(~np.isfinite(distance))))
+        return unmatched[1] > GUESS_OUTLIER_RATIO * unmatched[0]
 
     def _sweep_times(
         self, points: NDArray[np.floating], point_times: NDArray[np.float64] | None

@@ -108,6 +108,8 @@ class Slam3DGraph:
     clouds_untracked: int
     clouds_dropped: int
     """Clouds before the first keyframe that had too few points: not in the trajectory."""
+    odometry_guesses_overruled: int = 0
+    """Clouds registered from the LiDAR's own prediction because the odometry's motion fit far worse."""
 
     @property
     def num_keyframes(self) -> int:
@@ -205,6 +207,7 @@ class LidarSlam3D:
         self._clouds_seen = 0
         self._untracked = 0
         self._dropped = 0
+        self._guesses_overruled = 0
         self._pending_loops = 0
         self._last_closure_travel = -np.inf
         """Path length (m) at the keyframe that last closed a loop."""
@@ -232,6 +235,7 @@ class LidarSlam3D:
         if step is not None:
             # the guess is relative to the last registered cloud: no odometry there, no guess next time
             self._last_odometry_pose = odometry
+            self._guesses_overruled += step.guess_overruled
         return self._add_step(index, int(cloud.stamp_ns), step)
 
     def _base_pose(self, step: OdometryStep) -> FloatArray:
@@ -478,4 +482,5 @@ class LidarSlam3D:
             loop_candidates={**self._candidates, "unconfirmed": self._hypotheses.dropped},
             clouds_untracked=self._untracked,
             clouds_dropped=self._dropped,
+            odometry_guesses_overruled=self._guesses_overruled,
         )
