@@ -410,10 +410,8 @@ def _merge(base: Mapping[str, Any], updates: Mapping[str, Mapping[str, Any]]) ->
 
 def _decode_error_position(message: str) -> tuple[str, int | None]:
     # Python 3.11's TOMLDecodeError has no line attribute: the position is at the end of its message.
-    found = re.search(r"\s*\(at line (\d+), column \d+\)$", message)
-    if found is None:
-        return message, None
-    return message[: found.start()], int(found.group(1))
+    found = re.fullmatch(r"(.*?)\s*\(at line (\d+), column \d+\)", message, re.DOTALL)
+    return (found.group(1), int(found.group(2))) if found else (message, None)
 
 
 def _config_error(error: ValidationError, path: str | Path | None, text: str | None) -> ConfigError:
@@ -440,11 +438,9 @@ def _unknown_key_message(loc: tuple[str, ...]) -> str:
         return (f"{loc[2]} is no longer a setting (fixed at {fixed}, which served every log tried); "
                 "remove it from the file")
     model: Any = ReplayConfig
-    for part in loc[:-1]:
-        is_model = isinstance(model, type) and issubclass(model, BaseModel)
-        field = model.model_fields.get(part) if is_model else None
-        model = field.annotation if field is not None else None
-    known = list(model.model_fields) if isinstance(model, type) and issubclass(model, BaseModel) else []
+    for part in loc[:-1]:  # the sections holding the key: models all the way, as only a model forbids extras
+        model = model.model_fields[part].annotation
+    known = list(model.model_fields)
     what = "unknown section" if len(loc) == 1 else f"unknown key in [{'.'.join(loc[:-1])}]"
     close = difflib.get_close_matches(loc[-1], known, n=1)
     return what + (f"; did you mean {close[0]}?" if close else f"; known: {', '.join(known)}")
@@ -456,24 +452,18 @@ _KEY = re.compile(r"^\s*([A-Za-z0-9_.\-]+)\s*=")
 
 def _line_of(text: str, loc: tuple[str, ...]) -> int | None:
     """The 1-based line of the table `[a.b]` that `loc` names, or of `key = …` under its table (or as a
-    dotted key `a.b.key = …` before any table)."""
+    dotted key `a.b.key = …`), or of the first table or key inside what it names."""
     if not loc:
         return None
-    whole, table_of_key, key = ".".join(loc), ".".join(loc[:-1]), loc[-1]
+    whole = ".".join(loc)
     table = ""
     for number, line in enumerate(text.splitlines(), start=1):
-        header = _TABLE.match(line)
-        if header:
-            table = header.group(1).replace(" ", "")
-            if table == whole or table.startswith(whole + "."):
-                return number
+        if header := _TABLE.match(line):
+            table = name = header.group(1).replace(" ", "")
+        elif assignment := _KEY.match(line):
+            name = f"{table}.{assignment.group(1)}" if table else assignment.group(1)
+        else:
             continue
-        assignment = _KEY.match(line)
-        if assignment is None:
-            continue
-        name = assignment.group(1)
-        if (table == table_of_key and name == key) or (not table and name == whole):
-            return number
-        if not table and name.startswith(whole + "."):
+        if name == whole or name.startswith(whole + "."):
             return number
     return None
