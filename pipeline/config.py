@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import operator
 import re
 import tomllib
 import typing
@@ -148,12 +149,17 @@ _BELOW: dict[tuple[str, str], str] = {
 }
 """A key that must be less than another of its section (declared before it): a range that keeps nothing."""
 
-_MODEL_CONFIG = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
-"""Strict: a string or boolean is not a number and a number is not a boolean (an int is a fine float)."""
+_ORDERS: tuple[tuple[dict[tuple[str, str], str], str, Callable[[float, float], bool]], ...] = (
+    (_AT_LEAST, "at least", operator.ge),
+    (_AT_MOST, "at most", operator.le),
+    (_BELOW, "less than", operator.lt),
+)
+"""Each table of keys in order, the relation in words (for the error), and its test."""
 
 
 class _Section(BaseModel):
-    model_config = _MODEL_CONFIG
+    # Strict: a string or boolean is not a number and a number is not a boolean (an int is a fine float).
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 def _section_model(section: str, dataclass_type: type) -> type[_Section]:
@@ -164,20 +170,18 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
     for item in dataclasses.fields(dataclass_type):
         annotation = hints[item.name]
         default = getattr(defaults, item.name)
-        if annotation is bool:
-            fields[item.name] = (bool, default)
-            continue
-        if annotation not in (int, float, float | None):
+        if annotation not in (bool, int, float, float | None):
             raise TypeError(f"{dataclass_type.__name__}.{item.name}: no TOML form for {annotation!r}")
-        if default is not None and annotation is not int and is_angle_field(item.name):
+        if default is not None and annotation in (float, float | None) and is_angle_field(item.name):
             default = round(math.degrees(default), _DEGREE_DIGITS)
-        fields[item.name] = (annotation, Field(default, **_bounds(section, item.name)))
+        bounds = {} if annotation is bool else _bounds(section, item.name)
+        fields[item.name] = (annotation, Field(default, **bounds))
 
     validators: dict[str, Any] = {}
-    for rules, relation in ((_AT_LEAST, "at least"), (_AT_MOST, "at most"), (_BELOW, "less than")):
+    for rules, relation, holds in _ORDERS:
         for (rule_section, key), other in rules.items():
             if rule_section == section:
-                validators[f"_{key}_against_{other}"] = _order_check(key, other, relation)
+                validators[f"_{key}_against_{other}"] = _order_check(key, other, relation, holds)
     derived = {key: (other, getattr(defaults, key)) for (s, key), other in _AT_LEAST.items() if s == section}
     if derived:
         validators["_derived_defaults"] = model_validator(mode="before")(_derive_at_least(derived))
@@ -188,17 +192,8 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
     return model
 
 
-_ORDERS: dict[str, Callable[[float, float], bool]] = {
-    "at least": lambda value, bound: value >= bound,
-    "at most": lambda value, bound: value <= bound,
-    "less than": lambda value, bound: value < bound,
-}
-
-
-def _order_check(key: str, other: str, relation: str) -> Any:
-    """A validator of `key`: in `relation` (`_ORDERS`) to `other`, when that passed its own validation."""
-    holds = _ORDERS[relation]
-
+def _order_check(key: str, other: str, relation: str, holds: Callable[[float, float], bool]) -> Any:
+    """A validator of `key`: in `relation` to `other` (`holds` tells), when that passed its own validation."""
     def check(cls: type, value: float, info: ValidationInfo) -> float:
         bound = info.data.get(other)  # absent when it failed its own validation: reported there
         if bound is not None and not holds(value, bound):
@@ -210,13 +205,12 @@ def _order_check(key: str, other: str, relation: str) -> Any:
 
 def _derive_at_least(derived: dict[str, tuple[str, float]]) -> Callable[[type, Any], Any]:
     def derive(cls: type, data: Any) -> Any:
-        if not isinstance(data, Mapping):
-            return data
-        data = dict(data)
-        for key, (other, default) in derived.items():
-            bound = data.get(other)
-            if key not in data and isinstance(bound, int | float) and not isinstance(bound, bool):
-                data[key] = max(default, bound)
+        if isinstance(data, Mapping):
+            data = dict(data)
+            for key, (other, default) in derived.items():
+                bound = data.get(other)
+                if key not in data and isinstance(bound, int | float) and not isinstance(bound, bool):
+                    data[key] = max(default, bound)
         return data
 
     return derive
@@ -259,16 +253,13 @@ def _to_dataclass(sections: _Section, config_type: type) -> Any:
     return config_type(**values)
 
 
-_METHOD_CHOICE = Literal[METHODS]  # type: ignore[valid-type]
-
-
 class OptimizerSection(_Section):
     """The [optimizer] section. `iterations`: SGD (or Gauss–Seidel) iterations; with method "gn", the cap on
     Gauss–Newton iterations. Left out (None), the optimizer's default: 100 iterations, except that on a
     graph of more than 200 000 poses the default method's SGD hands over to the polish once it stalls
     (`optimizer.solve.until_stalled`, at most 100), and the polish cap (5000) for "gn"."""
 
-    method: _METHOD_CHOICE = DEFAULT_METHOD
+    method: Literal[METHODS] = DEFAULT_METHOD  # type: ignore[valid-type]
     iterations: int | None = Field(None, ge=0, le=MAX_ITERATIONS)
     robust: Literal["none", *KERNELS] = "none"  # type: ignore[valid-type]
     """A robust kernel against false loop closures: "cauchy" or "dcs" (methods sgd+gn and sgd)."""
