@@ -408,8 +408,7 @@ def _decode_error_position(message: str) -> tuple[str, int | None]:
 def _config_error(error: ValidationError, path: str | Path | None, text: str | None) -> ConfigError:
     first = error.errors()[0]
     loc = tuple(str(part) for part in first["loc"])
-    line = _line_of(text, loc) if text is not None else None
-    key = ".".join(loc) if loc else None
+    line = _line_of(text, loc) if text is not None and loc else None
     if first["type"] == "extra_forbidden":
         message = _unknown_key_message(loc)
     else:
@@ -420,7 +419,7 @@ def _config_error(error: ValidationError, path: str | Path | None, text: str | N
     more = error.error_count() - 1
     if more:
         message += f" (and {more} more error{'s' if more > 1 else ''})"
-    return ConfigError(path, message, line=line, key=key)
+    return ConfigError(path, message, line=line, key=".".join(loc))  # "": the whole configuration
 
 
 def _unknown_key_message(loc: tuple[str, ...]) -> str:
@@ -444,8 +443,6 @@ _KEY = re.compile(r"^\s*([A-Za-z0-9_.\-]+)\s*=")
 def _line_of(text: str, loc: tuple[str, ...]) -> int | None:
     """The 1-based line of the table `[a.b]` that `loc` names, or of `key = …` under its table (or as a
     dotted key `a.b.key = …`), or of the first table or key inside what it names."""
-    if not loc:
-        return None
     whole = ".".join(loc)
     table = ""
     for number, line in enumerate(text.splitlines(), start=1):
