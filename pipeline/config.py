@@ -244,11 +244,9 @@ def _to_dataclass(sections: _Section, config_type: type) -> Any:
     """A frontend's frozen config dataclass from its sections (angles back to radians)."""
     hints = typing.get_type_hints(config_type)
     values: dict[str, Any] = {}
-    for name in type(sections).model_fields:
-        fields = getattr(sections, name).model_dump()
-        for key, value in fields.items():
-            if isinstance(value, float) and is_angle_field(key):
-                fields[key] = math.radians(value)
+    for name, section in sections:
+        fields = {key: math.radians(value) if isinstance(value, float) and is_angle_field(key) else value
+                  for key, value in section.model_dump().items()}
         values[name] = hints[name](**fields)
     return config_type(**values)
 
@@ -320,13 +318,11 @@ class ReplayConfig(_Section):
         parts = [_TOML_HEADER]
         for name in type(self).model_fields:
             text = tomli_w.dumps({name: getattr(self, name).model_dump(exclude_none=True)})
-            comments = _SECTION_COMMENTS.get(name, "")
             if name in ("input", "optimizer"):  # comments under the header, before the keys
                 header, _, body = text.partition("\n")
-                text = f"{header}\n{comments}{body}"
+                parts.append(f"{header}\n{_SECTION_COMMENTS[name]}{body}")
             else:
-                text = comments + text
-            parts.append(text)
+                parts.append(_SECTION_COMMENTS[name] + text)
         return "\n".join(parts)
 
 
