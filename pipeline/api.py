@@ -119,6 +119,10 @@ class ReplayResult:
     """The replay's own result, with everything else it knows."""
 
 
+_GRAPH_STATS = ("poses", "constraints", "loop_closures", "iterations", "chi2_initial", "chi2_final",
+                "wall_time_s", "converged", "stop_reason")
+"""The `ReplayStats` that a pose-graph file's summary holds under the same names."""
+
 ScanCallback = Callable[["Estimate"], None]
 IterationCallback = Callable[["Iteration"], None]
 
@@ -153,10 +157,8 @@ def replay(
     `MapPlacementError` (a `FrontendError`) when the log never matches the saved map.
     """
     path = Path(path)
-    if config is None:
-        config = ReplayConfig()
-    elif isinstance(config, Mapping):
-        config = config_from_mapping(config)
+    if config is None or isinstance(config, Mapping):
+        config = config_from_mapping(config or {})
     elif not isinstance(config, ReplayConfig):
         config = load_config(config)
     if map is not None and continue_from is not None:
@@ -184,22 +186,11 @@ def _replay_graph_file(path: Path, config: ReplayConfig, out_dir: Path,
                                  robust=config.optimizer.robust_kernel,
                                  iterations=config.optimizer.iterations,
                                  repair_information=config.input.repair_information, progress=on_iteration)
-    graph = detail.graph
-    stats = ReplayStats(
-        poses=graph.num_poses,
-        constraints=graph.num_edges,
-        loop_closures=detail.num_loop_closures,
-        loop_closures_rejected=None,
-        scans=None,
-        iterations=detail.iterations_per_stage,
-        chi2_initial=detail.initial_chi2,
-        chi2_final=detail.final_chi2,
-        wall_time_s=dict(detail.wall_time),
-        converged=detail.optimization.converged,
-        stop_reason=detail.optimization.reason,
-    )
-    return ReplayResult(path, "graph", graph.with_poses(detail.poses), detail.poses, None, stats,
-                        detail.outputs.paths(), module.summary(detail), detail)
+    summary = module.summary(detail)
+    stats = ReplayStats(**{key: summary[key] for key in _GRAPH_STATS}, loop_closures_rejected=None,
+                        scans=None)
+    return ReplayResult(path, "graph", detail.graph.with_poses(detail.poses), detail.poses, None, stats,
+                        detail.outputs.paths(), summary, detail)
 
 
 def _replay_log_file(path: Path, config: ReplayConfig, out_dir: Path, on_scan: ScanCallback | None,

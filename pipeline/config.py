@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import operator
 import re
 import tomllib
 import typing
@@ -148,12 +149,17 @@ _BELOW: dict[tuple[str, str], str] = {
 }
 """A key that must be less than another of its section (declared before it): a range that keeps nothing."""
 
-_MODEL_CONFIG = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
-"""Strict: a string or boolean is not a number and a number is not a boolean (an int is a fine float)."""
+_ORDERS: tuple[tuple[dict[tuple[str, str], str], str, Callable[[float, float], bool]], ...] = (
+    (_AT_LEAST, "at least", operator.ge),
+    (_AT_MOST, "at most", operator.le),
+    (_BELOW, "less than", operator.lt),
+)
+"""Each table of keys in order, the relation in words (for the error), and its test."""
 
 
 class _Section(BaseModel):
-    model_config = _MODEL_CONFIG
+    # Strict: a string or boolean is not a number and a number is not a boolean (an int is a fine float).
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 def _section_model(section: str, dataclass_type: type) -> type[_Section]:
@@ -164,20 +170,18 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
     for item in dataclasses.fields(dataclass_type):
         annotation = hints[item.name]
         default = getattr(defaults, item.name)
-        if annotation is bool:
-            fields[item.name] = (bool, default)
-            continue
-        if annotation not in (int, float, float | None):
+        if annotation not in (bool, int, float, float | None):
             raise TypeError(f"{dataclass_type.__name__}.{item.name}: no TOML form for {annotation!r}")
-        if default is not None and annotation is not int and is_angle_field(item.name):
+        if default is not None and annotation in (float, float | None) and is_angle_field(item.name):
             default = round(math.degrees(default), _DEGREE_DIGITS)
-        fields[item.name] = (annotation, Field(default, **_bounds(section, item.name)))
+        bounds = {} if annotation is bool else _bounds(section, item.name)
+        fields[item.name] = (annotation, Field(default, **bounds))
 
     validators: dict[str, Any] = {}
-    for rules, relation in ((_AT_LEAST, "at least"), (_AT_MOST, "at most"), (_BELOW, "less than")):
+    for rules, relation, holds in _ORDERS:
         for (rule_section, key), other in rules.items():
             if rule_section == section:
-                validators[f"_{key}_against_{other}"] = _order_check(key, other, relation)
+                validators[f"_{key}_against_{other}"] = _order_check(key, other, relation, holds)
     derived = {key: (other, getattr(defaults, key)) for (s, key), other in _AT_LEAST.items() if s == section}
     if derived:
         validators["_derived_defaults"] = model_validator(mode="before")(_derive_at_least(derived))
@@ -188,17 +192,8 @@ def _section_model(section: str, dataclass_type: type) -> type[_Section]:
     return model
 
 
-_ORDERS: dict[str, Callable[[float, float], bool]] = {
-    "at least": lambda value, bound: value >= bound,
-    "at most": lambda value, bound: value <= bound,
-    "less than": lambda value, bound: value < bound,
-}
-
-
-def _order_check(key: str, other: str, relation: str) -> Any:
-    """A validator of `key`: in `relation` (`_ORDERS`) to `other`, when that passed its own validation."""
-    holds = _ORDERS[relation]
-
+def _order_check(key: str, other: str, relation: str, holds: Callable[[float, float], bool]) -> Any:
+    """A validator of `key`: in `relation` to `other` (`holds` tells), when that passed its own validation."""
     def check(cls: type, value: float, info: ValidationInfo) -> float:
         bound = info.data.get(other)  # absent when it failed its own validation: reported there
         if bound is not None and not holds(value, bound):
@@ -210,13 +205,12 @@ def _order_check(key: str, other: str, relation: str) -> Any:
 
 def _derive_at_least(derived: dict[str, tuple[str, float]]) -> Callable[[type, Any], Any]:
     def derive(cls: type, data: Any) -> Any:
-        if not isinstance(data, Mapping):
-            return data
-        data = dict(data)
-        for key, (other, default) in derived.items():
-            bound = data.get(other)
-            if key not in data and isinstance(bound, int | float) and not isinstance(bound, bool):
-                data[key] = max(default, bound)
+        if isinstance(data, Mapping):
+            data = dict(data)
+            for key, (other, default) in derived.items():
+                bound = data.get(other)
+                if key not in data and isinstance(bound, int | float) and not isinstance(bound, bool):
+                    data[key] = max(default, bound)
         return data
 
     return derive
@@ -250,16 +244,11 @@ def _to_dataclass(sections: _Section, config_type: type) -> Any:
     """A frontend's frozen config dataclass from its sections (angles back to radians)."""
     hints = typing.get_type_hints(config_type)
     values: dict[str, Any] = {}
-    for name in type(sections).model_fields:
-        fields = getattr(sections, name).model_dump()
-        for key, value in fields.items():
-            if isinstance(value, float) and is_angle_field(key):
-                fields[key] = math.radians(value)
+    for name, section in sections:
+        fields = {key: math.radians(value) if isinstance(value, float) and is_angle_field(key) else value
+                  for key, value in section.model_dump().items()}
         values[name] = hints[name](**fields)
     return config_type(**values)
-
-
-_METHOD_CHOICE = Literal[METHODS]  # type: ignore[valid-type]
 
 
 class OptimizerSection(_Section):
@@ -268,7 +257,7 @@ class OptimizerSection(_Section):
     graph of more than 200 000 poses the default method's SGD hands over to the polish once it stalls
     (`optimizer.solve.until_stalled`, at most 100), and the polish cap (5000) for "gn"."""
 
-    method: _METHOD_CHOICE = DEFAULT_METHOD
+    method: Literal[METHODS] = DEFAULT_METHOD  # type: ignore[valid-type]
     iterations: int | None = Field(None, ge=0, le=MAX_ITERATIONS)
     robust: Literal["none", *KERNELS] = "none"  # type: ignore[valid-type]
     """A robust kernel against false loop closures: "cauchy" or "dcs" (methods sgd+gn and sgd)."""
@@ -329,13 +318,11 @@ class ReplayConfig(_Section):
         parts = [_TOML_HEADER]
         for name in type(self).model_fields:
             text = tomli_w.dumps({name: getattr(self, name).model_dump(exclude_none=True)})
-            comments = _SECTION_COMMENTS.get(name, "")
             if name in ("input", "optimizer"):  # comments under the header, before the keys
                 header, _, body = text.partition("\n")
-                text = f"{header}\n{comments}{body}"
+                parts.append(f"{header}\n{_SECTION_COMMENTS[name]}{body}")
             else:
-                text = comments + text
-            parts.append(text)
+                parts.append(_SECTION_COMMENTS[name] + text)
         return "\n".join(parts)
 
 
@@ -410,17 +397,14 @@ def _merge(base: Mapping[str, Any], updates: Mapping[str, Mapping[str, Any]]) ->
 
 def _decode_error_position(message: str) -> tuple[str, int | None]:
     # Python 3.11's TOMLDecodeError has no line attribute: the position is at the end of its message.
-    found = re.search(r"\s*\(at line (\d+), column \d+\)$", message)
-    if found is None:
-        return message, None
-    return message[: found.start()], int(found.group(1))
+    found = re.fullmatch(r"(.*?)\s*\(at line (\d+), column \d+\)", message, re.DOTALL)
+    return (found.group(1), int(found.group(2))) if found else (message, None)
 
 
 def _config_error(error: ValidationError, path: str | Path | None, text: str | None) -> ConfigError:
     first = error.errors()[0]
     loc = tuple(str(part) for part in first["loc"])
-    line = _line_of(text, loc) if text is not None else None
-    key = ".".join(loc) if loc else None
+    line = _line_of(text, loc) if text is not None and loc else None
     if first["type"] == "extra_forbidden":
         message = _unknown_key_message(loc)
     else:
@@ -431,7 +415,7 @@ def _config_error(error: ValidationError, path: str | Path | None, text: str | N
     more = error.error_count() - 1
     if more:
         message += f" (and {more} more error{'s' if more > 1 else ''})"
-    return ConfigError(path, message, line=line, key=key)
+    return ConfigError(path, message, line=line, key=".".join(loc))  # "": the whole configuration
 
 
 def _unknown_key_message(loc: tuple[str, ...]) -> str:
@@ -440,11 +424,9 @@ def _unknown_key_message(loc: tuple[str, ...]) -> str:
         return (f"{loc[2]} is no longer a setting (fixed at {fixed}, which served every log tried); "
                 "remove it from the file")
     model: Any = ReplayConfig
-    for part in loc[:-1]:
-        is_model = isinstance(model, type) and issubclass(model, BaseModel)
-        field = model.model_fields.get(part) if is_model else None
-        model = field.annotation if field is not None else None
-    known = list(model.model_fields) if isinstance(model, type) and issubclass(model, BaseModel) else []
+    for part in loc[:-1]:  # the sections holding the key: models all the way, as only a model forbids extras
+        model = model.model_fields[part].annotation
+    known = list(model.model_fields)
     what = "unknown section" if len(loc) == 1 else f"unknown key in [{'.'.join(loc[:-1])}]"
     close = difflib.get_close_matches(loc[-1], known, n=1)
     return what + (f"; did you mean {close[0]}?" if close else f"; known: {', '.join(known)}")
@@ -456,24 +438,16 @@ _KEY = re.compile(r"^\s*([A-Za-z0-9_.\-]+)\s*=")
 
 def _line_of(text: str, loc: tuple[str, ...]) -> int | None:
     """The 1-based line of the table `[a.b]` that `loc` names, or of `key = …` under its table (or as a
-    dotted key `a.b.key = …` before any table)."""
-    if not loc:
-        return None
-    whole, table_of_key, key = ".".join(loc), ".".join(loc[:-1]), loc[-1]
+    dotted key `a.b.key = …`), or of the first table or key inside what it names."""
+    whole = ".".join(loc)
     table = ""
     for number, line in enumerate(text.splitlines(), start=1):
-        header = _TABLE.match(line)
-        if header:
-            table = header.group(1).replace(" ", "")
-            if table == whole or table.startswith(whole + "."):
-                return number
+        if header := _TABLE.match(line):
+            table = name = header.group(1).replace(" ", "")
+        elif assignment := _KEY.match(line):
+            name = f"{table}.{assignment.group(1)}" if table else assignment.group(1)
+        else:
             continue
-        assignment = _KEY.match(line)
-        if assignment is None:
-            continue
-        name = assignment.group(1)
-        if (table == table_of_key and name == key) or (not table and name == whole):
-            return number
-        if not table and name.startswith(whole + "."):
+        if name == whole or name.startswith(whole + "."):
             return number
     return None
