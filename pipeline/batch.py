@@ -32,7 +32,6 @@ from pipeline.api import (
     DEFAULT_OUT_DIR,
     KNOWN_ERRORS,
     IterationCallback,
-    ReplayResult,
     ReplayStats,
     ScanCallback,
     input_kind,
@@ -76,10 +75,6 @@ class BatchOutcome:
     @property
     def ok(self) -> bool:
         return self.error is None
-
-    @classmethod
-    def from_result(cls, result: ReplayResult) -> BatchOutcome:
-        return cls(result.input_path, result.kind, result.stats, dict(result.summary), dict(result.outputs))
 
     @classmethod
     def failure(cls, path: Path, error: BaseException, *, unexpected: bool = False) -> BatchOutcome:
@@ -155,7 +150,8 @@ def run_one(
         if not catch_unexpected:
             raise
         return BatchOutcome.failure(path, error, unexpected=True)
-    return BatchOutcome.from_result(result)
+    return BatchOutcome(result.input_path, result.kind, result.stats, dict(result.summary),
+                        dict(result.outputs))
 
 
 def run_one_on_this_host(
