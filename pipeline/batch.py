@@ -339,18 +339,13 @@ def remove_partial_outputs(out_dir: Path, stems: set[str]) -> list[str]:
         names = os.listdir(out_dir)  # once, not once per stem: batches have thousands
     except OSError:
         return []
-    left_by = set()
-    for name in names:
-        match = _LEFT_BEHIND.fullmatch(name)
-        if match is not None and match.group("stem") in stems:
-            left_by.add(match.group("stem"))
+    matches = (_LEFT_BEHIND.fullmatch(name) for name in names)
+    left_by = {match["stem"] for match in matches if match is not None and match["stem"] in stems}
     cleaned = []
     for stem in sorted(left_by):
-        try:
+        with contextlib.suppress(PipelineError):  # still held by a live process (a worker Ray could not kill)
             recover_outputs(out_dir, stem)
-        except PipelineError:  # still held by a live process (a worker Ray could not kill): leave it
-            continue
-        cleaned.append(stem)
+            cleaned.append(stem)
     return cleaned
 
 
