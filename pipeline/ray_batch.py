@@ -17,13 +17,15 @@ import socket
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from pipeline.api import input_kind
-from pipeline.batch import BatchOutcome, RayOptions, one_line, remove_partial_outputs, run_one_on_this_host
+from pipeline.batch import BatchOutcome, limit_threads, one_line, remove_partial_outputs, run_one_on_this_host
 from pipeline.config import ReplayConfig
 from pipeline.errors import PipelineError
 from pipeline.outputs import output_stem, prepare_output_dir
+
+if TYPE_CHECKING:
+    from pipeline.batch import RayOptions
 
 RAY_INSTALL_HINT = "pip install 'sgdslam[ray]' (from a checkout: pip install '.[ray]')"
 LOCAL_ADDRESS = "local"
@@ -152,16 +154,11 @@ def _replay_task(path: str, config: ReplayConfig, out_dir: str, working_folder: 
                  replay_one: ReplayOne, threads: int) -> BatchOutcome:
     """One input, in a Ray worker. Our own errors (bad input) are outcomes; anything else raises, so that
     Ray retries the task."""
-    from numba import config as numba_config
-    from threadpoolctl import threadpool_limits
-
-    # Ray starts a worker per core it schedules on: each keeps to the cores its task holds.
-    numba_config.NUMBA_NUM_THREADS = threads  # type: ignore[attr-defined]
-
     if os.path.isdir(working_folder):  # the driver's, so that relative paths resolve as they do there
         os.chdir(working_folder)
-    # As in the command's main(): BLAS threads only add latency to our small linear algebra.
-    with threadpool_limits(limits=1, user_api="blas"):
+    # Ray starts a worker per core it schedules on: each keeps to the cores its task holds (and the BLAS
+    # limit ends with the task: the worker may run others' tasks next).
+    with limit_threads(threads):
         return replay_one(Path(path), config, out_dir=Path(out_dir), catch_unexpected=False)
 
 
@@ -174,7 +171,7 @@ def _outcome_of(ray: ModuleType, ref: Any, path: Path) -> BatchOutcome:
         cause = error.cause if isinstance(error.cause, BaseException) else error
         return dataclasses.replace(BatchOutcome.failure(path, cause, unexpected=True), traceback=str(error))
     except RayError as error:  # its worker died on every try (killed, out of memory) or its node was lost
-        return BatchOutcome(path, input_kind(path), error=f"Ray task failed: {one_line(error)}")
+        return BatchOutcome.crashed(path, "Ray task", error)
     return outcome
 
 
