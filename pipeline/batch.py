@@ -225,11 +225,10 @@ def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, worker
     outcomes: list[BatchOutcome | None] = [None] * len(inputs)
     pending = list(range(len(inputs)))
     for attempt in range(MAX_POOL_ATTEMPTS):
-        lost = _pool_round(inputs, pending, config, out_dir, workers, outcomes, on_done,
-                           last=attempt == MAX_POOL_ATTEMPTS - 1)
-        if not lost:
+        pending = _pool_round(inputs, pending, config, out_dir, workers, outcomes, on_done,
+                              last=attempt == MAX_POOL_ATTEMPTS - 1)
+        if not pending:
             break
-        pending = lost
     return [outcome for outcome in outcomes if outcome is not None]
 
 
@@ -310,10 +309,9 @@ def _stop_pool(pool: ProcessPoolExecutor, inputs: list[Path], out_dir: Path) -> 
 def _wait_until_gone(pids: Sequence[int], deadline: float) -> list[int]:
     """Wait until none of these processes runs any more, or until `deadline` (`time.monotonic`); the ones
     still running."""
-    running = [pid for pid in pids if _running(pid)]
-    while running and time.monotonic() < deadline:
+    running = list(pids)
+    while (running := [pid for pid in running if _running(pid)]) and time.monotonic() < deadline:
         time.sleep(0.01)
-        running = [pid for pid in running if _running(pid)]
     return running
 
 

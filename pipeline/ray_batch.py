@@ -137,13 +137,12 @@ def _run_tasks(ray: ModuleType, inputs: list[Path], config: ReplayConfig, out_di
     pending = list(index_of)
     try:
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            for ref in done:
-                index = index_of[ref]
-                outcome = _outcome_of(ray, ref, inputs[index])
-                outcomes[index] = outcome
-                if on_done is not None:
-                    on_done(outcome)
+            [ref], pending = ray.wait(pending, num_returns=1)  # the next task to finish
+            index = index_of[ref]
+            outcome = _outcome_of(ray, ref, inputs[index])
+            outcomes[index] = outcome
+            if on_done is not None:
+                on_done(outcome)
     except BaseException:
         _cancel(ray, pending)
         raise
@@ -166,13 +165,12 @@ def _outcome_of(ray: ModuleType, ref: Any, path: Path) -> BatchOutcome:
     from ray.exceptions import RayError, RayTaskError
 
     try:
-        outcome: BatchOutcome = ray.get(ref)
+        return ray.get(ref)
     except RayTaskError as error:  # it raised on every try: a bug, reported with the remote traceback
         cause = error.cause if isinstance(error.cause, BaseException) else error
         return dataclasses.replace(BatchOutcome.failure(path, cause, unexpected=True), traceback=str(error))
     except RayError as error:  # its worker died on every try (killed, out of memory) or its node was lost
         return BatchOutcome.crashed(path, "Ray task", error)
-    return outcome
 
 
 def _cancel(ray: ModuleType, pending: list[Any]) -> None:
