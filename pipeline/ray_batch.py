@@ -63,7 +63,6 @@ def run_batch_on_ray(
         import ray
     except ImportError as error:
         raise PipelineError(f"running on Ray needs the ray package: {RAY_INSTALL_HINT}") from error
-    stems = {output_stem(path) for path in inputs}
     started_here = _connect(ray, options.address)
     try:
         if started_here and options.address in (None, LOCAL_ADDRESS):
@@ -74,7 +73,7 @@ def run_batch_on_ray(
         if started_here:
             ray.shutdown()
         # A worker killed mid-task (and then retried, or cancelled by force) could not remove its temporaries.
-        remove_partial_outputs(out_dir, stems)
+        remove_partial_outputs(out_dir, {output_stem(path) for path in inputs})
 
 
 def _connect(ray: ModuleType, address: str | None) -> bool:
