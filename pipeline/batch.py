@@ -32,7 +32,6 @@ from pipeline.api import (
     DEFAULT_OUT_DIR,
     KNOWN_ERRORS,
     IterationCallback,
-    ReplayResult,
     ReplayStats,
     ScanCallback,
     input_kind,
@@ -51,7 +50,6 @@ from pipeline.warning_tally import with_notes
 
 if TYPE_CHECKING:  # multiprocessing and the process pool are imported only by a run of several inputs
     from concurrent.futures import Future, ProcessPoolExecutor
-    from multiprocessing.context import BaseContext
     from multiprocessing.process import BaseProcess
 
 OutcomeCallback = Callable[["BatchOutcome"], None]
@@ -78,16 +76,17 @@ class BatchOutcome:
         return self.error is None
 
     @classmethod
-    def from_result(cls, result: ReplayResult) -> BatchOutcome:
-        return cls(result.input_path, result.kind, result.stats, dict(result.summary), dict(result.outputs))
-
-    @classmethod
     def failure(cls, path: Path, error: BaseException, *, unexpected: bool = False) -> BatchOutcome:
         message = with_notes(error)
         if unexpected:
             message = f"internal error: {type(error).__name__}: {message}"
         trace = "".join(traceback.format_exception(error)) if unexpected else None
         return cls(path, input_kind(path), error=message, traceback=trace)
+
+    @classmethod
+    def crashed(cls, path: Path, where: str, error: BaseException) -> BatchOutcome:
+        """The input's `where` ("worker process", "Ray task") died, or its outcome could not come back."""
+        return cls(path, input_kind(path), error=f"{where} failed: {one_line(error)}")
 
     def to_json(self) -> dict[str, Any]:
         """The machine-readable form: the summary written to `<stem>.json` with `"ok": true`, or the
@@ -155,7 +154,8 @@ def run_one(
         if not catch_unexpected:
             raise
         return BatchOutcome.failure(path, error, unexpected=True)
-    return BatchOutcome.from_result(result)
+    return BatchOutcome(result.input_path, result.kind, result.stats, dict(result.summary),
+                        dict(result.outputs))
 
 
 def run_one_on_this_host(
@@ -225,11 +225,10 @@ def _run_in_pool(inputs: list[Path], config: ReplayConfig, out_dir: Path, worker
     outcomes: list[BatchOutcome | None] = [None] * len(inputs)
     pending = list(range(len(inputs)))
     for attempt in range(MAX_POOL_ATTEMPTS):
-        lost = _pool_round(inputs, pending, config, out_dir, workers, outcomes, on_done,
-                           last=attempt == MAX_POOL_ATTEMPTS - 1)
-        if not lost:
+        pending = _pool_round(inputs, pending, config, out_dir, workers, outcomes, on_done,
+                              last=attempt == MAX_POOL_ATTEMPTS - 1)
+        if not pending:
             break
-        pending = lost
     return [outcome for outcome in outcomes if outcome is not None]
 
 
@@ -242,6 +241,7 @@ def _pool_round(inputs: list[Path], indices: list[int], config: ReplayConfig, ou
                 last: bool) -> list[int]:
     """Run `inputs[indices]` in one pool, filling `outcomes`; the indices lost with a broken pool (failed
     instead on the `last` round)."""
+    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
 
@@ -249,10 +249,11 @@ def _pool_round(inputs: list[Path], indices: list[int], config: ReplayConfig, ou
 
     # numba's count (NUMBA_NUM_THREADS, else the cores), shared by the workers.
     threads = max(1, numba_config.NUMBA_NUM_THREADS // workers)  # type: ignore[attr-defined]
-    pool = ProcessPoolExecutor(max_workers=min(workers, len(indices)), mp_context=pool_context(),
+    method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(indices)),
+                               mp_context=multiprocessing.get_context(method),
                                initializer=_init_worker, initargs=(threads,))
-    lost: list[int] = []
-    broken: list[Path] = []
+    broken: list[int] = []
     try:
         futures: dict[Future[BatchOutcome], int] = {
             pool.submit(_run_in_worker, inputs[index], config, out_dir): index for index in indices
@@ -261,14 +262,12 @@ def _pool_round(inputs: list[Path], indices: list[int], config: ReplayConfig, ou
             index = futures[future]
             try:
                 outcome = future.result()
-            except BrokenProcessPool as error:
-                broken.append(inputs[index])
-                if not last:
-                    lost.append(index)
-                    continue
-                outcome = _worker_failure(inputs[index], error)
-            except Exception as error:  # the result did not pickle
-                outcome = _worker_failure(inputs[index], error)
+            except Exception as error:  # a dead worker broke the pool, or the result did not pickle
+                if isinstance(error, BrokenProcessPool):
+                    broken.append(index)
+                    if not last:
+                        continue
+                outcome = BatchOutcome.crashed(inputs[index], "worker process", error)
             outcomes[index] = outcome
             if on_done is not None:
                 on_done(outcome)
@@ -277,14 +276,10 @@ def _pool_round(inputs: list[Path], indices: list[int], config: ReplayConfig, ou
             _stop_pool(pool, inputs, out_dir)
         raise
     if broken:  # a dead worker may have left its staging folder and lock
-        _stop_pool(pool, broken, out_dir)
+        _stop_pool(pool, [inputs[index] for index in broken], out_dir)
     else:
         pool.shutdown(wait=True)
-    return sorted(lost)
-
-
-def _worker_failure(path: Path, error: BaseException) -> BatchOutcome:
-    return BatchOutcome(path, input_kind(path), error=f"worker process failed: {one_line(error)}")
+    return [] if last else sorted(broken)
 
 
 def _stop_pool(pool: ProcessPoolExecutor, inputs: list[Path], out_dir: Path) -> None:
@@ -314,10 +309,9 @@ def _stop_pool(pool: ProcessPoolExecutor, inputs: list[Path], out_dir: Path) -> 
 def _wait_until_gone(pids: Sequence[int], deadline: float) -> list[int]:
     """Wait until none of these processes runs any more, or until `deadline` (`time.monotonic`); the ones
     still running."""
-    running = [pid for pid in pids if _running(pid)]
-    while running and time.monotonic() < deadline:
+    running = list(pids)
+    while (running := [pid for pid in running if _running(pid)]) and time.monotonic() < deadline:
         time.sleep(0.01)
-        running = [pid for pid in running if _running(pid)]
     return running
 
 
@@ -343,18 +337,13 @@ def remove_partial_outputs(out_dir: Path, stems: set[str]) -> list[str]:
         names = os.listdir(out_dir)  # once, not once per stem: batches have thousands
     except OSError:
         return []
-    left_by = set()
-    for name in names:
-        match = _LEFT_BEHIND.fullmatch(name)
-        if match is not None and match.group("stem") in stems:
-            left_by.add(match.group("stem"))
+    matches = (_LEFT_BEHIND.fullmatch(name) for name in names)
+    left_by = {match["stem"] for match in matches if match is not None and match["stem"] in stems}
     cleaned = []
     for stem in sorted(left_by):
-        try:
+        with contextlib.suppress(PipelineError):  # still held by a live process (a worker Ray could not kill)
             recover_outputs(out_dir, stem)
-        except PipelineError:  # still held by a live process (a worker Ray could not kill): leave it
-            continue
-        cleaned.append(stem)
+            cleaned.append(stem)
     return cleaned
 
 
@@ -362,25 +351,23 @@ _LEFT_BEHIND = re.compile(r"\.(?P<stem>.+?)(\.staging-.*|\.lock)")
 
 
 def _pool_processes(pool: ProcessPoolExecutor) -> list[BaseProcess]:
-    """The pool's worker processes: the executor's own table where it has one, else this process's
-    children started by multiprocessing (the pool's workers are among them)."""
-    import multiprocessing
-
-    processes = getattr(pool, "_processes", None)
-    if isinstance(processes, dict):
-        return list(processes.values())
-    return multiprocessing.active_children()
+    """The pool's worker processes: the executor's own table (`ProcessPoolExecutor` keeps it, a broken
+    pool's too, until `shutdown`, which `_stop_pool` calls after reading it)."""
+    return list(pool._processes.values())
 
 
-def pool_context() -> BaseContext:
-    """forkserver where the platform has it (Linux), else spawn."""
-    import multiprocessing
+def limit_threads(threads: int) -> contextlib.AbstractContextManager[Any]:
+    """Keep a worker to its share of the cores: `threads` for our kernels (graph files' parsing, wide
+    scan-matching searches share their work by numba's count), and one for BLAS, whose threads only add
+    hand-off latency to our small linear algebra (as in the command's main()). The BLAS limit holds until
+    the returned limiter exits."""
+    from numba import config as numba_config
+    from threadpoolctl import threadpool_limits
 
-    method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
-    return multiprocessing.get_context(method)
+    numba_config.NUMBA_NUM_THREADS = threads  # type: ignore[attr-defined]
+    return threadpool_limits(limits=1, user_api="blas")
 
 
-_worker_limits: object | None = None
 _worker_replaying = False
 """Whether this worker is replaying an input now: a stop signal then unwinds it (staged outputs removed)
 rather than ending the process at once."""
@@ -390,17 +377,8 @@ SIGTERM) must not interrupt that clean-up."""
 
 
 def _init_worker(threads: int) -> None:
-    # As in the command's main(): BLAS threads only add hand-off latency to our small linear algebra, and
-    # several workers each spinning a thread per core would fight over the cores.
-    global _worker_limits
-    from numba import config as numba_config
-    from threadpoolctl import threadpool_limits
-
-    # The threads our kernels share work among (graph files' parsing, wide scan-matching searches) read
-    # numba's count: this worker's share of the parent's.
-    numba_config.NUMBA_NUM_THREADS = threads  # type: ignore[attr-defined]
-
-    _worker_limits = threadpool_limits(limits=1, user_api="blas")
+    # Several workers each spinning a thread per core would fight over the cores: each gets its share.
+    limit_threads(threads)  # for the worker's whole life
     install_stop_signals(_on_worker_stop_signal)
     from pipeline.launcher import arrow_without_pandas
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from pipeline.api import GRAPH_SUFFIXES
+from pipeline.api import GRAPH_SUFFIXES, input_kind
 from pipeline.errors import PipelineError
 
 INPUT_SUFFIXES = frozenset({".mcap", ".bag", ".db3", *GRAPH_SUFFIXES})
@@ -29,7 +29,7 @@ def batch_inputs(source: Path, *, exclude: Path | None = None) -> list[Path]:
 def read_input_list(path: Path) -> list[Path]:
     """The paths in a text file, one a line, blank lines and lines starting with `#` skipped. Relative paths
     are taken from the current folder, as they would be on the command line."""
-    if path.suffix.lower() in INPUT_SUFFIXES or _starts_like_a_graph(path):
+    if path.suffix.lower() in INPUT_SUFFIXES or input_kind(path) == "graph":  # by name, or by its first line
         raise PipelineError(f"{path}: a log or pose graph, not a list of inputs: name it as an input itself")
     try:
         text = path.read_text(encoding="utf-8-sig")  # (a byte-order mark, as Windows editors write)
@@ -38,12 +38,6 @@ def read_input_list(path: Path) -> list[Path]:
         raise PipelineError(f"{path}: cannot read the input list: {reason}") from error
     entries = (line.strip() for line in text.splitlines())
     return [Path(entry) for entry in entries if entry and not entry.startswith("#")]
-
-
-def _starts_like_a_graph(path: Path) -> bool:
-    from pipeline.api import input_kind
-
-    return path.is_file() and input_kind(path) == "graph"
 
 
 def find_inputs(directory: Path, *, exclude: Path | None = None) -> list[Path]:

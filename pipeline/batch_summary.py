@@ -35,11 +35,10 @@ def summary_row(outcome: BatchOutcome) -> dict[str, Any]:
     if stats is None:
         return row
     times = {stage: float(seconds) for stage, seconds in stats.wall_time_s.items()}
-    return {**row, "poses": stats.poses, "constraints": stats.constraints,
-            "loop_closures": stats.loop_closures, "loop_closures_rejected": stats.loop_closures_rejected,
-            "scans": stats.scans,
+    # The stats' fields are the columns of the same names (the table drops any other), some converted:
+    return {**row, **vars(stats),
             "chi2_initial": _finite(stats.chi2_initial), "chi2_final": _finite(stats.chi2_final),
-            "converged": bool(stats.converged), "stop_reason": stats.stop_reason,
+            "converged": bool(stats.converged),
             # Arrow maps are lists of (key, value) pairs
             "iterations": [(stage, int(count)) for stage, count in stats.iterations.items()],
             "wall_time_s": list(times.items()), "time_total_s": times.get("total")}

@@ -17,13 +17,15 @@ import socket
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from pipeline.api import input_kind
-from pipeline.batch import BatchOutcome, RayOptions, one_line, remove_partial_outputs, run_one_on_this_host
+from pipeline.batch import BatchOutcome, limit_threads, one_line, remove_partial_outputs, run_one_on_this_host
 from pipeline.config import ReplayConfig
 from pipeline.errors import PipelineError
 from pipeline.outputs import output_stem, prepare_output_dir
+
+if TYPE_CHECKING:
+    from pipeline.batch import RayOptions
 
 RAY_INSTALL_HINT = "pip install 'sgdslam[ray]' (from a checkout: pip install '.[ray]')"
 LOCAL_ADDRESS = "local"
@@ -61,7 +63,6 @@ def run_batch_on_ray(
         import ray
     except ImportError as error:
         raise PipelineError(f"running on Ray needs the ray package: {RAY_INSTALL_HINT}") from error
-    stems = {output_stem(path) for path in inputs}
     started_here = _connect(ray, options.address)
     try:
         if started_here and options.address in (None, LOCAL_ADDRESS):
@@ -72,7 +73,7 @@ def run_batch_on_ray(
         if started_here:
             ray.shutdown()
         # A worker killed mid-task (and then retried, or cancelled by force) could not remove its temporaries.
-        remove_partial_outputs(out_dir, stems)
+        remove_partial_outputs(out_dir, {output_stem(path) for path in inputs})
 
 
 def _connect(ray: ModuleType, address: str | None) -> bool:
@@ -135,13 +136,12 @@ def _run_tasks(ray: ModuleType, inputs: list[Path], config: ReplayConfig, out_di
     pending = list(index_of)
     try:
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            for ref in done:
-                index = index_of[ref]
-                outcome = _outcome_of(ray, ref, inputs[index])
-                outcomes[index] = outcome
-                if on_done is not None:
-                    on_done(outcome)
+            [ref], pending = ray.wait(pending, num_returns=1)  # the next task to finish
+            index = index_of[ref]
+            outcome = _outcome_of(ray, ref, inputs[index])
+            outcomes[index] = outcome
+            if on_done is not None:
+                on_done(outcome)
     except BaseException:
         _cancel(ray, pending)
         raise
@@ -152,16 +152,11 @@ def _replay_task(path: str, config: ReplayConfig, out_dir: str, working_folder: 
                  replay_one: ReplayOne, threads: int) -> BatchOutcome:
     """One input, in a Ray worker. Our own errors (bad input) are outcomes; anything else raises, so that
     Ray retries the task."""
-    from numba import config as numba_config
-    from threadpoolctl import threadpool_limits
-
-    # Ray starts a worker per core it schedules on: each keeps to the cores its task holds.
-    numba_config.NUMBA_NUM_THREADS = threads  # type: ignore[attr-defined]
-
     if os.path.isdir(working_folder):  # the driver's, so that relative paths resolve as they do there
         os.chdir(working_folder)
-    # As in the command's main(): BLAS threads only add latency to our small linear algebra.
-    with threadpool_limits(limits=1, user_api="blas"):
+    # Ray starts a worker per core it schedules on: each keeps to the cores its task holds (and the BLAS
+    # limit ends with the task: the worker may run others' tasks next).
+    with limit_threads(threads):
         return replay_one(Path(path), config, out_dir=Path(out_dir), catch_unexpected=False)
 
 
@@ -169,13 +164,12 @@ def _outcome_of(ray: ModuleType, ref: Any, path: Path) -> BatchOutcome:
     from ray.exceptions import RayError, RayTaskError
 
     try:
-        outcome: BatchOutcome = ray.get(ref)
+        return ray.get(ref)
     except RayTaskError as error:  # it raised on every try: a bug, reported with the remote traceback
         cause = error.cause if isinstance(error.cause, BaseException) else error
         return dataclasses.replace(BatchOutcome.failure(path, cause, unexpected=True), traceback=str(error))
     except RayError as error:  # its worker died on every try (killed, out of memory) or its node was lost
-        return BatchOutcome(path, input_kind(path), error=f"Ray task failed: {one_line(error)}")
-    return outcome
+        return BatchOutcome.crashed(path, "Ray task", error)
 
 
 def _cancel(ray: ModuleType, pending: list[Any]) -> None:
