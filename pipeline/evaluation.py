@@ -51,10 +51,6 @@ class Relations:
     motion: FloatArray
 
     def __post_init__(self) -> None:
-        count = len(self.first_ns)
-        if self.first_ns.shape != (count,) or self.second_ns.shape != (count,) \
-                or self.motion.shape != (count, 3):
-            raise ValueError("Relations needs first_ns (R,), second_ns (R,) and motion (R,3)")
         for array in (self.first_ns, self.second_ns, self.motion):
             array.flags.writeable = False
 
