@@ -58,7 +58,7 @@ class ReplayOutputs:
 
     def paths(self) -> dict[str, Path]:
         """Kind ("g2o", "json", "rrd") → path, as the log replay's outputs give them."""
-        return {"g2o": self.g2o, "json": self.json, "rrd": self.rrd}
+        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,6 +147,7 @@ def replay_graph(
     outputs = ReplayOutputs.for_input(out_dir, path)
     staged = staged_outputs_in(out_dir, *outputs.paths().values(), inputs=(path,))
     with staged as (g2o_temporary, json_temporary, rrd_temporary):
+        recording_started = time.perf_counter()
         run = _optimize_and_record(graph_file, rrd_temporary, method, iterations, progress, robust)
         optimized = time.perf_counter()
         write_g2o(g2o_temporary, graph_file.graph, run.final_poses)
@@ -165,7 +166,8 @@ def replay_graph(
             wall_time={
                 "load": loaded - started,
                 "optimize": sum(run.optimize_time.values()),
-                "record": run.record_seconds,
+                # Creating, framing and closing the recording count as recording too.
+                "record": optimized - recording_started - sum(run.optimize_time.values()),
                 "write": finished - optimized,
                 "total": finished - started,
             },
@@ -185,9 +187,7 @@ class RecordedOptimization:
     final_poses: NDArray[np.float64]
     result: OptimizationResult
     optimize_time: dict[str, float]
-    """Seconds spent inside the optimizer, per optimizer stage."""
-    record_seconds: float
-    """Seconds outside the optimizer: logging to the recording and the `on_iteration` callback."""
+    """Seconds spent inside the optimizer, per optimizer stage (the rest of the time is the recording's)."""
 
 
 def optimization_recorder(stream: Any, graph: PoseGraph, initial_poses: NDArray[np.float64], *,
@@ -215,7 +215,6 @@ def record_optimization(optimization: Optimization, recorder: recording.Iteratio
     passing it to `on_iteration`, timing the optimizer apart from the rest. `on_final` gets the final
     poses as soon as the last iteration is known, before the recorder and the sinks are flushed. Poses
     before `first_recorded` are left out of all of it (and of the final poses): a held map's origin."""
-    started = time.perf_counter()
     trace: list[IterationRecord] = []
     optimize_time: dict[str, float] = {}
     final_poses = None
@@ -243,8 +242,7 @@ def record_optimization(optimization: Optimization, recorder: recording.Iteratio
     recorder.flush()
     for sink in sinks:
         sink.flush()
-    record_seconds = time.perf_counter() - started - sum(optimize_time.values())
-    return RecordedOptimization(tuple(trace), final, optimization.result, optimize_time, record_seconds)
+    return RecordedOptimization(tuple(trace), final, optimization.result, optimize_time)
 
 
 def _optimize_and_record(
@@ -257,7 +255,6 @@ def _optimize_and_record(
 ) -> RecordedOptimization:
     """Run the optimizer and log every iteration to a recording saved at `rrd_path`."""
     graph = graph_file.graph
-    started = time.perf_counter()
     stream = recording.create_recording(rrd_path, name=graph_file.path.stem)
     try:
         recording.log_run_properties(stream, {
@@ -275,9 +272,7 @@ def _optimize_and_record(
         recording.send_blueprint(stream, recording.default_blueprint(bounds=bounds))
     finally:
         recording.close_recording(stream)
-    # Creating, framing and closing the recording count as recording too.
-    record_seconds = time.perf_counter() - started - sum(run.optimize_time.values())
-    return dataclasses.replace(run, record_seconds=record_seconds)
+    return run
 
 
 def summary(result: GraphReplayResult) -> dict[str, Any]:
