@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from optimizer.graph import PoseGraph
 from optimizer.graph_files import GraphFile, read_graph, write_g2o
-from optimizer.iteration import ESTIMATE, Iteration
+from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, Optimization, OptimizationResult, optimize
 from pipeline import recording
 from pipeline.errors import PipelineError
@@ -33,14 +33,15 @@ SUMMARY_SCHEMA = "sgdslam.replay-graph/2"
 
 @dataclass(frozen=True)
 class IterationRecord:
-    """χ² after one iteration; `step` is its position on the recording's `iteration` timeline."""
+    """χ² after one iteration; `step` is its position on the recording's `iteration` timeline. The fields
+    in the order of the summary's `chi2_per_iteration` entries."""
 
     step: int
+    start: str
+    """The starting estimate (candidate) the iteration belongs to."""
     stage: str
     index: int
     chi2: float
-    start: str = ESTIMATE
-    """The starting estimate (candidate) the iteration belongs to."""
 
 
 @dataclass(frozen=True)
@@ -231,8 +232,8 @@ def record_optimization(optimization: Optimization, recorder: recording.Iteratio
         step = recorder.add(iteration)
         for sink in sinks:
             sink.add(step, iteration)
-        trace.append(IterationRecord(step, iteration.stage, iteration.index, float(iteration.chi2),
-                                     iteration.start))
+        trace.append(IterationRecord(step, iteration.start, iteration.stage, iteration.index,
+                                     float(iteration.chi2)))
         final_poses = iteration.poses
         if on_iteration is not None:
             on_iteration(iteration)
@@ -293,11 +294,7 @@ def summary(result: GraphReplayResult) -> dict[str, Any]:
         "chi2_initial": result.initial_chi2,
         "chi2_final": result.final_chi2,
         **optimization_summary(result.optimization),
-        "chi2_per_iteration": [
-            {"step": record.step, "start": record.start, "stage": record.stage, "index": record.index,
-             "chi2": record.chi2}
-            for record in result.iterations
-        ],
+        "chi2_per_iteration": [dataclasses.asdict(record) for record in result.iterations],
         "wall_time_s": dict(result.wall_time),
         "optimize_time_s": dict(result.optimize_time),
         "outputs": {kind: str(path) for kind, path in result.outputs.paths().items()},
