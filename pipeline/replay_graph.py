@@ -219,13 +219,9 @@ def record_optimization(optimization: Optimization, recorder: recording.Iteratio
     trace: list[IterationRecord] = []
     optimize_time: dict[str, float] = {}
     final_poses = None
-    iterator = iter(optimization)
-    while True:
-        step_started = time.perf_counter()
-        iteration = next(iterator, None)
-        if iteration is None:
-            break
-        stage_seconds = time.perf_counter() - step_started
+    step_started = time.perf_counter()
+    for iteration in optimization:
+        stage_seconds = time.perf_counter() - step_started  # the optimizer's time to yield it
         if first_recorded:
             iteration = dataclasses.replace(iteration, poses=iteration.poses[first_recorded:])
         optimize_time[iteration.stage] = optimize_time.get(iteration.stage, 0.0) + stage_seconds
@@ -237,6 +233,7 @@ def record_optimization(optimization: Optimization, recorder: recording.Iteratio
         final_poses = iteration.poses
         if on_iteration is not None:
             on_iteration(iteration)
+        step_started = time.perf_counter()
     final = np.array(final_poses, dtype=np.float64)
     if on_final is not None and final_poses is not None:
         on_final(final)
