@@ -27,7 +27,8 @@ IntArray = NDArray[np.int64]
 
 TUM_HEADER = "# timestamp tx ty tz qx qy qz qw"
 _INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
-_DECIMAL = re.compile(r"([+-]?)(\d*)(?:\.(\d*))?(?:[eE]([+-]?\d+))?")
+# Decimal seconds, with a digit before or right after the point (the lookahead): "5.", ".5", "1.3e9".
+_DECIMAL = re.compile(r"[+-]?(?=\.?\d)\d*(?:\.\d*)?(?:[eE][+-]?\d+)?")
 _NANOSECOND = Decimal("1e-9")
 
 
@@ -76,8 +77,7 @@ def parse_stamp_ns(text: str) -> int:
     """Integer nanoseconds of a decimal number of seconds ("90.239599", "1.3e9", "-0.5"), computed on the
     digits, never through a float. Digits beyond the nanosecond round to the nearest (ties to even), as
     for files written from float seconds. Raises ValueError on anything else or outside int64."""
-    match = _DECIMAL.fullmatch(text)  # what Decimal would also take (nan, inf, 1_000) is no stamp
-    if match is None or not (match[2] or match[3]):
+    if _DECIMAL.fullmatch(text) is None:  # what Decimal would also take (nan, inf, 1_000) is no stamp
         raise ValueError(f"not a decimal number of seconds: {text!r}")
     try:  # Decimal rounds exactly: the input as written, to the nanosecond
         value = int(Decimal(text).quantize(_NANOSECOND, ROUND_HALF_EVEN).scaleb(9))
