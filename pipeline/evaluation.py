@@ -102,6 +102,7 @@ def read_relations(path: str | Path) -> Relations:
 
 
 def _planar(values: list[float]) -> None:
+    """`read_relations`' check of a row's values (x y z roll pitch yaw): z, roll and pitch are 0."""
     if any(abs(value) > _PLANAR_TOLERANCE for value in values[2:5]):
         raise ValueError("a 3D relation (z, roll or pitch not 0): only planar relations are supported")
 

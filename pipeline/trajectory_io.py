@@ -220,6 +220,7 @@ def read_tum(path: str | Path) -> Trajectory:
 
 
 def _nonzero_quaternion(values: list[float]) -> None:
+    """`read_tum`'s check of a row's values (tx ty tz qx qy qz qw): a zero quaternion is no rotation."""
     if not any(values[3:]):
         raise ValueError("the quaternion is zero")
 
