@@ -51,10 +51,6 @@ class Relations:
     motion: FloatArray
 
     def __post_init__(self) -> None:
-        count = len(self.first_ns)
-        if self.first_ns.shape != (count,) or self.second_ns.shape != (count,) \
-                or self.motion.shape != (count, 3):
-            raise ValueError("Relations needs first_ns (R,), second_ns (R,) and motion (R,3)")
         for array in (self.first_ns, self.second_ns, self.motion):
             array.flags.writeable = False
 
@@ -97,19 +93,18 @@ def read_relations(path: str | Path) -> Relations:
     stamps are parsed exactly to nanoseconds. Only planar relations are accepted (z = roll = pitch = 0):
     the metric here is the 2D one. Raises `RelationsFileError` naming `file:line`, or the file when empty.
     """
-    rows = read_rows(path, RelationsFileError, stamp_columns=2,
-                     value_names=("x", "y", "z", "roll", "pitch", "yaw"),
-                     layout="'t1 t2 x y z roll pitch yaw'",
-                     nothing="no relations (expected lines 't1 t2 x y z roll pitch yaw')")
-    values = rows.values
-    not_planar = np.flatnonzero(np.any(np.abs(values[:, 2:5]) > _PLANAR_TOLERANCE, axis=1))
-    if len(not_planar):
-        raise RelationsFileError(
-            path, "a 3D relation (z, roll or pitch not 0): only planar relations are supported",
-            int(rows.lines[not_planar[0]]),
-        )
-    first, second = rows.stamps_ns[:, 0].copy(), rows.stamps_ns[:, 1].copy()
-    return Relations(first, second, values[:, [0, 1, 5]].copy())
+    stamps, values = read_rows(path, RelationsFileError, stamp_columns=2,
+                               value_names=("x", "y", "z", "roll", "pitch", "yaw"),
+                               layout="'t1 t2 x y z roll pitch yaw'",
+                               nothing="no relations (expected lines 't1 t2 x y z roll pitch yaw')",
+                               check=_planar)
+    return Relations(stamps[:, 0].copy(), stamps[:, 1].copy(), values[:, [0, 1, 5]].copy())
+
+
+def _planar(values: list[float]) -> None:
+    """`read_relations`' check of a row's values (x y z roll pitch yaw): z, roll and pitch are 0."""
+    if any(abs(value) > _PLANAR_TOLERANCE for value in values[2:5]):
+        raise ValueError("a 3D relation (z, roll or pitch not 0): only planar relations are supported")
 
 
 def relations_error(

@@ -29,20 +29,15 @@ SCALE_BAR_LENGTHS_M = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0
 """A scale bar is the longest of these that fits in a fifth of the picture's width."""
 
 
-def map_server_image(grid: OccupancyGrid) -> NDArray[np.uint8]:
-    """The grid as map_saver's trinary picture: rows top to bottom (north up)."""
+def map_server_pgm(grid: OccupancyGrid) -> bytes:
+    """The grid as map_saver's trinary picture, a binary (P5) PGM: rows top to bottom (north up)."""
+    from PIL import Image
+
     picture = np.full(grid.log_odds.shape, UNKNOWN_VALUE, dtype=np.uint8)
     picture[grid.free_cells()] = FREE_VALUE
     picture[grid.occupied_cells()] = OCCUPIED_VALUE
-    return picture[::-1]
-
-
-def map_server_pgm(grid: OccupancyGrid) -> bytes:
-    """The binary (P5) PGM of `map_server_image`."""
-    from PIL import Image
-
     buffer = io.BytesIO()
-    Image.fromarray(map_server_image(grid), mode="L").save(buffer, format="PPM")  # mode L → P5
+    Image.fromarray(picture[::-1], mode="L").save(buffer, format="PPM")  # mode L → P5
     return buffer.getvalue()
 
 

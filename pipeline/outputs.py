@@ -284,12 +284,9 @@ def _output_lock(directory: Path, stem: str) -> Iterator[None]:
                 raise OutputError(f"{directory}: another replay is writing the {stem} outputs there now; "
                                   "wait for it or choose another --out folder") from None
             raise OutputError(f"{path}: cannot lock: {error.strerror or error}") from error
-        try:
-            same = os.path.samestat(os.fstat(descriptor), os.stat(path))
-        except FileNotFoundError:
-            same = False
-        if same:
-            break
+        with contextlib.suppress(FileNotFoundError):
+            if os.path.samestat(os.fstat(descriptor), os.stat(path)):
+                break
         os.close(descriptor)
     try:
         yield

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from optimizer.graph import PoseGraph
 from optimizer.graph_files import GraphFile, read_graph, write_g2o
-from optimizer.iteration import ESTIMATE, Iteration
+from optimizer.iteration import Iteration
 from optimizer.solve import DEFAULT_METHOD, METHODS, Optimization, OptimizationResult, optimize
 from pipeline import recording
 from pipeline.errors import PipelineError
@@ -33,14 +33,15 @@ SUMMARY_SCHEMA = "sgdslam.replay-graph/2"
 
 @dataclass(frozen=True)
 class IterationRecord:
-    """χ² after one iteration; `step` is its position on the recording's `iteration` timeline."""
+    """χ² after one iteration; `step` is its position on the recording's `iteration` timeline. The fields
+    in the order of the summary's `chi2_per_iteration` entries."""
 
     step: int
+    start: str
+    """The starting estimate (candidate) the iteration belongs to."""
     stage: str
     index: int
     chi2: float
-    start: str = ESTIMATE
-    """The starting estimate (candidate) the iteration belongs to."""
 
 
 @dataclass(frozen=True)
@@ -58,7 +59,7 @@ class ReplayOutputs:
 
     def paths(self) -> dict[str, Path]:
         """Kind ("g2o", "json", "rrd") → path, as the log replay's outputs give them."""
-        return {"g2o": self.g2o, "json": self.json, "rrd": self.rrd}
+        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,6 +148,7 @@ def replay_graph(
     outputs = ReplayOutputs.for_input(out_dir, path)
     staged = staged_outputs_in(out_dir, *outputs.paths().values(), inputs=(path,))
     with staged as (g2o_temporary, json_temporary, rrd_temporary):
+        recording_started = time.perf_counter()
         run = _optimize_and_record(graph_file, rrd_temporary, method, iterations, progress, robust)
         optimized = time.perf_counter()
         write_g2o(g2o_temporary, graph_file.graph, run.final_poses)
@@ -165,7 +167,8 @@ def replay_graph(
             wall_time={
                 "load": loaded - started,
                 "optimize": sum(run.optimize_time.values()),
-                "record": run.record_seconds,
+                # Creating, framing and closing the recording count as recording too.
+                "record": optimized - recording_started - sum(run.optimize_time.values()),
                 "write": finished - optimized,
                 "total": finished - started,
             },
@@ -185,9 +188,7 @@ class RecordedOptimization:
     final_poses: NDArray[np.float64]
     result: OptimizationResult
     optimize_time: dict[str, float]
-    """Seconds spent inside the optimizer, per optimizer stage."""
-    record_seconds: float
-    """Seconds outside the optimizer: logging to the recording and the `on_iteration` callback."""
+    """Seconds spent inside the optimizer, per optimizer stage (the rest of the time is the recording's)."""
 
 
 def optimization_recorder(stream: Any, graph: PoseGraph, initial_poses: NDArray[np.float64], *,
@@ -215,36 +216,31 @@ def record_optimization(optimization: Optimization, recorder: recording.Iteratio
     passing it to `on_iteration`, timing the optimizer apart from the rest. `on_final` gets the final
     poses as soon as the last iteration is known, before the recorder and the sinks are flushed. Poses
     before `first_recorded` are left out of all of it (and of the final poses): a held map's origin."""
-    started = time.perf_counter()
     trace: list[IterationRecord] = []
     optimize_time: dict[str, float] = {}
     final_poses = None
-    iterator = iter(optimization)
-    while True:
-        step_started = time.perf_counter()
-        iteration = next(iterator, None)
-        if iteration is None:
-            break
-        stage_seconds = time.perf_counter() - step_started
+    step_started = time.perf_counter()
+    for iteration in optimization:
+        stage_seconds = time.perf_counter() - step_started  # the optimizer's time to yield it
         if first_recorded:
             iteration = dataclasses.replace(iteration, poses=iteration.poses[first_recorded:])
         optimize_time[iteration.stage] = optimize_time.get(iteration.stage, 0.0) + stage_seconds
         step = recorder.add(iteration)
         for sink in sinks:
             sink.add(step, iteration)
-        trace.append(IterationRecord(step, iteration.stage, iteration.index, float(iteration.chi2),
-                                     iteration.start))
+        trace.append(IterationRecord(step, iteration.start, iteration.stage, iteration.index,
+                                     float(iteration.chi2)))
         final_poses = iteration.poses
         if on_iteration is not None:
             on_iteration(iteration)
+        step_started = time.perf_counter()
     final = np.array(final_poses, dtype=np.float64)
     if on_final is not None and final_poses is not None:
         on_final(final)
     recorder.flush()
     for sink in sinks:
         sink.flush()
-    record_seconds = time.perf_counter() - started - sum(optimize_time.values())
-    return RecordedOptimization(tuple(trace), final, optimization.result, optimize_time, record_seconds)
+    return RecordedOptimization(tuple(trace), final, optimization.result, optimize_time)
 
 
 def _optimize_and_record(
@@ -257,7 +253,6 @@ def _optimize_and_record(
 ) -> RecordedOptimization:
     """Run the optimizer and log every iteration to a recording saved at `rrd_path`."""
     graph = graph_file.graph
-    started = time.perf_counter()
     stream = recording.create_recording(rrd_path, name=graph_file.path.stem)
     try:
         recording.log_run_properties(stream, {
@@ -275,9 +270,7 @@ def _optimize_and_record(
         recording.send_blueprint(stream, recording.default_blueprint(bounds=bounds))
     finally:
         recording.close_recording(stream)
-    # Creating, framing and closing the recording count as recording too.
-    record_seconds = time.perf_counter() - started - sum(run.optimize_time.values())
-    return dataclasses.replace(run, record_seconds=record_seconds)
+    return run
 
 
 def summary(result: GraphReplayResult) -> dict[str, Any]:
@@ -298,11 +291,7 @@ def summary(result: GraphReplayResult) -> dict[str, Any]:
         "chi2_initial": result.initial_chi2,
         "chi2_final": result.final_chi2,
         **optimization_summary(result.optimization),
-        "chi2_per_iteration": [
-            {"step": record.step, "start": record.start, "stage": record.stage, "index": record.index,
-             "chi2": record.chi2}
-            for record in result.iterations
-        ],
+        "chi2_per_iteration": [dataclasses.asdict(record) for record in result.iterations],
         "wall_time_s": dict(result.wall_time),
         "optimize_time_s": dict(result.optimize_time),
         "outputs": {kind: str(path) for kind, path in result.outputs.paths().items()},

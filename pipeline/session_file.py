@@ -132,9 +132,8 @@ def read_session(path: str | Path) -> SessionContent:
         with warnings.catch_warnings():
             warnings.simplefilter("error", LogWarning)  # a damaged session is refused, not half read
             container = McapContainer(path)
-            channels = {channel.id: channel for channel in container.channels()}
-            messages = [(channels[m.channel.id].topic, m.log_time_ns, bytes(m.data))
-                        for m in container.messages(set(channels))]
+            messages = [(m.channel.topic, m.log_time_ns, bytes(m.data))
+                        for m in container.messages({channel.id for channel in container.channels()})]
     except (FrontendError, LogWarning) as error:
         raise SessionError(f"{path}: not a readable session file: {_reason(error, path)}") from error
     except OSError as error:

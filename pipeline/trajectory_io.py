@@ -9,7 +9,9 @@ Pose numbers are written with 17 significant digits, which a float64 reads back 
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
+from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +26,10 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 TUM_HEADER = "# timestamp tx ty tz qx qy qz qw"
-NS_PER_S = 10**9
 _INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
-_DECIMAL = re.compile(r"([+-]?)(\d*)(?:\.(\d*))?(?:[eE]([+-]?\d+))?")
+# Decimal seconds, with a digit before or right after the point (the lookahead): "5.", ".5", "1.3e9".
+_DECIMAL = re.compile(r"[+-]?(?=\.?\d)\d*(?:\.\d*)?(?:[eE][+-]?\d+)?")
+_NANOSECOND = Decimal("1e-9")
 
 
 class DataFileError(FileLineError, PipelineError):
@@ -47,13 +50,6 @@ class Trajectory:
     quaternions: FloatArray
 
     def __post_init__(self) -> None:
-        count = len(self.stamps_ns)
-        if (
-            self.stamps_ns.shape != (count,)
-            or self.positions.shape != (count, 3)
-            or self.quaternions.shape != (count, 4)
-        ):
-            raise ValueError("Trajectory needs stamps_ns (S,), positions (S,3) and quaternions (S,4)")
         for array in (self.stamps_ns, self.positions, self.quaternions):
             array.flags.writeable = False
 
@@ -74,36 +70,19 @@ class Trajectory:
 def format_stamp_ns(stamp_ns: int) -> str:
     """Decimal seconds with exactly nine digits after the point: 1700000000123456789 ns →
     "1700000000.123456789"."""
-    stamp_ns = int(stamp_ns)
-    sign = "-" if stamp_ns < 0 else ""
-    seconds, nanoseconds = divmod(abs(stamp_ns), NS_PER_S)
-    return f"{sign}{seconds}.{nanoseconds:09d}"
+    return f"{Decimal(int(stamp_ns)).scaleb(-9):.9f}"  # exact: 19 digits fit a decimal context's 28
 
 
 def parse_stamp_ns(text: str) -> int:
     """Integer nanoseconds of a decimal number of seconds ("90.239599", "1.3e9", "-0.5"), computed on the
     digits, never through a float. Digits beyond the nanosecond round to the nearest (ties to even), as
     for files written from float seconds. Raises ValueError on anything else or outside int64."""
-    match = _DECIMAL.fullmatch(text)
-    if match is None or not (match[2] or match[3]):
+    if _DECIMAL.fullmatch(text) is None:  # what Decimal would also take (nan, inf, 1_000) is no stamp
         raise ValueError(f"not a decimal number of seconds: {text!r}")
-    sign, whole, fraction, exponent_text = match[1], match[2], match[3] or "", match[4]
-    digits = (whole + fraction).lstrip("0")
-    # The value in nanoseconds is digits · 10^exponent.
-    exponent = (int(exponent_text) if exponent_text else 0) + 9 - len(fraction)
-    if not digits:
-        return 0
-    if len(digits) + exponent > 20:  # at least 10^19 ns: beyond int64, and keeps 10**exponent small
-        raise ValueError(f"timestamp out of range: {text}")
-    if exponent >= 0:
-        value = int(digits) * 10**exponent
-    elif -exponent > len(digits):  # below 0.1 ns
-        value = 0
-    else:
-        quotient, remainder = divmod(int(digits), 10**-exponent)
-        half = 10**-exponent // 2  # 10^k is even for k ≥ 1, so exactly half is remainder == half
-        value = quotient + (remainder > half or (remainder == half and quotient % 2 == 1))
-    value = -value if sign == "-" else value
+    try:  # Decimal rounds exactly: the input as written, to the nanosecond
+        value = int(Decimal(text).quantize(_NANOSECOND, ROUND_HALF_EVEN).scaleb(9))
+    except InvalidOperation:  # more digits than a decimal context holds: far beyond int64
+        raise ValueError(f"timestamp out of range: {text}") from None
     if not _INT64_MIN <= value <= _INT64_MAX:
         raise ValueError(f"timestamp out of range: {text}")
     return value
@@ -144,12 +123,9 @@ def tum_rows(poses: ArrayLike) -> FloatArray:
     if poses.ndim == 2 and poses.shape[1] == 7:
         return poses
     if poses.ndim == 2 and poses.shape[1] == 3:
-        rows = np.zeros((len(poses), 7))
-        rows[:, :2] = poses[:, :2]
-        half = 0.5 * poses[:, 2]
-        rows[:, 5] = np.sin(half)
-        rows[:, 6] = np.cos(half)
-        return rows
+        from frontends.logs.rotations import from_yaw  # lazy: the log readers take seconds to import
+
+        return np.column_stack((poses[:, :2], np.zeros(len(poses)), from_yaw(poses[:, 2])))
     if poses.ndim == 3 and poses.shape[1:] == (4, 4):
         rows = np.empty((len(poses), 7))
         rows[:, :3] = poses[:, :3, 3]
@@ -171,30 +147,6 @@ MAX_DATA_FILE_BYTES = 256 << 20
 """Largest trajectory or relations file read (a TUM line is under 200 bytes: over a million poses)."""
 
 
-def read_data_lines(path: Path, error: type[DataFileError]) -> list[tuple[int, list[str]]]:
-    """The non-blank lines of a text file split on whitespace, with their 1-based numbers; `#` starts a
-    comment (whole-line or trailing). Raises `error` naming the file when it cannot be read."""
-    try:
-        data = read_bytes_bounded(path, MAX_DATA_FILE_BYTES)
-    except FileNotFoundError:
-        raise error(path, "no such file") from None
-    except IsADirectoryError:
-        raise error(path, "is a folder, not a file") from None
-    except OSError as exc:
-        raise error(path, f"cannot read the file: {exc.strerror or exc}") from exc
-    try:
-        text = data.decode("utf-8-sig")  # tolerate a byte-order mark
-    except UnicodeDecodeError as exc:
-        raise error(path, "not UTF-8 text", data[: exc.start].count(b"\n") + 1) from None
-    rows = []
-    # split("\n"), not splitlines(): line numbers must agree with editors (no splitting on \f, \x1c, …).
-    for number, line in enumerate(text.split("\n"), start=1):
-        fields = line.split("#", 1)[0].split()
-        if fields:
-            rows.append((number, fields))
-    return rows
-
-
 def parse_floats(fields: list[str], names: tuple[str, ...]) -> list[float]:
     """Finite floats of text fields, or ValueError naming the field at fault."""
     values = []
@@ -209,38 +161,48 @@ def parse_floats(fields: list[str], names: tuple[str, ...]) -> list[float]:
     return values
 
 
-@dataclass(frozen=True)
-class DataRows:
-    """The rows of a data file: the 1-based `lines` they stand on, their stamps (R, stamp columns) in
-    exact nanoseconds, and their other fields (R, value columns) as finite floats."""
-
-    lines: IntArray
-    stamps_ns: IntArray
-    values: FloatArray
-
-
 def read_rows(path: str | Path, error: type[DataFileError], *, stamp_columns: int,
-              value_names: tuple[str, ...], layout: str, nothing: str) -> DataRows:
-    """Read a whitespace-separated data file (`#` comments) whose every line holds `stamp_columns` stamps,
-    then the values named `value_names`. Raises `error` naming `file:line` for a malformed line (wrong
-    field count, described by `layout`; a stamp or number that does not parse or is not finite), and
-    naming the file, with `nothing`, when it holds no row."""
+              value_names: tuple[str, ...], layout: str, nothing: str,
+              check: Callable[[list[float]], None] | None = None) -> tuple[IntArray, FloatArray]:
+    """The stamps (R, `stamp_columns`) in exact nanoseconds and the values (R, values named `value_names`)
+    as finite floats of a whitespace-separated data file, one row per non-blank line (`#` starts a
+    comment, whole-line or trailing). Raises `error` naming the file when it cannot be read or, with
+    `nothing`, holds no row; naming `file:line` for a malformed line: a wrong field count (described by
+    `layout`), a stamp or number that does not parse or is not finite, values `check` refuses (ValueError).
+    """
     path = Path(path)
-    lines = read_data_lines(path, error)
-    if not lines:
-        raise error(path, nothing)
+    try:
+        data = read_bytes_bounded(path, MAX_DATA_FILE_BYTES)
+    except FileNotFoundError:
+        raise error(path, "no such file") from None
+    except IsADirectoryError:
+        raise error(path, "is a folder, not a file") from None
+    except OSError as exc:
+        raise error(path, f"cannot read the file: {exc.strerror or exc}") from exc
+    try:
+        text = data.decode("utf-8-sig")  # tolerate a byte-order mark
+    except UnicodeDecodeError as exc:
+        raise error(path, "not UTF-8 text", data[: exc.start].count(b"\n") + 1) from None
     width = stamp_columns + len(value_names)
-    stamps = np.empty((len(lines), stamp_columns), dtype=np.int64)
-    values = np.empty((len(lines), len(value_names)))
-    for index, (number, fields) in enumerate(lines):
+    stamps: list[list[int]] = []
+    values: list[list[float]] = []
+    # split("\n"), not splitlines(): line numbers must agree with editors (no splitting on \f, \x1c, …).
+    for number, line in enumerate(text.split("\n"), start=1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
         if len(fields) != width:
             raise error(path, f"expected {width} fields {layout}, found {len(fields)}", number)
         try:
-            stamps[index] = [parse_stamp_ns(text) for text in fields[:stamp_columns]]
-            values[index] = parse_floats(fields[stamp_columns:], value_names)
+            stamps.append([parse_stamp_ns(field) for field in fields[:stamp_columns]])
+            values.append(parse_floats(fields[stamp_columns:], value_names))
+            if check is not None:
+                check(values[-1])
         except ValueError as exc:
             raise error(path, str(exc), number) from None
-    return DataRows(np.array([number for number, _ in lines], dtype=np.int64), stamps, values)
+    if not values:
+        raise error(path, nothing)
+    return np.array(stamps, dtype=np.int64), np.array(values)
 
 
 def read_tum(path: str | Path) -> Trajectory:
@@ -249,15 +211,18 @@ def read_tum(path: str | Path) -> Trajectory:
     Raises `TrajectoryFileError` naming `file:line` for a malformed line (wrong field count, a number that
     does not parse or is not finite, a zero quaternion) and naming the file when it holds no pose.
     """
-    rows = read_rows(path, TrajectoryFileError, stamp_columns=1,
-                     value_names=("tx", "ty", "tz", "qx", "qy", "qz", "qw"),
-                     layout="'timestamp tx ty tz qx qy qz qw'",
-                     nothing="no poses (expected lines 'timestamp tx ty tz qx qy qz qw')")
-    values = rows.values
-    zero = np.flatnonzero(~np.any(values[:, 3:] != 0.0, axis=1))
-    if len(zero):
-        raise TrajectoryFileError(path, "the quaternion is zero", int(rows.lines[zero[0]]))
-    return Trajectory(rows.stamps_ns[:, 0].copy(), values[:, :3].copy(), values[:, 3:].copy())
+    stamps, values = read_rows(path, TrajectoryFileError, stamp_columns=1,
+                               value_names=("tx", "ty", "tz", "qx", "qy", "qz", "qw"),
+                               layout="'timestamp tx ty tz qx qy qz qw'",
+                               nothing="no poses (expected lines 'timestamp tx ty tz qx qy qz qw')",
+                               check=_nonzero_quaternion)
+    return Trajectory(stamps[:, 0].copy(), values[:, :3].copy(), values[:, 3:].copy())
+
+
+def _nonzero_quaternion(values: list[float]) -> None:
+    """`read_tum`'s check of a row's values (tx ty tz qx qy qz qw): a zero quaternion is no rotation."""
+    if not any(values[3:]):
+        raise ValueError("the quaternion is zero")
 
 
 def write_kitti_poses(path: str | Path, transforms: ArrayLike) -> None:
@@ -278,12 +243,12 @@ def write_kitti_poses(path: str | Path, transforms: ArrayLike) -> None:
 def read_kitti_poses(path: str | Path) -> FloatArray:
     """(S, 4, 4) poses of a KITTI-format file (12 numbers a line, `#` comments tolerated). Raises
     `TrajectoryFileError` naming `file:line` for a malformed line, and the file when it holds no pose."""
-    rows = read_rows(path, TrajectoryFileError, stamp_columns=0,
-                     value_names=("r11", "r12", "r13", "tx", "r21", "r22", "r23", "ty", "r31", "r32", "r33",
-                                  "tz"),
-                     layout="(a 3×4 matrix)",
-                     nothing="no poses (expected lines of 12 numbers: a 3×4 matrix row-major)")
-    out = np.zeros((len(rows.values), 4, 4))
+    _, rows = read_rows(path, TrajectoryFileError, stamp_columns=0,
+                        value_names=("r11", "r12", "r13", "tx", "r21", "r22", "r23", "ty", "r31", "r32",
+                                     "r33", "tz"),
+                        layout="(a 3×4 matrix)",
+                        nothing="no poses (expected lines of 12 numbers: a 3×4 matrix row-major)")
+    out = np.zeros((len(rows), 4, 4))
     out[:, 3, 3] = 1.0
-    out[:, :3, :] = rows.values.reshape(-1, 3, 4)
+    out[:, :3, :] = rows.reshape(-1, 3, 4)
     return out
