@@ -85,6 +85,13 @@ class ReplayGroup(TyperGroup):
             args = _with_ray_address(args)
         return super().parse_args(ctx, args)
 
+    def invoke(self, ctx: typer.Context) -> Any:  # type: ignore[override]
+        # Every command's own errors (bad input, unwritable outputs) end it in one line, not a traceback.
+        try:
+            return super().invoke(ctx)
+        except KNOWN_ERRORS as error:
+            _fail(error)
+
 
 _RAY_OPTION = "--ray"
 _RAY_ADDRESS = re.compile(r"auto|local|(ray://)?[\w.\-\[\]:]+:\d+")
@@ -271,11 +278,7 @@ def run(
                  for section, values in options.items()}
     from pipeline.config import config_from_mapping, load_config
 
-    try:
-        config = (config_from_mapping(overrides) if config_file is None
-                  else load_config(config_file, overrides))
-    except KNOWN_ERRORS as error:
-        _fail(error)
+    config = config_from_mapping(overrides) if config_file is None else load_config(config_file, overrides)
     if dump_config:
         typer.echo(config.to_toml(), nl=False)
         return
@@ -285,8 +288,8 @@ def run(
                                        several=inputs_from is not None or ray_address is not None)
     ray = _ray_options(ray_address, cpus_per_task, retries, jobs)
     for key in overrides["optimizer"] if map_session is not None else ():
-        _fail(PipelineError(f"{_option(key)} has nothing to optimize with --map (localization only: the "
-                            "saved map is not changed)"))
+        raise PipelineError(f"{_option(key)} has nothing to optimize with --map (localization only: the "
+                            "saved map is not changed)")
     if inputs_from is not None:
         sources += _listed_inputs(inputs_from, out)
     _refuse_options_without_use(sources, overrides["input"])
@@ -294,10 +297,7 @@ def run(
 
     with sample_log() if not sources else contextlib.nullcontext() as sample:
         inputs = sources or ([sample] if sample is not None else [])
-        try:
-            refuse_clashing_outputs(inputs, out)
-        except PipelineError as error:
-            _fail(error)
+        refuse_clashing_outputs(inputs, out)
         several = len(inputs) > 1 or inputs_from is not None
         outcomes = _run_inputs(inputs, config, out, jobs=jobs, ray=ray, several=several, quiet=quiet,
                                replay_options=session_options)
@@ -334,10 +334,10 @@ def _refuse_options_without_use(sources: Sequence[Path], input_options: dict[str
     `input_options`: the [input] keys given as options."""
     kinds = {input_kind(path) for path in sources} if sources else {"log"}  # no input: the sample log
     if "graph" not in kinds and "repair_information" in input_options:
-        _fail(PipelineError("--repair-information applies to pose-graph inputs only, and no input is one"))
+        raise PipelineError("--repair-information applies to pose-graph inputs only, and no input is one")
     if "log" not in kinds:
         for key in (key for key in input_options if key != "repair_information"):
-            _fail(PipelineError(f"{_option(key)} applies to logs only, and every input is a pose graph"))
+            raise PipelineError(f"{_option(key)} applies to logs only, and every input is a pose graph")
 
 
 _NUMBER = r"\s*[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\s*"
@@ -350,18 +350,18 @@ def _session_options(map_session: Path | None, continue_session: Path | None, in
     """The `replay` keyword arguments of --map / --continue / --initial-pose ({} without them); a misuse
     ends the command in one line."""
     if map_session is not None and continue_session is not None:
-        _fail(PipelineError("--map (localize in a saved map) and --continue (map on from it) exclude each "
-                            "other: choose one"))
+        raise PipelineError("--map (localize in a saved map) and --continue (map on from it) exclude each "
+                            "other: choose one")
     if initial_pose is not None and map_session is None:
-        _fail(PipelineError("--initial-pose applies to --map only (where the log starts in the saved map)"))
+        raise PipelineError("--initial-pose applies to --map only (where the log starts in the saved map)")
     session = map_session if map_session is not None else continue_session
     if session is None:
         return {}
     option = "--map" if map_session is not None else "--continue"
     if several or len(sources) != 1:
-        _fail(PipelineError(f"{option} takes exactly one log (INPUT), not a batch or the bundled sample"))
+        raise PipelineError(f"{option} takes exactly one log (INPUT), not a batch or the bundled sample")
     if input_kind(sources[0]) == "graph":
-        _fail(PipelineError(f"{option} applies to logs; {sources[0]} is a pose graph"))
+        raise PipelineError(f"{option} applies to logs; {sources[0]} is a pose graph")
     if map_session is None:
         return {"continue_from": session}
     if initial_pose is None:
@@ -369,8 +369,8 @@ def _session_options(map_session: Path | None, continue_session: Path | None, in
     matched = _INITIAL_POSE.fullmatch(initial_pose)
     x, y, yaw = (float(value) for value in matched.groups()) if matched else (math.inf,) * 3
     if not all(math.isfinite(value) for value in (x, y, yaw)):
-        _fail(PipelineError(f"--initial-pose wants x,y,yaw (metres, metres, radians: three numbers "
-                            f"separated by commas), not {initial_pose!r}"))
+        raise PipelineError(f"--initial-pose wants x,y,yaw (metres, metres, radians: three numbers "
+                            f"separated by commas), not {initial_pose!r}")
     return {"map": session, "initial_pose": (x, y, yaw)}
 
 
@@ -394,13 +394,10 @@ def _ray_options(address: str | None, cpus_per_task: float | None, retries: int 
 def _listed_inputs(source: Path, out: Path) -> list[Path]:
     from pipeline.batch_inputs import batch_inputs
 
-    try:
-        listed = batch_inputs(source, exclude=out)
-    except KNOWN_ERRORS as error:
-        _fail(error)
+    listed = batch_inputs(source, exclude=out)
     if not listed:
         what = "no logs or pose graphs in the folder" if source.is_dir() else "the list names no input"
-        _fail(PipelineError(f"{source}: {what}"))
+        raise PipelineError(f"{source}: {what}")
     return listed
 
 
@@ -441,10 +438,7 @@ def _run_inputs(inputs: Sequence[Path], config: ReplayConfig, out: Path, *, jobs
     warm_up = interactive and not pooled and any(input_kind(path) == "log" for path in inputs)
     with _python_warnings_off(), _progress_display(interactive, bars) as display, warming_up(warm_up):
         if pooled:
-            try:
-                return run_batch(inputs, config, out_dir=out, jobs=jobs, ray=ray, on_done=display.finished)
-            except KNOWN_ERRORS as error:
-                _fail(error)
+            return run_batch(inputs, config, out_dir=out, jobs=jobs, ray=ray, on_done=display.finished)
         outcomes = []
         for path in inputs:
             with display.watch(path, config) as (on_scan, on_iteration):
@@ -727,12 +721,8 @@ def info(
     if is_session_file(log):
         _session_info(log, as_json)
         return
-    tally = WarningTally(log)
-    try:
-        with tallied_warnings(tally), open_log(log) as reader:
-            summary = reader.info()
-    except KNOWN_ERRORS as error:
-        _fail(error)
+    with tallied_warnings(WarningTally(log)) as tally, open_log(log) as reader:
+        summary = reader.info()
     for line in warning_lines(PROGRAM, log, tally.as_json()):  # (a truncated log: what is left is listed)
         typer.echo(line, err=True)
     if as_json:
@@ -757,10 +747,7 @@ def info(
 def _session_info(path: Path, as_json: bool) -> None:
     from pipeline.session_file import SENSOR_WORDS, describe_session
 
-    try:
-        described = describe_session(path)
-    except KNOWN_ERRORS as error:
-        _fail(error)
+    described = describe_session(path)
     if as_json:
         typer.echo(json.dumps(described))
         return
@@ -818,10 +805,7 @@ def evaluate(
     if not math.isfinite(tolerance_ms):
         raise typer.BadParameter("must be finite", param_hint="--tolerance-ms")
     tolerance_ns = round(tolerance_ms * 1e6)
-    try:
-        result = evaluate_files(trajectory, relations, tolerance_ns=tolerance_ns)
-    except PipelineError as error:
-        _fail(error)
+    result = evaluate_files(trajectory, relations, tolerance_ns=tolerance_ns)
     if as_json:
         typer.echo(json.dumps({"trajectory": str(trajectory), "relations": str(relations),
                                "tolerance_ns": tolerance_ns, **result.summary()}))
