@@ -36,18 +36,24 @@ from typer.core import TyperCommand, TyperGroup
 from optimizer.robust import KERNELS
 from optimizer.solve import DEFAULT_ITERATIONS, MAX_ITERATIONS, METHODS
 from optimizer.warmup import warming_up
-from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, input_kind
+from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, expected_scans, input_kind
+from pipeline.batch import BatchOutcome, RayOptions, refuse_clashing_outputs
+from pipeline.batch_inputs import batch_inputs
+from pipeline.batch_summary import BATCH_SUMMARY_NAME, write_batch_summary
 from pipeline.bundled import SAMPLE_DESCRIPTION, sample_log
+from pipeline.config import ReplayConfig, config_from_mapping, load_config
 from pipeline.errors import PipelineError
 from pipeline.evaluation import DEFAULT_TOLERANCE_NS, RelationsResult, evaluate_files
+from pipeline.launcher import arrow_without_pandas
+from pipeline.outputs import install_stop_signals, json_text, raised_by_interrupt
+from pipeline.session_file import SENSOR_WORDS, describe_session, is_session_file
+from pipeline.warning_tally import WarningTally, tallied_warnings, warning_lines
 
 if TYPE_CHECKING:
     from rich.progress import Progress, TaskID
 
     from frontends.protocol import Estimate
     from optimizer.iteration import Iteration
-    from pipeline.batch import BatchOutcome, RayOptions
-    from pipeline.config import ReplayConfig
 
 PROGRAM = "replay"
 DEFAULT_COMMAND = "run"
@@ -276,8 +282,6 @@ def run(
                   "repair_information": repair_information or None}}
     overrides = {section: {key: value for key, value in values.items() if value is not None}
                  for section, values in options.items()}
-    from pipeline.config import config_from_mapping, load_config
-
     config = config_from_mapping(overrides) if config_file is None else load_config(config_file, overrides)
     if dump_config:
         typer.echo(config.to_toml(), nl=False)
@@ -293,8 +297,6 @@ def run(
     if inputs_from is not None:
         sources += _listed_inputs(inputs_from, out)
     _refuse_options_without_use(sources, overrides["input"])
-    from pipeline.batch import refuse_clashing_outputs
-
     with sample_log() if not sources else contextlib.nullcontext() as sample:
         inputs = sources or ([sample] if sample is not None else [])
         refuse_clashing_outputs(inputs, out)
@@ -347,38 +349,32 @@ _INITIAL_POSE = re.compile(",".join([f"({_NUMBER})"] * 3))
 
 def _session_options(map_session: Path | None, continue_session: Path | None, initial_pose: str | None,
                      sources: Sequence[Path], *, several: bool) -> dict[str, Any]:
-    """The `replay` keyword arguments of --map / --continue / --initial-pose ({} without them); a misuse
-    ends the command in one line."""
+    """The `replay` keyword arguments of --map / --continue / --initial-pose (None when not given); raises
+    `PipelineError` on a misuse."""
     if map_session is not None and continue_session is not None:
         raise PipelineError("--map (localize in a saved map) and --continue (map on from it) exclude each "
                             "other: choose one")
     if initial_pose is not None and map_session is None:
         raise PipelineError("--initial-pose applies to --map only (where the log starts in the saved map)")
-    session = map_session if map_session is not None else continue_session
-    if session is None:
-        return {}
-    option = "--map" if map_session is not None else "--continue"
-    if several or len(sources) != 1:
-        raise PipelineError(f"{option} takes exactly one log (INPUT), not a batch or the bundled sample")
-    if input_kind(sources[0]) == "graph":
-        raise PipelineError(f"{option} applies to logs; {sources[0]} is a pose graph")
-    if map_session is None:
-        return {"continue_from": session}
-    if initial_pose is None:
-        return {"map": session}
-    matched = _INITIAL_POSE.fullmatch(initial_pose)
-    x, y, yaw = (float(value) for value in matched.groups()) if matched else (math.inf,) * 3
-    if not all(math.isfinite(value) for value in (x, y, yaw)):
-        raise PipelineError(f"--initial-pose wants x,y,yaw (metres, metres, radians: three numbers "
-                            f"separated by commas), not {initial_pose!r}")
-    return {"map": session, "initial_pose": (x, y, yaw)}
+    if map_session is not None or continue_session is not None:
+        option = "--map" if map_session is not None else "--continue"
+        if several or len(sources) != 1:
+            raise PipelineError(f"{option} takes exactly one log (INPUT), not a batch or the bundled sample")
+        if input_kind(sources[0]) == "graph":
+            raise PipelineError(f"{option} applies to logs; {sources[0]} is a pose graph")
+    pose = None
+    if initial_pose is not None:
+        matched = _INITIAL_POSE.fullmatch(initial_pose)
+        pose = tuple(float(value) for value in matched.groups()) if matched else None
+        if pose is None or not all(math.isfinite(value) for value in pose):
+            raise PipelineError(f"--initial-pose wants x,y,yaw (metres, metres, radians: three numbers "
+                                f"separated by commas), not {initial_pose!r}")
+    return {"map": map_session, "continue_from": continue_session, "initial_pose": pose}
 
 
 def _ray_options(address: str | None, cpus_per_task: float | None, retries: int | None,
                  jobs: int) -> RayOptions | None:
     """The Ray settings of the command line, None without --ray (where its options are refused)."""
-    from pipeline.batch import RayOptions
-
     if address is None:
         if cpus_per_task is not None or retries is not None:
             option = "--cpus-per-task" if cpus_per_task is not None else "--retries"
@@ -392,8 +388,6 @@ def _ray_options(address: str | None, cpus_per_task: float | None, retries: int 
 
 
 def _listed_inputs(source: Path, out: Path) -> list[Path]:
-    from pipeline.batch_inputs import batch_inputs
-
     listed = batch_inputs(source, exclude=out)
     if not listed:
         what = "no logs or pose graphs in the folder" if source.is_dir() else "the list names no input"
@@ -404,8 +398,6 @@ def _listed_inputs(source: Path, out: Path) -> list[Path]:
 def _write_batch_summary(out: Path, outcomes: Sequence[BatchOutcome]) -> tuple[Path | None, Exception | None]:
     """Write `batch_summary.parquet` in `out`: its path, or None and the error (reported after the
     outcomes)."""
-    from pipeline.batch_summary import BATCH_SUMMARY_NAME, write_batch_summary
-
     try:
         return write_batch_summary(out / BATCH_SUMMARY_NAME, outcomes), None
     except KNOWN_ERRORS as error:
@@ -427,7 +419,6 @@ def _run_inputs(inputs: Sequence[Path], config: ReplayConfig, out: Path, *, jobs
     progress: then a single input's bug keeps its traceback; among several, it becomes that input's
     failure so the others still run. `replay_options`: a session's (`_session_options`)."""
     from pipeline.batch import run_batch, run_one, with_this_host
-    from pipeline.launcher import arrow_without_pandas
 
     arrow_without_pandas()
     pooled = ray is not None or (jobs > 1 and len(inputs) > 1)
@@ -456,8 +447,7 @@ def _python_warnings_off() -> Iterator[None]:
     previous = os.environ.get("PYTHONWARNINGS")
     os.environ["PYTHONWARNINGS"] = "ignore"  # inherited by the worker processes started meanwhile
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with warnings.catch_warnings(action="ignore"):
             yield
     finally:
         if previous is None:
@@ -473,19 +463,12 @@ def _progress_display(enabled: bool, inputs: int) -> Iterator[_ProgressDisplay]:
     if not enabled:
         yield _ProgressDisplay(None, inputs)
         return
+    from rich import progress as bars
     from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        SpinnerColumn,
-        TextColumn,
-        TimeElapsedColumn,
-    )
 
-    columns = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-               TimeElapsedColumn(), TextColumn("{task.fields[info]}"))
-    with Progress(*columns, console=Console(stderr=True), transient=True) as progress:
+    columns = (bars.SpinnerColumn(), bars.TextColumn("{task.description}"), bars.BarColumn(),
+               bars.MofNCompleteColumn(), bars.TimeElapsedColumn(), bars.TextColumn("{task.fields[info]}"))
+    with bars.Progress(*columns, console=Console(stderr=True), transient=True) as progress:
         yield _ProgressDisplay(progress, inputs)
 
 
@@ -510,8 +493,6 @@ class _ProgressDisplay:
         if progress is None:
             yield None, None
             return
-        from pipeline.api import expected_scans
-
         name = path.name
         log = input_kind(path) == "log"
         first_task = progress.add_task(
@@ -519,6 +500,8 @@ class _ProgressDisplay:
             total=expected_scans(path, config.input.scan_topic) if log else None, info="")
         loops = 0
         stage_tasks: dict[str, TaskID] = {}
+        iterations = config.optimizer.iterations
+        known_length = DEFAULT_ITERATIONS if iterations is None else iterations  # of sgd and gauss-seidel
 
         def on_scan(estimate: Estimate) -> None:
             nonlocal loops
@@ -532,9 +515,7 @@ class _ProgressDisplay:
                 progress.update(first_task, visible=log)
                 return
             if stage not in stage_tasks:
-                iterations = config.optimizer.iterations
-                total = ((DEFAULT_ITERATIONS if iterations is None else iterations)
-                         if stage in _STAGES_WITH_KNOWN_LENGTH else None)
+                total = known_length if stage in _STAGES_WITH_KNOWN_LENGTH else None
                 stage_tasks[stage] = progress.add_task(f"{name}: {stage}", info="", total=total)
             progress.update(stage_tasks[stage], completed=iteration.index, info=f"chi2 {iteration.chi2:.6g}")
 
@@ -557,15 +538,11 @@ def _report(outcomes: Sequence[BatchOutcome], *, quiet: bool, as_json: bool,
             summary_path: Path | None = None) -> None:
     """Errors (always), warnings and the summary on stderr (unless --quiet), JSON on stdout (--json)."""
     if not quiet:
-        from pipeline.warning_tally import warning_lines
-
         for outcome in outcomes:
             tally = (outcome.summary or {}).get("warnings", [])
             for line in warning_lines(PROGRAM, outcome.input_path, tally):
                 typer.echo(line, err=True)
     if as_json:
-        from pipeline.outputs import json_text
-
         data = [outcome.to_json() for outcome in outcomes]
         typer.echo(json_text(data[0] if len(data) == 1 else data), nl=False)
     if len(outcomes) > 1:
@@ -715,8 +692,6 @@ def info(
 ) -> None:
     """Show a log's topics, message types, counts, rates and time span, or what a session holds."""
     from frontends.logs import open_log
-    from pipeline.session_file import is_session_file
-    from pipeline.warning_tally import WarningTally, tallied_warnings, warning_lines
 
     if is_session_file(log):
         _session_info(log, as_json)
@@ -745,8 +720,6 @@ def info(
 
 
 def _session_info(path: Path, as_json: bool) -> None:
-    from pipeline.session_file import SENSOR_WORDS, describe_session
-
     described = describe_session(path)
     if as_json:
         typer.echo(json.dumps(described))
@@ -828,8 +801,6 @@ def _relations_table(result: RelationsResult, title: str) -> str:
 def main() -> NoReturn:
     """Console-script entry point."""
     from threadpoolctl import threadpool_limits
-
-    from pipeline.outputs import install_stop_signals, raised_by_interrupt
 
     # Our linear algebra is many small vectors and 3×3 blocks: BLAS threads only add hand-off latency,
     # and on a busy machine their spinning made one 10k-element dot product take 8 ms instead of 5 µs.
