@@ -43,7 +43,7 @@ from pipeline.batch_summary import BATCH_SUMMARY_NAME, write_batch_summary
 from pipeline.bundled import SAMPLE_DESCRIPTION, sample_log
 from pipeline.config import ReplayConfig, config_from_mapping, load_config
 from pipeline.errors import PipelineError
-from pipeline.evaluation import DEFAULT_TOLERANCE_NS, RelationsResult, evaluate_files
+from pipeline.evaluation import DEFAULT_TOLERANCE_NS, evaluate_files
 from pipeline.launcher import arrow_without_pandas
 from pipeline.outputs import install_stop_signals, json_text, raised_by_interrupt
 from pipeline.session_file import SENSOR_WORDS, describe_session, is_session_file
@@ -295,15 +295,19 @@ def run(
         raise PipelineError(f"{_option(key)} has nothing to optimize with --map (localization only: the "
                             "saved map is not changed)")
     if inputs_from is not None:
-        sources += _listed_inputs(inputs_from, out)
+        listed = batch_inputs(inputs_from, exclude=out)
+        if not listed:
+            what = ("no logs or pose graphs in the folder" if inputs_from.is_dir()
+                    else "the list names no input")
+            raise PipelineError(f"{inputs_from}: {what}")
+        sources += listed
     _refuse_options_without_use(sources, overrides["input"])
     with sample_log() if not sources else contextlib.nullcontext() as sample:
         inputs = sources or ([sample] if sample is not None else [])
         refuse_clashing_outputs(inputs, out)
-        several = len(inputs) > 1 or inputs_from is not None
-        outcomes = _run_inputs(inputs, config, out, jobs=jobs, ray=ray, several=several, quiet=quiet,
+        batch = len(inputs) > 1 or inputs_from is not None or ray is not None
+        outcomes = _run_inputs(inputs, config, out, jobs=jobs, ray=ray, batch=batch, quiet=quiet,
                                replay_options=session_options)
-    batch = several or ray is not None
     summary_path, summary_error = _write_batch_summary(out, outcomes) if batch else (None, None)
     _report(outcomes, quiet=quiet, as_json=as_json, summary_path=summary_path)
     if summary_error is not None:
@@ -316,12 +320,12 @@ def _exit_for(outcomes: Sequence[BatchOutcome], *, quiet: bool, allow_unconverge
     `allow_unconverged`."""
     if not all(outcome.ok for outcome in outcomes):
         raise typer.Exit(EXIT_ERROR)
-    unconverged = [outcome for outcome in outcomes if outcome.stats and not outcome.stats.converged]
-    for outcome in unconverged if not (quiet and allow_unconverged) else []:
-        assert outcome.stats is not None
-        advice = "" if allow_unconverged else "; --allow-unconverged accepts this"
-        typer.echo(f"{PROGRAM}: not converged: {outcome.input_path}: {outcome.stats.stop_reason} "
-                   f"(outputs written with \"converged\": false{advice})", err=True)
+    unconverged = [(outcome.input_path, outcome.stats.stop_reason) for outcome in outcomes
+                   if outcome.stats and not outcome.stats.converged]
+    advice = "" if allow_unconverged else "; --allow-unconverged accepts this"
+    for path, reason in unconverged if not (quiet and allow_unconverged) else []:
+        typer.echo(f"{PROGRAM}: not converged: {path}: {reason} (outputs written with \"converged\": "
+                   f"false{advice})", err=True)
     if unconverged and not allow_unconverged:
         raise typer.Exit(EXIT_UNCONVERGED)
 
@@ -387,14 +391,6 @@ def _ray_options(address: str | None, cpus_per_task: float | None, retries: int 
                       retries=1 if retries is None else retries)
 
 
-def _listed_inputs(source: Path, out: Path) -> list[Path]:
-    listed = batch_inputs(source, exclude=out)
-    if not listed:
-        what = "no logs or pose graphs in the folder" if source.is_dir() else "the list names no input"
-        raise PipelineError(f"{source}: {what}")
-    return listed
-
-
 def _write_batch_summary(out: Path, outcomes: Sequence[BatchOutcome]) -> tuple[Path | None, Exception | None]:
     """Write `batch_summary.parquet` in `out`: its path, or None and the error (reported after the
     outcomes)."""
@@ -414,19 +410,19 @@ def _fail(error: BaseException) -> NoReturn:
 
 
 def _run_inputs(inputs: Sequence[Path], config: ReplayConfig, out: Path, *, jobs: int, ray: RayOptions | None,
-                several: bool, quiet: bool, replay_options: dict[str, Any]) -> list[BatchOutcome]:
+                batch: bool, quiet: bool, replay_options: dict[str, Any]) -> list[BatchOutcome]:
     """Worker processes (`jobs`) or Ray tasks (`ray`), else one input after another here with live
-    progress: then a single input's bug keeps its traceback; among several, it becomes that input's
+    progress: then a single input's bug keeps its traceback; in a `batch`, it becomes that input's
     failure so the others still run. `replay_options`: a session's (`_session_options`)."""
     from pipeline.batch import run_batch, run_one, with_this_host
 
     arrow_without_pandas()
     pooled = ray is not None or (jobs > 1 and len(inputs) > 1)
-    bars = len(inputs) if several or pooled else 0
     interactive = not quiet and sys.stderr.isatty()
     # Someone watching a log's replay on a fresh install waits for its kernels to compile: the optimizer's
     # compile on the other core meanwhile (`optimizer.warmup`); batches and scripts don't need it.
     warm_up = interactive and not pooled and any(input_kind(path) == "log" for path in inputs)
+    bars = len(inputs) if batch else 0  # (a bar counting the finished inputs)
     with _python_warnings_off(), _progress_display(interactive, bars) as display, warming_up(warm_up):
         if pooled:
             return run_batch(inputs, config, out_dir=out, jobs=jobs, ray=ray, on_done=display.finished)
@@ -434,8 +430,8 @@ def _run_inputs(inputs: Sequence[Path], config: ReplayConfig, out: Path, *, jobs
         for path in inputs:
             with display.watch(path, config) as (on_scan, on_iteration):
                 outcome = run_one(path, config, out_dir=out, on_scan=on_scan, on_iteration=on_iteration,
-                                  catch_unexpected=several, replay_options=replay_options)
-            outcomes.append(with_this_host(outcome) if several else outcome)
+                                  catch_unexpected=batch, replay_options=replay_options)
+            outcomes.append(with_this_host(outcome) if batch else outcome)
             display.finished(outcomes[-1])
     return outcomes
 
@@ -562,6 +558,7 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     stats, summary = outcome.stats, outcome.summary
     assert stats is not None and summary is not None
     name = outcome.input_path.name
+    counts = summary.get("counts", {})
     if summary.get("mode") == "map":
         found = summary["localization"]
         first_fix = found["first_fix_after_s"]
@@ -578,7 +575,6 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
             + f"; median match score {_or_dash(found['score']['median'])}, "
               f"inliers {_or_dash(found['inlier_fraction']['median'])}",
         ]
-        counts = summary.get("counts", {})
         if counts.get("held_map_used"):
             lines.append(f"  trajectory: the run's own keyframe graph ({counts['held_map_keyframes']} "
                          f"keyframes, {counts['held_map_old_new_constraints']} constraints to the saved "
@@ -595,14 +591,11 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     else:
         lines = [f"{name}: {stats.poses} poses, {stats.constraints} constraints ({stats.loop_closures} loop "
                  f"closures), method {summary['method']}"]
-        skipped = summary.get("skipped_lines") or {}
-        if skipped:
-            counts = ", ".join(f"{count} {tag}" for tag, count in sorted(skipped.items()))
-            lines.append(f"  skipped lines: {counts}")
-        repaired = summary.get("repaired_information_lines") or []
-        if repaired:
+        if skipped := summary.get("skipped_lines"):
+            tags = ", ".join(f"{count} {tag}" for tag, count in sorted(skipped.items()))
+            lines.append(f"  skipped lines: {tags}")
+        if repaired := summary.get("repaired_information_lines"):
             lines.append(f"  repaired the information of {len(repaired)} constraints")
-    counts = summary.get("counts", {})
     if counts.get("scans_between"):
         interval = summary.get("config", {}).get("matching", {}).get("min_match_interval")
         lines.append(f"  {counts['scans_between']} scans posed between matched ones (the laser scans more "
@@ -617,7 +610,7 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
             deskewing = "deskewed"
         lines.append(f"  {timed} scans with beam times (time_increment): {deskewing}")
     if summary.get("mode") == "continue":
-        counts, placement = summary["counts"], summary["session"]["placement"]
+        placement = summary["session"]["placement"]
         lines.append(f"  continued {summary['session']['continued_from']}: {counts['session_keyframes']} "
                      f"keyframes and {counts['session_scans']} scans of it; placed in it at scan "
                      f"{placement.get('scan')}, {counts['scans_unplaced']} scans before that left out; "
@@ -639,18 +632,18 @@ def _or_dash(value: float | None) -> str:
 
 
 def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None = None) -> None:
-    from rich.table import Table
+    from rich.console import Console
+    from rich.table import Column, Table
 
     failed = sum(not outcome.ok for outcome in outcomes)
-    table = Table(title=f"{len(outcomes)} inputs, {len(outcomes) - failed} done, {failed} failed",
-                  title_justify="left", caption=None if summary_path is None else f"table: {summary_path}",
-                  caption_justify="left")
     # A path cut short ("…") cannot be found again: the input column always holds whole paths, the
     # other columns fold instead.
-    table.add_column("input", no_wrap=True, min_width=max(len(str(o.input_path)) for o in outcomes))
-    table.add_column("result", overflow="fold")
-    for column in ("poses", "loops", "chi2 initial -> final", "time s"):
-        table.add_column(column, justify="right")
+    numbers = ("poses", "loops", "chi2 initial -> final", "time s")
+    columns = [Column("input", no_wrap=True, min_width=max(len(str(o.input_path)) for o in outcomes)),
+               Column("result", overflow="fold"), *(Column(name, justify="right") for name in numbers)]
+    table = Table(*columns, title=f"{len(outcomes)} inputs, {len(outcomes) - failed} done, {failed} failed",
+                  title_justify="left", caption=None if summary_path is None else f"table: {summary_path}",
+                  caption_justify="left")
     for outcome in outcomes:
         stats = outcome.stats
         if stats is None:
@@ -660,8 +653,6 @@ def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None = N
                       str(stats.poses), str(stats.loop_closures),
                       f"{stats.chi2_initial:.4g} -> {stats.chi2_final:.4g}",
                       f"{stats.wall_time_s.get('total', math.nan):.2f}")
-    from rich.console import Console
-
     # Not a terminal (a pipe, a file, a test): wide enough that paths and messages stay on their lines.
     Console(stderr=True, width=None if sys.stderr.isatty() else 200).print(table)
 
@@ -704,10 +695,8 @@ def info(
         typer.echo(json.dumps(summary.to_json_dict()))
         return
     duration = summary.duration_s
-    lines = [
-        f"{summary.path}: {summary.container}, {summary.message_count} messages over {duration:.2f} s "
-        f"({summary.start_ns * 1e-9:.3f} to {summary.end_ns * 1e-9:.3f})",
-    ]
+    lines = [f"{summary.path}: {summary.container}, {summary.message_count} messages over {duration:.2f} s "
+             f"({summary.start_ns * 1e-9:.3f} to {summary.end_ns * 1e-9:.3f})"]
     width = max((len(topic.name) for topic in summary.topics), default=5)
     type_width = max((len(topic.type) for topic in summary.topics), default=4)
     for topic in summary.topics:
@@ -782,20 +771,15 @@ def evaluate(
     if as_json:
         typer.echo(json.dumps({"trajectory": str(trajectory), "relations": str(relations),
                                "tolerance_ns": tolerance_ns, **result.summary()}))
-    else:
-        typer.echo(_relations_table(result, f"{trajectory.name} against {relations.name} "
-                                            f"(tolerance {tolerance_ms:g} ms)"))
-
-
-def _relations_table(result: RelationsResult, title: str) -> str:
-    return "\n".join([
-        title,
+        return
+    typer.echo("\n".join([
+        f"{trajectory.name} against {relations.name} (tolerance {tolerance_ms:g} ms)",
         f"  relations     {result.count} scored, {result.unmatched} unmatched",
         f"  translation   {result.translation_mean:.4f} ± {result.translation_std:.4f} m",
         f"  rotation      {result.rotation_mean_deg:.3f} ± {result.rotation_std_deg:.3f} deg",
         f"  translation²  {result.translation_squared_mean:.4g} ± {result.translation_squared_std:.4g} m²",
         f"  rotation²     {result.rotation_squared_mean:.4g} ± {result.rotation_squared_std:.4g} deg²",
-    ])
+    ]))
 
 
 def main() -> NoReturn:
