@@ -302,8 +302,8 @@ def run(
             raise PipelineError(f"{inputs_from}: {what}")
         sources += listed
     _refuse_options_without_use(sources, overrides["input"])
-    with sample_log() if not sources else contextlib.nullcontext() as sample:
-        inputs = sources or ([sample] if sample is not None else [])
+    with contextlib.ExitStack() as stack:
+        inputs = sources or [stack.enter_context(sample_log())]  # no input: the bundled sample
         refuse_clashing_outputs(inputs, out)
         batch = len(inputs) > 1 or inputs_from is not None or ray is not None
         outcomes = _run_inputs(inputs, config, out, jobs=jobs, ray=ray, batch=batch, quiet=quiet,
