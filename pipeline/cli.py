@@ -96,7 +96,9 @@ class ReplayGroup(TyperGroup):
         try:
             return super().invoke(ctx)
         except KNOWN_ERRORS as error:
-            _fail(error)
+            message = " ".join(str(error).split())  # always one line
+            typer.echo(f"{PROGRAM}: error: {message}", err=True)
+            raise typer.Exit(EXIT_ERROR) from error
 
 
 _RAY_OPTION = "--ray"
@@ -311,7 +313,7 @@ def run(
     summary_path, summary_error = _write_batch_summary(out, outcomes) if batch else (None, None)
     _report(outcomes, quiet=quiet, as_json=as_json, summary_path=summary_path)
     if summary_error is not None:
-        _fail(summary_error)
+        raise summary_error  # (after the outcomes: one line, as every error of ours)
     _exit_for(outcomes, quiet=quiet, allow_unconverged=allow_unconverged)
 
 
@@ -398,12 +400,6 @@ def _write_batch_summary(out: Path, outcomes: Sequence[BatchOutcome]) -> tuple[P
         return write_batch_summary(out / BATCH_SUMMARY_NAME, outcomes), None
     except KNOWN_ERRORS as error:
         return None, error
-
-
-def _fail(error: BaseException) -> NoReturn:
-    message = " ".join(str(error).split())  # always one line
-    typer.echo(f"{PROGRAM}: error: {message}", err=True)
-    raise typer.Exit(EXIT_ERROR)
 
 
 # ------------------------------------------------------------------------------------------ running inputs
@@ -531,7 +527,7 @@ class _ProgressDisplay:
 
 
 def _report(outcomes: Sequence[BatchOutcome], *, quiet: bool, as_json: bool,
-            summary_path: Path | None = None) -> None:
+            summary_path: Path | None) -> None:
     """Errors (always), warnings and the summary on stderr (unless --quiet), JSON on stdout (--json)."""
     if not quiet:
         for outcome in outcomes:
@@ -631,7 +627,7 @@ def _or_dash(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f}"
 
 
-def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None = None) -> None:
+def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None) -> None:
     from rich.console import Console
     from rich.table import Column, Table
 
