@@ -36,18 +36,24 @@ from typer.core import TyperCommand, TyperGroup
 from optimizer.robust import KERNELS
 from optimizer.solve import DEFAULT_ITERATIONS, MAX_ITERATIONS, METHODS
 from optimizer.warmup import warming_up
-from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, input_kind
+from pipeline.api import DEFAULT_OUT_DIR, KNOWN_ERRORS, expected_scans, input_kind
+from pipeline.batch import BatchOutcome, RayOptions, refuse_clashing_outputs
+from pipeline.batch_inputs import batch_inputs
+from pipeline.batch_summary import BATCH_SUMMARY_NAME, write_batch_summary
 from pipeline.bundled import SAMPLE_DESCRIPTION, sample_log
+from pipeline.config import ReplayConfig, config_from_mapping, load_config
 from pipeline.errors import PipelineError
-from pipeline.evaluation import DEFAULT_TOLERANCE_NS, RelationsResult, evaluate_files
+from pipeline.evaluation import DEFAULT_TOLERANCE_NS, evaluate_files
+from pipeline.launcher import arrow_without_pandas
+from pipeline.outputs import install_stop_signals, json_text, raised_by_interrupt
+from pipeline.session_file import SENSOR_WORDS, describe_session, is_session_file
+from pipeline.warning_tally import WarningTally, tallied_warnings, warning_lines
 
 if TYPE_CHECKING:
     from rich.progress import Progress, TaskID
 
     from frontends.protocol import Estimate
     from optimizer.iteration import Iteration
-    from pipeline.batch import BatchOutcome, RayOptions
-    from pipeline.config import ReplayConfig
 
 PROGRAM = "replay"
 DEFAULT_COMMAND = "run"
@@ -84,6 +90,15 @@ class ReplayGroup(TyperGroup):
         if args[0] == DEFAULT_COMMAND:
             args = _with_ray_address(args)
         return super().parse_args(ctx, args)
+
+    def invoke(self, ctx: typer.Context) -> Any:  # type: ignore[override]
+        # Every command's own errors (bad input, unwritable outputs) end it in one line, not a traceback.
+        try:
+            return super().invoke(ctx)
+        except KNOWN_ERRORS as error:
+            message = " ".join(str(error).split())  # always one line
+            typer.echo(f"{PROGRAM}: error: {message}", err=True)
+            raise typer.Exit(EXIT_ERROR) from error
 
 
 _RAY_OPTION = "--ray"
@@ -269,13 +284,7 @@ def run(
                   "repair_information": repair_information or None}}
     overrides = {section: {key: value for key, value in values.items() if value is not None}
                  for section, values in options.items()}
-    from pipeline.config import config_from_mapping, load_config
-
-    try:
-        config = (config_from_mapping(overrides) if config_file is None
-                  else load_config(config_file, overrides))
-    except KNOWN_ERRORS as error:
-        _fail(error)
+    config = config_from_mapping(overrides) if config_file is None else load_config(config_file, overrides)
     if dump_config:
         typer.echo(config.to_toml(), nl=False)
         return
@@ -285,27 +294,26 @@ def run(
                                        several=inputs_from is not None or ray_address is not None)
     ray = _ray_options(ray_address, cpus_per_task, retries, jobs)
     for key in overrides["optimizer"] if map_session is not None else ():
-        _fail(PipelineError(f"{_option(key)} has nothing to optimize with --map (localization only: the "
-                            "saved map is not changed)"))
+        raise PipelineError(f"{_option(key)} has nothing to optimize with --map (localization only: the "
+                            "saved map is not changed)")
     if inputs_from is not None:
-        sources += _listed_inputs(inputs_from, out)
+        listed = batch_inputs(inputs_from, exclude=out)
+        if not listed:
+            what = ("no logs or pose graphs in the folder" if inputs_from.is_dir()
+                    else "the list names no input")
+            raise PipelineError(f"{inputs_from}: {what}")
+        sources += listed
     _refuse_options_without_use(sources, overrides["input"])
-    from pipeline.batch import refuse_clashing_outputs
-
-    with sample_log() if not sources else contextlib.nullcontext() as sample:
-        inputs = sources or ([sample] if sample is not None else [])
-        try:
-            refuse_clashing_outputs(inputs, out)
-        except PipelineError as error:
-            _fail(error)
-        several = len(inputs) > 1 or inputs_from is not None
-        outcomes = _run_inputs(inputs, config, out, jobs=jobs, ray=ray, several=several, quiet=quiet,
+    with contextlib.ExitStack() as stack:
+        inputs = sources or [stack.enter_context(sample_log())]  # no input: the bundled sample
+        refuse_clashing_outputs(inputs, out)
+        batch = len(inputs) > 1 or inputs_from is not None or ray is not None
+        outcomes = _run_inputs(inputs, config, out, jobs=jobs, ray=ray, batch=batch, quiet=quiet,
                                replay_options=session_options)
-    batch = several or ray is not None
     summary_path, summary_error = _write_batch_summary(out, outcomes) if batch else (None, None)
     _report(outcomes, quiet=quiet, as_json=as_json, summary_path=summary_path)
     if summary_error is not None:
-        _fail(summary_error)
+        raise summary_error  # (after the outcomes: one line, as every error of ours)
     _exit_for(outcomes, quiet=quiet, allow_unconverged=allow_unconverged)
 
 
@@ -314,12 +322,12 @@ def _exit_for(outcomes: Sequence[BatchOutcome], *, quiet: bool, allow_unconverge
     `allow_unconverged`."""
     if not all(outcome.ok for outcome in outcomes):
         raise typer.Exit(EXIT_ERROR)
-    unconverged = [outcome for outcome in outcomes if outcome.stats and not outcome.stats.converged]
-    for outcome in unconverged if not (quiet and allow_unconverged) else []:
-        assert outcome.stats is not None
-        advice = "" if allow_unconverged else "; --allow-unconverged accepts this"
-        typer.echo(f"{PROGRAM}: not converged: {outcome.input_path}: {outcome.stats.stop_reason} "
-                   f"(outputs written with \"converged\": false{advice})", err=True)
+    unconverged = [(outcome.input_path, outcome.stats.stop_reason) for outcome in outcomes
+                   if outcome.stats and not outcome.stats.converged]
+    advice = "" if allow_unconverged else "; --allow-unconverged accepts this"
+    for path, reason in unconverged if not (quiet and allow_unconverged) else []:
+        typer.echo(f"{PROGRAM}: not converged: {path}: {reason} (outputs written with \"converged\": "
+                   f"false{advice})", err=True)
     if unconverged and not allow_unconverged:
         raise typer.Exit(EXIT_UNCONVERGED)
 
@@ -334,10 +342,10 @@ def _refuse_options_without_use(sources: Sequence[Path], input_options: dict[str
     `input_options`: the [input] keys given as options."""
     kinds = {input_kind(path) for path in sources} if sources else {"log"}  # no input: the sample log
     if "graph" not in kinds and "repair_information" in input_options:
-        _fail(PipelineError("--repair-information applies to pose-graph inputs only, and no input is one"))
+        raise PipelineError("--repair-information applies to pose-graph inputs only, and no input is one")
     if "log" not in kinds:
         for key in (key for key in input_options if key != "repair_information"):
-            _fail(PipelineError(f"{_option(key)} applies to logs only, and every input is a pose graph"))
+            raise PipelineError(f"{_option(key)} applies to logs only, and every input is a pose graph")
 
 
 _NUMBER = r"\s*[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\s*"
@@ -347,38 +355,32 @@ _INITIAL_POSE = re.compile(",".join([f"({_NUMBER})"] * 3))
 
 def _session_options(map_session: Path | None, continue_session: Path | None, initial_pose: str | None,
                      sources: Sequence[Path], *, several: bool) -> dict[str, Any]:
-    """The `replay` keyword arguments of --map / --continue / --initial-pose ({} without them); a misuse
-    ends the command in one line."""
+    """The `replay` keyword arguments of --map / --continue / --initial-pose (None when not given); raises
+    `PipelineError` on a misuse."""
     if map_session is not None and continue_session is not None:
-        _fail(PipelineError("--map (localize in a saved map) and --continue (map on from it) exclude each "
-                            "other: choose one"))
+        raise PipelineError("--map (localize in a saved map) and --continue (map on from it) exclude each "
+                            "other: choose one")
     if initial_pose is not None and map_session is None:
-        _fail(PipelineError("--initial-pose applies to --map only (where the log starts in the saved map)"))
-    session = map_session if map_session is not None else continue_session
-    if session is None:
-        return {}
-    option = "--map" if map_session is not None else "--continue"
-    if several or len(sources) != 1:
-        _fail(PipelineError(f"{option} takes exactly one log (INPUT), not a batch or the bundled sample"))
-    if input_kind(sources[0]) == "graph":
-        _fail(PipelineError(f"{option} applies to logs; {sources[0]} is a pose graph"))
-    if map_session is None:
-        return {"continue_from": session}
-    if initial_pose is None:
-        return {"map": session}
-    matched = _INITIAL_POSE.fullmatch(initial_pose)
-    x, y, yaw = (float(value) for value in matched.groups()) if matched else (math.inf,) * 3
-    if not all(math.isfinite(value) for value in (x, y, yaw)):
-        _fail(PipelineError(f"--initial-pose wants x,y,yaw (metres, metres, radians: three numbers "
-                            f"separated by commas), not {initial_pose!r}"))
-    return {"map": session, "initial_pose": (x, y, yaw)}
+        raise PipelineError("--initial-pose applies to --map only (where the log starts in the saved map)")
+    if map_session is not None or continue_session is not None:
+        option = "--map" if map_session is not None else "--continue"
+        if several or len(sources) != 1:
+            raise PipelineError(f"{option} takes exactly one log (INPUT), not a batch or the bundled sample")
+        if input_kind(sources[0]) == "graph":
+            raise PipelineError(f"{option} applies to logs; {sources[0]} is a pose graph")
+    pose = None
+    if initial_pose is not None:
+        matched = _INITIAL_POSE.fullmatch(initial_pose)
+        pose = tuple(float(value) for value in matched.groups()) if matched else None
+        if pose is None or not all(math.isfinite(value) for value in pose):
+            raise PipelineError(f"--initial-pose wants x,y,yaw (metres, metres, radians: three numbers "
+                                f"separated by commas), not {initial_pose!r}")
+    return {"map": map_session, "continue_from": continue_session, "initial_pose": pose}
 
 
 def _ray_options(address: str | None, cpus_per_task: float | None, retries: int | None,
                  jobs: int) -> RayOptions | None:
     """The Ray settings of the command line, None without --ray (where its options are refused)."""
-    from pipeline.batch import RayOptions
-
     if address is None:
         if cpus_per_task is not None or retries is not None:
             option = "--cpus-per-task" if cpus_per_task is not None else "--retries"
@@ -391,66 +393,41 @@ def _ray_options(address: str | None, cpus_per_task: float | None, retries: int 
                       retries=1 if retries is None else retries)
 
 
-def _listed_inputs(source: Path, out: Path) -> list[Path]:
-    from pipeline.batch_inputs import batch_inputs
-
-    try:
-        listed = batch_inputs(source, exclude=out)
-    except KNOWN_ERRORS as error:
-        _fail(error)
-    if not listed:
-        what = "no logs or pose graphs in the folder" if source.is_dir() else "the list names no input"
-        _fail(PipelineError(f"{source}: {what}"))
-    return listed
-
-
 def _write_batch_summary(out: Path, outcomes: Sequence[BatchOutcome]) -> tuple[Path | None, Exception | None]:
     """Write `batch_summary.parquet` in `out`: its path, or None and the error (reported after the
     outcomes)."""
-    from pipeline.batch_summary import BATCH_SUMMARY_NAME, write_batch_summary
-
     try:
         return write_batch_summary(out / BATCH_SUMMARY_NAME, outcomes), None
     except KNOWN_ERRORS as error:
         return None, error
 
 
-def _fail(error: BaseException) -> NoReturn:
-    message = " ".join(str(error).split())  # always one line
-    typer.echo(f"{PROGRAM}: error: {message}", err=True)
-    raise typer.Exit(EXIT_ERROR)
-
-
 # ------------------------------------------------------------------------------------------ running inputs
 
 
 def _run_inputs(inputs: Sequence[Path], config: ReplayConfig, out: Path, *, jobs: int, ray: RayOptions | None,
-                several: bool, quiet: bool, replay_options: dict[str, Any]) -> list[BatchOutcome]:
+                batch: bool, quiet: bool, replay_options: dict[str, Any]) -> list[BatchOutcome]:
     """Worker processes (`jobs`) or Ray tasks (`ray`), else one input after another here with live
-    progress: then a single input's bug keeps its traceback; among several, it becomes that input's
+    progress: then a single input's bug keeps its traceback; in a `batch`, it becomes that input's
     failure so the others still run. `replay_options`: a session's (`_session_options`)."""
     from pipeline.batch import run_batch, run_one, with_this_host
-    from pipeline.launcher import arrow_without_pandas
 
     arrow_without_pandas()
     pooled = ray is not None or (jobs > 1 and len(inputs) > 1)
-    bars = len(inputs) if several or pooled else 0
     interactive = not quiet and sys.stderr.isatty()
     # Someone watching a log's replay on a fresh install waits for its kernels to compile: the optimizer's
     # compile on the other core meanwhile (`optimizer.warmup`); batches and scripts don't need it.
     warm_up = interactive and not pooled and any(input_kind(path) == "log" for path in inputs)
+    bars = len(inputs) if batch else 0  # (a bar counting the finished inputs)
     with _python_warnings_off(), _progress_display(interactive, bars) as display, warming_up(warm_up):
         if pooled:
-            try:
-                return run_batch(inputs, config, out_dir=out, jobs=jobs, ray=ray, on_done=display.finished)
-            except KNOWN_ERRORS as error:
-                _fail(error)
+            return run_batch(inputs, config, out_dir=out, jobs=jobs, ray=ray, on_done=display.finished)
         outcomes = []
         for path in inputs:
             with display.watch(path, config) as (on_scan, on_iteration):
                 outcome = run_one(path, config, out_dir=out, on_scan=on_scan, on_iteration=on_iteration,
-                                  catch_unexpected=several, replay_options=replay_options)
-            outcomes.append(with_this_host(outcome) if several else outcome)
+                                  catch_unexpected=batch, replay_options=replay_options)
+            outcomes.append(with_this_host(outcome) if batch else outcome)
             display.finished(outcomes[-1])
     return outcomes
 
@@ -462,8 +439,7 @@ def _python_warnings_off() -> Iterator[None]:
     previous = os.environ.get("PYTHONWARNINGS")
     os.environ["PYTHONWARNINGS"] = "ignore"  # inherited by the worker processes started meanwhile
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with warnings.catch_warnings(action="ignore"):
             yield
     finally:
         if previous is None:
@@ -479,19 +455,12 @@ def _progress_display(enabled: bool, inputs: int) -> Iterator[_ProgressDisplay]:
     if not enabled:
         yield _ProgressDisplay(None, inputs)
         return
+    from rich import progress as bars
     from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        SpinnerColumn,
-        TextColumn,
-        TimeElapsedColumn,
-    )
 
-    columns = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-               TimeElapsedColumn(), TextColumn("{task.fields[info]}"))
-    with Progress(*columns, console=Console(stderr=True), transient=True) as progress:
+    columns = (bars.SpinnerColumn(), bars.TextColumn("{task.description}"), bars.BarColumn(),
+               bars.MofNCompleteColumn(), bars.TimeElapsedColumn(), bars.TextColumn("{task.fields[info]}"))
+    with bars.Progress(*columns, console=Console(stderr=True), transient=True) as progress:
         yield _ProgressDisplay(progress, inputs)
 
 
@@ -516,8 +485,6 @@ class _ProgressDisplay:
         if progress is None:
             yield None, None
             return
-        from pipeline.api import expected_scans
-
         name = path.name
         log = input_kind(path) == "log"
         first_task = progress.add_task(
@@ -525,6 +492,8 @@ class _ProgressDisplay:
             total=expected_scans(path, config.input.scan_topic) if log else None, info="")
         loops = 0
         stage_tasks: dict[str, TaskID] = {}
+        iterations = config.optimizer.iterations
+        known_length = DEFAULT_ITERATIONS if iterations is None else iterations  # of sgd and gauss-seidel
 
         def on_scan(estimate: Estimate) -> None:
             nonlocal loops
@@ -538,9 +507,7 @@ class _ProgressDisplay:
                 progress.update(first_task, visible=log)
                 return
             if stage not in stage_tasks:
-                iterations = config.optimizer.iterations
-                total = ((DEFAULT_ITERATIONS if iterations is None else iterations)
-                         if stage in _STAGES_WITH_KNOWN_LENGTH else None)
+                total = known_length if stage in _STAGES_WITH_KNOWN_LENGTH else None
                 stage_tasks[stage] = progress.add_task(f"{name}: {stage}", info="", total=total)
             progress.update(stage_tasks[stage], completed=iteration.index, info=f"chi2 {iteration.chi2:.6g}")
 
@@ -560,18 +527,14 @@ class _ProgressDisplay:
 
 
 def _report(outcomes: Sequence[BatchOutcome], *, quiet: bool, as_json: bool,
-            summary_path: Path | None = None) -> None:
+            summary_path: Path | None) -> None:
     """Errors (always), warnings and the summary on stderr (unless --quiet), JSON on stdout (--json)."""
     if not quiet:
-        from pipeline.warning_tally import warning_lines
-
         for outcome in outcomes:
             tally = (outcome.summary or {}).get("warnings", [])
             for line in warning_lines(PROGRAM, outcome.input_path, tally):
                 typer.echo(line, err=True)
     if as_json:
-        from pipeline.outputs import json_text
-
         data = [outcome.to_json() for outcome in outcomes]
         typer.echo(json_text(data[0] if len(data) == 1 else data), nl=False)
     if len(outcomes) > 1:
@@ -591,6 +554,7 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     stats, summary = outcome.stats, outcome.summary
     assert stats is not None and summary is not None
     name = outcome.input_path.name
+    counts = summary.get("counts", {})
     if summary.get("mode") == "map":
         found = summary["localization"]
         first_fix = found["first_fix_after_s"]
@@ -607,7 +571,6 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
             + f"; median match score {_or_dash(found['score']['median'])}, "
               f"inliers {_or_dash(found['inlier_fraction']['median'])}",
         ]
-        counts = summary.get("counts", {})
         if counts.get("held_map_used"):
             lines.append(f"  trajectory: the run's own keyframe graph ({counts['held_map_keyframes']} "
                          f"keyframes, {counts['held_map_old_new_constraints']} constraints to the saved "
@@ -624,14 +587,11 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
     else:
         lines = [f"{name}: {stats.poses} poses, {stats.constraints} constraints ({stats.loop_closures} loop "
                  f"closures), method {summary['method']}"]
-        skipped = summary.get("skipped_lines") or {}
-        if skipped:
-            counts = ", ".join(f"{count} {tag}" for tag, count in sorted(skipped.items()))
-            lines.append(f"  skipped lines: {counts}")
-        repaired = summary.get("repaired_information_lines") or []
-        if repaired:
+        if skipped := summary.get("skipped_lines"):
+            tags = ", ".join(f"{count} {tag}" for tag, count in sorted(skipped.items()))
+            lines.append(f"  skipped lines: {tags}")
+        if repaired := summary.get("repaired_information_lines"):
             lines.append(f"  repaired the information of {len(repaired)} constraints")
-    counts = summary.get("counts", {})
     if counts.get("scans_between"):
         interval = summary.get("config", {}).get("matching", {}).get("min_match_interval")
         lines.append(f"  {counts['scans_between']} scans posed between matched ones (the laser scans more "
@@ -646,7 +606,7 @@ def _one_input_summary(outcome: BatchOutcome) -> str:
             deskewing = "deskewed"
         lines.append(f"  {timed} scans with beam times (time_increment): {deskewing}")
     if summary.get("mode") == "continue":
-        counts, placement = summary["counts"], summary["session"]["placement"]
+        placement = summary["session"]["placement"]
         lines.append(f"  continued {summary['session']['continued_from']}: {counts['session_keyframes']} "
                      f"keyframes and {counts['session_scans']} scans of it; placed in it at scan "
                      f"{placement.get('scan')}, {counts['scans_unplaced']} scans before that left out; "
@@ -667,19 +627,19 @@ def _or_dash(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f}"
 
 
-def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None = None) -> None:
-    from rich.table import Table
+def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None) -> None:
+    from rich.console import Console
+    from rich.table import Column, Table
 
     failed = sum(not outcome.ok for outcome in outcomes)
-    table = Table(title=f"{len(outcomes)} inputs, {len(outcomes) - failed} done, {failed} failed",
-                  title_justify="left", caption=None if summary_path is None else f"table: {summary_path}",
-                  caption_justify="left")
     # A path cut short ("…") cannot be found again: the input column always holds whole paths, the
     # other columns fold instead.
-    table.add_column("input", no_wrap=True, min_width=max(len(str(o.input_path)) for o in outcomes))
-    table.add_column("result", overflow="fold")
-    for column in ("poses", "loops", "chi2 initial -> final", "time s"):
-        table.add_column(column, justify="right")
+    numbers = ("poses", "loops", "chi2 initial -> final", "time s")
+    columns = [Column("input", no_wrap=True, min_width=max(len(str(o.input_path)) for o in outcomes)),
+               Column("result", overflow="fold"), *(Column(name, justify="right") for name in numbers)]
+    table = Table(*columns, title=f"{len(outcomes)} inputs, {len(outcomes) - failed} done, {failed} failed",
+                  title_justify="left", caption=None if summary_path is None else f"table: {summary_path}",
+                  caption_justify="left")
     for outcome in outcomes:
         stats = outcome.stats
         if stats is None:
@@ -689,8 +649,6 @@ def _print_table(outcomes: Sequence[BatchOutcome], summary_path: Path | None = N
                       str(stats.poses), str(stats.loop_closures),
                       f"{stats.chi2_initial:.4g} -> {stats.chi2_final:.4g}",
                       f"{stats.wall_time_s.get('total', math.nan):.2f}")
-    from rich.console import Console
-
     # Not a terminal (a pipe, a file, a test): wide enough that paths and messages stay on their lines.
     Console(stderr=True, width=None if sys.stderr.isatty() else 200).print(table)
 
@@ -721,28 +679,20 @@ def info(
 ) -> None:
     """Show a log's topics, message types, counts, rates and time span, or what a session holds."""
     from frontends.logs import open_log
-    from pipeline.session_file import is_session_file
-    from pipeline.warning_tally import WarningTally, tallied_warnings, warning_lines
 
     if is_session_file(log):
         _session_info(log, as_json)
         return
-    tally = WarningTally(log)
-    try:
-        with tallied_warnings(tally), open_log(log) as reader:
-            summary = reader.info()
-    except KNOWN_ERRORS as error:
-        _fail(error)
+    with tallied_warnings(WarningTally(log)) as tally, open_log(log) as reader:
+        summary = reader.info()
     for line in warning_lines(PROGRAM, log, tally.as_json()):  # (a truncated log: what is left is listed)
         typer.echo(line, err=True)
     if as_json:
         typer.echo(json.dumps(summary.to_json_dict()))
         return
     duration = summary.duration_s
-    lines = [
-        f"{summary.path}: {summary.container}, {summary.message_count} messages over {duration:.2f} s "
-        f"({summary.start_ns * 1e-9:.3f} to {summary.end_ns * 1e-9:.3f})",
-    ]
+    lines = [f"{summary.path}: {summary.container}, {summary.message_count} messages over {duration:.2f} s "
+             f"({summary.start_ns * 1e-9:.3f} to {summary.end_ns * 1e-9:.3f})"]
     width = max((len(topic.name) for topic in summary.topics), default=5)
     type_width = max((len(topic.type) for topic in summary.topics), default=4)
     for topic in summary.topics:
@@ -755,12 +705,7 @@ def info(
 
 
 def _session_info(path: Path, as_json: bool) -> None:
-    from pipeline.session_file import SENSOR_WORDS, describe_session
-
-    try:
-        described = describe_session(path)
-    except KNOWN_ERRORS as error:
-        _fail(error)
+    described = describe_session(path)
     if as_json:
         typer.echo(json.dumps(described))
         return
@@ -818,34 +763,24 @@ def evaluate(
     if not math.isfinite(tolerance_ms):
         raise typer.BadParameter("must be finite", param_hint="--tolerance-ms")
     tolerance_ns = round(tolerance_ms * 1e6)
-    try:
-        result = evaluate_files(trajectory, relations, tolerance_ns=tolerance_ns)
-    except PipelineError as error:
-        _fail(error)
+    result = evaluate_files(trajectory, relations, tolerance_ns=tolerance_ns)
     if as_json:
         typer.echo(json.dumps({"trajectory": str(trajectory), "relations": str(relations),
                                "tolerance_ns": tolerance_ns, **result.summary()}))
-    else:
-        typer.echo(_relations_table(result, f"{trajectory.name} against {relations.name} "
-                                            f"(tolerance {tolerance_ms:g} ms)"))
-
-
-def _relations_table(result: RelationsResult, title: str) -> str:
-    return "\n".join([
-        title,
+        return
+    typer.echo("\n".join([
+        f"{trajectory.name} against {relations.name} (tolerance {tolerance_ms:g} ms)",
         f"  relations     {result.count} scored, {result.unmatched} unmatched",
         f"  translation   {result.translation_mean:.4f} ± {result.translation_std:.4f} m",
         f"  rotation      {result.rotation_mean_deg:.3f} ± {result.rotation_std_deg:.3f} deg",
         f"  translation²  {result.translation_squared_mean:.4g} ± {result.translation_squared_std:.4g} m²",
         f"  rotation²     {result.rotation_squared_mean:.4g} ± {result.rotation_squared_std:.4g} deg²",
-    ])
+    ]))
 
 
 def main() -> NoReturn:
     """Console-script entry point."""
     from threadpoolctl import threadpool_limits
-
-    from pipeline.outputs import install_stop_signals, raised_by_interrupt
 
     # Our linear algebra is many small vectors and 3×3 blocks: BLAS threads only add hand-off latency,
     # and on a busy machine their spinning made one 10k-element dot product take 8 ms instead of 5 µs.
