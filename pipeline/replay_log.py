@@ -220,9 +220,9 @@ class _Sensor:
     """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
     kitti_poses: bool = False
     """Also write the trajectory as KITTI poses (`<stem>.kitti`: 3×4 matrices, one line per measurement)."""
-    held_map_walls_color: tuple[int, ...] | None = None
+    held_map: bool = False
     """Its localization solves the run's own keyframe graph with the saved map held (`held_map_solver`):
-    that optimization is recorded, the new keyframes' walls in this colour."""
+    that optimization is recorded."""
 
 
 @functools.cache
@@ -231,7 +231,7 @@ def _scan_sensor() -> _Sensor:
     # frontend's compiled kernels (0.3 s of start-up), nor a laser replay the 3D one.
     from frontends.slam2d import LaserFrontend
     from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
-    from pipeline.recording.scans import NEW_RUN_WALLS_COLOR, MapLocalizationRecording, ScanReplayRecording
+    from pipeline.recording.scans import MapLocalizationRecording, ScanReplayRecording
 
     return _Sensor(LaserFrontend, ScanReplayRecording, (
         _MapFile("map_png", "_map.png", lambda path, grid: write_png(path, picture_with_scale_bar(grid))),
@@ -240,7 +240,7 @@ def _scan_sensor() -> _Sensor:
         _MapFile("map_yaml", "_map.yaml",
                  lambda path, grid: write_text(path, map_server_yaml(grid, path.with_suffix(".pgm").name))),
     ), saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend, MapLocalizationRecording,
-        held_map_walls_color=NEW_RUN_WALLS_COLOR)
+        held_map=True)
 
 
 @functools.cache
@@ -478,12 +478,9 @@ class _Run:
             stream = recording.create_recording(staged["rrd"], name=self.path.name,
                                                 with_map=sensor.recording.with_map)
             try:
-                if localizing and sensor.held_map_walls_color is not None:
-                    # The default optimizer, whatever [optimizer] says: that section is the map's, which
-                    # --map does not change; this solve is a step of the localization (its convergence
-                    # decides which trajectory is written).
+                if localizing and sensor.held_map:
                     cast("LocalizingLaserFrontend", frontend).held_map_solver = held_map_solver(
-                        stream, DEFAULT_METHOD, None, self.on_iteration, None, sensor.held_map_walls_color)
+                        stream, self.on_iteration)
                 recorder = (sensor.localization_recording if localizing else sensor.recording)(
                     stream, frontend)  # type: ignore[arg-type]
                 result = self.through(frontend, topic, recorder, stream, timings, beside,
@@ -603,13 +600,11 @@ class _Run:
         if self.session is not None:
             properties.update(mode=self.mode, session=str(self.session.path))
         recording.log_run_properties(stream, properties)
-        wheel_odometry = frontend.keyframe_wheel_odometry()
         optimized = optimize_keyframes(
             stream, frontend.keyframe_graph(frontend.odometry_chain), graph, self.method, self.iterations,
             self.on_iteration, recorder.iteration_sink(), robust=self.robust,
-            keyframe_scans=recorder.keyframe_scans(),
-            wheel_odometry=None if wheel_odometry is None else wheel_odometry_start(
-                wheel_odometry, frontend.odometry_chain[0]), on_final=on_final)
+            keyframe_scans=recorder.keyframe_scans(), wheel_odometry=wheel_odometry_start(
+                frontend.keyframe_wheel_odometry(), frontend.odometry_chain[0]), on_final=on_final)
         timings["record_iterations"] = optimized.record_seconds
         timings["optimize_and_record"] = time.perf_counter() - optimize_started
         return optimized
