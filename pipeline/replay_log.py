@@ -115,9 +115,6 @@ class FrontendRecording(Protocol):
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: Any) -> None: ...
 
-    with_map: bool
-    """Whether the recording's layout has the 2D map view."""
-
     def iteration_sink(self) -> IterationSink | None: ...
 
     def keyframe_scans(self) -> Sequence[FloatArray] | None:
@@ -209,7 +206,8 @@ class _Sensor:
 
     frontend: Callable[[LogReader, str, Any, FrontendOptions], LogFrontend]
     recording: type[ScanReplayRecording] | type[CloudReplayRecording]
-    """A `FrontendRecording` of the frontend (`recording(stream, frontend)`)."""
+    """A `FrontendRecording` of the frontend (`recording(stream, frontend)`); its `with_map`: whether the
+    recording's layout has the 2D map view."""
     map_files: tuple[_MapFile, ...]
     saved_map: Callable[[Path, SessionContent], Any]
     """The saved map of a session (`SessionError` when it is damaged), which the two frontends below
@@ -507,10 +505,8 @@ class _Run:
                 settings=frontend.settings(), mode=self.mode,
                 session=None if self.session is None else self.session.path,
             )
-            if localizing:
-                write_text(staged["json"], localization_summary_text(replayed))
-            else:
-                write_text(staged["json"], json_text(summary(replayed)))
+            text = localization_summary_text(replayed) if localizing else json_text(summary(replayed))
+            write_text(staged["json"], text)
         return replayed
 
     def write_graph_and_session(self, frontend: LogFrontend, log: LogReader, kind: str, topic: str,
@@ -691,7 +687,5 @@ def _rounded(values: FloatArray, digits: int) -> list[float | None]:
 
 def _percentiles(values: FloatArray) -> dict[str, float | None]:
     finite = values[np.isfinite(values)]
-    if len(finite) == 0:
-        return {"p5": None, "median": None, "p95": None}
-    p5, median, p95 = np.percentile(finite, [5, 50, 95])
-    return {"p5": float(p5), "median": float(median), "p95": float(p95)}
+    quantiles = np.percentile(finite, [5, 50, 95]).tolist() if len(finite) else [None, None, None]
+    return dict(zip(("p5", "median", "p95"), quantiles, strict=True))
