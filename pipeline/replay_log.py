@@ -556,12 +556,9 @@ class _Run:
         gets the final poses before the recording is flushed."""
         optimize_started = time.perf_counter()
         graph = frontend.keyframe_graph()
-        properties: dict[str, str | int | float] = {"input": str(self.path), "topic": topic,
-                                                     "method": self.method, "measurements": count,
-                                                     "keyframes": graph.num_poses}
-        if self.session is not None:
-            properties.update(mode=self.mode, session=str(self.session.path))
-        recording.log_run_properties(stream, properties)
+        session = {} if self.session is None else {"mode": self.mode, "session": str(self.session.path)}
+        recording.log_run_properties(stream, {"input": str(self.path), "topic": topic, "method": self.method,
+                                              "measurements": count, "keyframes": graph.num_poses, **session})
         optimized = optimize_keyframes(
             stream, frontend.keyframe_graph(frontend.odometry_chain), graph, self.method, self.iterations,
             self.on_iteration, recorder.iteration_sink(), robust=self.robust,
