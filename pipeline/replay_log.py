@@ -33,6 +33,7 @@ each afterwards. Library code: raises `FrontendError`, `OptimizerError` or `Pipe
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
@@ -189,14 +190,11 @@ class SessionStart:
 def _three_finite_numbers(values: object) -> tuple[float, float, float]:
     """(x, y, yaw) of a sequence of three finite numbers (a string is not one: "123" would read as 1, 2,
     3); `PipelineError` otherwise."""
-    try:
-        if isinstance(values, str | bytes) or len(values) != 3:  # type: ignore[arg-type]
-            raise TypeError
-        x, y, yaw = (float(value) for value in values)  # type: ignore[attr-defined]
-        if np.all(np.isfinite((x, y, yaw))):
-            return x, y, yaw
-    except (TypeError, ValueError):
-        pass
+    with contextlib.suppress(TypeError, ValueError):  # not a sequence, or not of numbers
+        if not isinstance(values, str | bytes) and len(values) == 3:  # type: ignore[arg-type]
+            x, y, yaw = (float(value) for value in values)  # type: ignore[attr-defined]
+            if np.all(np.isfinite((x, y, yaw))):
+                return x, y, yaw
     raise PipelineError(f"the initial pose must be three finite numbers x, y, yaw; got {values!r}")
 
 
