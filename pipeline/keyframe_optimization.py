@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from optimizer import se2
 from optimizer.graph import PoseGraph
 from optimizer.iteration import Iteration
-from optimizer.solve import OptimizationResult, optimize
+from optimizer.solve import DEFAULT_METHOD, OptimizationResult, optimize
 from pipeline import recording
 from pipeline.recording import IterationSink
 from pipeline.replay_graph import optimization_recorder, record_optimization
@@ -97,9 +97,11 @@ def optimize_keyframes(
     starts = {"odometry": from_odometry.poses, "online": online.poses}
     if wheel_odometry is not None:
         starts = {WHEEL_ODOMETRY_START: np.asarray(wheel_odometry, dtype=np.float64), **starts}
-    chain = _is_a_chain(from_odometry)
+    # One odometry chain (K − 1 constraints, each between consecutive poses): composing it is the optimum
+    # (χ² = 0), so descending from it (SGD: 400 iterations on KITTI) proves nothing; the polish's
+    # convergence test proves the start optimal in one or two steps.
+    chain = from_odometry.num_edges == from_odometry.num_poses - 1 and bool(from_odometry.is_odometry.all())
     if chain:
-        # Nothing to descend: the polish's convergence test proves the start optimal in one or two steps.
         recording.log_note(stream, f"{CHAIN_REASON}; {method} was not run")
         method, iterations, robust = CHAIN_METHOD, None, None
     optimization = optimize(from_odometry, method=method, iterations=iterations, starts=starts,
@@ -116,20 +118,22 @@ def optimize_keyframes(
     return KeyframeOptimization(trace, run.final_poses, result, record_seconds)
 
 
-def held_map_solver(stream: Any, method: str, iterations: int | None,
-                    on_iteration: IterationCallback | None = None, robust: str | None = None,
-                    walls_color: tuple[int, ...] = recording.MAP_COLOR) -> HeldMapSolver:
+def held_map_solver(stream: Any, on_iteration: IterationCallback | None = None) -> HeldMapSolver:
     """A `frontends.slam2d.held_map.HeldMapSolver` that optimizes as a replay's keyframe graph is
     optimized, from the odometry chain and the online estimate, and records every iteration of the new
-    keyframes: their walls (in `walls_color`) moving into the saved map (its origin, pose 0, left out)."""
+    keyframes: their walls (in the new run's colour) moving into the saved map (its origin, pose 0, left
+    out). The default optimizer, whatever [optimizer] says: that section is the map's, which --map does not
+    change; this solve is a step of the localization (its convergence decides which trajectory is written)."""
 
     def solve(problem: HeldMapProblem) -> HeldMapSolution:
-        from frontends.slam2d.held_map import HeldMapSolution  # the laser frontend: clouds never load it
+        # The laser frontend and the 2D recording: clouds never load them.
+        from frontends.slam2d.held_map import HeldMapSolution
+        from pipeline.recording.scans import NEW_RUN_WALLS_COLOR
 
         optimized = optimize_keyframes(
-            stream, problem.graph.with_poses(problem.odometry_start), problem.graph, method, iterations,
-            on_iteration, robust=robust, keyframe_scans=problem.keyframe_scans, first_recorded=1,
-            walls_color=walls_color)
+            stream, problem.graph.with_poses(problem.odometry_start), problem.graph, DEFAULT_METHOD, None,
+            on_iteration, keyframe_scans=problem.keyframe_scans, first_recorded=1,
+            walls_color=NEW_RUN_WALLS_COLOR)
         return HeldMapSolution(optimized.poses, optimized.result.converged)
 
     return solve
@@ -141,21 +145,14 @@ CHAIN_REASON = "no loop closures: the odometry chain is the optimum, the polish 
 """The stop reason's prefix then (the JSON summary's `stop_reason`)."""
 
 
-def _is_a_chain(graph: PoseGraph) -> bool:
-    """Whether the constraints are one odometry chain (K − 1 of them, each between consecutive poses):
-    composing them is the optimum (χ² = 0), so descending from it (SGD: 400 iterations on KITTI) proves
-    nothing the polish's convergence test does not."""
-    return graph.num_edges == graph.num_poses - 1 and bool(graph.is_odometry.all())
-
-
 def wheel_odometry_start(
-    keyframe_odometry: NDArray[np.float64], first_pose: NDArray[np.float64]
+    keyframe_odometry: NDArray[np.float64] | None, first_pose: NDArray[np.float64]
 ) -> NDArray[np.float64] | None:
     """The keyframe poses wheel odometry alone gives, (K, 3), from the wheel-odometry pose at each
     keyframe's first scan (NaN where odometry did not cover it), anchored at `first_pose` (the first
-    keyframe's pose in the map frame); None when odometry misses a keyframe."""
-    keyframe_odometry = np.asarray(keyframe_odometry, dtype=np.float64)
-    if len(keyframe_odometry) == 0 or not np.all(np.isfinite(keyframe_odometry)):
+    keyframe's pose in the map frame); None without odometry or when it misses a keyframe."""
+    if keyframe_odometry is None or len(keyframe_odometry) == 0 or not np.all(np.isfinite(keyframe_odometry)):
         return None
+    keyframe_odometry = np.asarray(keyframe_odometry, dtype=np.float64)
     return se2.compose(np.asarray(first_pose, dtype=np.float64),
                        se2.relative(keyframe_odometry[0], keyframe_odometry))

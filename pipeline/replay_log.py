@@ -33,6 +33,7 @@ each afterwards. Library code: raises `FrontendError`, `OptimizerError` or `Pipe
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
@@ -115,9 +116,6 @@ class FrontendRecording(Protocol):
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: Any) -> None: ...
 
-    with_map: bool
-    """Whether the recording's layout has the 2D map view."""
-
     def iteration_sink(self) -> IterationSink | None: ...
 
     def keyframe_scans(self) -> Sequence[FloatArray] | None:
@@ -192,14 +190,11 @@ class SessionStart:
 def _three_finite_numbers(values: object) -> tuple[float, float, float]:
     """(x, y, yaw) of a sequence of three finite numbers (a string is not one: "123" would read as 1, 2,
     3); `PipelineError` otherwise."""
-    try:
-        if isinstance(values, str | bytes) or len(values) != 3:  # type: ignore[arg-type]
-            raise TypeError
-        x, y, yaw = (float(value) for value in values)  # type: ignore[attr-defined]
-        if np.all(np.isfinite((x, y, yaw))):
-            return x, y, yaw
-    except (TypeError, ValueError):
-        pass
+    with contextlib.suppress(TypeError, ValueError):  # not a sequence, or not of numbers
+        if not isinstance(values, str | bytes) and len(values) == 3:  # type: ignore[arg-type]
+            x, y, yaw = (float(value) for value in values)  # type: ignore[attr-defined]
+            if np.all(np.isfinite((x, y, yaw))):
+                return x, y, yaw
     raise PipelineError(f"the initial pose must be three finite numbers x, y, yaw; got {values!r}")
 
 
@@ -209,7 +204,8 @@ class _Sensor:
 
     frontend: Callable[[LogReader, str, Any, FrontendOptions], LogFrontend]
     recording: type[ScanReplayRecording] | type[CloudReplayRecording]
-    """A `FrontendRecording` of the frontend (`recording(stream, frontend)`)."""
+    """A `FrontendRecording` of the frontend (`recording(stream, frontend)`); its `with_map`: whether the
+    recording's layout has the 2D map view."""
     map_files: tuple[_MapFile, ...]
     saved_map: Callable[[Path, SessionContent], Any]
     """The saved map of a session (`SessionError` when it is damaged), which the two frontends below
@@ -220,9 +216,9 @@ class _Sensor:
     """The recording of a localization in a saved map (`recording(stream, frontend)`)."""
     kitti_poses: bool = False
     """Also write the trajectory as KITTI poses (`<stem>.kitti`: 3×4 matrices, one line per measurement)."""
-    held_map_walls_color: tuple[int, ...] | None = None
+    held_map: bool = False
     """Its localization solves the run's own keyframe graph with the saved map held (`held_map_solver`):
-    that optimization is recorded, the new keyframes' walls in this colour."""
+    that optimization is recorded."""
 
 
 @functools.cache
@@ -231,7 +227,7 @@ def _scan_sensor() -> _Sensor:
     # frontend's compiled kernels (0.3 s of start-up), nor a laser replay the 3D one.
     from frontends.slam2d import LaserFrontend
     from frontends.slam2d.session_frontends import ContinuingLaserFrontend, LocalizingLaserFrontend
-    from pipeline.recording.scans import NEW_RUN_WALLS_COLOR, MapLocalizationRecording, ScanReplayRecording
+    from pipeline.recording.scans import MapLocalizationRecording, ScanReplayRecording
 
     return _Sensor(LaserFrontend, ScanReplayRecording, (
         _MapFile("map_png", "_map.png", lambda path, grid: write_png(path, picture_with_scale_bar(grid))),
@@ -240,7 +236,7 @@ def _scan_sensor() -> _Sensor:
         _MapFile("map_yaml", "_map.yaml",
                  lambda path, grid: write_text(path, map_server_yaml(grid, path.with_suffix(".pgm").name))),
     ), saved_map_2d, ContinuingLaserFrontend, LocalizingLaserFrontend, MapLocalizationRecording,
-        held_map_walls_color=NEW_RUN_WALLS_COLOR)
+        held_map=True)
 
 
 @functools.cache
@@ -390,57 +386,26 @@ def replay_log(
         reissue(path, tally.as_json())
 
 
-@dataclass(frozen=True, eq=False)
-class _Optimized:
-    measurements: int
-    trace: tuple[tuple[str, int, float], ...]
-    optimization: OptimizationResult | None
-    keyframe_poses: FloatArray
-    poses: FloatArray
-    map_export: Any
-    """What the frontend's `map_export` gave: an occupancy grid (scans) or points (clouds)."""
-
-
-class _WrittenBeside:
+class _WrittenBeside(ThreadPoolExecutor):
     """A thread of its own for the map while the replay goes on: the map is made there from the final
     poses on, while the replay sends the recorded iterations (`make_map`), and its files are written there
     from the moment it is made, while the replay records it, closes the recording and writes the other
     files. Encoding the map's PNG (zlib, which releases the GIL) is most of their time: 0.13 s of the UAL
-    log's 0.2 s, as long as all the rest after the map. Leaving the `with` waits for the thread."""
+    log's 0.2 s, as long as all the rest after the map. Leaving the `with` waits for the thread (the files
+    not started yet are dropped: the run failed)."""
 
     def __init__(self) -> None:
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-files")
-        self._pending: list[Future[None]] = []
-        self._map: tuple[FloatArray, Future[Any]] | None = None
-
-    def __enter__(self) -> _WrittenBeside:
-        return self
+        super().__init__(max_workers=1, thread_name_prefix="map-files")
+        self.made_map: Future[Any] | None = None
+        """The map `make_map` started, of the final keyframe poses."""
 
     def __exit__(self, *exc_info: object) -> None:
-        self._executor.shutdown(wait=True, cancel_futures=True)
+        self.shutdown(wait=True, cancel_futures=True)
 
     def make_map(self, map_export: Callable[[FloatArray], Any], keyframe_poses: FloatArray) -> None:
         """Start making the map of the final `keyframe_poses` (`map_export`), while the main thread sends
         the recorded iterations: the 2D occupancy grid's rays are traced without the GIL (0.14 s on UAL)."""
-        self._map = (keyframe_poses, self._executor.submit(map_export, keyframe_poses))
-
-    def made_map(self, map_export: Callable[[FloatArray], Any], keyframe_poses: FloatArray) -> Any:
-        """The map `make_map` started of these very poses, or, when none was, made here."""
-        started = self._map
-        self._map = None
-        if started is not None and np.array_equal(started[0], keyframe_poses):
-            return started[1].result()
-        return map_export(keyframe_poses)
-
-    def write_map_files(self, map_files: Sequence[_MapFile], staged: dict[str, Path], export: Any) -> None:
-        """Start writing `map_files` of the map `export` to their `staged` paths."""
-        self._pending += [self._executor.submit(map_file.write, staged[map_file.output], export)
-                          for map_file in map_files]
-
-    def wait(self) -> None:
-        """Wait for every file handed over so far; raises what writing one raised."""
-        for pending in self._pending:
-            pending.result()
+        self.made_map = self.submit(map_export, keyframe_poses)
 
 
 @dataclass(frozen=True)
@@ -459,13 +424,15 @@ class _Run:
 
     def replay(self, log: LogReader, out_dir: Path, topic: str | None, options: FrontendOptions,
                configs: dict[str, Any], tally: WarningTally) -> LogReplayResult:
+        """Stream the measurements through the frontend and the recording, optimize its keyframe graph
+        (localizing in a saved map: the map's keyframe poses stand), make the map (`beside`, from the final
+        poses on) and record all of it, then write the outputs, timing each stage (`timings`)."""
         started = time.perf_counter()
         topic, kind = log.sensor_topic(topic)
         sensor = _SENSORS[kind]()
         localizing = self.mode == "map"
         outputs = ReplayOutputs.for_input(out_dir, self.path, kind, self.mode)
         paths = outputs.paths()
-        map_files = () if localizing else sensor.map_files
         inputs = (self.path,) if self.session is None else (self.path, self.session.path)
         with (staged_outputs_in(out_dir, *paths.values(), inputs=inputs) as staged_paths,
               _WrittenBeside() as beside):
@@ -478,16 +445,36 @@ class _Run:
             stream = recording.create_recording(staged["rrd"], name=self.path.name,
                                                 with_map=sensor.recording.with_map)
             try:
-                if localizing and sensor.held_map_walls_color is not None:
-                    # The default optimizer, whatever [optimizer] says: that section is the map's, which
-                    # --map does not change; this solve is a step of the localization (its convergence
-                    # decides which trajectory is written).
+                if localizing and sensor.held_map:
                     cast("LocalizingLaserFrontend", frontend).held_map_solver = held_map_solver(
-                        stream, DEFAULT_METHOD, None, self.on_iteration, None, sensor.held_map_walls_color)
+                        stream, self.on_iteration)
                 recorder = (sensor.localization_recording if localizing else sensor.recording)(
                     stream, frontend)  # type: ignore[arg-type]
-                result = self.through(frontend, topic, recorder, stream, timings, beside,
-                                      functools.partial(beside.write_map_files, map_files, staged))
+                count = self.stream(frontend, recorder, timings)
+                trace: tuple[tuple[str, int, float], ...]
+                localizer = cast(LocalizingFrontend, frontend)  # when localizing
+                if localizing:
+                    assert self.session is not None
+                    keyframe_poses, trace, optimization = localizer.saved.keyframe_poses, (), None
+                    recording.log_run_properties(stream, {
+                        "input": str(self.path), "topic": topic, "mode": "map",
+                        "session": str(self.session.path), "measurements": count,
+                        "map_keyframes": len(keyframe_poses)})
+                else:
+                    optimized = self.optimize(frontend, topic, count, recorder, stream, timings,
+                                              functools.partial(beside.make_map, frontend.map_export))
+                    keyframe_poses, trace, optimization = optimized.poses, optimized.trace, optimized.result
+                map_started = time.perf_counter()
+                map_export = (frontend.map_export(keyframe_poses) if beside.made_map is None
+                              else beside.made_map.result())
+                # Localizing in a saved map writes no map files (`ReplayOutputs.for_input`).
+                written = [beside.submit(map_file.write, staged[map_file.output], map_export)
+                           for map_file in sensor.map_files if map_file.output in staged]
+                poses = localizer.localized_poses() if localizing else frontend.estimates(keyframe_poses)
+                timings["map"] = time.perf_counter() - map_started
+                record_started = time.perf_counter()
+                recorder.final(keyframe_poses, poses, map_export)
+                timings["record_maps"] = time.perf_counter() - record_started
             finally:
                 close_started = time.perf_counter()
                 recording.close_recording(stream)
@@ -497,36 +484,35 @@ class _Run:
                 _warn_if_stamps_go_back(self.path, kind, frontend.stamps_ns, counts["session_scans"],
                                         outputs.tum.name)
             write_started = time.perf_counter()
-            write_tum(staged["tum"], frontend.stamps_ns, result.poses)
+            write_tum(staged["tum"], frontend.stamps_ns, poses)
             if outputs.kitti is not None:
-                write_kitti_poses(staged["kitti"], result.poses)
+                write_kitti_poses(staged["kitti"], poses)
             if not localizing:
-                self.write_graph_and_session(frontend, log, kind, topic, result, staged)
-            beside.wait()
+                self.write_graph_and_session(frontend, log, kind, topic, keyframe_poses, staged)
+            for map_file_written in written:
+                map_file_written.result()  # raises what writing it raised
             timings["write"] = time.perf_counter() - write_started
             timings["total"] = time.perf_counter() - started
             replayed = LogReplayResult(
                 input_path=self.path, sensor=kind, topic=topic, odometry_topic=frontend.odometry_topic,
                 sensor_frame=frontend.sensor_frame, base_frame=frontend.base_frame, frontend=frontend,
-                measurements=result.measurements, stamps_ns=frontend.stamps_ns, poses=result.poses,
-                keyframe_poses=result.keyframe_poses, chi2_per_iteration=result.trace,
-                optimization=result.optimization, wall_time=timings, outputs=outputs,
+                measurements=count, stamps_ns=frontend.stamps_ns, poses=poses,
+                keyframe_poses=keyframe_poses, chi2_per_iteration=trace,
+                optimization=optimization, wall_time=timings, outputs=outputs,
                 counts=counts, loop_closures=frontend.loop_closures(), warnings=tally.as_json(),
                 settings=frontend.settings(), mode=self.mode,
                 session=None if self.session is None else self.session.path,
             )
-            if localizing:
-                write_text(staged["json"], localization_summary_text(replayed))
-            else:
-                write_text(staged["json"], json_text(summary(replayed)))
+            text = localization_summary_text(replayed) if localizing else json_text(summary(replayed))
+            write_text(staged["json"], text)
         return replayed
 
     def write_graph_and_session(self, frontend: LogFrontend, log: LogReader, kind: str, topic: str,
-                                result: _Optimized, staged: dict[str, Path]) -> None:
+                                keyframe_poses: FloatArray, staged: dict[str, Path]) -> None:
         """The keyframe graph and the session of a mapping replay (plain or continued); its map files are
-        written beside (`through`'s `on_map`)."""
-        write_g2o(staged["g2o"], frontend.keyframe_graph(), result.keyframe_poses)
-        arrays, keyframe_points = frontend.session_content(result.keyframe_poses)
+        written beside."""
+        write_g2o(staged["g2o"], frontend.keyframe_graph(), keyframe_poses)
+        arrays, keyframe_points = frontend.session_content(keyframe_poses)
         header = {
             "sensor_kind": kind, "topic": topic, "sensor_frame": frontend.sensor_frame,
             "base_frame": frontend.base_frame, "settings": frontend.settings(),
@@ -561,35 +547,6 @@ class _Run:
         timings["record_scans"] = record_seconds
         return count
 
-    def through(self, frontend: Any, topic: str, recorder: FrontendRecording, stream: Any,
-                timings: dict[str, float], beside: _WrittenBeside,
-                on_map: Callable[[Any], None]) -> _Optimized:
-        """Stream the measurements through the frontend and the recording, then optimize its keyframe graph
-        (localizing in a saved map: the map's keyframe poses stand), make the map
-        (`beside`, from the final poses on), hand it to `on_map` and record all of it; `timings` gets the
-        seconds of each stage."""
-        count = self.stream(frontend, recorder, timings)
-        trace: tuple[tuple[str, int, float], ...]
-        if self.mode == "map":
-            assert self.session is not None
-            keyframe_poses, trace, optimization = frontend.saved.keyframe_poses, (), None
-            recording.log_run_properties(stream, {"input": str(self.path), "topic": topic, "mode": "map",
-                                                  "session": str(self.session.path), "measurements": count,
-                                                  "map_keyframes": len(keyframe_poses)})
-        else:
-            optimized = self.optimize(frontend, topic, count, recorder, stream, timings,
-                                      functools.partial(beside.make_map, frontend.map_export))
-            keyframe_poses, trace, optimization = optimized.poses, optimized.trace, optimized.result
-        map_started = time.perf_counter()
-        map_export = beside.made_map(frontend.map_export, keyframe_poses)
-        on_map(map_export)
-        estimates = frontend.localized_poses() if self.mode == "map" else frontend.estimates(keyframe_poses)
-        timings["map"] = time.perf_counter() - map_started
-        record_started = time.perf_counter()
-        recorder.final(keyframe_poses, estimates, map_export)
-        timings["record_maps"] = time.perf_counter() - record_started
-        return _Optimized(count, trace, optimization, keyframe_poses, estimates, map_export)
-
     def optimize(self, frontend: LogFrontend, topic: str, count: int, recorder: FrontendRecording,
                  stream: Any, timings: dict[str, float],
                  on_final: Callable[[FloatArray], None]) -> KeyframeOptimization:
@@ -597,19 +554,14 @@ class _Run:
         gets the final poses before the recording is flushed."""
         optimize_started = time.perf_counter()
         graph = frontend.keyframe_graph()
-        properties: dict[str, str | int | float] = {"input": str(self.path), "topic": topic,
-                                                     "method": self.method, "measurements": count,
-                                                     "keyframes": graph.num_poses}
-        if self.session is not None:
-            properties.update(mode=self.mode, session=str(self.session.path))
-        recording.log_run_properties(stream, properties)
-        wheel_odometry = frontend.keyframe_wheel_odometry()
+        session = {} if self.session is None else {"mode": self.mode, "session": str(self.session.path)}
+        recording.log_run_properties(stream, {"input": str(self.path), "topic": topic, "method": self.method,
+                                              "measurements": count, "keyframes": graph.num_poses, **session})
         optimized = optimize_keyframes(
             stream, frontend.keyframe_graph(frontend.odometry_chain), graph, self.method, self.iterations,
             self.on_iteration, recorder.iteration_sink(), robust=self.robust,
-            keyframe_scans=recorder.keyframe_scans(),
-            wheel_odometry=None if wheel_odometry is None else wheel_odometry_start(
-                wheel_odometry, frontend.odometry_chain[0]), on_final=on_final)
+            keyframe_scans=recorder.keyframe_scans(), wheel_odometry=wheel_odometry_start(
+                frontend.keyframe_wheel_odometry(), frontend.odometry_chain[0]), on_final=on_final)
         timings["record_iterations"] = optimized.record_seconds
         timings["optimize_and_record"] = time.perf_counter() - optimize_started
         return optimized
@@ -730,7 +682,5 @@ def _rounded(values: FloatArray, digits: int) -> list[float | None]:
 
 def _percentiles(values: FloatArray) -> dict[str, float | None]:
     finite = values[np.isfinite(values)]
-    if len(finite) == 0:
-        return {"p5": None, "median": None, "p95": None}
-    p5, median, p95 = np.percentile(finite, [5, 50, 95])
-    return {"p5": float(p5), "median": float(median), "p95": float(p95)}
+    quantiles = np.percentile(finite, [5, 50, 95]).tolist() if len(finite) else [None, None, None]
+    return dict(zip(("p5", "median", "p95"), quantiles, strict=True))
