@@ -88,9 +88,12 @@ def _connect(ray: ModuleType, address: str | None) -> bool:
     if local:
         # A runtime for this machine alone: nothing in it needs to listen beyond the loopback interface.
         settings["_node_ip_address"] = "127.0.0.1"
-    where = "start a local Ray runtime" if local else f"connect to the Ray cluster at {address}"
-    if not local and address is not None:
-        _check_reachable(address, where)
+    # "auto" is the cluster RAY_ADDRESS names when it is set (else one started on this machine: Ray's to find)
+    named = os.environ.get("RAY_ADDRESS", "") if address == "auto" else address
+    shown = f"{address} (RAY_ADDRESS={named})" if named != address else address
+    where = "start a local Ray runtime" if local else f"connect to the Ray cluster at {shown}"
+    if not local and named:
+        _check_reachable(named, where)
     try:
         ray.init(address=LOCAL_ADDRESS if local else address, **settings)
     except Exception as error:  # ConnectionError, RuntimeError, ValueError…: Ray's errors vary by cause
@@ -103,8 +106,8 @@ CONNECT_TIMEOUT_S = 10.0
 
 
 def _check_reachable(address: str, where: str) -> None:
-    """`PipelineError` when nothing accepts a connection at `address` ("host:port" or "ray://host:port";
-    "auto" is Ray's to find): `ray.init` retries such an address for minutes, silently."""
+    """`PipelineError` when nothing accepts a connection at `address` ("host:port" or "ray://host:port"; other
+    forms are Ray's to find): `ray.init` retries such an address for minutes, silently."""
     host, separator, port = address.removeprefix("ray://").rpartition(":")
     if not separator or not port.isdigit():
         return

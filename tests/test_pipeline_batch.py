@@ -375,3 +375,10 @@ def test_a_ray_address_where_nothing_listens_is_one_line_at_once(tmp_path: Path)
     assert result.exit_code == 2
     assert result.stderr.splitlines() == [
         f"replay: error: cannot connect to the Ray cluster at 127.0.0.1:{port}: Connection refused"]
+    # "auto" with RAY_ADDRESS naming that address hung as long (killed after 60 s)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("RAY_ADDRESS", f"127.0.0.1:{port}")
+        result = run_replay(graph, "--ray", "auto", "--out", tmp_path / "out")
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [f"replay: error: cannot connect to the Ray cluster at auto "
+                                          f"(RAY_ADDRESS=127.0.0.1:{port}): Connection refused"]
