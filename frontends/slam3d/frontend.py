@@ -129,6 +129,14 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
                           f"motion ({self.odometry_topic or 'tf'}) was far from the LiDAR's and fit the map "
                           "much worse (a jump in the odometry?): those clouds were registered without it",
                           LogWarning, stacklevel=2)
+        result = self._result
+        if result.keyframes_underconstrained:
+            warnings.warn(f"{self._log.path}: {result.keyframes_underconstrained} of the "
+                          f"{result.num_keyframes} keyframes ({result.underconstrained_travel:.0f} m of the "
+                          "path) saw surfaces facing almost only one horizontal direction (a featureless "
+                          "road or tunnel): the LiDAR cannot measure motion along them there, which the "
+                          "odometry or, without it, constant velocity carried; distances there may be short",
+                          LogWarning, stacklevel=2)
         if self._prior is not None:
             self._warn_if_odometry_covered_nothing(self._prior.stamps_ns, self._result.cloud_stamps_ns,
                                                    self._clouds_with_odometry, "clouds", "registered")
@@ -170,6 +178,7 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
                   "clouds_in_trajectory": len(result.cloud_stamps_ns),
                   "clouds_untracked": result.clouds_untracked,
                   "clouds_odometry_overruled": result.odometry_guesses_overruled,
+                  "keyframes_underconstrained": result.keyframes_underconstrained,
                   **self._log.counts, "keyframes": result.num_keyframes, "constraints": len(result.edge_from)}
         if self._map_points is not None:
             counts["map_points"] = self._map_points

@@ -33,6 +33,7 @@ from frontends.loop_closing import Constraints, HypothesisPool, optimize_and_pru
 from frontends.protocol import FloatArray, IntArray
 from frontends.slam3d import planar, pose_graph3d, se3
 from frontends.slam3d.config import LoopClosureConfig, Slam3DConfig
+from frontends.slam3d.degeneracy import UNDERCONSTRAINED_SHARE, weakest_horizontal_share
 from frontends.slam3d.loop_closure import (
     LoopMatch,
     RegistrationTarget,
@@ -110,6 +111,10 @@ class Slam3DGraph:
     """Clouds before the first keyframe that had too few points: not in the trajectory."""
     odometry_guesses_overruled: int = 0
     """Clouds registered from the LiDAR's own prediction because the odometry's motion fit far worse."""
+    keyframes_underconstrained: int = 0
+    """Keyframes whose cloud cannot measure horizontal motion in some direction (`degeneracy`)."""
+    underconstrained_travel: float = 0.0
+    """Metres driven into those keyframes from the ones before them."""
 
     @property
     def num_keyframes(self) -> int:
@@ -208,6 +213,8 @@ class LidarSlam3D:
         self._untracked = 0
         self._dropped = 0
         self._guesses_overruled = 0
+        self._underconstrained = 0
+        self._underconstrained_travel = 0.0
         self._pending_loops = 0
         self._last_closure_travel = -np.inf
         """Path length (m) at the keyframe that last closed a loop."""
@@ -295,7 +302,7 @@ class LidarSlam3D:
         """`information`: of the constraint from the previous keyframe (default: the odometry's)."""
         settings = self.config.loop_closure
         count = len(self._keyframe_odometry)
-        travel = 0.0
+        travel = length = 0.0
         if count:
             step = se3.relative(self._keyframe_odometry[-1], base)
             length = float(np.linalg.norm(step[:3, 3]))
@@ -308,6 +315,9 @@ class LidarSlam3D:
         self._keyframe_stamps.append(int(stamp_ns))
         self._keyframe_clouds.append(points.astype(np.float32))
         self._keyframe_travel.append(travel)
+        if weakest_horizontal_share(points) < UNDERCONSTRAINED_SHARE:
+            self._underconstrained += 1
+            self._underconstrained_travel += length
         self._keyframe_descriptors.append(keyframe_descriptor(base, points, settings))
 
     def _odometry_information(self, step: FloatArray) -> FloatArray:
@@ -483,4 +493,6 @@ class LidarSlam3D:
             clouds_untracked=self._untracked,
             clouds_dropped=self._dropped,
             odometry_guesses_overruled=self._guesses_overruled,
+            keyframes_underconstrained=self._underconstrained,
+            underconstrained_travel=self._underconstrained_travel,
         )
