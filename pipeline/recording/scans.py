@@ -16,7 +16,6 @@ SESSION`): the scans as above, under the saved map (see its docstring).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -103,17 +102,6 @@ PLAYBACK_CELL = 0.1
 the whole map, where a pixel is several centimetres, and they were the recording's largest part."""
 
 
-def log_scan_styles(recording: rr.RecordingStream) -> None:
-    for entity, color, radius, draw_order in ((SCAN_ENTITY, SCAN_COLOR, 1.0, 20.0),
-                                              (ROBOT_ENTITY, (90, 230, 120, 255), 2.0, 40.0)):
-        recording.log(entity, rr.Points2D.from_fields(colors=[color], radii=[ui_points(radius)],
-                                                      draw_order=draw_order), static=True)
-
-
-def log_final_trajectory(recording: rr.RecordingStream, poses: FloatArray) -> None:
-    log_static_trajectory(recording, FINAL_TRAJECTORY_ENTITY, poses, FINAL_TRAJECTORY_COLOR)
-
-
 def log_loop_closures_found(
     recording: rr.RecordingStream, scan_index: int, stamp_ns: int, segments: FloatArray
 ) -> None:
@@ -188,14 +176,15 @@ class ScanReplayRecording:
         self._recording = recording
         self._frontend = frontend
         self._scans = ScanRecorder(recording)
-        log_scan_styles(recording)
+        for entity, color, radius, draw_order in ((SCAN_ENTITY, SCAN_COLOR, 1.0, 20.0),
+                                                  (ROBOT_ENTITY, (90, 230, 120, 255), 2.0, 40.0)):
+            recording.log(entity, rr.Points2D.from_fields(colors=[color], radii=[ui_points(radius)],
+                                                          draw_order=draw_order), static=True)
 
     def measurement(self, measurement: ScanInBase, estimate: ScanEstimate) -> None:
-        scan, _ = measurement
-        x, y, theta = (float(value) for value in estimate.pose)
-        if estimate.between or not (math.isfinite(x) and math.isfinite(y) and math.isfinite(theta)):
+        if estimate.between or not np.all(np.isfinite(estimate.pose)):
             return  # between matched scans, or not placed yet (a run joining a saved map): no pose
-        points = scan.points if estimate.points is None else estimate.points
+        points = measurement[0].points if estimate.points is None else estimate.points
         self._scans.add(estimate.index, estimate.stamp_ns, points, estimate.pose)
         if estimate.new_loop_closures:
             position = self._frontend.keyframe_position
@@ -204,12 +193,11 @@ class ScanReplayRecording:
 
     def frontend_done(self) -> None:
         self._scans.flush()
-        if self._frontend.odometry_poses:
+        if len(self._frontend.odometry_poses) >= 2:
             # In the map frame, which starts at the first scan: the odometry seen from its own first pose.
             track = np.array(self._frontend.odometry_poses)
-            if len(track) >= 2:
-                log_static_trajectory(self._recording, ODOMETRY_TRAJECTORY_ENTITY,
-                                      se2.relative(track[0], track), ODOMETRY_COLOR)
+            log_static_trajectory(self._recording, ODOMETRY_TRAJECTORY_ENTITY,
+                                  se2.relative(track[0], track), ODOMETRY_COLOR)
 
     def iteration_sink(self) -> IterationSink | None:
         return None
@@ -218,7 +206,7 @@ class ScanReplayRecording:
         return self._frontend.result.keyframe_scans
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
-        log_final_trajectory(self._recording, estimates)
+        log_static_trajectory(self._recording, FINAL_TRAJECTORY_ENTITY, estimates, FINAL_TRAJECTORY_COLOR)
         map2d.log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)
 
 
@@ -274,20 +262,17 @@ class MapLocalizationRecording(ScanReplayRecording):
     χ² shares a tab strip with the match quality; otherwise the time panel opens on `scan`.
     """
 
-    def __init__(self, recording: rr.RecordingStream, frontend: LocalizingLaserFrontend) -> None:
-        super().__init__(recording, frontend)
-        self._saved_scans = frontend.saved.keyframe_scans
-        self._localizer = frontend
+    _frontend: LocalizingLaserFrontend
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
-        log_saved_map(self._recording, self._saved_scans, planar_poses)
-        map2d.log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)
-        log_final_trajectory(self._recording, estimates)
-        held_map = self._localizer.held_map_solved
+        saved_scans = self._frontend.saved.keyframe_scans
+        log_saved_map(self._recording, saved_scans, planar_poses)
+        super().final(planar_poses, estimates, map_export)  # the final trajectory and the occupancy grid
+        held_map = self._frontend.held_map_solved
         log_legend(self._recording, HELD_MAP_LEGEND_ROWS if held_map else None, rows=LOCALIZATION_LEGEND_ROWS,
                    note=HELD_MAP_NOTE if held_map else "")
-        bounds = map2d.placed_bounds(self._saved_scans, planar_poses, estimates)
-        send_match_quality(self._recording, self._localizer.localizations, MATCH_SERIES_2D)
+        bounds = map2d.placed_bounds(saved_scans, planar_poses, estimates)
+        send_match_quality(self._recording, self._frontend.localizations, MATCH_SERIES_2D)
         match_quality = rrb.TimeSeriesView(origin=MATCH_QUALITY_ENTITY, name="match quality per scan (scan)")
         # A plot shows the time panel's timeline only: χ² (on `iteration`) and the match quality (on `scan`)
         # share a tab strip rather than leave one plot empty.
