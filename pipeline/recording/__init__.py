@@ -572,7 +572,7 @@ class IterationRecorder:
         self._previous_line = (stage, value)
         self._chi2.append(chi2)
         if self._buffered_bytes >= self._batch_bytes:
-            self._send(len(self._geometry_rows))
+            self._send()
         return step
 
     def flush(self) -> None:
@@ -580,10 +580,13 @@ class IterationRecorder:
         if self._latest_poses is not None:
             self._buffer_geometry(self._latest_poses, thin=False)
             self._latest_poses = None
-        self._send(len(self._geometry_rows))
+        self._send()
 
     def _buffer_geometry(self, poses: NDArray[np.float64], *, thin: bool) -> None:
-        still = self._still_distance(poses)
+        # How far every pose may move from the last drawn row without a new one; None: always draw.
+        still = self._still_move
+        if self._still_fraction is not None:
+            still = max(still or 0.0, self._still_fraction * finite_extent(poses))
         if (thin and still is not None and self._last_drawn is not None
                 and moved_within(poses, self._last_drawn, still)):
             self._geometry_rows.append(None)
@@ -600,16 +603,11 @@ class IterationRecorder:
         self._geometry_rows.append((trajectory, segments))
         self._buffered_bytes += trajectory.nbytes + segments.nbytes
 
-    def _still_distance(self, poses: NDArray[np.float64]) -> float | None:
-        """How far every pose may move from the last drawn row without a new one; None: always draw."""
-        if self._still_fraction is None:
-            return self._still_move
-        return max(self._still_move or 0.0, self._still_fraction * finite_extent(poses))
-
-    def _send(self, count: int) -> None:
-        """Send the first `count` buffered iterations (the latest has no geometry until the next `add` or
-        `flush`): χ² and stage lines of all, the geometry of those that have it, runs of equally thinned
-        ones as one column batch each."""
+    def _send(self) -> None:
+        """Send the buffered iterations that have their geometry row (the latest has none until the next
+        `add` or `flush`): χ² and stage lines of all, the geometry of those that are drawn, runs of equally
+        thinned ones as one column batch each."""
+        count = len(self._geometry_rows)
         steps = np.arange(self._first_step, self._first_step + count, dtype=np.int64)
         chi2 = np.asarray(self._chi2[:count], dtype=np.float64)
         self._recording.send_columns(CHI2_ENTITY, indexes=[_iteration_column(steps)],
@@ -633,8 +631,7 @@ class IterationRecorder:
         self._first_step += count
         for buffer in (self._geometry_rows, self._stages, self._chi2):
             del buffer[:count]
-        self._buffered_bytes = sum(row[0].nbytes + row[1].nbytes for row in self._geometry_rows
-                                   if row is not None)
+        self._buffered_bytes = 0  # every geometry row was sent
 
 
 def _every_kth(count: int, limit: int, *, keep_last: bool) -> IntArray | None:
