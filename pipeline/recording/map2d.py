@@ -146,8 +146,7 @@ class KeyframeMapRecorder(PoseBatches):
         # quaternions are computed.
         keyframes, rows = np.nonzero(sent.T)
         chosen = poses[rows, keyframes]
-        translations = np.zeros((len(chosen), 3), dtype=np.float32)
-        translations[:, :2] = chosen[:, :2]
+        translations = np.pad(chosen[:, :2], ((0, 0), (0, 1)))  # z = 0
         quaternions = from_yaw(chosen[:, 2]).astype(np.float32)
         starts = np.searchsorted(keyframes, np.arange(poses.shape[1] + 1))
         for index in np.flatnonzero(np.diff(starts)):
