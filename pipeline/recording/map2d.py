@@ -121,24 +121,21 @@ class KeyframeMapRecorder(PoseBatches):
         self._last_sent: NDArray[np.float64] = np.full((len(scans), 3), np.nan)
 
     def add(self, step: int, iteration: Iteration) -> None:
-        if not self._scans_logged:
-            self._log_scans(step)
+        if not self._scans_logged:  # each keyframe's scan, at the first iteration
+            # On `iteration` (not static): on the `scan` and `time` timelines the keyframes have no pose,
+            # and static points would be drawn piled up at the origin there.
+            self._recording.set_time(ITERATION_TIMELINE, sequence=step)
+            # `rr.Points2D`'s components, the style's built once: the archetype validated every field of
+            # each of a thousand keyframes' scans.
+            style = rr.Points2D.from_fields(colors=[self._color], radii=[MAP_POINT_RADIUS],
+                                            draw_order=MAP_DRAW_ORDER)
+            for index, scan in enumerate(self._scans):
+                positions = rr.components.Position2DBatch(thin_scan(scan)).described(
+                    rr.Points2D.descriptor_positions())
+                self._recording.log(f"{keyframe_entity(index)}/scan", [positions], style)
+            self._recording.reset_time()
+            self._scans_logged = True
         super().add(step, iteration)
-
-    def _log_scans(self, step: int) -> None:
-        # On `iteration` (not static): on the `scan` and `time` timelines the keyframes have no pose, and
-        # static points would be drawn piled up at the origin there.
-        self._recording.set_time(ITERATION_TIMELINE, sequence=step)
-        # `rr.Points2D`'s components, the style's built once: the archetype validated every field of each
-        # of a thousand keyframes' scans.
-        style = rr.Points2D.from_fields(colors=[self._color], radii=[MAP_POINT_RADIUS],
-                                        draw_order=MAP_DRAW_ORDER)
-        for index, scan in enumerate(self._scans):
-            positions = rr.components.Position2DBatch(thin_scan(scan)).described(
-                rr.Points2D.descriptor_positions())
-            self._recording.log(f"{keyframe_entity(index)}/scan", [positions], style)
-        self._recording.reset_time()
-        self._scans_logged = True
 
     def _send_batch(self, steps: IntArray, poses: NDArray[np.float32], *, final: bool) -> None:
         sent = rows_to_send(poses.astype(np.float64), self._last_sent, SHOWN_MOVE, SHOWN_TURN, final)

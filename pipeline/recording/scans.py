@@ -176,6 +176,7 @@ class ScanReplayRecording:
         self._recording = recording
         self._frontend = frontend
         self._scans = ScanRecorder(recording)
+        # The static looks of the played-back scans and of the robot's trail (their columns carry positions).
         for entity, color, radius, draw_order in ((SCAN_ENTITY, SCAN_COLOR, 1.0, 20.0),
                                                   (ROBOT_ENTITY, (90, 230, 120, 255), 2.0, 40.0)):
             recording.log(entity, rr.Points2D.from_fields(colors=[color], radii=[ui_points(radius)],
