@@ -122,34 +122,30 @@ class ScanRecorder:
 
     def __init__(self, recording: rr.RecordingStream) -> None:
         self._recording = recording
-        self._indices: list[int] = []
-        self._stamps: list[int] = []
-        self._points: list[FloatArray] = []
-        self._poses: list[FloatArray] = []
+        self._scans: list[tuple[int, int, FloatArray, FloatArray]] = []
+        """The buffered scans: (index, stamp, points, pose)."""
         self._buffered = 0
 
     def add(self, index: int, stamp_ns: int, points: FloatArray, pose: FloatArray) -> None:
         """A scan's `points` in the robot's frame, and the robot's `pose` in the map frame."""
-        self._indices.append(index)
-        self._stamps.append(int(stamp_ns))
-        self._points.append(points)
-        self._poses.append(np.asarray(pose, dtype=np.float64))
+        self._scans.append((index, int(stamp_ns), points, np.asarray(pose, dtype=np.float64)))
         self._buffered += len(points)
         if self._buffered >= SCAN_BATCH_POINTS:
             self.flush()
 
     def flush(self) -> None:
-        if not self._indices:
+        if not self._scans:
             return
+        indices, stamps, scans, robot_poses = zip(*self._scans, strict=True)
         indexes = [
-            rr.TimeColumn(SCAN_TIMELINE, sequence=np.asarray(self._indices, dtype=np.int64)),
-            rr.TimeColumn(TIME_TIMELINE, timestamp=np.asarray(self._stamps, dtype="datetime64[ns]")),
+            rr.TimeColumn(SCAN_TIMELINE, sequence=np.asarray(indices, dtype=np.int64)),
+            rr.TimeColumn(TIME_TIMELINE, timestamp=np.asarray(stamps, dtype="datetime64[ns]")),
         ]
         # Placed and thinned for the whole batch at once: per scan, numpy's call overhead was most of it.
-        counts = np.array([len(p) for p in self._points])
-        poses = np.stack(self._poses)
+        counts = np.array([len(p) for p in scans])
+        poses = np.stack(robot_poses)
         per_point = np.repeat(poses, counts, axis=0)
-        local = np.concatenate(self._points).reshape(-1, 2)
+        local = np.concatenate(scans).reshape(-1, 2)
         cos, sin = np.cos(per_point[:, 2]), np.sin(per_point[:, 2])
         points = np.column_stack([cos * local[:, 0] - sin * local[:, 1] + per_point[:, 0],
                                   sin * local[:, 0] + cos * local[:, 1] + per_point[:, 1]])
@@ -163,7 +159,7 @@ class ScanRecorder:
         robot = poses[:, :2].astype(np.float32)
         self._recording.send_columns(ROBOT_ENTITY, indexes=indexes,
                                      columns=rr.Points2D.columns(positions=robot))
-        self._indices, self._stamps, self._points, self._poses = [], [], [], []
+        self._scans = []
         self._buffered = 0
 
 
