@@ -535,10 +535,11 @@ class IterationRecorder:
         if max_points < 2:
             raise PipelineError(f"max_points must be at least 2, got {max_points}")
         self._recording = recording
-        self._loop_from = np.asarray(loop_from, dtype=np.int64)
-        self._loop_to = np.asarray(loop_to, dtype=np.int64)
-        self._loop_shown = _every_kth(len(self._loop_from), max_points // 2, keep_last=False)
-        self._chi2_floor = ROUND_OFF_CHI2 if len(self._loop_from) == 0 else 0.0
+        # (L, 2) the two poses of each loop closure, all of them and those a thinned iteration draws.
+        self._loops = np.column_stack([loop_from, loop_to]).astype(np.int64)
+        shown = _every_kth(len(self._loops), max_points // 2, keep_last=False)
+        self._thinned_loops = self._loops if shown is None else self._loops[shown]
+        self._chi2_floor = ROUND_OFF_CHI2 if len(self._loops) == 0 else 0.0
         self._max_points = max_points
         self._batch_bytes = batch_bytes
         self._still_move = still_move
@@ -596,10 +597,7 @@ class IterationRecorder:
         # The trajectory (P, 2) and loop-closure segments (L, 2, 2) of the iteration, as float32.
         shown = _every_kth(len(poses), self._max_points, keep_last=True) if thin else None
         trajectory = (poses[:, :2] if shown is None else poses[shown, :2]).astype(np.float32)
-        loop_from, loop_to = self._loop_from, self._loop_to
-        if thin and self._loop_shown is not None:
-            loop_from, loop_to = loop_from[self._loop_shown], loop_to[self._loop_shown]
-        segments = np.stack([poses[loop_from, :2], poses[loop_to, :2]], axis=1).astype(np.float32)
+        segments = poses[self._thinned_loops if thin else self._loops, :2].astype(np.float32)
         self._geometry_rows.append((trajectory, segments))
         self._buffered_bytes += trajectory.nbytes + segments.nbytes
 
