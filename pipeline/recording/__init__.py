@@ -144,13 +144,10 @@ class PoseBatches:
         self._poses.append(np.asarray(self._keyframe_poses(iteration), dtype=np.float32))
         self._buffered_bytes += self._poses[-1].nbytes
         if self._buffered_bytes >= DEFAULT_BATCH_BYTES:
-            self._send(final=False)
+            self.flush(final=False)
 
-    def flush(self) -> None:
-        """Send what is buffered (call it once the run is over)."""
-        self._send(final=True)
-
-    def _send(self, *, final: bool) -> None:
+    def flush(self, *, final: bool = True) -> None:
+        """Send what is buffered (`final`: the run is over, which is when the sinks are flushed)."""
         if self._steps:
             self._send_batch(np.asarray(self._steps, dtype=np.int64), np.stack(self._poses), final=final)
         self._steps, self._poses = [], []
@@ -548,9 +545,8 @@ class IterationRecorder:
         # Per buffered iteration its trajectory and loop-closure segments, None where its geometry is not
         # sent (see `still_move`).
         self._geometry_rows: list[tuple[NDArray[np.float32], NDArray[np.float32]] | None] = []
-        self._stages: list[str | None] = []
-        """Per buffered iteration its stage-log line, None for a repeat (same stage, same χ² shown)."""
-        self._chi2: list[float] = []
+        self._scalars: list[tuple[float, str | None]] = []
+        """Per buffered iteration its χ² and stage-log line, None for a repeat (same stage, same χ² shown)."""
         self._previous_line: tuple[str, str] | None = None
         self._latest_poses: NDArray[np.float64] | None = None
         self._first_step = 0
@@ -558,7 +554,7 @@ class IterationRecorder:
 
     def add(self, iteration: Iteration) -> int:
         """Buffer one iteration; returns its step on the `iteration` timeline."""
-        step = self._first_step + len(self._stages)  # iterations added so far
+        step = self._first_step + len(self._scalars)  # iterations added so far
         if self._latest_poses is not None:  # the previous iteration was not the final one: thinned
             self._buffer_geometry(self._latest_poses, thin=True)
         self._latest_poses = iteration.poses  # read-only by the optimizers' contract: no copy
@@ -569,9 +565,8 @@ class IterationRecorder:
         # of a zero optimum reads as zero, so a stage that only shuffles it shows one line too.
         value = f"{chi2:.6g}" if chi2 > self._chi2_floor else "0 (round-off)"
         repeat = (stage, value) == self._previous_line
-        self._stages.append(None if repeat else f"{stage} {iteration.index}: χ² = {value}")
+        self._scalars.append((chi2, None if repeat else f"{stage} {iteration.index}: χ² = {value}"))
         self._previous_line = (stage, value)
-        self._chi2.append(chi2)
         if self._buffered_bytes >= self._batch_bytes:
             self._send()
         return step
@@ -607,7 +602,7 @@ class IterationRecorder:
         thinned ones as one column batch each."""
         count = len(self._geometry_rows)
         steps = np.arange(self._first_step, self._first_step + count, dtype=np.int64)
-        chi2 = np.asarray(self._chi2[:count], dtype=np.float64)
+        chi2 = np.asarray([chi2 for chi2, _ in self._scalars[:count]], dtype=np.float64)
         self._recording.send_columns(CHI2_ENTITY, indexes=[_iteration_column(steps)],
                                      columns=rr.Scalars.columns(scalars=chi2))
         # log10 of the values above the floor only: χ² ≤ 0 has no log, and χ² at or below the floor is
@@ -616,7 +611,7 @@ class IterationRecorder:
         if positive.any():
             self._recording.send_columns(LOG10_CHI2_ENTITY, indexes=[_iteration_column(steps[positive])],
                                          columns=rr.Scalars.columns(scalars=np.log10(chi2[positive])))
-        shown = {k: line for k, line in enumerate(self._stages[:count]) if line is not None}
+        shown = {k: line for k, (_, line) in enumerate(self._scalars[:count]) if line is not None}
         if shown:
             self._recording.send_columns(
                 STAGE_ENTITY, indexes=[_iteration_column(steps[list(shown)])],
@@ -627,8 +622,7 @@ class IterationRecorder:
             send_strips(self._recording, TRAJECTORY_ENTITY, steps[list(ks)], np.stack(trajectories)[:, None])
             send_strips(self._recording, LOOP_CLOSURES_ENTITY, steps[list(ks)], np.stack(segments))
         self._first_step += count
-        for buffer in (self._geometry_rows, self._stages, self._chi2):
-            del buffer[:count]
+        del self._geometry_rows[:count], self._scalars[:count]
         self._buffered_bytes = 0  # every geometry row was sent
 
 
