@@ -602,7 +602,7 @@ class IterationRecorder:
         thinned ones as one column batch each."""
         count = len(self._geometry_rows)
         steps = np.arange(self._first_step, self._first_step + count, dtype=np.int64)
-        chi2 = np.asarray([chi2 for chi2, _ in self._scalars[:count]], dtype=np.float64)
+        chi2 = np.asarray([value for value, _ in self._scalars[:count]], dtype=np.float64)
         self._recording.send_columns(CHI2_ENTITY, indexes=[_iteration_column(steps)],
                                      columns=rr.Scalars.columns(scalars=chi2))
         # log10 of the values above the floor only: χ² ≤ 0 has no log, and χ² at or below the floor is
