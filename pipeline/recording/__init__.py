@@ -144,13 +144,10 @@ class PoseBatches:
         self._poses.append(np.asarray(self._keyframe_poses(iteration), dtype=np.float32))
         self._buffered_bytes += self._poses[-1].nbytes
         if self._buffered_bytes >= DEFAULT_BATCH_BYTES:
-            self._send(final=False)
+            self.flush(final=False)
 
-    def flush(self) -> None:
-        """Send what is buffered (call it once the run is over)."""
-        self._send(final=True)
-
-    def _send(self, *, final: bool) -> None:
+    def flush(self, *, final: bool = True) -> None:
+        """Send what is buffered (`final`: the run is over, which is when the sinks are flushed)."""
         if self._steps:
             self._send_batch(np.asarray(self._steps, dtype=np.int64), np.stack(self._poses), final=final)
         self._steps, self._poses = [], []
@@ -187,8 +184,8 @@ def create_recording(path: Path, *, name: str, with_map: bool = False) -> rr.Rec
         blueprint = default_blueprint()
     try:
         recording.save(path)
-        # What `save(path, default_blueprint=...)` does, without its leaked stream (see `_send_blueprint`).
-        _send_blueprint(recording, blueprint, make_active=False)
+        # What `save(path, default_blueprint=...)` does, without its leaked stream (see `send_blueprint`).
+        send_blueprint(recording, blueprint, make_active=False)
     except (OSError, RuntimeError) as error:
         raise OutputError(f"{path}: cannot write the recording: {_write_failure(path, error)}") from error
     _saved_to[id(recording)] = path
@@ -229,7 +226,7 @@ def close_recording(recording: rr.RecordingStream) -> None:
                 if reason is not None:
                     raise OutputError(f"{where}: cannot write the recording: {reason}") from error
         recording.disconnect()
-        # The blueprint streams `_send_blueprint` disconnected are only freed by this sweep.
+        # The blueprint streams `send_blueprint` disconnected are only freed by this sweep.
         rerun_bindings.flush_and_cleanup_orphaned_recordings()
     except RuntimeError as error:  # rerun's file writer stopped; it says only that, not why
         reason = " ".join(str(error).split()) if path is None else _write_failure(path, error)
@@ -335,13 +332,10 @@ def layout(main: rrb.View | rrb.Tabs, side: Sequence[rrb.View | rrb.Tabs], *, ro
     )
 
 
-def send_blueprint(recording: rr.RecordingStream, blueprint: rrb.Blueprint) -> None:
-    """Replace the recording's default blueprint (once the final map, hence the framing, is known)."""
-    _send_blueprint(recording, blueprint, make_active=True)
-
-
-def _send_blueprint(recording: rr.RecordingStream, blueprint: rrb.Blueprint, *, make_active: bool) -> None:
-    """rerun's `send_blueprint`, as the recording's default blueprint, without its leak.
+def send_blueprint(recording: rr.RecordingStream, blueprint: rrb.Blueprint, *,
+                   make_active: bool = True) -> None:
+    """Make `blueprint` the recording's default (replacing the one `create_recording` sent, once the final
+    map, hence the framing, is known): rerun's `send_blueprint`, without its leak.
 
     rerun 0.41 builds a blueprint in a stream of its own (`create_in_memory_blueprint`) that is never
     freed: its memory sink and the stream keep each other alive, with two threads and the replay's data
@@ -452,27 +446,16 @@ def transform3d_columns(translations: NDArray[np.float32],
     ]
 
 
-def send_trajectories(recording: rr.RecordingStream, steps: IntArray, positions: NDArray[np.float32]) -> None:
-    """One line strip per iteration: `positions` is (K, N, 2), row k logged at `steps[k]`."""
-    recording.send_columns(
-        TRAJECTORY_ENTITY,
-        indexes=[_iteration_column(steps)],
-        columns=rr.LineStrips2D.columns(strips=_equal_length_strips(positions)),
-    )
-
-
-def send_loop_segments(recording: rr.RecordingStream, steps: IntArray, segments: NDArray[np.float32]) -> None:
-    """(K, L, 2, 2) segments: L two-point loop-closure segments per iteration (nothing when L = 0)."""
-    count = segments.shape[1]
+def send_strips(recording: rr.RecordingStream, entity: str, steps: IntArray,
+                strips: NDArray[np.float32]) -> None:
+    """(K, S, P, 2) strips: S line strips of P points per iteration, row k logged at `steps[k]` (nothing
+    when S = 0): the trajectory (S = 1) or the two-point loop-closure segments."""
+    count, length = strips.shape[1:3]
     if count == 0:
         return
-    recording.send_columns(
-        LOOP_CLOSURES_ENTITY,
-        indexes=[_iteration_column(steps)],
-        columns=rr.LineStrips2D.columns(strips=_equal_length_strips(segments.reshape(-1, 2, 2))).partition(
-            np.full(len(steps), count)
-        ),
-    )
+    columns = rr.LineStrips2D.columns(strips=_equal_length_strips(strips.reshape(-1, length, 2)))
+    recording.send_columns(entity, indexes=[_iteration_column(steps)],
+                           columns=columns.partition(np.full(len(steps), count)))
 
 
 ROUND_OFF_CHI2 = 1e-12
@@ -492,32 +475,6 @@ def send_match_quality(recording: rr.RecordingStream, localizations: ScanLocaliz
         shown = np.asarray(getattr(localizations, name), dtype=np.float64)[matched]
         recording.send_columns(f"{MATCH_QUALITY_ENTITY}/{name}", indexes=index,
                                columns=rr.Scalars.columns(scalars=shown))
-
-
-def send_chi2(recording: rr.RecordingStream, steps: IntArray, chi2: FloatArray, *,
-              floor: float = 0.0) -> None:
-    """χ² per iteration, and its log10 for the values above `floor` (χ² ≤ 0 has no log; χ² at or below
-    `floor` is noise the plot would draw as a meaningless −24)."""
-    index = [_iteration_column(steps)]
-    recording.send_columns(CHI2_ENTITY, indexes=index, columns=rr.Scalars.columns(scalars=chi2))
-    positive = chi2 > max(floor, 0.0)
-    if positive.any():
-        recording.send_columns(
-            LOG10_CHI2_ENTITY,
-            indexes=[_iteration_column(steps[positive])],
-            columns=rr.Scalars.columns(scalars=np.log10(chi2[positive])),
-        )
-
-
-def send_stages(recording: rr.RecordingStream, steps: IntArray, lines: Sequence[str]) -> None:
-    """A text line per iteration in `steps` (those the stage log shows)."""
-    if len(lines) == 0:
-        return
-    recording.send_columns(
-        STAGE_ENTITY,
-        indexes=[_iteration_column(steps)],
-        columns=rr.TextLog.columns(text=list(lines), level=["INFO"] * len(lines)),
-    )
 
 
 def _equal_length_strips(points: NDArray[np.float32]) -> pa.Array:
@@ -575,10 +532,11 @@ class IterationRecorder:
         if max_points < 2:
             raise PipelineError(f"max_points must be at least 2, got {max_points}")
         self._recording = recording
-        self._loop_from = np.asarray(loop_from, dtype=np.int64)
-        self._loop_to = np.asarray(loop_to, dtype=np.int64)
-        self._loop_shown = _every_kth(len(self._loop_from), max_points // 2, keep_last=False)
-        self._chi2_floor = ROUND_OFF_CHI2 if len(self._loop_from) == 0 else 0.0
+        # (L, 2) the two poses of each loop closure, all of them and those a thinned iteration draws.
+        self._loops = np.column_stack([loop_from, loop_to]).astype(np.int64)
+        shown = _every_kth(len(self._loops), max_points // 2, keep_last=False)
+        self._thinned_loops = self._loops if shown is None else self._loops[shown]
+        self._chi2_floor = ROUND_OFF_CHI2 if len(self._loops) == 0 else 0.0
         self._max_points = max_points
         self._batch_bytes = batch_bytes
         self._still_move = still_move
@@ -587,9 +545,8 @@ class IterationRecorder:
         # Per buffered iteration its trajectory and loop-closure segments, None where its geometry is not
         # sent (see `still_move`).
         self._geometry_rows: list[tuple[NDArray[np.float32], NDArray[np.float32]] | None] = []
-        self._stages: list[str | None] = []
-        """Per buffered iteration its stage-log line, None for a repeat (same stage, same χ² shown)."""
-        self._chi2: list[float] = []
+        self._scalars: list[tuple[float, str | None]] = []
+        """Per buffered iteration its χ² and stage-log line, None for a repeat (same stage, same χ² shown)."""
         self._previous_line: tuple[str, str] | None = None
         self._latest_poses: NDArray[np.float64] | None = None
         self._first_step = 0
@@ -597,7 +554,7 @@ class IterationRecorder:
 
     def add(self, iteration: Iteration) -> int:
         """Buffer one iteration; returns its step on the `iteration` timeline."""
-        step = self._first_step + len(self._stages)  # iterations added so far
+        step = self._first_step + len(self._scalars)  # iterations added so far
         if self._latest_poses is not None:  # the previous iteration was not the final one: thinned
             self._buffer_geometry(self._latest_poses, thin=True)
         self._latest_poses = iteration.poses  # read-only by the optimizers' contract: no copy
@@ -607,13 +564,11 @@ class IterationRecorder:
         # A converged stage keeps yielding the same χ²: the log shows the first such line only. Round-off
         # of a zero optimum reads as zero, so a stage that only shuffles it shows one line too.
         value = f"{chi2:.6g}" if chi2 > self._chi2_floor else "0 (round-off)"
-        shown = (stage, value)
-        repeat = shown == self._previous_line
-        self._stages.append(None if repeat else f"{stage} {iteration.index}: χ² = {value}")
-        self._previous_line = shown
-        self._chi2.append(chi2)
+        repeat = (stage, value) == self._previous_line
+        self._scalars.append((chi2, None if repeat else f"{stage} {iteration.index}: χ² = {value}"))
+        self._previous_line = (stage, value)
         if self._buffered_bytes >= self._batch_bytes:
-            self._send(len(self._geometry_rows))
+            self._send()
         return step
 
     def flush(self) -> None:
@@ -621,57 +576,54 @@ class IterationRecorder:
         if self._latest_poses is not None:
             self._buffer_geometry(self._latest_poses, thin=False)
             self._latest_poses = None
-        self._send(len(self._geometry_rows))
+        self._send()
 
     def _buffer_geometry(self, poses: NDArray[np.float64], *, thin: bool) -> None:
-        still = self._still_distance(poses)
+        # How far every pose may move from the last drawn row without a new one; None: always draw.
+        still = self._still_move
+        if self._still_fraction is not None:
+            still = max(still or 0.0, self._still_fraction * finite_extent(poses))
         if (thin and still is not None and self._last_drawn is not None
                 and moved_within(poses, self._last_drawn, still)):
             self._geometry_rows.append(None)
             return
         if still is not None:
             self._last_drawn = np.array(poses[:, :2])
-        trajectory, segments = self._geometry(poses, thin=thin)
+        # The trajectory (P, 2) and loop-closure segments (L, 2, 2) of the iteration, as float32.
+        shown = _every_kth(len(poses), self._max_points, keep_last=True) if thin else None
+        trajectory = (poses[:, :2] if shown is None else poses[shown, :2]).astype(np.float32)
+        segments = poses[self._thinned_loops if thin else self._loops, :2].astype(np.float32)
         self._geometry_rows.append((trajectory, segments))
         self._buffered_bytes += trajectory.nbytes + segments.nbytes
 
-    def _still_distance(self, poses: NDArray[np.float64]) -> float | None:
-        """How far every pose may move from the last drawn row without a new one; None: always draw."""
-        if self._still_fraction is None:
-            return self._still_move
-        return max(self._still_move or 0.0, self._still_fraction * finite_extent(poses))
-
-    def _geometry(self, poses: NDArray[np.float64], *, thin: bool) -> tuple[NDArray[np.float32],
-                                                                           NDArray[np.float32]]:
-        """The trajectory (P, 2) and loop-closure segments (L, 2, 2) of one iteration, as float32."""
-        shown = _every_kth(len(poses), self._max_points, keep_last=True) if thin else None
-        trajectory = poses[:, :2] if shown is None else poses[shown, :2]
-        loop_from, loop_to = self._loop_from, self._loop_to
-        if thin and self._loop_shown is not None:
-            loop_from, loop_to = loop_from[self._loop_shown], loop_to[self._loop_shown]
-        segments = np.stack([poses[loop_from, :2], poses[loop_to, :2]], axis=1)
-        return trajectory.astype(np.float32), segments.astype(np.float32)
-
-    def _send(self, count: int) -> None:
-        """Send the first `count` buffered iterations (the latest has no geometry until the next `add` or
-        `flush`): χ² and stage lines of all, the geometry of those that have it, runs of equally thinned
-        ones as one column batch each."""
+    def _send(self) -> None:
+        """Send the buffered iterations that have their geometry row (the latest has none until the next
+        `add` or `flush`): χ² and stage lines of all, the geometry of those that are drawn, runs of equally
+        thinned ones as one column batch each."""
+        count = len(self._geometry_rows)
         steps = np.arange(self._first_step, self._first_step + count, dtype=np.int64)
-        send_chi2(self._recording, steps, np.asarray(self._chi2[:count], dtype=np.float64),
-                  floor=self._chi2_floor)
-        lines = self._stages[:count]
-        shown = np.array([line is not None for line in lines], dtype=bool)
-        send_stages(self._recording, steps[shown], [line for line in lines if line is not None])
+        chi2 = np.asarray([value for value, _ in self._scalars[:count]], dtype=np.float64)
+        self._recording.send_columns(CHI2_ENTITY, indexes=[_iteration_column(steps)],
+                                     columns=rr.Scalars.columns(scalars=chi2))
+        # log10 of the values above the floor only: χ² ≤ 0 has no log, and χ² at or below the floor is
+        # noise the plot would draw as a meaningless −24.
+        positive = chi2 > self._chi2_floor
+        if positive.any():
+            self._recording.send_columns(LOG10_CHI2_ENTITY, indexes=[_iteration_column(steps[positive])],
+                                         columns=rr.Scalars.columns(scalars=np.log10(chi2[positive])))
+        shown = {k: line for k, (_, line) in enumerate(self._scalars[:count]) if line is not None}
+        if shown:
+            self._recording.send_columns(
+                STAGE_ENTITY, indexes=[_iteration_column(steps[list(shown)])],
+                columns=rr.TextLog.columns(text=list(shown.values()), level=["INFO"] * len(shown)))
         drawn = [(k, *row) for k, row in enumerate(self._geometry_rows[:count]) if row is not None]
         for _, group in itertools.groupby(drawn, key=lambda row: (row[1].shape, row[2].shape)):
             ks, trajectories, segments = zip(*group, strict=True)
-            send_trajectories(self._recording, steps[list(ks)], np.stack(trajectories))
-            send_loop_segments(self._recording, steps[list(ks)], np.stack(segments))
+            send_strips(self._recording, TRAJECTORY_ENTITY, steps[list(ks)], np.stack(trajectories)[:, None])
+            send_strips(self._recording, LOOP_CLOSURES_ENTITY, steps[list(ks)], np.stack(segments))
         self._first_step += count
-        for buffer in (self._geometry_rows, self._stages, self._chi2):
-            del buffer[:count]
-        self._buffered_bytes = sum(row[0].nbytes + row[1].nbytes for row in self._geometry_rows
-                                   if row is not None)
+        del self._geometry_rows[:count], self._scalars[:count]
+        self._buffered_bytes = 0  # every geometry row was sent
 
 
 def _every_kth(count: int, limit: int, *, keep_last: bool) -> IntArray | None:

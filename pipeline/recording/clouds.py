@@ -40,6 +40,7 @@ from pipeline.recording import (
     SCAN_TIMELINE,
     TRAJECTORY_COLOR,
     Bounds,
+    FloatArray,
     PoseBatches,
     chi2_views,
     layout,
@@ -65,9 +66,6 @@ RECORDING_KEYFRAME_VOXEL = 0.5
 """Keyframe clouds in the recording are thinned to this voxel (m): hundreds of them stay light to view."""
 KEYFRAME_AXIS_LENGTH = 1.5
 """Length (m) of the axes drawn at every keyframe pose."""
-
-FloatArray = NDArray[np.float64]
-
 
 def keyframe_entity(index: int) -> str:
     return f"{KEYFRAMES_ENTITY}/k{index:06d}"
@@ -221,12 +219,6 @@ LOCALIZATION_LEGEND_ROWS = {
 }
 
 
-def localization3d_blueprint() -> rrb.Blueprint:
-    scene = rrb.Spatial3DView(origin=WORLD3D_ENTITY, name="saved map and the new run (3D)")
-    return layout(scene, [rrb.TimeSeriesView(origin=MATCH_QUALITY_ENTITY, name="match quality per cloud")],
-                  row_shares=[3, 1], timeline=SCAN_TIMELINE, play_state=None)
-
-
 class CloudLocalizationRecording(CloudReplayRecording):
     """`CloudReplayRecording` for a localization in a saved 3D map (a `pipeline.replay_log.
     FrontendRecording`): the saved map under the new run; `final(saved planar keyframe poses, localized
@@ -244,7 +236,9 @@ class CloudLocalizationRecording(CloudReplayRecording):
     _frontend: LocalizingLidarFrontend
 
     def blueprint(self) -> rrb.Blueprint:
-        return localization3d_blueprint()
+        scene = rrb.Spatial3DView(origin=WORLD3D_ENTITY, name="saved map and the new run (3D)")
+        match_quality = rrb.TimeSeriesView(origin=MATCH_QUALITY_ENTITY, name="match quality per cloud")
+        return layout(scene, [match_quality], row_shares=[3, 1], timeline=SCAN_TIMELINE, play_state=None)
 
     def frontend_done(self) -> None:
         found = self._frontend.localizations

@@ -87,8 +87,7 @@ def log_occupancy(recording: rr.RecordingStream, image: NDArray[np.uint8], origi
 
     height = image.shape[0]
     colors = np.zeros((256, 4), dtype=np.uint8)  # the palette: every grey not drawn is transparent
-    for grey, rgba in OCCUPANCY_VIEW_COLORS.items():
-        colors[grey] = rgba
+    colors[list(OCCUPANCY_VIEW_COLORS)] = list(OCCUPANCY_VIEW_COLORS.values())
     png = io.BytesIO()
     # One byte a pixel, the colours a palette (alpha in its tRNS chunk): the viewer decodes it to the same
     # RGBA, and deflating a quarter of the bytes took UAL's map (14 M pixels) 0.03 s instead of 0.5 s.
@@ -122,26 +121,21 @@ class KeyframeMapRecorder(PoseBatches):
         self._last_sent: NDArray[np.float64] = np.full((len(scans), 3), np.nan)
 
     def add(self, step: int, iteration: Iteration) -> None:
-        if not self._scans_logged:
-            self._log_scans(step)
+        if not self._scans_logged:  # each keyframe's scan, at the first iteration
+            # On `iteration` (not static): on the `scan` and `time` timelines the keyframes have no pose,
+            # and static points would be drawn piled up at the origin there.
+            self._recording.set_time(ITERATION_TIMELINE, sequence=step)
+            # `rr.Points2D`'s components, the style's built once: the archetype validated every field of
+            # each of a thousand keyframes' scans.
+            style = rr.Points2D.from_fields(colors=[self._color], radii=[MAP_POINT_RADIUS],
+                                            draw_order=MAP_DRAW_ORDER)
+            for index, scan in enumerate(self._scans):
+                positions = rr.components.Position2DBatch(thin_scan(scan)).described(
+                    rr.Points2D.descriptor_positions())
+                self._recording.log(f"{keyframe_entity(index)}/scan", [positions], style)
+            self._recording.reset_time()
+            self._scans_logged = True
         super().add(step, iteration)
-
-    def _log_scans(self, step: int) -> None:
-        # On `iteration` (not static): on the `scan` and `time` timelines the keyframes have no pose, and
-        # static points would be drawn piled up at the origin there.
-        self._recording.set_time(ITERATION_TIMELINE, sequence=step)
-        # `rr.Points2D`'s components, the style's built once: the archetype validated every field of each
-        # of a thousand keyframes' scans.
-        radii = rr.components.RadiusBatch([MAP_POINT_RADIUS]).described(rr.Points2D.descriptor_radii())
-        colors = rr.components.ColorBatch([self._color]).described(rr.Points2D.descriptor_colors())
-        draw_order = rr.components.DrawOrderBatch([MAP_DRAW_ORDER]).described(
-            rr.Points2D.descriptor_draw_order())
-        for index, scan in enumerate(self._scans):
-            positions = rr.components.Position2DBatch(thin_scan(scan)).described(
-                rr.Points2D.descriptor_positions())
-            self._recording.log(f"{keyframe_entity(index)}/scan", [positions, radii, colors, draw_order])
-        self._recording.reset_time()
-        self._scans_logged = True
 
     def _send_batch(self, steps: IntArray, poses: NDArray[np.float32], *, final: bool) -> None:
         sent = rows_to_send(poses.astype(np.float64), self._last_sent, SHOWN_MOVE, SHOWN_TURN, final)
@@ -149,8 +143,7 @@ class KeyframeMapRecorder(PoseBatches):
         # quaternions are computed.
         keyframes, rows = np.nonzero(sent.T)
         chosen = poses[rows, keyframes]
-        translations = np.zeros((len(chosen), 3), dtype=np.float32)
-        translations[:, :2] = chosen[:, :2]
+        translations = np.pad(chosen[:, :2], ((0, 0), (0, 1)))  # z = 0
         quaternions = from_yaw(chosen[:, 2]).astype(np.float32)
         starts = np.searchsorted(keyframes, np.arange(poses.shape[1] + 1))
         for index in np.flatnonzero(np.diff(starts)):

@@ -16,7 +16,6 @@ SESSION`): the scans as above, under the saved map (see its docstring).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -103,17 +102,6 @@ PLAYBACK_CELL = 0.1
 the whole map, where a pixel is several centimetres, and they were the recording's largest part."""
 
 
-def log_scan_styles(recording: rr.RecordingStream) -> None:
-    for entity, color, radius, draw_order in ((SCAN_ENTITY, SCAN_COLOR, 1.0, 20.0),
-                                              (ROBOT_ENTITY, (90, 230, 120, 255), 2.0, 40.0)):
-        recording.log(entity, rr.Points2D.from_fields(colors=[color], radii=[ui_points(radius)],
-                                                      draw_order=draw_order), static=True)
-
-
-def log_final_trajectory(recording: rr.RecordingStream, poses: FloatArray) -> None:
-    log_static_trajectory(recording, FINAL_TRAJECTORY_ENTITY, poses, FINAL_TRAJECTORY_COLOR)
-
-
 def log_loop_closures_found(
     recording: rr.RecordingStream, scan_index: int, stamp_ns: int, segments: FloatArray
 ) -> None:
@@ -134,34 +122,30 @@ class ScanRecorder:
 
     def __init__(self, recording: rr.RecordingStream) -> None:
         self._recording = recording
-        self._indices: list[int] = []
-        self._stamps: list[int] = []
-        self._points: list[FloatArray] = []
-        self._poses: list[FloatArray] = []
+        self._scans: list[tuple[int, int, FloatArray, FloatArray]] = []
+        """The buffered scans: (index, stamp, points, pose)."""
         self._buffered = 0
 
     def add(self, index: int, stamp_ns: int, points: FloatArray, pose: FloatArray) -> None:
         """A scan's `points` in the robot's frame, and the robot's `pose` in the map frame."""
-        self._indices.append(index)
-        self._stamps.append(int(stamp_ns))
-        self._points.append(points)
-        self._poses.append(np.asarray(pose, dtype=np.float64))
+        self._scans.append((index, int(stamp_ns), points, np.asarray(pose, dtype=np.float64)))
         self._buffered += len(points)
         if self._buffered >= SCAN_BATCH_POINTS:
             self.flush()
 
     def flush(self) -> None:
-        if not self._indices:
+        if not self._scans:
             return
+        indices, stamps, scans, robot_poses = zip(*self._scans, strict=True)
         indexes = [
-            rr.TimeColumn(SCAN_TIMELINE, sequence=np.asarray(self._indices, dtype=np.int64)),
-            rr.TimeColumn(TIME_TIMELINE, timestamp=np.asarray(self._stamps, dtype="datetime64[ns]")),
+            rr.TimeColumn(SCAN_TIMELINE, sequence=np.asarray(indices, dtype=np.int64)),
+            rr.TimeColumn(TIME_TIMELINE, timestamp=np.asarray(stamps, dtype="datetime64[ns]")),
         ]
         # Placed and thinned for the whole batch at once: per scan, numpy's call overhead was most of it.
-        counts = np.array([len(p) for p in self._points])
-        poses = np.stack(self._poses)
+        counts = np.array([len(p) for p in scans])
+        poses = np.stack(robot_poses)
         per_point = np.repeat(poses, counts, axis=0)
-        local = np.concatenate(self._points).reshape(-1, 2)
+        local = np.concatenate(scans).reshape(-1, 2)
         cos, sin = np.cos(per_point[:, 2]), np.sin(per_point[:, 2])
         points = np.column_stack([cos * local[:, 0] - sin * local[:, 1] + per_point[:, 0],
                                   sin * local[:, 0] + cos * local[:, 1] + per_point[:, 1]])
@@ -175,7 +159,7 @@ class ScanRecorder:
         robot = poses[:, :2].astype(np.float32)
         self._recording.send_columns(ROBOT_ENTITY, indexes=indexes,
                                      columns=rr.Points2D.columns(positions=robot))
-        self._indices, self._stamps, self._points, self._poses = [], [], [], []
+        self._scans = []
         self._buffered = 0
 
 
@@ -188,14 +172,16 @@ class ScanReplayRecording:
         self._recording = recording
         self._frontend = frontend
         self._scans = ScanRecorder(recording)
-        log_scan_styles(recording)
+        # The static looks of the played-back scans and of the robot's trail (their columns carry positions).
+        for entity, color, radius, draw_order in ((SCAN_ENTITY, SCAN_COLOR, 1.0, 20.0),
+                                                  (ROBOT_ENTITY, (90, 230, 120, 255), 2.0, 40.0)):
+            recording.log(entity, rr.Points2D.from_fields(colors=[color], radii=[ui_points(radius)],
+                                                          draw_order=draw_order), static=True)
 
     def measurement(self, measurement: ScanInBase, estimate: ScanEstimate) -> None:
-        scan, _ = measurement
-        x, y, theta = (float(value) for value in estimate.pose)
-        if estimate.between or not (math.isfinite(x) and math.isfinite(y) and math.isfinite(theta)):
+        if estimate.between or not np.all(np.isfinite(estimate.pose)):
             return  # between matched scans, or not placed yet (a run joining a saved map): no pose
-        points = scan.points if estimate.points is None else estimate.points
+        points = measurement[0].points if estimate.points is None else estimate.points
         self._scans.add(estimate.index, estimate.stamp_ns, points, estimate.pose)
         if estimate.new_loop_closures:
             position = self._frontend.keyframe_position
@@ -204,12 +190,11 @@ class ScanReplayRecording:
 
     def frontend_done(self) -> None:
         self._scans.flush()
-        if self._frontend.odometry_poses:
+        if len(self._frontend.odometry_poses) >= 2:
             # In the map frame, which starts at the first scan: the odometry seen from its own first pose.
             track = np.array(self._frontend.odometry_poses)
-            if len(track) >= 2:
-                log_static_trajectory(self._recording, ODOMETRY_TRAJECTORY_ENTITY,
-                                      se2.relative(track[0], track), ODOMETRY_COLOR)
+            log_static_trajectory(self._recording, ODOMETRY_TRAJECTORY_ENTITY,
+                                  se2.relative(track[0], track), ODOMETRY_COLOR)
 
     def iteration_sink(self) -> IterationSink | None:
         return None
@@ -218,7 +203,7 @@ class ScanReplayRecording:
         return self._frontend.result.keyframe_scans
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
-        log_final_trajectory(self._recording, estimates)
+        log_static_trajectory(self._recording, FINAL_TRAJECTORY_ENTITY, estimates, FINAL_TRAJECTORY_COLOR)
         map2d.log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)
 
 
@@ -274,20 +259,17 @@ class MapLocalizationRecording(ScanReplayRecording):
     χ² shares a tab strip with the match quality; otherwise the time panel opens on `scan`.
     """
 
-    def __init__(self, recording: rr.RecordingStream, frontend: LocalizingLaserFrontend) -> None:
-        super().__init__(recording, frontend)
-        self._saved_scans = frontend.saved.keyframe_scans
-        self._localizer = frontend
+    _frontend: LocalizingLaserFrontend
 
     def final(self, planar_poses: FloatArray, estimates: FloatArray, map_export: OccupancyGrid) -> None:
-        log_saved_map(self._recording, self._saved_scans, planar_poses)
-        map2d.log_occupancy(self._recording, map_export.image(), map_export.origin, map_export.resolution)
-        log_final_trajectory(self._recording, estimates)
-        held_map = self._localizer.held_map_solved
+        saved_scans = self._frontend.saved.keyframe_scans
+        log_saved_map(self._recording, saved_scans, planar_poses)
+        super().final(planar_poses, estimates, map_export)  # the final trajectory and the occupancy grid
+        held_map = self._frontend.held_map_solved
         log_legend(self._recording, HELD_MAP_LEGEND_ROWS if held_map else None, rows=LOCALIZATION_LEGEND_ROWS,
                    note=HELD_MAP_NOTE if held_map else "")
-        bounds = map2d.placed_bounds(self._saved_scans, planar_poses, estimates)
-        send_match_quality(self._recording, self._localizer.localizations, MATCH_SERIES_2D)
+        bounds = map2d.placed_bounds(saved_scans, planar_poses, estimates)
+        send_match_quality(self._recording, self._frontend.localizations, MATCH_SERIES_2D)
         match_quality = rrb.TimeSeriesView(origin=MATCH_QUALITY_ENTITY, name="match quality per scan (scan)")
         # A plot shows the time panel's timeline only: χ² (on `iteration`) and the match quality (on `scan`)
         # share a tab strip rather than leave one plot empty.
