@@ -34,7 +34,8 @@ def weakest_horizontal_share(points: NDArray[np.floating]) -> float:
     if len(sample) <= NEIGHBOURS:
         return 1.0
     _, neighbours = cKDTree(sample).query(sample, k=NEIGHBOURS)
-    around = sample[neighbours] - sample[neighbours].mean(axis=1, keepdims=True)
+    neighbourhoods = sample[neighbours]
+    around = neighbourhoods - neighbourhoods.mean(axis=1, keepdims=True)
     variances, axes = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))
     normals = axes[variances[:, 0] < PLANAR * variances[:, 1], :2, 0]
     weakest, strongest = np.linalg.eigvalsh(normals.T @ normals)

@@ -117,19 +117,19 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
             self._result = self._finished(self._slam.finish)
         except NothingRegisteredError as error:
             raise UnusableLogError(self._log.path, str(error)) from None
-        untracked = self._result.clouds_untracked
+        result = self._result
+        untracked = result.clouds_untracked
         if untracked:
             needed = self.config.odometry.min_points
             warnings.warn(f"{self._log.path}: {untracked} of the {self._clouds} clouds on {self._topic} had "
                           f"fewer than {needed} points spread over more than a voxel to register: each was "
                           "given the pose of the last registered cloud", LogWarning, stacklevel=2)
-        overruled = self._result.odometry_guesses_overruled
+        overruled = result.odometry_guesses_overruled
         if overruled:
             warnings.warn(f"{self._log.path}: at {overruled} of the {self._clouds} clouds the odometry's "
                           f"motion ({self.odometry_topic or 'tf'}) was far from the LiDAR's and fit the map "
                           "much worse (a jump in the odometry?): those clouds were registered without it",
                           LogWarning, stacklevel=2)
-        result = self._result
         if result.keyframes_underconstrained:
             warnings.warn(f"{self._log.path}: {result.keyframes_underconstrained} of the "
                           f"{result.num_keyframes} keyframes ({result.underconstrained_travel:.0f} m of the "
@@ -138,9 +138,9 @@ class LidarFrontend(LogFrontendBase[Slam3DConfig, Slam3DGraph]):
                           "odometry or, without it, constant velocity carried; distances there may be short",
                           LogWarning, stacklevel=2)
         if self._prior is not None:
-            self._warn_if_odometry_covered_nothing(self._prior.stamps_ns, self._result.cloud_stamps_ns,
+            self._warn_if_odometry_covered_nothing(self._prior.stamps_ns, result.cloud_stamps_ns,
                                                    self._clouds_with_odometry, "clouds", "registered")
-        if not any(len(cloud) for cloud in self._result.keyframe_clouds):
+        if not any(len(cloud) for cloud in result.keyframe_clouds):
             odometry = self.config.odometry
             raise UnusableLogError(
                 self._log.path, f"no cloud on {self._topic} kept a point between min_range "

@@ -203,13 +203,18 @@ class KissOdometry:
             return True
         predicted = kiss.last_pose @ kiss.last_delta
         guessed = kiss.last_pose @ motion_guess
+        between = se3.relative(predicted, guessed)
+        sigma = float(kiss.adaptive_threshold.get_threshold())
+        reach = 3.0 * sigma  # ICP's correspondence distance
+        # No point moves further than |t| + angle · range: most clouds end here, before any work on points.
+        bound = np.linalg.norm(between[:3, 3]) + float(se3.rotation_angle(between)) * self.config.max_range
+        if bound <= reach:
+            return True
         frame = kiss.preprocessor.preprocess(np.ascontiguousarray(points, dtype=np.float64), NO_TIMES,
                                              np.eye(4))
-        source = voxel_down_sample(frame, self.config.map_voxel_size * 1.5)
-        between = se3.relative(predicted, guessed)
+        source, _ = kiss.voxelize(frame)  # the points ICP registers
         moved = se3.transform_points(between, source) - source
-        sigma = float(kiss.adaptive_threshold.get_threshold())
-        if len(source) == 0 or float(np.median(np.linalg.norm(moved, axis=1))) <= 3.0 * sigma:
+        if len(source) == 0 or float(np.median(np.linalg.norm(moved, axis=1))) <= reach:
             return True
         from scipy.spatial import cKDTree  # here: only a disagreement needs it
 
@@ -218,7 +223,7 @@ class KissOdometry:
         for start in (guessed, predicted):
             pose = kiss.registration.align_points_to_map(
                 points=source, voxel_map=kiss.local_map, initial_guess=start,
-                max_correspondance_distance=3.0 * sigma, kernel=sigma,
+                max_correspondance_distance=reach, kernel=sigma,
             )
             distance, _ = map_points.query(se3.transform_points(pose, source), distance_upper_bound=sigma)
             unmatched.append(float(np.mean(~np.isfinite(distance))))

@@ -67,6 +67,7 @@ RECORDING_KEYFRAME_VOXEL = 0.5
 KEYFRAME_AXIS_LENGTH = 1.5
 """Length (m) of the axes drawn at every keyframe pose."""
 
+
 def keyframe_entity(index: int) -> str:
     return f"{KEYFRAMES_ENTITY}/k{index:06d}"
 
