@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from optimizer import se2
 from pipeline.errors import PipelineError
-from pipeline.trajectory_io import DataFileError, read_rows, read_tum
+from pipeline.trajectory_io import DataFileError, ReadOnlyRows, read_rows, read_tum
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -42,20 +42,13 @@ class EvaluationError(PipelineError):
 
 
 @dataclass(frozen=True, eq=False)
-class Relations:
+class Relations(ReadOnlyRows):
     """Ground-truth relative motions: `motion[k]` (x, y, θ) is the pose at `second_ns[k]` in the frame of
     the pose at `first_ns[k]`. Arrays (R,) int64 and (R,3), in file order, read-only."""
 
     first_ns: IntArray
     second_ns: IntArray
     motion: FloatArray
-
-    def __post_init__(self) -> None:
-        for array in (self.first_ns, self.second_ns, self.motion):
-            array.flags.writeable = False
-
-    def __len__(self) -> int:
-        return len(self.first_ns)
 
 
 @dataclass(frozen=True, eq=False)

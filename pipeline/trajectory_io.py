@@ -8,6 +8,7 @@ Pose numbers are written with 17 significant digits, which a float64 reads back 
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -41,20 +42,25 @@ class TrajectoryFileError(DataFileError):
 
 
 @dataclass(frozen=True, eq=False)
-class Trajectory:
+class ReadOnlyRows:
+    """Rows of a data file as arrays of equal length, one per field, made read-only; its length theirs."""
+
+    def __post_init__(self) -> None:
+        for item in dataclasses.fields(self):
+            getattr(self, item.name).flags.writeable = False
+
+    def __len__(self) -> int:
+        return len(getattr(self, dataclasses.fields(self)[0].name))
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory(ReadOnlyRows):
     """Poses of a TUM file in file order: `stamps_ns` (S,) int64, `positions` (S,3), `quaternions` (S,4)
     in (x, y, z, w) order as written (not renormalised). The arrays are read-only."""
 
     stamps_ns: IntArray
     positions: FloatArray
     quaternions: FloatArray
-
-    def __post_init__(self) -> None:
-        for array in (self.stamps_ns, self.positions, self.quaternions):
-            array.flags.writeable = False
-
-    def __len__(self) -> int:
-        return len(self.stamps_ns)
 
     def planar(self) -> FloatArray:
         """(S,3) planar poses (x, y, yaw): the heading about z, in [-π, π]. The formula is the ZYX yaw
